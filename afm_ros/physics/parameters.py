@@ -1,0 +1,215 @@
+"""Parameter specifications and validated physical parameter sets (SI units).
+
+Every tunable value of the project is described once here by a :class:`ParamSpec`
+(name, default, unit, allowed range, description). The physics dataclasses, the ROS
+parameter descriptors, ``config/afm.yaml`` and the README tables are all derived from or
+checked against these specs, so a range is defined in exactly one place.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One scalar parameter: default value, SI unit and allowed closed/open range."""
+
+    name: str
+    default: Any
+    unit: str
+    description: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    kind: type = float
+    live: bool = True  # may be changed while a node runs
+    choices: tuple = ()
+
+    def range_text(self) -> str:
+        if self.choices:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        if self.kind is bool:
+            return "true or false"
+        if self.kind is str:
+            return "any string"
+        lo = "-inf" if self.low is None else f"{self.low:g}"
+        hi = "inf" if self.high is None else f"{self.high:g}"
+        lb = "(" if (self.low_open or self.low is None) else "["
+        hb = ")" if (self.high_open or self.high is None) else "]"
+        unit = f" {self.unit}" if self.unit and self.unit != "1" else ""
+        return f"{lb}{lo}, {hi}{hb}{unit}"
+
+    def validate(self, value: Any) -> Any:
+        """Return ``value`` converted to the spec's type or raise ValueError naming the field."""
+        if self.kind is bool:
+            if not isinstance(value, bool):
+                raise ValueError(f"{self.name}={value!r} is not a boolean; allowed: true or false")
+            return value
+        if self.kind is str:
+            if not isinstance(value, str):
+                raise ValueError(f"{self.name}={value!r} is not a string")
+            if self.choices and value not in self.choices:
+                raise ValueError(f"{self.name}={value!r} is not allowed; allowed: {self.range_text()}")
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{self.name}={value!r} is not a number; allowed range {self.range_text()}")
+        if self.kind is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(f"{self.name}={value!r} is not an integer; allowed range {self.range_text()}")
+            value = int(value)
+        else:
+            value = float(value)
+            if not math.isfinite(value):
+                raise ValueError(f"{self.name}={value!r} is not finite; allowed range {self.range_text()}")
+        bad_low = self.low is not None and (value <= self.low if self.low_open else value < self.low)
+        bad_high = self.high is not None and (value >= self.high if self.high_open else value > self.high)
+        if bad_low or bad_high:
+            unit = f" {self.unit}" if self.unit and self.unit != "1" else ""
+            raise ValueError(f"{self.name}={value!r}{unit} is out of range; allowed range {self.range_text()}")
+        return value
+
+
+def _specs(*specs: ParamSpec) -> dict[str, ParamSpec]:
+    return {s.name: s for s in specs}
+
+
+# --- cantilever, drive and integration -------------------------------------------------
+CANTILEVER_SPECS = _specs(
+    ParamSpec("spring_constant", 10.0, "N/m", "cantilever spring constant k", 1e-3, 1e4),
+    ParamSpec("resonance_frequency", 45e3, "Hz", "free resonance frequency f0", 10.0, 1e8),
+    ParamSpec("quality_factor", 25.0, "1", "quality factor Q (damping m*w0/Q)", 0.5, 1e6, low_open=True),
+    ParamSpec("drive_frequency", 45e3, "Hz", "drive (excitation) frequency f", 10.0, 1e8),
+    ParamSpec("free_amplitude", 60e-9, "m",
+              "free amplitude at resonance A0; the drive force is F0 = k*A0/Q", 0.0, 1e-6, low_open=True),
+    ParamSpec("z_base", 40e-9, "m",
+              "rest position of the cantilever base above the sample surface (gap at zero deflection "
+              "and zero piezo)", -1e-6, 1e-4),
+    ParamSpec("steps_per_period", 200, "1", "RK4 integration steps per drive period", 20, 100000, kind=int),
+)
+
+# --- DMT tip-sample interaction (seed notebook values) -----------------------------------
+DMT_SPECS = _specs(
+    ParamSpec("tip_radius", 20e-9, "m", "tip radius R", 1e-10, 1e-5),
+    ParamSpec("hamaker_constant", 6.4e-20, "J", "Hamaker constant H", 0.0, 1e-17),
+    ParamSpec("intermolecular_distance", 0.2e-9, "m", "intermolecular distance a0 (contact onset)", 1e-11, 1e-8),
+    ParamSpec("tip_youngs_modulus", 130e9, "Pa", "Young's modulus of the tip E_t", 1e3, 1e13),
+    ParamSpec("sample_youngs_modulus", 70e6, "Pa", "Young's modulus of the sample E_s", 1e3, 1e13),
+    ParamSpec("tip_poisson_ratio", 0.3, "1", "Poisson ratio of the tip", -1.0, 0.5, low_open=True),
+    ParamSpec("sample_poisson_ratio", 0.3, "1", "Poisson ratio of the sample", -1.0, 0.5, low_open=True),
+)
+
+# Minimum integration steps per *resonance* period: RK4 on a damped oscillator is stable for
+# w0*dt < 2.78, but a tapping cantilever also stiffens in contact; 20 steps keeps w0*dt < 0.32.
+MIN_STEPS_PER_RESONANCE_PERIOD = 20.0
+
+
+def check_steps_per_resonance(steps_per_period: int, drive_frequency: float, resonance_frequency: float) -> None:
+    """Reject a step size that resolves the resonance with fewer than 20 steps per period."""
+    per_res = steps_per_period * drive_frequency / resonance_frequency
+    if per_res < MIN_STEPS_PER_RESONANCE_PERIOD:
+        raise ValueError(
+            f"steps_per_period={steps_per_period} at drive_frequency={drive_frequency:g} Hz gives "
+            f"{per_res:.3g} steps per resonance period (resonance_frequency={resonance_frequency:g} Hz); "
+            f"at least {MIN_STEPS_PER_RESONANCE_PERIOD:g} are needed for a stable, accurate RK4 integration")
+
+
+def _validate_fields(obj, specs: dict[str, ParamSpec], names: dict[str, str]) -> None:
+    for attr, spec_name in names.items():
+        object.__setattr__(obj, attr, specs[spec_name].validate(getattr(obj, attr)))
+
+
+@dataclass(frozen=True)
+class Cantilever:
+    """Point-mass cantilever: k [N/m], f0 [Hz], Q [1]. m = k / w0^2."""
+
+    spring_constant: float = CANTILEVER_SPECS["spring_constant"].default
+    resonance_frequency: float = CANTILEVER_SPECS["resonance_frequency"].default
+    quality_factor: float = CANTILEVER_SPECS["quality_factor"].default
+
+    def __post_init__(self):
+        _validate_fields(self, CANTILEVER_SPECS, {
+            "spring_constant": "spring_constant",
+            "resonance_frequency": "resonance_frequency",
+            "quality_factor": "quality_factor"})
+
+    @property
+    def k(self) -> float:
+        return self.spring_constant
+
+    @property
+    def omega0(self) -> float:
+        """Angular resonance frequency w0 [rad/s]."""
+        return 2.0 * math.pi * self.resonance_frequency
+
+    @property
+    def mass(self) -> float:
+        """Effective mass m = k / w0^2 [kg]."""
+        return self.spring_constant / self.omega0 ** 2
+
+    @property
+    def damping(self) -> float:
+        """Viscous damping coefficient c = m w0 / Q [kg/s]."""
+        return self.mass * self.omega0 / self.quality_factor
+
+
+@dataclass(frozen=True)
+class Drive:
+    """Harmonic drive F0 cos(w t + phase): frequency [Hz], force amplitude F0 [N], phase [rad]."""
+
+    frequency: float = CANTILEVER_SPECS["drive_frequency"].default
+    force: float = 24e-9
+    phase: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "frequency", CANTILEVER_SPECS["drive_frequency"].validate(self.frequency))
+        force = self.force
+        if isinstance(force, bool) or not isinstance(force, (int, float)) or not math.isfinite(force) \
+                or not (0.0 <= force <= 1e-3):
+            raise ValueError(f"drive_force={force!r} N is out of range; allowed range [0, 0.001] N")
+        object.__setattr__(self, "force", float(force))
+        if not math.isfinite(self.phase):
+            raise ValueError(f"drive_phase={self.phase!r} rad is not finite")
+
+    @classmethod
+    def from_free_amplitude(cls, cantilever: Cantilever, free_amplitude: float,
+                            frequency: float | None = None, phase: float = 0.0) -> "Drive":
+        """Drive whose free amplitude *at resonance* is ``free_amplitude`` [m]: F0 = k A0 / Q."""
+        a0 = CANTILEVER_SPECS["free_amplitude"].validate(free_amplitude)
+        freq = cantilever.resonance_frequency if frequency is None else frequency
+        return cls(freq, cantilever.spring_constant * a0 / cantilever.quality_factor, phase)
+
+    @property
+    def omega(self) -> float:
+        return 2.0 * math.pi * self.frequency
+
+
+@dataclass(frozen=True)
+class DMTSample:
+    """DMT tip-sample parameters: R [m], H [J], a0 [m], moduli [Pa], Poisson ratios [1]."""
+
+    tip_radius: float = DMT_SPECS["tip_radius"].default
+    hamaker_constant: float = DMT_SPECS["hamaker_constant"].default
+    intermolecular_distance: float = DMT_SPECS["intermolecular_distance"].default
+    tip_youngs_modulus: float = DMT_SPECS["tip_youngs_modulus"].default
+    sample_youngs_modulus: float = DMT_SPECS["sample_youngs_modulus"].default
+    tip_poisson_ratio: float = DMT_SPECS["tip_poisson_ratio"].default
+    sample_poisson_ratio: float = DMT_SPECS["sample_poisson_ratio"].default
+
+    def __post_init__(self):
+        _validate_fields(self, DMT_SPECS, {name: name for name in DMT_SPECS})
+
+    @property
+    def effective_modulus(self) -> float:
+        """E* from 1/E* = (1-nu_t^2)/E_t + (1-nu_s^2)/E_s [Pa]."""
+        return 1.0 / ((1.0 - self.tip_poisson_ratio ** 2) / self.tip_youngs_modulus
+                      + (1.0 - self.sample_poisson_ratio ** 2) / self.sample_youngs_modulus)
+
+
+def defaults(specs: dict[str, ParamSpec]) -> dict[str, Any]:
+    return {name: s.default for name, s in specs.items()}
+
+
+ALL_PHYSICS_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS}

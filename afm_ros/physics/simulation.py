@@ -1,0 +1,168 @@
+"""A tapping cantilever that advances in chunks: parameters + force model + integrator + state."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .forces import DMTForce, NoForce
+from .integrators import METHODS, advance, drive_table, phase_at_step, samples_in_range
+from .parameters import CANTILEVER_SPECS, Cantilever, Drive, check_steps_per_resonance
+
+
+@dataclass
+class Samples:
+    """Samples of one chunk: sample k is step ``first_step + k * decimation``.
+
+    Times [s]: ``t = segment_start + (first_step + k * decimation) * dt``.
+    """
+
+    first_step: int
+    decimation: int
+    dt: float
+    segment_start: float
+    drive_phase0: float  # drive phase [rad] at segment_start
+    drive_frequency: float  # [Hz]
+    z_offset: float  # gap = z_offset + z [m]
+    z: np.ndarray  # deflection [m]
+    v: np.ndarray  # velocity [m/s]
+    force: np.ndarray  # tip-sample force [N]
+
+    @property
+    def t(self) -> np.ndarray:
+        steps = self.first_step + self.decimation * np.arange(self.z.shape[0])
+        return self.segment_start + steps * self.dt
+
+    @property
+    def gap(self) -> np.ndarray:
+        return self.z_offset + self.z
+
+    @property
+    def drive_phase(self) -> np.ndarray:
+        """Drive phase [rad] at each sample."""
+        return self.drive_phase0 + 2.0 * math.pi * self.drive_frequency * (self.t - self.segment_start)
+
+
+class Simulation:
+    """Cantilever state (t, z, v) advanced by fixed steps of one drive period / steps_per_period.
+
+    ``z_offset`` [m] is the base height above the sample: the gap is ``z_offset + z``.
+    Changing the drive or the step count starts a new *segment* (step counter reset, drive
+    phase carried over) so the drive stays continuous; within a segment, chunks of any sizes
+    give bit-identical results.
+    """
+
+    def __init__(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
+                 force_model=None, z_offset: float = 40e-9,
+                 steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
+                 method: str = "rk4", z0: float = 0.0, v0: float = 0.0, t0: float = 0.0,
+                 check_resolution: bool = True):
+        if method not in METHODS:
+            raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
+        self.cantilever = cantilever or Cantilever()
+        self.drive = drive or Drive.from_free_amplitude(self.cantilever, 60e-9)
+        self.force_model = force_model if force_model is not None else NoForce()
+        self.method = method
+        self.z_offset = float(z_offset)
+        if not math.isfinite(self.z_offset):
+            raise ValueError(f"z_offset={z_offset!r} m is not finite")
+        self._check_resolution = check_resolution
+        self.steps_per_period = self._validated_spp(steps_per_period, self.drive, self.cantilever)
+        self.y = np.array([float(z0), float(v0), float(z0)])
+        self.n = 0
+        self.segment_start = float(t0)
+        self.segment_phase = self.drive.phase
+        self._rebuild()
+
+    def _validated_spp(self, spp, drive, cantilever):
+        if self._check_resolution:
+            spp = CANTILEVER_SPECS["steps_per_period"].validate(spp)
+            check_steps_per_resonance(spp, drive.frequency, cantilever.resonance_frequency)
+        elif isinstance(spp, bool) or int(spp) != spp or spp < 2:
+            raise ValueError(f"steps_per_period={spp!r} must be an integer >= 2")
+        return int(spp)
+
+    def _rebuild(self):
+        self.dt = 1.0 / (self.drive.frequency * self.steps_per_period)
+        self._table = drive_table(self.drive.force, self.segment_phase, self.steps_per_period)
+        self._fp = np.ascontiguousarray(self.force_model.packed(), dtype=np.float64)
+        self._method_id = METHODS[self.method]
+
+    # --- state ---------------------------------------------------------------------------
+    @property
+    def t(self) -> float:
+        """Simulated time [s] of the current state."""
+        return self.segment_start + self.n * self.dt
+
+    @property
+    def z(self) -> float:
+        return float(self.y[0])
+
+    @property
+    def v(self) -> float:
+        return float(self.y[1])
+
+    @property
+    def drive_phase(self) -> float:
+        """Drive phase [rad] at the current state."""
+        return phase_at_step(self.segment_phase, self.n, self.steps_per_period)
+
+    # --- parameter changes (take effect for the next chunk) -------------------------------
+    def reconfigure(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
+                    force_model=None, steps_per_period: int | None = None,
+                    z_offset: float | None = None):
+        """Change parameters; the state (z, v, drive phase) carries over without a jump."""
+        cantilever = cantilever or self.cantilever
+        drive = drive or self.drive
+        spp = self.steps_per_period if steps_per_period is None else steps_per_period
+        spp = self._validated_spp(spp, drive, cantilever)
+        new_segment = (drive.frequency != self.drive.frequency or spp != self.steps_per_period
+                       or drive.phase != self.drive.phase)
+        if new_segment:
+            phase = self.drive_phase if drive.phase == self.drive.phase else drive.phase
+            self.segment_start = self.t
+            self.segment_phase = phase
+            self.n = 0
+        self.cantilever, self.drive, self.steps_per_period = cantilever, drive, spp
+        if force_model is not None:
+            self.force_model = force_model
+        if z_offset is not None:
+            if not math.isfinite(z_offset):
+                raise ValueError(f"z_offset={z_offset!r} m is not finite")
+            self.z_offset = float(z_offset)
+        self._rebuild()
+
+    # --- integration ---------------------------------------------------------------------
+    def advance(self, nsteps: int, decimation: int = 1, record: bool = True) -> Samples:
+        """Integrate ``nsteps`` steps; return the samples at step indices divisible by ``decimation``."""
+        nsteps = int(nsteps)
+        if nsteps < 0:
+            raise ValueError(f"nsteps={nsteps} must be >= 0")
+        if decimation < 1:
+            raise ValueError(f"decimation={decimation} must be >= 1")
+        if not record:
+            decimation = max(nsteps, 1) * 2 + self.n + 1  # no sample index in range except n == 0
+        count = samples_in_range(self.n, nsteps, decimation)
+        out_z, out_v, out_f = np.empty(count), np.empty(count), np.empty(count)
+        n0 = self.n
+        c = self.cantilever
+        advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
+                self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
+                out_z, out_v, out_f)
+        self.n += nsteps
+        first = -(-n0 // decimation) * decimation
+        return Samples(first, decimation, self.dt, self.segment_start, self.segment_phase,
+                       self.drive.frequency, self.z_offset, out_z, out_v, out_f)
+
+    def advance_periods(self, periods: int, decimation: int = 1) -> Samples:
+        return self.advance(periods * self.steps_per_period, decimation)
+
+
+def seed_simulation(z_base: float = 40e-9, steps_per_period: int = 200, method: str = "rk4",
+                    sample=None, free: bool = False, **kwargs) -> Simulation:
+    """The seed notebook's cantilever (k=10 N/m, f0=45 kHz, Q=25, A0=60 nm) over its DMT sample."""
+    cantilever = Cantilever()
+    drive = Drive.from_free_amplitude(cantilever, 60e-9)
+    model = NoForce() if free else DMTForce(sample)
+    return Simulation(cantilever, drive, model, z_base, steps_per_period, method, **kwargs)

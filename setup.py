@@ -1,0 +1,36 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "afm_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    package_data={package_name: ["*.c"]},
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="afm_ros developers",
+    maintainer_email="afm_ros@example.org",
+    description="Tapping-mode AFM instrument emulator for ROS 2 Jazzy",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "cantilever_node = afm_ros.cantilever_node:main",
+            "lockin_node = afm_ros.lockin_node:main",
+            "z_controller_node = afm_ros.z_controller_node:main",
+            "afm_instrument = afm_ros.afm_instrument:main",
+            "recorder_node = afm_ros.recorder_node:main",
+            "replay_node = afm_ros.replay_node:main",
+            "afm_study = afm_ros.study:main",
+            "afm_report = afm_ros.report:main",
+        ],
+    },
+)
