@@ -1,0 +1,105 @@
+"""Parameters of the cantilever node (no ROS import): specs, cross-field checks, physics set-up.
+
+``CANTILEVER_NODE_SPECS`` = cantilever/drive/integration specs + DMT sample specs + the node's
+own streaming specs (output rate, chunk length, pacing, /clock, force model). :func:`build`
+turns a dict of values into the physics objects and the chunk geometry, after :func:`check`
+has verified the combination (raises ValueError naming the field(s) and the reason).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from .physics.forces import make_force_model
+from .physics.parameters import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, ParamSpec,
+                                 check_steps_per_resonance)
+
+NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
+    ParamSpec("output_sample_rate", 900e3, "Hz",
+              "rate of the published deflection/force samples; the integration steps are decimated by "
+              "round(drive_frequency*steps_per_period/output_sample_rate)", 1.0, 1e9),
+    ParamSpec("chunk_duration", 2e-3, "s",
+              "simulated time per published chunk; z_piezo is applied at chunk boundaries, so this is "
+              "also the feedback update interval", 1e-5, 1.0),
+    ParamSpec("real_time_factor", 1.0, "1",
+              "simulated seconds per wall-clock second; 0 runs as fast as possible", 0.0, 1000.0),
+    ParamSpec("publish_clock", True, "", "publish the simulated time on /clock", kind=bool),
+    ParamSpec("force_model", "dmt", "", "tip-sample force model", kind=str, choices=("dmt", "none")),
+)}
+
+CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **NODE_SPECS}
+
+# A chunk is one message per topic; above this many integration steps per chunk a single
+# callback would block the executor for seconds and a message would exceed ~8 MB.
+MAX_STEPS_PER_CHUNK = 10_000_000
+
+
+def default_values() -> dict[str, Any]:
+    """The default value of every cantilever node parameter."""
+    return {name: spec.default for name, spec in CANTILEVER_NODE_SPECS.items()}
+
+
+@dataclass(frozen=True)
+class CantileverSetup:
+    """Physics objects and chunk geometry derived from a full parameter set (SI units)."""
+
+    cantilever: Cantilever
+    drive: Drive
+    force_model: Any
+    steps_per_period: int
+    z_base: float  # [m]
+    dt: float  # integration step [s]
+    decimation: int  # integration steps per published sample
+    sample_interval: float  # decimation * dt [s]
+    chunk_steps: int  # integration steps per chunk (a multiple of decimation)
+
+    @property
+    def samples_per_chunk(self) -> int:
+        return self.chunk_steps // self.decimation
+
+
+def _geometry(values: dict[str, Any]) -> tuple[float, int, int]:
+    step_rate = values["drive_frequency"] * values["steps_per_period"]
+    dt = 1.0 / step_rate
+    decimation = max(1, int(round(step_rate / values["output_sample_rate"])))
+    samples = int(round(values["chunk_duration"] / (decimation * dt)))
+    return dt, decimation, samples * decimation
+
+
+def check(values: dict[str, Any]) -> None:
+    """Cross-field checks of a full (individually valid) parameter set; ValueError with the reason."""
+    check_steps_per_resonance(values["steps_per_period"], values["drive_frequency"],
+                              values["resonance_frequency"])
+    step_rate = values["drive_frequency"] * values["steps_per_period"]
+    if values["output_sample_rate"] > step_rate * (1.0 + 1e-12):
+        raise ValueError(
+            f"output_sample_rate={values['output_sample_rate']:g} Hz exceeds the integration step rate "
+            f"drive_frequency*steps_per_period={step_rate:g} Hz; allowed range [1, {step_rate:g}] Hz")
+    dt, decimation, chunk_steps = _geometry(values)
+    interval = decimation * dt
+    if chunk_steps < decimation:
+        raise ValueError(
+            f"chunk_duration={values['chunk_duration']:g} s holds no output sample "
+            f"(sample interval {interval:g} s at output_sample_rate={values['output_sample_rate']:g} Hz); "
+            f"allowed chunk_duration >= {interval:g} s")
+    if chunk_steps > MAX_STEPS_PER_CHUNK:
+        raise ValueError(
+            f"chunk_duration={values['chunk_duration']:g} s is {chunk_steps} integration steps "
+            f"(drive_frequency*steps_per_period={step_rate:g} Hz); allowed at most {MAX_STEPS_PER_CHUNK} "
+            f"steps, i.e. chunk_duration <= {MAX_STEPS_PER_CHUNK * dt:g} s")
+    if not math.isfinite(values["z_base"]):
+        raise ValueError(f"z_base={values['z_base']!r} m is not finite")
+
+
+def build(values: dict[str, Any]) -> CantileverSetup:
+    """Validate ``values`` (every field by its spec, then :func:`check`) and build the set-up."""
+    values = {name: CANTILEVER_NODE_SPECS[name].validate(values[name]) for name in CANTILEVER_NODE_SPECS}
+    check(values)
+    cantilever = Cantilever(values["spring_constant"], values["resonance_frequency"], values["quality_factor"])
+    drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
+    sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
+    model = make_force_model(values["force_model"], sample)
+    dt, decimation, chunk_steps = _geometry(values)
+    return CantileverSetup(cantilever, drive, model, values["steps_per_period"], values["z_base"], dt,
+                           decimation, decimation * dt, chunk_steps)
