@@ -1,0 +1,282 @@
+"""ROS 2 node ``recorder``: records the instrument's topics into one rosbag2-layout .mcap file.
+
+Topics are found by periodic graph discovery (all by default, or the ``topics`` list / glob
+patterns minus ``exclude``). Messages are taken as raw CDR bytes (no deserialisation). The
+full parameter set of every node is stored when the node is first seen, both as a
+``rcl_interfaces/msg/ParameterEvent`` on ``/parameter_events`` (all values as
+``new_parameters``) and as an MCAP metadata record ``afm_ros.parameters:<node>``; later
+changes arrive on ``/parameter_events``, which is always recorded.
+
+Clocks: ``log_time`` = wall-clock receive time, ``publish_time`` = the publisher's source
+timestamp (wall clock) from the middleware, both ns since the epoch (see docs/recording.md).
+"""
+from __future__ import annotations
+
+import fnmatch
+import os
+import sys
+import time
+
+import rclpy
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterEvent
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_parameter_events)
+from rclpy.serialization import serialize_message
+
+from . import ros_params
+from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError, SessionWriter,
+                      default_output_path, message_class, qos_profiles_yaml)
+
+PARAMETER_EVENTS = "/parameter_events"
+PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
+MIN_DEPTH = 100  # subscription queue [messages]; chunk topics arrive at ~50-500 Hz
+
+
+def split_patterns(text: str, namespace: str) -> list[str]:
+    """Comma/space separated names or globs; relative ones are put under ``namespace``."""
+    out = []
+    for item in text.replace(",", " ").split():
+        if not item.startswith("/"):
+            item = (namespace.rstrip("/") + "/" + item) if namespace not in ("", "/") else "/" + item
+        out.append(item)
+    return out
+
+
+def matches(topic: str, patterns: list[str]) -> bool:
+    return any(topic == p or fnmatch.fnmatchcase(topic, p) for p in patterns)
+
+
+def _hidden(name: str) -> bool:
+    return any(part.startswith("_") for part in name.split("/") if part)
+
+
+def _value_text(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)) or type(value).__name__ == "array":
+        return "[" + ", ".join(_value_text(v) for v in value) + "]"
+    if isinstance(value, str):
+        return repr(value)
+    return repr(value)
+
+
+class RecorderNode(Node):
+    """Records topics (raw CDR) and parameters into ``output_path`` (a rosbag2-layout .mcap)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("recorder", **kwargs)
+        self._values = ros_params.declare(self, RECORDER_SPECS)
+        v = self._values
+        self.output_path = os.path.abspath(v["output"]) if v["output"] else str(default_output_path())
+        self.error: RecordingError | None = None
+        ns = self.get_namespace()
+        self._include = split_patterns(v["topics"], ns)
+        self._exclude = split_patterns(v["exclude"], ns)
+        self.writer = SessionWriter(self.output_path, compression=v["compression"], chunk_size=v["chunk_size"])
+        self._subs: dict[str, object] = {}
+        self._channel: dict[str, int] = {}
+        self._sequence: dict[str, int] = {}
+        self.received: dict[str, int] = {}
+        self._param_clients: dict[str, AsyncParameterClient] = {}
+        self._snapshotted: set[str] = set()
+        self._pending: set[str] = set()
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.get_logger().info(f"recording to {self.output_path}")
+        self._snapshot_own_parameters()
+        self._discover()
+        self._timers = [
+            self.create_timer(v["discovery_period"], self._discover, clock=self._steady),
+            self.create_timer(v["flush_interval"], self._flush, clock=self._steady),
+        ]
+
+    # --- topics ---------------------------------------------------------------------------
+    def _wanted(self, topic: str) -> bool:
+        if topic == PARAMETER_EVENTS:
+            return True
+        if matches(topic, self._exclude):
+            return False
+        if self._include:
+            return matches(topic, self._include)
+        return not _hidden(topic)
+
+    def _qos_for(self, infos) -> QoSProfile:
+        """Subscription QoS compatible with every publisher (rosbag2's adaptation rule)."""
+        reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+        transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        depth = max([MIN_DEPTH] + [int(i.qos_profile.depth) for i in infos])
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                          reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+
+    def _discover(self) -> None:
+        if self.error is not None:
+            return
+        try:
+            for topic, types in self.get_topic_names_and_types():
+                if topic in self._subs or not self._wanted(topic):
+                    continue
+                if len(types) != 1:
+                    self.get_logger().warn(f"not recording {topic}: it has several types {types}")
+                    self._subs[topic] = None
+                    continue
+                infos = self.get_publishers_info_by_topic(topic)
+                if not infos:
+                    continue  # no publisher yet: QoS unknown, try again later
+                self._subscribe(topic, types[0], infos)
+            self._request_parameters()
+        except RecordingError as exc:
+            self._fail(exc)
+
+    def _subscribe(self, topic: str, type_name: str, infos) -> None:
+        try:
+            cls = message_class(type_name)
+        except ValueError as exc:
+            self.get_logger().warn(f"not recording {topic}: {exc}")
+            self._subs[topic] = None
+            return
+        qos_text = qos_profiles_yaml([i.qos_profile for i in infos])
+        cid = self.writer.add_channel(topic, type_name, qos_text)
+        self._channel[topic] = cid
+        self._sequence[topic] = 0
+        self.received[topic] = 0
+        qos = qos_profile_parameter_events if topic == PARAMETER_EVENTS else self._qos_for(infos)
+        self._subs[topic] = self.create_subscription(
+            cls, topic, lambda data, info, t=topic: self._on_message(t, data, info), qos, raw=True)
+
+    def _on_message(self, topic: str, data: bytes, info) -> None:
+        if self.error is not None:
+            return
+        now = time.time_ns()
+        src = info.get("source_timestamp", 0) if isinstance(info, dict) else 0
+        self._sequence[topic] += 1
+        try:
+            self.writer.write(self._channel[topic], data, now, src or now, self._sequence[topic])
+        except RecordingError as exc:
+            self._fail(exc)
+            return
+        self.received[topic] += 1
+
+    # --- parameters -----------------------------------------------------------------------
+    def _write_snapshot(self, node_name: str, params: list[ParameterMsg]) -> None:
+        if PARAMETER_EVENTS not in self._channel:
+            from rclpy.qos import qos_profile_parameter_events as q
+            self._channel[PARAMETER_EVENTS] = self.writer.add_channel(
+                PARAMETER_EVENTS, PARAMETER_EVENT_TYPE, qos_profiles_yaml([q]))
+            self._sequence.setdefault(PARAMETER_EVENTS, 0)
+            self.received.setdefault(PARAMETER_EVENTS, 0)
+        event = ParameterEvent(node=node_name, new_parameters=params)
+        event.stamp = self.get_clock().now().to_msg()
+        now = time.time_ns()
+        self._sequence[PARAMETER_EVENTS] += 1
+        self.writer.write(self._channel[PARAMETER_EVENTS], serialize_message(event), now, now,
+                          self._sequence[PARAMETER_EVENTS])
+        self.writer.add_metadata(PARAMETER_METADATA_PREFIX + node_name,
+                                 {p.name: _value_text(parameter_value_to_python(p.value)) for p in params})
+        self._snapshotted.add(node_name)
+
+    def _snapshot_own_parameters(self) -> None:
+        params = [p.to_parameter_msg() for p in self._parameters.values()]
+        self._write_snapshot(self.get_fully_qualified_name(), sorted(params, key=lambda p: p.name))
+
+    def _request_parameters(self) -> None:
+        me = self.get_fully_qualified_name()
+        for name, ns in self.get_node_names_and_namespaces():
+            fqn = (ns.rstrip("/") + "/" + name) if ns != "/" else "/" + name
+            if fqn == me or fqn in self._snapshotted or fqn in self._pending or _hidden(fqn):
+                continue
+            client = self._param_clients.get(fqn)
+            if client is None:
+                client = self._param_clients[fqn] = AsyncParameterClient(self, fqn)
+            if not client.services_are_ready():
+                continue  # retried at the next discovery tick
+            self._pending.add(fqn)
+            future = client.list_parameters(prefixes=[], depth=0)
+            future.add_done_callback(lambda f, n=fqn, c=client: self._on_list(n, c, f))
+
+    def _on_list(self, fqn: str, client, future) -> None:
+        result = future.result()
+        if result is None:
+            self._pending.discard(fqn)
+            return
+        names = list(result.result.names)
+        client.get_parameters(names).add_done_callback(lambda f: self._on_values(fqn, names, f))
+
+    def _on_values(self, fqn: str, names: list[str], future) -> None:
+        self._pending.discard(fqn)
+        result = future.result()
+        if result is None or self.error is not None:
+            return
+        params = [ParameterMsg(name=n, value=v) for n, v in zip(names, result.values)]
+        try:
+            self._write_snapshot(fqn, sorted(params, key=lambda p: p.name))
+        except RecordingError as exc:
+            self._fail(exc)
+
+    # --- file -----------------------------------------------------------------------------
+    def _flush(self) -> None:
+        if self.error is None:
+            try:
+                self.writer.flush()
+            except RecordingError as exc:
+                self._fail(exc)
+
+    def _fail(self, exc: RecordingError) -> None:
+        if self.error is not None:
+            return
+        self.error = exc
+        self.get_logger().error(str(exc))
+        for sub in self._subs.values():
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._subs = {t: None for t in self._subs}
+
+    def close(self) -> None:
+        """Write summary and footer (complete file) unless a write failed earlier."""
+        if self.writer.closed or self.error is not None:
+            return
+        try:
+            self.writer.close()
+            self.get_logger().info(f"closed {self.output_path}: {self.writer.message_count} messages")
+        except RecordingError as exc:
+            self._fail(exc)
+
+    def destroy_node(self):
+        self.close()
+        return super().destroy_node()
+
+
+def main(args=None):
+    # rclpy.init installs handlers for SIGINT and SIGTERM that shut the context down; the loop
+    # below then ends and destroy_node() closes the file with its summary and index.
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = RecorderNode()
+        print(f"recorder: recording to {node.output_path}", flush=True)
+        while rclpy.ok() and node.error is None:
+            rclpy.spin_once(node, timeout_sec=0.2)
+        if node.error is not None:
+            code = 1
+    except (RecordingError, ValueError) as exc:
+        print(f"recorder: error: {exc}", file=sys.stderr, flush=True)
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+            if node.error is None:
+                print(f"recorder: closed {node.output_path}", flush=True)
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
