@@ -610,7 +610,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("bench", "speed benchmark; prints one JSON object", params=False)
     p.add_argument("--steps", type=int, default=10_000_000, help="RK4 steps timed (default 1e7)")
-    p.add_argument("--solve-ivp-periods", type=int, default=20, help="periods integrated by solve_ivp")
+    p.add_argument("--solve-ivp-periods", type=int, default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
     return parser
 
