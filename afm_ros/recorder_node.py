@@ -90,7 +90,7 @@ class RecorderNode(Node):
         self.get_logger().info(f"recording to {self.output_path}")
         self._snapshot_own_parameters()
         self._discover()
-        self._timers = [
+        self._rec_timers = [
             self.create_timer(v["discovery_period"], self._discover, clock=self._steady),
             self.create_timer(v["flush_interval"], self._flush, clock=self._steady),
         ]

@@ -97,12 +97,12 @@ class ReplayNode(Node):
         exclude = split_patterns(v["exclude"], "/")
         if not v["publish_clock"]:
             exclude.append(CLOCK)
-        self._publishers: dict[str, object] = {}
+        self._replay_pubs: dict[str, object] = {}
         self._types: dict[str, str] = {}
         unknown = []
         for ch in scan.channels.values():
             topic = ch.topic
-            if (include and not matches(topic, include)) or matches(topic, exclude) or topic in self._publishers:
+            if (include and not matches(topic, include)) or matches(topic, exclude) or topic in self._replay_pubs:
                 continue
             schema = scan.schemas.get(ch.schema_id)
             type_name = schema.name if schema is not None else ""
@@ -117,15 +117,15 @@ class ReplayNode(Node):
                 continue
             name = topic if topic == CLOCK or not v["topic_prefix"] else \
                 "/" + v["topic_prefix"].strip("/") + topic
-            self._publishers[topic] = self.create_publisher(
+            self._replay_pubs[topic] = self.create_publisher(
                 cls, name, _qos_from_metadata(ch.metadata.get("offered_qos_profiles", "")))
             self._types[topic] = type_name
         if unknown:
             raise SessionFileError(f"{scan.path}: cannot replay {', '.join(unknown)}; exclude these topics "
                                    "(parameter 'exclude') or install their message packages")
-        self._derive_clock = v["publish_clock"] and CLOCK not in self._publishers
+        self._derive_clock = v["publish_clock"] and CLOCK not in self._replay_pubs
         self._clock_pub = self.create_publisher(ClockMsg, CLOCK, 10) if self._derive_clock else None
-        self.published: dict[str, int] = {t: 0 for t in self._publishers}
+        self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
         self.done = threading.Event()
         self.error: Exception | None = None
         self._stop = threading.Event()
@@ -134,7 +134,7 @@ class ReplayNode(Node):
         self._anchor = (time.monotonic(), 0.0)  # (wall, recording seconds) at the last rate change
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
             REPLAY_SPECS, lambda: dict(self._values), None, self._apply))
-        self.get_logger().info(f"replaying {scan.path}: {', '.join(sorted(self._publishers)) or 'no topics'} "
+        self.get_logger().info(f"replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
                                f"at rate {self._rate:g}")
         self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
         self._thread.start()
@@ -180,12 +180,12 @@ class ReplayNode(Node):
             self._anchor = (time.monotonic(), 0.0)
         first = None
         scan = SessionScan(self.path)
-        for m in read_session(self.path, scan, topics=set(self._publishers)):
+        for m in read_session(self.path, scan, topics=set(self._replay_pubs)):
             if first is None:
                 first = m.log_time
             if not self._wait_until((m.log_time - first) * 1e-9):
                 return
-            self._publishers[m.topic].publish(m.data)
+            self._replay_pubs[m.topic].publish(m.data)
             self.published[m.topic] += 1
             if self._derive_clock and m.type_name == CHUNK_TYPE and m.topic.endswith("deflection"):
                 header, samples = unpack(deserialize_message(m.data, Float64MultiArray).data)
