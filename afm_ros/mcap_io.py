@@ -473,6 +473,28 @@ def _scan_compression(path: Path) -> str:
     return "zstd"
 
 
+def serialize_exact(msg) -> bytes:
+    """CDR bytes of ``msg`` via ``rclpy.serialization``, cut to the true serialized length.
+
+    rmw_fastrtps' serialize_message (Jazzy) can return a few bytes of uninitialised buffer after
+    the message (seen for rcl_interfaces/msg/ParameterEvent); strict readers (rosbags) reject
+    that. Deserialisation of a shorter prefix fails, so the shortest prefix that deserialises is
+    the message (found by bisection).
+    """
+    from rclpy.serialization import deserialize_message, serialize_message
+    data = serialize_message(msg)
+    cls = type(msg)
+    lo, hi = 4, len(data)  # hi always deserialises
+    while lo < hi:
+        mid = (lo + hi) // 2
+        try:
+            deserialize_message(data[:mid], cls)
+            hi = mid
+        except Exception:
+            lo = mid + 1
+    return data[:hi]
+
+
 def decode(message: SessionMessage):
     """Deserialize a recorded message with rclpy (ValueError if its type is not installed)."""
     from rclpy.serialization import deserialize_message

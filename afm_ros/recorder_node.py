@@ -27,11 +27,11 @@ from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_parameter_events)
-from rclpy.serialization import serialize_message
 
 from . import ros_params
 from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError, SessionWriter,
-                      default_output_path, message_class, qos_profiles_yaml)
+                      default_output_path, message_class, qos_profiles_yaml,
+                      serialize_exact)
 
 PARAMETER_EVENTS = "/parameter_events"
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
@@ -174,7 +174,7 @@ class RecorderNode(Node):
         event.stamp = self.get_clock().now().to_msg()
         now = time.time_ns()
         self._sequence[PARAMETER_EVENTS] += 1
-        self.writer.write(self._channel[PARAMETER_EVENTS], serialize_message(event), now, now,
+        self.writer.write(self._channel[PARAMETER_EVENTS], serialize_exact(event), now, now,
                           self._sequence[PARAMETER_EVENTS])
         self.writer.add_metadata(PARAMETER_METADATA_PREFIX + node_name,
                                  {p.name: _value_text(parameter_value_to_python(p.value)) for p in params})
