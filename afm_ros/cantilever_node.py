@@ -41,10 +41,11 @@ CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=R
 Z_PIEZO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
-# Work per timer callback is capped so subscriptions (z_piezo, parameter service) are served
-# between chunks even while catching up; the remainder is simulated in the next callbacks.
-MAX_CALLBACK_WORK_S = 0.02
-MAX_CHUNKS_PER_CALLBACK = 8
+# One chunk per timer callback: an executor then serves the subscribers between chunks (rclpy's
+# SingleThreadedExecutor takes one message per subscription per wait cycle, so a burst of chunks
+# would overflow their queues). The paced timer runs at CATCH_UP times the chunk rate so a lag
+# (start-up, a slow moment) is made up at up to CATCH_UP x the requested real-time factor.
+CATCH_UP = 2.0
 DIAGNOSTICS_PERIOD_S = 1.0
 
 
@@ -131,7 +132,7 @@ class CantileverNode(Node):
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
-        return 0.0 if rtf == 0.0 else self._setup.chunk_steps * self._setup.dt / rtf
+        return 0.0 if rtf == 0.0 else self._setup.chunk_steps * self._setup.dt / (rtf * CATCH_UP)
 
     def _on_z_piezo(self, msg: Float64) -> None:
         if math.isfinite(msg.data):
@@ -149,6 +150,15 @@ class CantileverNode(Node):
     def samples_published(self) -> int:
         """Running sample index of the next sample to be published."""
         return self._next_index
+
+    @property
+    def lag(self) -> float:
+        """Simulated seconds the state is behind the requested time (paced mode; 0 otherwise)."""
+        return self._lag
+
+    def stop(self) -> None:
+        """Stop integrating (the node stays up; e.g. to drain subscribers at the end of a run)."""
+        self._timer.cancel()
 
     def step_chunk(self) -> None:
         """Integrate one chunk and publish it (parameter changes and z_piezo applied first)."""
@@ -179,20 +189,14 @@ class CantileverNode(Node):
             self._wall_ref, self._sim_ref = start, self._sim.t
             self._diag_wall, self._diag_sim, self._diag_cpu = start, self._sim.t, time.process_time()
         rtf = self._values["real_time_factor"]
-        done = 0
-        while True:
-            if rtf != 0.0:
-                chunk = self._setup.chunk_steps * self._setup.dt
-                target = self._sim_ref + (time.monotonic() - self._wall_ref) * rtf
-                # 1e-9 relative slack: the timer fires on the chunk grid, float rounding must not
-                # postpone a due chunk by a whole period
-                if target - self._sim.t < chunk * (1.0 - 1e-9):
-                    break
+        due = True
+        if rtf != 0.0:
+            chunk = self._setup.chunk_steps * self._setup.dt
+            target = self._sim_ref + (start - self._wall_ref) * rtf
+            # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
+            due = target - self._sim.t >= chunk * (1.0 - 1e-9)
+        if due:
             self.step_chunk()
-            done += 1
-            if rtf == 0.0 or self._wall_ref is None or done >= MAX_CHUNKS_PER_CALLBACK \
-                    or time.monotonic() - start > MAX_CALLBACK_WORK_S:
-                break
         if self._wall_ref is None:  # pacing re-anchored by a parameter change
             return
         now = time.monotonic()
