@@ -39,7 +39,10 @@ MONITOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliabilit
 
 
 def make_executor(kind: str, context=None):
-    """'single' (default: measured fastest, see docs/cantilever.md), 'multi' or 'events'."""
+    """'events' (rclpy.experimental.EventsExecutor: fastest, serves every message; the default),
+    'single' or 'multi'. rclpy's Single/MultiThreadedExecutor take one message per subscription per
+    wait cycle, so with the cantilever always ready (real_time_factor 0) the lock-in's many small
+    output messages queue up and overflow (measured, docs/cantilever.md)."""
     if kind == "single":
         return SingleThreadedExecutor(context=context)
     if kind == "multi":
@@ -105,6 +108,7 @@ class Summary:
     amplitude_std_m: float
     contact_phase_deg: float
     z_piezo_m: float
+    z_base_m: float
     settling_time_s: float | None  # simulated, from enabling to entering and staying in the band
     settling_band_m: float
     simulated_time_s: float
@@ -124,7 +128,8 @@ class Summary:
             f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
             f"(std {self.amplitude_std_m * nm:.3f} nm over the last quarter of the hold)",
             f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
-            f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (gap offset z_base + z_piezo)",
+            f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
+            f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
             f"  settling time       {settle}, band +-{self.settling_band_m * nm:.3f} nm around the setpoint",
             f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
             f"(real-time factor {self.real_time_factor:.2f})",
@@ -145,7 +150,7 @@ def settling_time(t: np.ndarray, amplitude: np.ndarray, setpoint: float, band: f
 class Instrument:
     """The nodes, a monitor and an executor; :meth:`run_job` performs the main job."""
 
-    def __init__(self, context=None, namespace: str | None = None, executor: str = "single"):
+    def __init__(self, context=None, namespace: str | None = None, executor: str = "events"):
         self.context = context
         self.nodes = build_nodes(context, namespace)
         kw = {"context": context}
@@ -213,6 +218,7 @@ class Instrument:
             amplitude_std_m=float(np.std(a[last])) if last.any() else float("nan"),
             contact_phase_deg=float(np.mean(p[last])) if last.any() else float("nan"),
             z_piezo_m=float(np.mean(zp)) if zp.size else float("nan"),
+            z_base_m=float(self.cantilever.get_parameter("z_base").value),
             settling_time_s=settling_time(t, a, setpoint, band, t_enable),
             settling_band_m=band, simulated_time_s=t_end - t_start, wall_time_s=wall,
             real_time_factor=(t_end - t_start) / wall)
@@ -228,8 +234,8 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(
         prog="afm_instrument", description=__doc__.split("\n\n")[0],
         epilog="ROS arguments follow --ros-args, e.g. --ros-args --params-file config/afm.yaml")
-    parser.add_argument("--duration", type=float, default=0.2,
-                        help="simulated seconds to hold the setpoint after engaging (default 0.2)")
+    parser.add_argument("--duration", type=float, default=0.5,
+                        help="simulated seconds from engaging to the end of the hold (default 0.5)")
     parser.add_argument("--free-time", type=float, default=0.03,
                         help="simulated seconds withdrawn before measuring the free amplitude (default 0.03)")
     parser.add_argument("--setpoint-ratio", type=float, default=None,
@@ -237,7 +243,8 @@ def parse_args(argv):
                              "z_controller's setpoint parameter [m])")
     parser.add_argument("--band", type=float, default=0.01,
                         help="settling band as a fraction of the setpoint (default 0.01)")
-    parser.add_argument("--executor", choices=["single", "multi", "events"], default="single")
+    parser.add_argument("--executor", choices=["single", "multi", "events"], default="events",
+                        help="executor for all nodes (default events: fastest and fair, see docs/cantilever.md)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
