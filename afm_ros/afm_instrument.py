@@ -259,7 +259,12 @@ def parse_args(argv):
 
 def main(args=None):
     argv = sys.argv if args is None else args
-    options = parse_args(remove_ros_args(argv)[1:])
+    try:
+        plain = remove_ros_args(argv)
+    except Exception as exc:  # rclpy's RCLInvalidROSArgsError, e.g. a params file that cannot be read
+        print(f"afm_instrument: invalid --ros-args: {exc}", file=sys.stderr)
+        return 2
+    options = parse_args(plain[1:])
     rclpy.init(args=argv)
     instrument = None
     try:

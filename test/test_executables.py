@@ -1,0 +1,147 @@
+"""Installed executables: colcon-built cantilever_node starts, publishes, obeys --ros-args and exits
+cleanly on Ctrl-C; a bad params file fails clearly; afm_instrument runs the main job.
+
+Subprocesses talk to this test over DDS on localhost in ROS_DOMAIN_ID 17 (this file's own id, so
+parallel test files do not cross-talk); the in-process test context joins the same domain.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+
+from afm_ros.cantilever_node import CHUNK_QOS
+from afm_ros.chunk_layout import unpack
+
+ROOT = Path(__file__).resolve().parents[1]
+VENV = Path(sys.prefix)
+DOMAIN_ID = 17
+
+
+@pytest.fixture(scope="module")
+def install(tmp_path_factory):
+    """``colcon build`` of this repository into a temporary directory; returns the install base."""
+    base = tmp_path_factory.mktemp("colcon")
+    result = subprocess.run(
+        [str(VENV / "bin" / "colcon"), "--log-base", str(base / "log"), "build", "--base-paths", str(ROOT),
+         "--build-base", str(base / "build"), "--install-base", str(base / "install")],
+        cwd=base, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return base / "install"
+
+
+def child_env(install: Path | None, discovery: str = "LOCALHOST") -> dict:
+    env = dict(os.environ)
+    pythonpath = []
+    if install is not None:
+        pythonpath.append(str(next((install / "afm_ros" / "lib").glob("python3*/site-packages"))))
+    pythonpath.append(str(next((VENV / "lib").glob("python3*/site-packages"))))
+    env["PYTHONPATH"] = os.pathsep.join(pythonpath)
+    prefixes = ([str(install / "afm_ros")] if install is not None else []) + [str(VENV)]
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(prefixes)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery
+    env["ROS_DOMAIN_ID"] = str(DOMAIN_ID)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def test_colcon_install_has_every_executable(install):
+    exe_dir = install / "afm_ros" / "lib" / "afm_ros"
+    for name in ("cantilever_node", "lockin_node", "z_controller_node", "afm_instrument"):
+        assert os.access(exe_dir / name, os.X_OK), f"{name} missing in {exe_dir}"
+    # the child really imports the installed package, not the source tree
+    out = subprocess.run([sys.executable, "-c", "import afm_ros; print(afm_ros.__file__)"],
+                         env=child_env(install), cwd=install, capture_output=True, text=True, timeout=60)
+    assert str(install) in out.stdout, out.stdout + out.stderr
+
+
+def test_installed_cantilever_node_publishes_and_stops_on_sigint(install, monkeypatch):
+    exe = install / "afm_ros" / "lib" / "afm_ros" / "cantilever_node"
+    proc = subprocess.Popen([str(exe), "--ros-args", "-r", "__ns:=/exe_test", "-p", "z_base:=3.0e-8"],
+                            env=child_env(install), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # this context must see the child
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    chunks = []
+    try:
+        node = Node("exe_listener", context=ctx, namespace="/exe_test")
+        node.create_subscription(Float64MultiArray, "cantilever/deflection",
+                                 lambda m: chunks.append(unpack(m.data)), CHUNK_QOS)
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        deadline = time.monotonic() + 30.0
+        while len(chunks) < 20 and time.monotonic() < deadline and proc.poll() is None:
+            executor.spin_once(timeout_sec=0.05)
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+    assert len(chunks) >= 20, f"no deflection chunks from the installed node; stderr:\n{err}"
+    # --ros-args reached the node: remapped namespace (we received on /exe_test) and -p z_base
+    assert all(h.z_offset == 3.0e-8 for h, _ in chunks)
+    # consecutive chunks (subscription may start mid-stream): contiguous running index
+    firsts = [h.first_sample_index for h, _ in chunks]
+    assert all(b - a == s.shape[0] for a, b, (_, s) in zip(firsts, firsts[1:], chunks))
+    assert proc.returncode == 0, f"exit code {proc.returncode} after SIGINT; stderr:\n{err}"
+    assert "Traceback" not in err
+
+
+def test_bad_params_file_fails_with_a_clear_error(install, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("cantilever:\n  ros__parameters:\n    output_sample_rate: 2.0e7\n")
+    exe = install / "afm_ros" / "lib" / "afm_ros" / "cantilever_node"
+    result = subprocess.run([str(exe), "--ros-args", "--params-file", str(bad)], env=child_env(install, "OFF"),
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert "output_sample_rate" in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_afm_instrument_runs_the_main_job_and_prints_the_summary(tmp_path):
+    from afm_ros.config_gen import yaml_text  # the text of config/afm.yaml, from the same specs
+    params = tmp_path / "afm.yaml"
+    params.write_text(yaml_text())
+    result = subprocess.run(
+        [str(VENV / "bin" / "afm_instrument"), "--duration", "0.25",
+         "--ros-args", "--params-file", str(params), "-p", "real_time_factor:=0.0"],
+        env=child_env(None, "OFF"), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    for line in ("free amplitude", "free phase", "setpoint", "reached amplitude", "phase in contact",
+                 "z piezo", "settling time"):
+        assert line in result.stdout, result.stdout
+    assert "not settled" not in result.stdout
+
+
+def test_afm_instrument_rejects_bad_arguments_clearly(tmp_path):
+    for args, text in ((["--duration", "-1"], "--duration"),
+                       (["--ros-args", "--params-file", str(tmp_path / "missing.yaml")], "missing.yaml")):
+        result = subprocess.run([str(VENV / "bin" / "afm_instrument"), *args], env=child_env(None, "OFF"),
+                                capture_output=True, text=True, timeout=60)
+        assert result.returncode != 0
+        assert text in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+def test_afm_instrument_stops_cleanly_on_sigint():
+    proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--duration", "100"],
+                            env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.0)  # imports, numba cache load, nodes up, job running
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
