@@ -382,20 +382,13 @@ def check_mcap_file(path: str | os.PathLike) -> Path:
     return p
 
 
-class _CountingFile(io.RawIOBase):
-    """Read-only file wrapper that remembers how far the parser consumed it."""
+class _CountingFile:
+    """Read-only file wrapper that remembers how far the parser consumed it (not a RawIOBase, so
+    the mcap reader does not put a read-ahead buffer in between)."""
 
     def __init__(self, f):
         self._f = f
         self.pos = 0
-
-    def readable(self):
-        return True
-
-    def readinto(self, b):
-        n = self._f.readinto(b)
-        self.pos += n or 0
-        return n
 
     def read(self, size=-1):
         data = self._f.read(size)
