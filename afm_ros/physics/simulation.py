@@ -159,7 +159,8 @@ class Simulation:
         return self.advance(periods * self.steps_per_period, decimation)
 
 
-def seed_simulation(z_base: float = 40e-9, steps_per_period: int = 200, method: str = "rk4",
+def seed_simulation(z_base: float = 40e-9,
+                    steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default, method: str = "rk4",
                     sample=None, free: bool = False, **kwargs) -> Simulation:
     """The seed notebook's cantilever (k=10 N/m, f0=45 kHz, Q=25, A0=60 nm) over its DMT sample."""
     cantilever = Cantilever()
