@@ -11,7 +11,7 @@ positive: the gap is ``z_base + z_piezo + deflection``, so when the amplitude is
 
 The integrator advances by the *simulated* time between amplitude samples (their stamps), so the
 loop behaves the same at any real-time factor. Anti-windup: the integrator is kept within
-[z_min, z_max] and does not integrate further into a limit the output already sits at (conditional
+[z_min, z_max] and integrates towards a limit only until the output reaches it (conditional
 integration); when the output is slew-limited the integrator tracks the output. Enabling is
 bumpless: at the first sample after enabling, ``I = z - p_gain * e`` so z does not jump; a
 live change of ``p_gain`` re-initialises I the same way. Disabled: ``hold`` keeps z, ``withdraw``
@@ -124,12 +124,14 @@ class ZController:
             self.integrator = self.z - p["p_gain"] * e
             self._needs_init = False
             return self.z
+        pe = p["p_gain"] * e
         candidate = self.integrator + p["i_gain"] * e * dt
-        raw = candidate + p["p_gain"] * e
-        # conditional integration: never integrate further into a limit the output is beyond
-        if (raw > z_hi and e > 0.0) or (raw < z_lo and e < 0.0):
-            candidate = self.integrator
-            raw = candidate + p["p_gain"] * e
+        # conditional integration: integrate only until the output reaches a limit, never beyond
+        if e > 0.0 and candidate + pe > z_hi:
+            candidate = min(candidate, max(self.integrator, z_hi - pe))
+        elif e < 0.0 and candidate + pe < z_lo:
+            candidate = max(candidate, min(self.integrator, z_lo - pe))
+        raw = candidate + pe
         self.integrator = min(max(candidate, z_lo), z_hi)
         target = min(max(raw, z_lo), z_hi)
         z = self._slew(target, dt)
