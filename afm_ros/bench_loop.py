@@ -1,10 +1,12 @@
 """Benchmark of the full loop in one process: cantilever + lock-in + z-controller.
 
-``python -m afm_ros.bench_loop [--seconds 5] [--executors single,multi,events] [--paced 2]``
+``python -m afm_ros.bench_loop [--seconds 5] [--executors single,multi,events] [--paced 2]
+[--chunk-durations 0.002,0.005]``
 
 Seed cantilever, DMT sample, 200 steps per period, 900 kS/s deflection published. For each
 executor it runs as fast as possible (real_time_factor 0), then paced at ``--paced``, and prints
-one JSON object with, per run: sustained real-time factor (simulated s / wall s), process CPU
+one JSON object with, per run (the fastest executor is then also run with every
+``--chunk-durations`` value): sustained real-time factor (simulated s / wall s), process CPU
 use (CPU s / wall s; 2.0 = both cores), deflection samples published vs received by a separate
 subscriber node (counted by sample index: gaps and duplicates), lock-in output samples, the
 cantilever's lag behind the requested time, and the latency from a z step (z_base -5 nm, feedback
@@ -72,7 +74,8 @@ def _spin_for(executor, seconds):
         executor.spin_once(timeout_sec=0.01)
 
 
-def run(executor_kind: str, rtf: float, seconds: float, controller: bool = True) -> dict:
+def run(executor_kind: str, rtf: float, seconds: float, controller: bool = True,
+        chunk_duration: float = 2e-3) -> dict:
     """One run in a private context; returns the measured numbers."""
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -83,6 +86,7 @@ def run(executor_kind: str, rtf: float, seconds: float, controller: bool = True)
         results = cant.set_parameters([Parameter("steps_per_period", value=200),
                                        Parameter("output_sample_rate", value=900e3),
                                        Parameter("force_model", value="dmt"),
+                                       Parameter("chunk_duration", value=float(chunk_duration)),
                                        Parameter("real_time_factor", value=float(rtf))])
         assert all(r.successful for r in results), [r.reason for r in results]
         if controller:
@@ -139,7 +143,8 @@ def run(executor_kind: str, rtf: float, seconds: float, controller: bool = True)
             node.destroy_node()
         executor.shutdown(timeout_sec=1.0)
         return {
-            "executor": executor_kind, "real_time_factor_requested": rtf, "wall_s": wall,
+            "executor": executor_kind, "chunk_duration_s": chunk_duration,
+            "real_time_factor_requested": rtf, "wall_s": wall,
             "real_time_factor_achieved": sim / wall, "cpu_fraction": cpu / wall,
             "lag_at_end_s": lag,
             "samples_published_in_window": published,
@@ -161,14 +166,20 @@ def main(argv=None) -> int:
                         help="comma-separated executors to compare at real_time_factor 0")
     parser.add_argument("--paced", type=float, default=2.0, help="real-time factor of the paced run")
     parser.add_argument("--no-controller", action="store_true", help="cantilever + lock-in only")
+    parser.add_argument("--chunk-durations", default="0.002,0.005",
+                        help="cantilever chunk_duration values [s] for the fastest executor (default 0.002,0.005)")
     args = parser.parse_args(argv)
+    controller = not args.no_controller
     runs = []
     for kind in args.executors.split(","):
-        runs.append(run(kind, 0.0, args.seconds, not args.no_controller))
+        runs.append(run(kind, 0.0, args.seconds, controller))
     best = max(runs, key=lambda r: r["real_time_factor_achieved"])["executor"]
-    runs.append(run(best, args.paced, args.seconds, not args.no_controller))
-    print(json.dumps({"benchmark": "afm_ros full loop", "cores": os.cpu_count(),
-                      "steps_per_period": 200, "output_sample_rate_hz": 900e3,
+    for i, chunk in enumerate(float(c) for c in args.chunk_durations.split(",")):
+        if i:  # the first chunk duration's as-fast-as-possible run is the executor comparison above
+            runs.append(run(best, 0.0, args.seconds, controller, chunk))
+        runs.append(run(best, args.paced, args.seconds, controller, chunk))
+    print(json.dumps({"benchmark": "afm_ros full loop" + ("" if controller else " without z-controller"),
+                      "cores": os.cpu_count(), "steps_per_period": 200, "output_sample_rate_hz": 900e3,
                       "fastest_executor": best, "runs": runs}, indent=1))
     return 0
 
