@@ -1,0 +1,147 @@
+"""The study tool: every subcommand on tiny inputs, files and columns, physics sanity, bad flags."""
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from afm_ros import study
+from afm_ros.physics import Cantilever, Drive, steady_amplitude_phase
+
+UNITS = ("_m", "_s", "_N", "_J", "_deg", "_Hz")
+
+
+def read_csv(path):
+    with open(path) as fh:
+        rows = list(csv.DictReader(fh))
+    return rows
+
+
+def test_parse_z_bases():
+    assert study.parse_z_bases("80e-9,40e-9, 5e-9") == [80e-9, 40e-9, 5e-9]
+    # start:stop:step includes stop; the direction comes from start -> stop
+    assert np.allclose(study.parse_z_bases("80e-9:5e-9:5e-9"), np.arange(80, 4, -5) * 1e-9)
+    assert np.allclose(study.parse_z_bases("10e-9:20e-9:5e-9"), [10e-9, 15e-9, 20e-9])
+    for bad, field in (("abc", "z_base"), ("1e-9:2e-9", "z_base"), ("1e-9:2e-9:0", "step"), ("1.0", "z_base")):
+        with pytest.raises(ValueError, match=field):
+            study.parse_z_bases(bad)
+
+
+def test_convergence_subcommand(tmp_path, capsys):
+    code = study.main(["convergence", "--out", str(tmp_path), "--quick", "--periods", "40",
+                       "--window-periods", "10"])
+    assert code == 0
+    rows = read_csv(tmp_path / "convergence.csv")
+    assert list(rows[0]) == ["method", "steps_per_period", "dt_s", "l1_error_m"]
+    assert {r["method"] for r in rows} == {"euler", "verlet", "rk4"}
+    for r in rows:  # dt = 1 / (f spp)
+        assert float(r["dt_s"]) == pytest.approx(1 / (45e3 * int(r["steps_per_period"])), rel=1e-12)
+    out = capsys.readouterr().out
+    orders = json.loads((tmp_path / "convergence_orders.json").read_text())
+    assert f"fitted order rk4: {orders['rk4']:.3f}" in out
+    # even on the three coarsest steps the orders are recognisable (see test_physics_free for tight ones)
+    assert orders["rk4"] == pytest.approx(4, abs=0.3)
+    assert orders["euler"] == pytest.approx(1, abs=0.3) and orders["verlet"] == pytest.approx(1, abs=0.3)
+    assert (tmp_path / "convergence.png").stat().st_size > 1000
+
+
+def test_sweep_subcommand_approach_and_retract(tmp_path):
+    code = study.main(["sweep", "--out", str(tmp_path), "--z-base", "70e-9:10e-9:20e-9", "--retract",
+                       "--steps-per-period", "100", "--no-progress"])
+    assert code == 0
+    rows = read_csv(tmp_path / "sweep.csv")
+    assert list(rows[0]) == study.SWEEP_COLUMNS
+    for col in rows[0]:
+        assert col in ("direction", "periods_simulated", "converged") or col.endswith(UNITS), col
+    approach = [r for r in rows if r["direction"] == "approach"]
+    retract = [r for r in rows if r["direction"] == "retract"]
+    assert [float(r["z_base_m"]) for r in approach] == pytest.approx([70e-9, 50e-9, 30e-9, 10e-9])
+    assert [float(r["z_base_m"]) for r in retract] == pytest.approx([30e-9, 50e-9, 70e-9])
+    amp = [float(r["amplitude_m"]) for r in approach]
+    # far away the free amplitude; then the amplitude falls toward the sample (tapping)
+    free, _ = steady_amplitude_phase(Cantilever(), Drive.from_free_amplitude(Cantilever(), 60e-9))
+    assert amp[0] == pytest.approx(free, rel=1e-3)
+    assert all(a > b for a, b in zip(amp, amp[1:]))
+    assert all(r["converged"] == "1" for r in rows)
+    tapping = approach[-1]
+    # the minimum gap is where the tip reaches: z_base - amplitude + mean deflection (to harmonics)
+    assert float(tapping["min_gap_m"]) < 0 < float(tapping["max_force_N"])
+    assert float(tapping["mean_force_N"]) == pytest.approx(10 * float(tapping["mean_deflection_m"]), rel=0.05)
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
+
+
+def test_sweep_function_carries_state():
+    # the retract starts from the approach's last state: the first retract point is not a
+    # fresh start, so its periods to steady state differ from a fresh run's only through the state
+    rows = study.sweep([40e-9, 20e-9], steps_per_period=100, retract=True, progress=False)
+    assert [r["direction"] for r in rows] == ["approach", "approach", "retract"]
+    fresh = study.sweep([40e-9], steps_per_period=100, progress=False)[0]
+    assert rows[2]["amplitude_m"] == pytest.approx(fresh["amplitude_m"], abs=2e-11)  # same branch here
+
+
+def test_trajectory_subcommand(tmp_path):
+    code = study.main(["trajectory", "--out", str(tmp_path), "--z-base", "30e-9", "--periods", "2",
+                       "--steps-per-period", "100"])
+    assert code == 0
+    rows = read_csv(tmp_path / "trajectory.csv")
+    assert list(rows[0]) == study.TRAJECTORY_COLUMNS
+    assert len(rows) == 200
+    z = np.array([float(r["deflection_m"]) for r in rows])
+    gap = np.array([float(r["tip_position_m"]) for r in rows])
+    drive = np.array([float(r["drive_force_N"]) for r in rows])
+    t = np.array([float(r["t_s"]) for r in rows])
+    assert np.allclose(gap, 30e-9 + z, rtol=0, atol=1e-20)
+    assert np.allclose(np.diff(t), 1 / (45e3 * 100), rtol=1e-9)
+    assert np.max(np.abs(drive)) == pytest.approx(10 * 60e-9 / 25, rel=1e-3)  # F0 = k A0 / Q
+    assert (tmp_path / "trajectory.png").stat().st_size > 1000
+
+
+def test_notebook_subcommand(tmp_path):
+    code = study.main(["notebook", "--out", str(tmp_path), "--quick"])
+    assert code == 0
+    for name in ("plot1_analytic_steady_state", "plot2_euler_28spp", "plot3_verlet", "plot3_rk4_steady",
+                 "plot4_comparison", "plot5_6_l1_error", "plot7_tip_response_drive", "plot8_force_distance"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 1000, name
+    summary = (tmp_path / "summary.md").read_text()
+    assert "rk4_frozen" in summary and "near 45 nm" in summary
+    # the stated amplitude at 40 nm is the corrected one, far from the notebook's 45 nm
+    line = next(ln for ln in summary.splitlines() if ln.startswith("The correct integration"))
+    amp_nm = float(line.split("**")[1].split()[0])
+    assert 50 < amp_nm < 60
+
+
+def test_bench_subcommand_tiny(capsys):
+    code = study.main(["bench", "--steps", "20000", "--solve-ivp-periods", "12", "--no-startup"])
+    assert code == 0
+    result = json.loads(capsys.readouterr().out)
+    for key in ("rk4_ns_per_step", "real_time_factor", "solve_ivp_ns_per_step", "speedup_vs_solve_ivp"):
+        assert result[key] > 0, key
+    if "c_ns_per_step" in result:
+        # the C baseline must be the same computation (bit-identical state), else the ratio is moot
+        assert result["c_bit_identical_to_numba"] is True
+    assert result["solve_ivp"][result["solve_ivp_method"]]["reached_target"]
+
+
+@pytest.mark.parametrize("flag,value,field", [("--quality-factor", "-1", "quality_factor"),
+                                              ("--tip-radius", "nan", "tip_radius"),
+                                              ("--steps-per-period", "10", "steps_per_period"),
+                                              ("--spring-constant", "soft", "spring_constant"),
+                                              ("--sample-poisson-ratio", "0.6", "sample_poisson_ratio")])
+def test_bad_flag_exit_code_2_names_field(tmp_path, capsys, flag, value, field):
+    code = study.main(["sweep", "--out", str(tmp_path / "o"), "--z-base", "40e-9", flag, value])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert field in err and "allowed" in err
+    assert not (tmp_path / "o" / "sweep.csv").exists()
+
+
+def test_bad_value_in_subprocess_no_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.study", "trajectory", "--out", str(tmp_path),
+                           "--z-base", "1.0"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "z_base=1.0 m is out of range" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.study", "sweep", "--method", "rk5"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "method='rk5'" in proc.stderr and "Traceback" not in proc.stderr
