@@ -100,6 +100,7 @@ class CantileverNode(Node):
         self._diag_sim = 0.0
         self._diag_cpu = 0.0
         self._chunks = 0
+        self._stopped = False
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self._timer_period(), self._on_timer, clock=self._steady)
 
@@ -158,7 +159,9 @@ class CantileverNode(Node):
 
     def stop(self) -> None:
         """Stop integrating (the node stays up; e.g. to drain subscribers at the end of a run)."""
-        self._timer.cancel()
+        # a flag, not timer.cancel(): rclpy's executors raise if a timer that was already ready
+        # for the current wait cycle is canceled before it is taken
+        self._stopped = True
 
     def step_chunk(self) -> None:
         """Integrate one chunk and publish it (parameter changes and z_piezo applied first)."""
@@ -184,6 +187,8 @@ class CantileverNode(Node):
         self._chunks += 1
 
     def _on_timer(self) -> None:
+        if self._stopped:
+            return
         start = time.monotonic()
         if self._wall_ref is None:
             self._wall_ref, self._sim_ref = start, self._sim.t
