@@ -44,6 +44,7 @@ class LockInNode(Node):
         super().__init__("lockin", **kwargs)
         values = declare(self, LOCKIN_SPECS)
         self.lockin = LockIn(**values)
+        self.lockin.warm_up()  # so the first chunk does not stall the executor for the numba load
         self._lock = threading.Lock()
         self.add_on_set_parameters_callback(
             make_set_callback(LOCKIN_SPECS, lambda: dict(self.lockin.params), None, self._apply))

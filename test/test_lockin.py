@@ -113,10 +113,11 @@ def test_amplitude_phase_with_offset_harmonics_noise(harmonic, tau):
     offset, sigma = 20e-9, 0.3e-9
     order = 4
     z = synthetic(int(0.02 * FS), a1, phi1, offset, harmonics, sigma)
-    out = run(LockIn(time_constant=tau, filter_order=order, harmonic=harmonic), stream(z, sizes=(1800, 7, 333)))
+    out = run(LockIn(time_constant=tau, filter_order=order, harmonic=harmonic, output_rate=5e3),
+              stream(z, sizes=(1800, 7, 333)))
     target_a, target_phi = (a1, phi1) if harmonic == 1 else (3e-9, math.radians(-120.0))
     # after the step response is within 1e-9 of its final value the error is ripple + noise;
-    # noise: |noise vector| is Rayleigh distributed, P(> 6 rms) = exp(-36), negligible over 40 outputs
+    # noise: |noise vector| is Rayleigh distributed, P(> 6 rms) = exp(-36), negligible over 100 outputs
     steady = out.t > settle_time(tau, order, 1e-9)
     assert steady.sum() > 20
     bound = ripple_bound(harmonic, a1, offset, harmonics, tau, order) + 1e-9 * target_a \
