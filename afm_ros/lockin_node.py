@@ -11,11 +11,13 @@ recorder sees the full trace and the z-controller integrates over the true simul
 from __future__ import annotations
 
 import math
+import sys
 import threading
 
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -92,16 +94,21 @@ class LockInNode(Node):
 def main(args=None):
     rclpy.init(args=args)
     node = None
+    status = 0
     try:
         node = LockInNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ValueError, InvalidParameterValueException) as exc:  # bad start value (e.g. --params-file)
+        print(f"{LockInNode.__name__}: {exc}", file=sys.stderr)
+        status = 1
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return status
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -11,10 +11,12 @@ setpoint - amplitude: negative while the amplitude is above the setpoint).
 from __future__ import annotations
 
 import math
+import sys
 import threading
 
 import rclpy
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -75,16 +77,21 @@ class ZControllerNode(Node):
 def main(args=None):
     rclpy.init(args=args)
     node = None
+    status = 0
     try:
         node = ZControllerNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ValueError, InvalidParameterValueException) as exc:  # bad start value (e.g. --params-file)
+        print(f"{ZControllerNode.__name__}: {exc}", file=sys.stderr)
+        status = 1
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return status
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
