@@ -20,19 +20,20 @@ void rk4_dmt(double *y, long n0, long nsteps, double dt, double inv_m, double k,
     double z = y[0], v = y[1];
     const long period2 = table_len - 1;
     long j = (2 * n0) % period2;
-    const double h = 0.5 * dt, sixth = dt / 6.0;
+    const double h = 0.5 * dt, sixth = dt / 6.0, hh = h * h, dth = dt * h, dt_sixth = dt * sixth;
     for (long i = 0; i < nsteps; i++) {
         double f1 = dmt(p, z_offset + z);
         double drive_half = table[j + 1];
         double a1 = (-k * z - c * v + table[j] + f1) * inv_m;
         double z2 = z + h * v, v2 = v + h * a1;
         double a2 = (-k * z2 - c * v2 + drive_half + dmt(p, z_offset + z2)) * inv_m;
-        double z3 = z + h * v2, v3 = v + h * a2;
+        double z3 = z2 + hh * a1, v3 = v + h * a2;
         double a3 = (-k * z3 - c * v3 + drive_half + dmt(p, z_offset + z3)) * inv_m;
-        double z4 = z + dt * v3, v4 = v + dt * a3;
+        double z_dt = z + dt * v;
+        double z4 = z_dt + dth * a2, v4 = v + dt * a3;
         double a4 = (-k * z4 - c * v4 + table[j + 2] + dmt(p, z_offset + z4)) * inv_m;
-        z = z + sixth * (v + 2.0 * v2 + 2.0 * v3 + v4);
-        v = v + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4);
+        z = z_dt + dt_sixth * (a1 + a2 + a3);
+        v = (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4;
         j += 2;
         if (j >= period2)
             j -= period2;

