@@ -31,7 +31,25 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | None, compression: str = "zstd"):
+def _start_recorder_process(record: Path, compression: str, ns: str):
+    import signal
+    import subprocess
+    import sys
+    exe = Path(sys.executable).parent / "recorder_node"
+    proc = subprocess.Popen([str(exe), "--ros-args", "-r", f"__ns:={ns}", "-p", f"output:={record}",
+                             "-p", f"compression:={compression}"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+    def stop():
+        proc.send_signal(signal.SIGINT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = status
+        return usage.ru_utime + usage.ru_stime
+    return proc, stop
+
+
+def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | None, compression: str = "zstd",
+              separate_process: bool = False):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -50,12 +68,19 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
             Parameter("real_time_factor", value=rtf), Parameter("output_sample_rate", value=output_rate)])
         nodes = [cantilever, LockInNode(context=ctx, namespace=ns), ZControllerNode(context=ctx, namespace=ns)]
         recorder = None
-        if record is not None:
+        proc = stop = None
+        if record is not None and separate_process:
+            proc, stop = _start_recorder_process(record, compression, ns)
+        elif record is not None:
             recorder = RecorderNode(context=ctx, namespace=ns, parameter_overrides=[
                 Parameter("output", value=str(record)), Parameter("compression", value=compression)])
             nodes.append(recorder)
         for n in nodes:
             ex.add_node(n)
+        if proc is not None:  # wait until the recorder process records (discovery takes a moment)
+            deadline = time.monotonic() + 20
+            while not (record.exists() and record.stat().st_size > 100_000) and time.monotonic() < deadline:
+                ex.spin_once(timeout_sec=0.005)
         # warm-up (discovery, first chunks), then the measured window
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
@@ -77,6 +102,10 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
         if recorder is not None:
             ex.remove_node(recorder)
             recorder.destroy_node()
+            result.update(_file_stats(record, published))
+        if proc is not None:
+            total_cpu = stop()
+            result["recorder_process_cpu_s_total"] = total_cpu
             result.update(_file_stats(record, published))
         return result
     finally:
@@ -178,6 +207,14 @@ def main(argv=None) -> int:
     for comp in ("none", "lz4", "zstd"):
         res["paced"][f"with_recorder_{comp}"] = _run_loop(args.seconds, 1.0, args.output_rate,
                                                           work / f"paced_{comp}_{stamp}.mcap", comp)
+    # the recorder in its own process (second core): local DDS discovery, private domain id
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["ROS_DOMAIN_ID"] = os.environ.get("AFM_BENCH_DOMAIN_ID", "68")
+    res["paced"]["with_recorder_process_zstd"] = _run_loop(args.seconds, 1.0, args.output_rate,
+                                                           work / f"proc_zstd_{stamp}.mcap", "zstd", True)
+    res["free_running"]["with_recorder_process_zstd"] = _run_loop(args.seconds, 0.0, args.output_rate,
+                                                                  work / f"proc_free_{stamp}.mcap", "zstd", True)
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     res["replay"] = _replay_throughput(work / f"paced_zstd_{stamp}.mcap")
     res["files"] = str(work)
     print(json.dumps(res, indent=2))
