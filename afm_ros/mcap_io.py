@@ -266,14 +266,17 @@ class SessionWriter:
         try:
             return fn()
         except OSError as exc:
-            why = os.strerror(exc.errno) if exc.errno else str(exc)
-            self.error = RecordingError(
-                f"writing {self.path} failed: {why}; recording stopped, the file is incomplete "
-                f"(no summary or footer; read what was flushed with "
-                f"`python -m afm_ros.mcap_io recover {self.path} OUT.mcap`)")
-            self.error.errno = exc.errno
-            self._abandon()
-            raise self.error from exc
+            self._failed(exc)
+
+    def _failed(self, exc: OSError):
+        why = os.strerror(exc.errno) if exc.errno else str(exc)
+        self.error = RecordingError(
+            f"writing {self.path} failed: {why}; recording stopped, the file is incomplete "
+            f"(no summary or footer; read what was flushed with "
+            f"`python -m afm_ros.mcap_io recover {self.path} OUT.mcap`)")
+        self.error.errno = exc.errno
+        self._abandon()
+        raise self.error from exc
 
     def _abandon(self):
         try:
@@ -305,9 +308,13 @@ class SessionWriter:
     def write(self, channel_id: int, data: bytes, log_time: int, publish_time: int | None = None,
               sequence: int = 0) -> None:
         """Append one CDR message; times in ns (wall clock, see module doc)."""
-        self._guard(lambda: self._writer.add_message(channel_id, log_time, data,
-                                                     log_time if publish_time is None else publish_time,
-                                                     sequence))
+        if self.error is not None or self.closed:
+            self._guard(lambda: None)  # raises the stored error
+        try:
+            self._writer.add_message(channel_id, log_time, data,
+                                     log_time if publish_time is None else publish_time, sequence)
+        except OSError as exc:
+            self._failed(exc)
         self.message_count += 1
         self.bytes_written += len(data)
 

@@ -153,10 +153,9 @@ class RecorderNode(Node):
         if self.error is not None:
             return
         now = time.time_ns()
-        src = info.get("source_timestamp", 0) if isinstance(info, dict) else 0
-        self._sequence[topic] += 1
+        seq = self._sequence[topic] = self._sequence[topic] + 1
         try:
-            self.writer.write(self._channel[topic], data, now, src or now, self._sequence[topic])
+            self.writer.write(self._channel[topic], data, now, info.get("source_timestamp") or now, seq)
         except RecordingError as exc:
             self._fail(exc)
             return
