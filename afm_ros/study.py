@@ -448,9 +448,12 @@ def _summary_md(comparison, orders, z_base, cantilever, drive, where_45nm="") ->
         f"- the frozen force turns the conservative DMT force into a spurious energy sink/source: "
         f"E_ts = {frozen.tip_sample_dissipation * 1e18:+.4f} aJ per period (corrected: "
         f"{fixed.tip_sample_dissipation * 1e18:+.2e} aJ; DMT is conservative so it must be ~0).",
-        "- part of E_ts at coarse steps is the analysis' own quadrature error (rectangle rule over the",
-        "  short contact pulse, second order in dt): the corrected RK4 goes to ~0 as spp grows, while the",
-        "  frozen-force scheme is only first order in dt and keeps a larger error at the same spp.",
+        "- the corrected RK4 also shows a small non-zero E_ts at coarse steps: its own numerical",
+        "  energy error where the step crosses the force kink at a0 (a trapezoidal loop integral of",
+        "  F dz along the samples gives the same number, so it is not a quadrature artefact). It is",
+        "  irregular in z_base, below 1e-3 of the drive work at the default step and goes to ~0 as",
+        "  spp grows; the frozen-force scheme is only first order in dt and its energy balance stays",
+        "  off even at 3200 spp (last column).",
         "",
         "## The amplitude at z_base = %g nm" % (z_base * 1e9),
         "",

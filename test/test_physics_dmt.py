@@ -115,10 +115,11 @@ def test_energy_balance_per_period(fine_runs):
     """drive work = damping loss + tip-sample dissipation, and E_ts ~ 0 (DMT is conservative).
 
     The analysis integrates the sampled powers with the rectangle rule; the power has kinks at the
-    contact edges, so its quadrature error is O(dt^2) per edge and irregular. At 6400 spp that is
-    ~1e-6 of the drive work (measured); 3e-5 leaves margin yet is 10x below the energy error of the
-    notebook's frozen-force RK4 even at 3200 spp (negative control below), so a leaking
-    integrator fails this test.
+    contact edges, so its quadrature error is O(dt^2) per edge and irregular; RK4 itself has a small
+    numerical energy error where a step crosses the force kink at a0 (E_ts ~ +-7e-4 of the drive
+    work at 220 spp, irregular in z_base). At 6400 spp both are ~1e-6 of the drive work (measured);
+    3e-5 leaves margin yet is 10x below the energy error of the notebook's frozen-force RK4 even
+    at 3200 spp (negative control below), so a leaking integrator fails this test.
     """
     for zb, (a, _) in fine_runs.items():
         balance = a.drive_work - a.damping_loss - a.tip_sample_dissipation
