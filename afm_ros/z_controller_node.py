@@ -25,7 +25,11 @@ from std_msgs.msg import Float64
 from .ros_params import declare, make_set_callback
 from .zcontrol import Z_CONTROLLER_SPECS, ZController, check_limits
 
-INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
+# Input depth 1: the controller always acts on the freshest amplitude. If it falls behind (e.g. the
+# lock-in publishes several outputs per executor cycle) older samples are skipped instead of
+# queueing up as loop delay; the integral stays exact in simulated time because each step uses
+# the stamp difference to the last processed sample.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE)
 # z_piezo: transient-local depth 1 so a cantilever that starts later still gets the current position.
 Z_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
