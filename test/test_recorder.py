@@ -158,6 +158,7 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
         assert np.array_equal(a, c) and np.array_equal(b, c)
     # log_time = receive time >= publish_time = source timestamp (same wall clock, same host)
     assert all(m.publish_time <= m.log_time for m in messages)
+    assert any(m.publish_time < m.log_time for m in messages), "publish_time is not the source timestamp"
 
     # --- parameters: full initial set of the cantilever, and the later change ----------------
     scan = scan_session(path)

@@ -221,3 +221,21 @@ def test_truncated_file_plays_the_intact_part(ros_context, ros_executor, tmp_pat
     n = intact.message_counts["/a/cantilever/deflection"]
     assert 0 < n < scan_session(loop_session).message_counts["/a/cantilever/deflection"]
     assert replay.published["/a/cantilever/deflection"] == n == len(sink.chunks)
+
+
+def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros_executor):
+    from rclpy.parameter_client import AsyncParameterClient
+    replay = ReplayNode(context=ros_context, namespace="/rt", parameter_overrides=[
+        Parameter("file", value=str(loop_session)), Parameter("topics", value="/clock"),
+        Parameter("start_delay", value=5.0)])
+    ros_executor.add_node(replay)
+    client = AsyncParameterClient(replay, "/rt/replay")
+    assert client.wait_for_services(5.0)
+    bad = client.set_parameters([Parameter("rate", value=-2.0)])
+    spin(ros_executor, until=bad.done, timeout=5)
+    result = bad.result().results[0]
+    assert not result.successful and "rate" in result.reason and "(0, 1000]" in result.reason
+    good = client.set_parameters([Parameter("rate", value=3.0)])
+    spin(ros_executor, until=good.done, timeout=5)
+    assert good.result().results[0].successful
+    assert replay.get_parameter("rate").value == 3.0 and replay._rate == 3.0
