@@ -143,8 +143,8 @@ class RecorderNode(Node):
         qos_text = qos_profiles_yaml([i.qos_profile for i in infos])
         cid = self.writer.add_channel(topic, type_name, qos_text)
         self._channel[topic] = cid
-        self._sequence[topic] = 0
-        self.received[topic] = 0
+        self._sequence.setdefault(topic, 0)  # /parameter_events may already hold snapshots
+        self.received.setdefault(topic, 0)
         qos = qos_profile_parameter_events if topic == PARAMETER_EVENTS else self._qos_for(infos)
         self._subs[topic] = self.create_subscription(
             cls, topic, lambda data, info, t=topic: self._on_message(t, data, info), qos, raw=True)

@@ -234,6 +234,8 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
         with pytest.raises(Exception):
             make_reader(f).get_summary() or (_ for _ in ()).throw(ValueError("no summary"))
     out = tmp_path / "recovered.mcap"
+    assert mcap_io.main(["recover", str(killed), str(tmp_path / "cli.mcap")]) == 0  # the command line
+    assert scan_session(tmp_path / "cli.mcap").complete
     result = recover(killed, out)
     assert result.messages == sum(scan.message_counts.values()) > 0
     assert scan_session(out).complete
