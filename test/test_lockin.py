@@ -25,7 +25,7 @@ from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from afm_ros import chunk_layout
 from afm_ros.chunk_layout import ChunkHeader
-from afm_ros.lockin import LOCKIN_SPECS, LockIn, LockInOutput, lowpass
+from afm_ros.lockin import LockIn, LockInOutput, lowpass
 from afm_ros.lockin_node import CHUNK_QOS, LockInNode
 from afm_ros.physics import (Cantilever, DMTForce, Drive, NoForce, Simulation, steady_amplitude_phase,
                              steady_state)

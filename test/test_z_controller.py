@@ -212,8 +212,8 @@ def start(ctx, executor, ns, **params):
     harness = Harness(ctx, ns)
     executor.add_node(node)
     executor.add_node(harness)
-    spin_until(executor, lambda: harness.pub.get_subscription_count() > 0 and node.pub_error.get_subscription_count() > 0
-               and len(harness.z) >= 1)  # the initial z arrives (transient local)
+    spin_until(executor, lambda: harness.pub.get_subscription_count() > 0
+               and node.pub_error.get_subscription_count() > 0 and len(harness.z) >= 1)  # the initial z arrives (transient local)
     return node, harness
 
 
