@@ -49,6 +49,11 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("cantilever and sample parameters (SI units)")
     for name, spec in PARAM_SPECS.items():
         unit = f" [{spec.unit}]" if spec.unit and spec.unit != "1" else ""
+        if name == "drive_frequency":  # follows --resonance-frequency unless given
+            group.add_argument(_flag(name), dest=name, type=_number, default=None, metavar="X",
+                               help=f"{spec.description}{unit}; default: the resonance frequency, "
+                                    f"range {spec.range_text()}")
+            continue
         group.add_argument(_flag(name), dest=name, type=_number, default=spec.default, metavar="X",
                            help=f"{spec.description}{unit}; default {spec.default:g}, range {spec.range_text()}")
 
@@ -58,7 +63,10 @@ def physics_from_args(ns: argparse.Namespace):
 
     Raises ValueError naming the field and allowed range for a bad value.
     """
-    values = {name: PARAM_SPECS[name].validate(getattr(ns, name)) for name in PARAM_SPECS}
+    raw = {name: getattr(ns, name) for name in PARAM_SPECS}
+    if raw["drive_frequency"] is None:
+        raw["drive_frequency"] = raw["resonance_frequency"]
+    values = {name: PARAM_SPECS[name].validate(value) for name, value in raw.items()}
     cantilever = Cantilever(values["spring_constant"], values["resonance_frequency"], values["quality_factor"])
     drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
     sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
