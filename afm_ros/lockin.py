@@ -322,6 +322,13 @@ class LockIn:
     def process(self, header: ChunkHeader, samples: np.ndarray) -> LockInOutput:
         """Demodulate one chunk; return the output samples that fall in it."""
         samples = np.ascontiguousarray(samples, dtype=np.float64)
+        for name in ("t_start", "sample_interval", "drive_phase", "drive_frequency"):
+            if not math.isfinite(getattr(header, name)):
+                raise ValueError(f"chunk {name}={getattr(header, name)!r} is not finite")
+        if not (header.sample_interval > 0.0):
+            raise ValueError(f"chunk sample_interval={header.sample_interval!r} s must be positive")
+        if not np.isfinite(samples).all():  # would poison the filter state for good
+            raise ValueError(f"chunk at index {header.first_sample_index} holds non-finite samples; ignored")
         stats = self.stats
         first = int(header.first_sample_index)
         if self._next_index is not None and first != self._next_index:

@@ -67,6 +67,9 @@ class LockInNode(Node):
 
     def _on_chunk(self, msg: Float64MultiArray) -> None:
         try:
+            if msg.layout.data_offset != chunk_layout.PREAMBLE_LENGTH:
+                raise ValueError(f"layout.data_offset={msg.layout.data_offset}, expected "
+                                 f"{chunk_layout.PREAMBLE_LENGTH} (afm_ros chunk layout)")
             header, samples = chunk_layout.unpack(msg.data)
             with self._lock:
                 out = self.lockin.process(header, samples)

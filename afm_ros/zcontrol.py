@@ -61,6 +61,7 @@ class ZController:
         self.error = math.nan  # last error setpoint - amplitude [m]
         self.t_last = None  # simulated time of the last sample [s]
         self.non_monotonic_samples = 0  # samples whose time did not advance (no integration)
+        self.rejected_samples = 0  # non-finite amplitude or time: ignored
         self._needs_init = True  # bumpless (re)initialisation at the next enabled sample
         if not values["enabled"]:
             self._apply_disabled_jump()
@@ -103,17 +104,19 @@ class ZController:
     def update(self, amplitude: float, t: float) -> float:
         """Process amplitude [m] measured at simulated time t [s]; return the new z [m]."""
         p = self.params
+        if not (math.isfinite(amplitude) and math.isfinite(t)):
+            self.rejected_samples += 1  # a NaN would poison the integrator for good
+            return self.z
         e = p["setpoint"] - amplitude
         self.error = e
         if self.t_last is None:
             dt = 0.0
-            self.t_last = t
         elif t > self.t_last:
             dt = t - self.t_last
-            self.t_last = t
-        else:
+        else:  # same stamp, or time went back (simulation restarted): no step, restart from t
             dt = 0.0
             self.non_monotonic_samples += 1
+        self.t_last = t
         z_lo, z_hi = p["z_min"], p["z_max"]
         if not p["enabled"]:
             if p["disabled_action"] == "withdraw":

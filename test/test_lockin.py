@@ -256,6 +256,25 @@ def test_gaps_duplicates_and_interval_change():
     assert np.abs((out.x + 1j * out.y)[late] - 40e-9 * np.exp(-1.2j)).max() <= bound
 
 
+def test_non_finite_chunk_rejected_without_touching_the_state():
+    z = synthetic(3600, 40e-9, 1.0)
+    chunks = stream(z, sizes=(1800,))
+    lockin = LockIn()
+    lockin.process(*chunks[0])
+    state = lockin.state.copy()
+    bad = chunks[1][1].copy()
+    bad[7] = math.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        lockin.process(chunks[1][0], bad)
+    h = chunks[1][0]
+    with pytest.raises(ValueError, match="sample_interval"):
+        lockin.process(ChunkHeader(h.first_sample_index, h.t_start, 0.0, h.drive_phase, h.drive_frequency, 0.0),
+                       chunks[1][1])
+    assert np.array_equal(lockin.state, state)
+    out = lockin.process(*chunks[1])  # the good chunk still continues the stream
+    assert lockin.stats.gap_events == 0 and np.all(np.isfinite(out.x))
+
+
 @pytest.mark.parametrize("name,value,allowed", [
     ("filter_order", 9, "[1, 8]"), ("filter_order", 0, "[1, 8]"), ("time_constant", -1e-3, "[1e-08, 100]"),
     ("harmonic", 2.5, "[1, 8]"), ("reference_source", "auto", "'drive', 'fixed'"),

@@ -290,3 +290,14 @@ def test_node_skipped_samples_keep_the_integral_exact(ros_context, ros_executor,
     assert len(harness.error) < 200  # some samples were skipped ...
     expected = z0 + I * (SETPOINT - 55e-9) * 0.199
     assert harness.z[-1] == pytest.approx(expected, rel=1e-9)  # ... without changing the integral
+
+
+def test_non_finite_samples_and_time_going_back():
+    ctrl = ZController(z_initial=-10e-9, p_gain=0.0)
+    ctrl.update(55e-9, 1.0)
+    z = ctrl.update(55e-9, 1.001)
+    assert ctrl.update(math.nan, 1.002) == z and ctrl.update(55e-9, math.inf) == z
+    assert ctrl.rejected_samples == 2 and math.isfinite(ctrl.integrator)
+    # the simulation restarts at t = 0: no step for the jump, then integration resumes
+    assert ctrl.update(55e-9, 0.0) == z and ctrl.non_monotonic_samples == 1
+    assert ctrl.update(55e-9, 0.001) == pytest.approx(z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9)
