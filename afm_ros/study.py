@@ -33,6 +33,19 @@ from .physics.integrators import METHODS
 PARAM_SPECS = {name: spec for name, spec in {**CANTILEVER_SPECS, **DMT_SPECS}.items() if name != "z_base"}
 
 
+def _int_at_least(minimum: int):
+    """argparse type: an integer >= minimum (argparse reports a bad value and exits with status 2)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer >= {minimum}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} is not an integer >= {minimum}")
+        return value
+    return parse
+
+
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -599,8 +612,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("convergence", "L1 error vs time step for each integrator, fitted orders")
     p.add_argument("--methods", type=lambda s: [m.strip() for m in s.split(",") if m.strip()],
                    default=list(DEFAULT_CONVERGENCE_SPP), help="comma list from euler,verlet,rk4")
-    p.add_argument("--periods", type=int, default=100, help="drive periods per run (default 100)")
-    p.add_argument("--window-periods", type=int, default=20, help="periods at the end in the L1 error")
+    p.add_argument("--periods", type=_int_at_least(1), default=100, help="drive periods per run (default 100)")
+    p.add_argument("--window-periods", type=_int_at_least(1), default=20, help="periods at the end in the L1 error")
     p.add_argument("--quick", action="store_true", help="only the three coarsest step counts per method")
 
     for name, text in (("sweep", "steady-state observables vs z_base (approach, optional --retract)"),
@@ -615,13 +628,13 @@ def build_parser() -> argparse.ArgumentParser:
     sweep_p.add_argument("--no-progress", action="store_true", help="no progress bar")
     traj_p = sub.choices["trajectory"]
     traj_p.add_argument("--z-base", default="40e-9", help="z_base [m] (default 40e-9)")
-    traj_p.add_argument("--periods", type=int, default=5, help="periods to record (default 5)")
-    traj_p.add_argument("--from-rest", type=int, default=None, metavar="P",
+    traj_p.add_argument("--periods", type=_int_at_least(1), default=5, help="periods to record (default 5)")
+    traj_p.add_argument("--from-rest", type=_int_at_least(0), default=None, metavar="P",
                         help="record after P periods from rest instead of after the steady state")
 
     p = add("bench", "speed benchmark; prints one JSON object", params=False)
-    p.add_argument("--steps", type=int, default=10_000_000, help="RK4 steps timed (default 1e7)")
-    p.add_argument("--solve-ivp-periods", type=int, default=40, help="periods integrated by solve_ivp")
+    p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
+    p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
     return parser
 
