@@ -16,8 +16,6 @@ see docs/study.md) found that 200 steps per period misses the amplitude target (
 z_base 46.6 nm) and that 220 meets both (worst 0.0167 nm at 45.7 nm, 0.0425 deg at 33.9 nm), so
 the default is 220. Besides every 5 nm, the z_base list holds the worst points of that scan.
 """
-import numpy as np
-import pytest
 
 from afm_ros.physics import CANTILEVER_SPECS, seed_simulation, steady_state
 
