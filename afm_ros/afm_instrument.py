@@ -12,7 +12,8 @@ blocks registered in :func:`build_nodes`) and performs the main job:
 
 All times in the job are *simulated* seconds; the cantilever's ``real_time_factor`` sets how fast
 they pass. ``--ros-args`` (``-p``, ``--params-file``, ``-r``) apply to every node in the process:
-``afm_instrument --duration 0.2 --ros-args --params-file config/afm.yaml -p cantilever:...``.
+``afm_instrument --duration 0.2 --ros-args --params-file config/afm.yaml -p real_time_factor:=0.0``
+(a ``-p`` is offered to every node; only the node that declares the name uses it).
 """
 from __future__ import annotations
 

@@ -41,12 +41,15 @@ CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=R
 Z_PIEZO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
-# One chunk per timer callback: an executor then serves the subscribers between chunks (rclpy's
-# SingleThreadedExecutor takes one message per subscription per wait cycle, so a burst of chunks
-# would overflow their queues). The paced timer runs at CATCH_UP times the chunk rate; while the
-# simulation is more than a chunk behind the requested time (start-up, a slow moment) the timer
-# period drops to 0 (as fast as possible) until it has caught up, so no simulated time is skipped.
+# Paced: the timer runs at CATCH_UP times the chunk rate and integrates every chunk that is due,
+# at most MAX_BURST per callback, so a lag (start-up, a slow moment) is made up at up to
+# CATCH_UP * MAX_BURST times the requested real-time factor. real_time_factor 0: a zero-period
+# timer, one chunk per callback. Bursts are kept small because rclpy's Single/MultiThreadedExecutor
+# take one message per subscription per wait cycle: a long burst of chunks would overflow the
+# subscribers' queues. (Changing the timer period to 0 while lagging was tried: rclpy's
+# EventsExecutor then fired it erratically, and a guard condition is not supported by it.)
 CATCH_UP = 2.0
+MAX_BURST = 4
 DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
 
@@ -103,7 +106,6 @@ class CantileverNode(Node):
         self._diag_cpu = 0.0
         self._chunks = 0
         self._stopped = False
-        self._catching_up = False
         self._last_lag_warning = -math.inf
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self._timer_period(), self._on_timer, clock=self._steady)
@@ -132,7 +134,6 @@ class CantileverNode(Node):
                                   steps_per_period=new.steps_per_period)
         if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps:
             self._timer.timer_period_ns = int(self._timer_period() * 1e9)
-            self._catching_up = False
             self._wall_ref = None  # re-anchor the pacing at the new rate
         self.get_logger().info("applied " + ", ".join(f"{k}={v!r}" for k, v in changed.items()))
 
@@ -199,23 +200,21 @@ class CantileverNode(Node):
             self._wall_ref, self._sim_ref = start, self._sim.t
             self._diag_wall, self._diag_sim, self._diag_cpu = start, self._sim.t, time.process_time()
         rtf = self._values["real_time_factor"]
-        due = True
-        if rtf != 0.0:
-            chunk = self._setup.chunk_steps * self._setup.dt
-            target = self._sim_ref + (start - self._wall_ref) * rtf
-            # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
-            due = target - self._sim.t >= chunk * (1.0 - 1e-9)
-        if due:
+        for _ in range(1 if rtf == 0.0 else MAX_BURST):
+            if rtf != 0.0:
+                chunk = self._setup.chunk_steps * self._setup.dt
+                target = self._sim_ref + (time.monotonic() - self._wall_ref) * rtf
+                # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
+                if target - self._sim.t < chunk * (1.0 - 1e-9):
+                    break
             self.step_chunk()
+            if self._wall_ref is None or self._values["real_time_factor"] != rtf:
+                break  # pacing re-anchored by a parameter change
         if self._wall_ref is None:  # pacing re-anchored by a parameter change
             return
         now = time.monotonic()
         if rtf != 0.0:
             self._lag = max(0.0, self._sim_ref + (now - self._wall_ref) * rtf - self._sim.t)
-            behind = self._lag >= self._setup.chunk_steps * self._setup.dt
-            if behind != self._catching_up:
-                self._catching_up = behind
-                self._timer.timer_period_ns = 0 if behind else int(self._timer_period() * 1e9)
             # own throttle: rclpy's throttle_duration_sec inspects the caller's frame on every call,
             # which costs more than a chunk when called once per chunk
             if self._lag > max(10 * self._setup.chunk_steps * self._setup.dt, 0.05 * rtf) \
