@@ -8,7 +8,8 @@ full parameter set of every node is stored when the node is first seen, both as 
 changes arrive on ``/parameter_events``, which is always recorded.
 
 Clocks: ``log_time`` = wall-clock receive time, ``publish_time`` = the publisher's source
-timestamp (wall clock) from the middleware, both ns since the epoch (see docs/recording.md).
+timestamp (wall clock) from the middleware (= ``log_time`` under rclpy's EventsExecutor, which
+cannot deliver message info), both ns since the epoch (see docs/recording.md).
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError,
 
 PARAMETER_EVENTS = "/parameter_events"
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
+_NO_INFO: dict = {}
 MIN_DEPTH = 100  # subscription queue [messages]; chunk topics arrive at ~50-500 Hz
 
 
@@ -89,7 +91,9 @@ class RecorderNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.get_logger().info(f"recording to {self.output_path}")
         self._snapshot_own_parameters()
-        self._discover()
+        self._discover()  # subscribe now, so a recorder started with the instrument misses nothing
+        # once an executor runs the node, its type decides the callback form (see _upgrade)
+        self._kick = self.create_timer(0.01, self._first_tick, clock=self._steady)
         self._rec_timers = [
             self.create_timer(v["discovery_period"], self._discover, clock=self._steady),
             self.create_timer(v["flush_interval"], self._flush, clock=self._steady),
@@ -113,6 +117,23 @@ class RecorderNode(Node):
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                           reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+
+    def _first_tick(self) -> None:
+        self._kick.cancel()
+        for topic, sub in self._subs.items():
+            if sub is not None:
+                self._upgrade(topic, sub)
+
+    def _upgrade(self, topic: str, sub) -> None:
+        """Switch to a callback with message info (publish_time = source timestamp) if the executor
+        can deliver it; the subscription itself is kept, so no message is lost or duplicated."""
+        if self.executor is not None and self._with_message_info():
+            sub.callback = lambda data, info, t=topic: self._on_message(t, data, info)
+
+    def _with_message_info(self) -> bool:
+        """Callbacks with message info give publish_time = source timestamp; rclpy 7.1's
+        EventsExecutor fails on them ('null argument to internal routine'), so not there."""
+        return type(self.executor).__name__ != "EventsExecutor"
 
     def _discover(self) -> None:
         if self.error is not None:
@@ -146,8 +167,10 @@ class RecorderNode(Node):
         self._sequence.setdefault(topic, 0)  # /parameter_events may already hold snapshots
         self.received.setdefault(topic, 0)
         qos = qos_profile_parameter_events if topic == PARAMETER_EVENTS else self._qos_for(infos)
-        self._subs[topic] = self.create_subscription(
-            cls, topic, lambda data, info, t=topic: self._on_message(t, data, info), qos, raw=True)
+        sub = self.create_subscription(cls, topic, lambda data, t=topic: self._on_message(t, data, _NO_INFO),
+                                       qos, raw=True)
+        self._subs[topic] = sub
+        self._upgrade(topic, sub)
 
     def _on_message(self, topic: str, data: bytes, info) -> None:
         if self.error is not None:
@@ -260,7 +283,12 @@ def main(args=None):
         node = RecorderNode()
         print(f"recorder: recording to {node.output_path}", flush=True)
         while rclpy.ok() and node.error is None:
-            rclpy.spin_once(node, timeout_sec=0.2)
+            try:
+                rclpy.spin_once(node, timeout_sec=0.2)
+            except Exception:
+                if rclpy.ok():
+                    raise
+                break  # a signal shut the context down in the middle of a callback
         if node.error is not None:
             code = 1
     except (RecordingError, ValueError) as exc:

@@ -179,9 +179,15 @@ def _env():
     return env
 
 
+# Another run of this file at the same time (same domain id) must not leak into this one: every
+# subprocess runs in a namespace unique to this pytest process, and recorders take relative names.
+RUN_NS = f"/run{os.getpid()}"
+
+
 def _start(args, **kw):
-    return subprocess.Popen([str(VENV_BIN / args[0]), *args[1:]], env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, **kw)
+    assert args[1] == "--ros-args"
+    return subprocess.Popen([str(VENV_BIN / args[0]), "--ros-args", "-r", f"__ns:={RUN_NS}", *args[2:]],
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
 
 
 def _wait_for_growth(path: Path, size: int, timeout=30.0):
@@ -196,7 +202,7 @@ FLUSH_INTERVAL = 0.5  # [s]
 
 def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp_path):
     killed, termed = tmp_path / "killed.mcap", tmp_path / "termed.mcap"
-    topics = "/cantilever/deflection,/cantilever/tip_sample_force"
+    topics = "cantilever/deflection,cantilever/tip_sample_force"
     cantilever = _start(["cantilever_node", "--ros-args", "-p", f"output_sample_rate:={OUTPUT_RATE}",
                          "-p", "publish_clock:=false"])
     rec_args = ["-p", f"topics:={topics}", "-p", f"flush_interval:={FLUSH_INTERVAL}"]
@@ -239,7 +245,7 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
     result = recover(killed, out)
     assert result.messages == sum(scan.message_counts.values()) > 0
     assert scan_session(out).complete
-    messages = [m for m in read_session(out) if m.topic == "/cantilever/deflection"]
+    messages = [m for m in read_session(out) if m.topic == f"{RUN_NS}/cantilever/deflection"]
     idx, _ = chunk_stream(messages)
     assert np.array_equal(idx, idx[0] + np.arange(idx.shape[0])), "recovered stream has a gap"
     # Loss bound: chunks are closed every FLUSH_INTERVAL of wall time, so the newest recovered
@@ -248,7 +254,7 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
     lost_s = (t_kill - max(m.log_time for m in messages)) * 1e-9
     assert 0.0 <= lost_s <= FLUSH_INTERVAL + 0.3, f"lost {lost_s:.3f} s of data"
     # the SIGTERM'd recorder saw the same stream up to at least the kill: it also has no gap
-    idx_t, _ = chunk_stream([m for m in read_session(termed) if m.topic == "/cantilever/deflection"])
+    idx_t, _ = chunk_stream([m for m in read_session(termed) if m.topic == f"{RUN_NS}/cantilever/deflection"])
     assert np.array_equal(idx_t, idx_t[0] + np.arange(idx_t.shape[0]))
     assert idx_t[-1] >= idx[-1]
 
@@ -264,7 +270,7 @@ def test_write_failure_stops_with_clear_error_and_no_complete_claim(tmp_path):
 
     cantilever = _start(["cantilever_node", "--ros-args", "-p", f"output_sample_rate:={OUTPUT_RATE}"])
     rec = _start(["recorder_node", "--ros-args", "-p", f"output:={path}", "-p", "compression:=none",
-                  "-p", "topics:=/cantilever/*"], preexec_fn=limit_size)
+                  "-p", "topics:=cantilever/*"], preexec_fn=limit_size)
     try:
         code = rec.wait(30)  # exits by itself: no hang
         out = rec.stdout.read()
@@ -322,3 +328,29 @@ def test_default_output_is_timestamped_in_cwd(ros_context, tmp_path, monkeypatch
     finally:
         recorder.destroy_node()
     assert scan_session(recorder.output_path).complete
+
+
+def test_records_under_the_events_executor(ros_context, ros_namespace, tmp_path):
+    """afm_instrument spins everything on rclpy's EventsExecutor: the recorder must work there too."""
+    from rclpy.experimental import EventsExecutor
+    ex = EventsExecutor(context=ros_context)
+    path = tmp_path / "events.mcap"
+    cantilever = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
+        Parameter("output_sample_rate", value=OUTPUT_RATE)])
+    recorder = RecorderNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
+        Parameter("output", value=str(path)), Parameter("topics", value="cantilever/deflection")])
+    try:
+        ex.add_node(cantilever)
+        ex.add_node(recorder)
+        spin_for(ex, 1.0)
+        ex.remove_node(cantilever)
+        published = cantilever.samples_published
+        cantilever.destroy_node()
+        spin_for(ex, 0.3)
+        ex.remove_node(recorder)
+        recorder.destroy_node()
+    finally:
+        ex.shutdown()
+    idx, _ = chunk_stream([m for m in read_session(path) if m.topic.endswith("cantilever/deflection")])
+    assert scan_session(path).complete
+    assert np.array_equal(idx, np.arange(idx.size)) and idx.size == published
