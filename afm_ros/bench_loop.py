@@ -170,6 +170,7 @@ def main(argv=None) -> int:
                         help="cantilever chunk_duration values [s] for the fastest executor (default 0.002,0.005)")
     args = parser.parse_args(argv)
     controller = not args.no_controller
+    load_before = os.getloadavg()
     runs = []
     for kind in args.executors.split(","):
         runs.append(run(kind, 0.0, args.seconds, controller))
@@ -180,6 +181,7 @@ def main(argv=None) -> int:
         runs.append(run(best, args.paced, args.seconds, controller, chunk))
     print(json.dumps({"benchmark": "afm_ros full loop" + ("" if controller else " without z-controller"),
                       "cores": os.cpu_count(), "steps_per_period": 200, "output_sample_rate_hz": 900e3,
+                      "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]],
                       "fastest_executor": best, "runs": runs}, indent=1))
     return 0
 
