@@ -218,7 +218,8 @@ def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, 
     forces.create_subscription(Float64MultiArray, "cantilever/tip_sample_force",
                                lambda m: fchunks.append(unpack(m.data)), CHUNK_QOS)
     ros_executor.add_node(forces)
-    spin_until(ros_executor, lambda: col.samples() >= 450_000, timeout=60)  # 0.5 s simulated, 500 chunks
+    # 2 s simulated = 2000 chunks, 1.8 million samples
+    spin_until(ros_executor, lambda: col.samples() >= 1_800_000, timeout=60)
     last = col.chunks[-1][0].first_sample_index
     spin_until(ros_executor, lambda: fchunks and fchunks[-1][0].first_sample_index >= last)
     idx, t, z, off, phase = col.stream()
