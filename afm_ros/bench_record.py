@@ -130,9 +130,12 @@ def _file_stats(path: Path, published: int) -> dict:
         return {"file_bytes": size, "recorded_samples": 0}
     idx = np.concatenate(idx)
     sim_span = t[-1][1] - t[0][0]
+    # a recorder started after the cantilever misses the first samples; what counts is that
+    # nothing is missing from its first recorded sample to the last published one
     return {"file_bytes": size, "recorded_samples": int(idx.size),
             "recorded_index_gaps": int(np.count_nonzero(np.diff(idx) != 1)),
-            "recorded_fraction_of_published": idx.size / max(published, 1),
+            "first_recorded_index": int(idx[0]),
+            "missing_after_first_recorded": int(published - idx[0] - idx.size),
             "simulated_seconds_recorded": sim_span,
             "bytes_per_simulated_second": size / sim_span if sim_span > 0 else None}
 
