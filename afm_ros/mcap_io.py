@@ -24,15 +24,12 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import errno
 import functools
 import importlib
-import io
 import json
 import os
 import re
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
