@@ -239,3 +239,16 @@ def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros
     spin(ros_executor, until=good.done, timeout=5)
     assert good.result().results[0].successful
     assert replay.get_parameter("rate").value == 3.0 and replay._rate == 3.0
+
+
+def test_loop_replays_again(loop_session, ros_context, ros_executor):
+    n_clock = scan_session(loop_session).message_counts["/clock"]
+    replay = ReplayNode(context=ros_context, namespace="/lp", parameter_overrides=[
+        Parameter("file", value=str(loop_session)), Parameter("topics", value="/clock"),
+        Parameter("rate", value=20.0), Parameter("loop", value=True), Parameter("start_delay", value=0.0)])
+    ros_executor.add_node(replay)
+    spin(ros_executor, until=lambda: replay.published["/clock"] > 2 * n_clock, timeout=20)
+    assert not replay.done.is_set()  # still looping
+    ros_executor.remove_node(replay)
+    replay.destroy_node()
+    assert replay.done.wait(3.0)  # destroy_node stops the playback thread

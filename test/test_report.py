@@ -135,3 +135,33 @@ def test_report_on_bad_file(tmp_path, capsys):
     assert report.main([str(bad), "--out", str(tmp_path / "o")]) == 1
     assert str(bad) in capsys.readouterr().err
     assert report.main([str(tmp_path / "missing.mcap")]) == 1
+
+
+def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespace, tmp_path):
+    """The afm_instrument job (withdraw, free measurement, engage at 80 %, hold), recorded; the
+    report computed from the file must agree with the summary the instrument computed live."""
+    from afm_ros.afm_instrument import Instrument
+    from rclpy.parameter import Parameter as P
+    path = tmp_path / "job.mcap"
+    instrument = Instrument(context=ros_context, namespace=ros_namespace, executor="events")
+    recorder = RecorderNode(context=ros_context, namespace=ros_namespace,
+                            parameter_overrides=[P("output", value=str(path))])
+    instrument.executor.add_node(recorder)
+    try:
+        live = instrument.run_job(0.3, 0.03, 0.8, band_fraction=report.SETTLING_BAND)
+    finally:
+        instrument.executor.remove_node(recorder)
+        recorder.destroy_node()
+        instrument.destroy()
+    numbers = report.make_report(path, tmp_path / "rep").numbers
+    # both average the same lock-in output of a settled state, over slightly different windows
+    # (last half of the free window / last quarter of the hold vs last 20 %): 0.1 % and 0.05 deg
+    assert numbers["free_amplitude_m"] == pytest.approx(live.free_amplitude_m, rel=1e-3)
+    assert numbers["setpoint_m"] == pytest.approx(live.setpoint_m, rel=1e-12)  # same parameter value
+    assert numbers["reached_amplitude_m"] == pytest.approx(live.reached_amplitude_m, rel=1e-3)
+    assert numbers["contact_phase_deg"] == pytest.approx(live.contact_phase_deg, abs=0.05)
+    assert numbers["contact_z_piezo_m"] == pytest.approx(live.z_piezo_m, abs=0.1e-9)
+    # The report places the engage instant through the receive time of the parameter event and
+    # the recorded /clock: good to the executor latency, a few ms of simulated time at RTF ~1.
+    assert live.settling_time_s is not None and numbers["settling_time_s"] is not None
+    assert numbers["settling_time_s"] == pytest.approx(live.settling_time_s, abs=0.005)
