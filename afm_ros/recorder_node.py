@@ -264,7 +264,8 @@ class RecorderNode(Node):
             return
         try:
             self.writer.close()
-            self.get_logger().info(f"closed {self.output_path}: {self.writer.message_count} messages")
+            if self.context.ok():  # after a signal the context is gone and rosout with it
+                self.get_logger().info(f"closed {self.output_path}: {self.writer.message_count} messages")
         except RecordingError as exc:
             self._fail(exc)
 
@@ -300,7 +301,7 @@ def main(args=None):
         if node is not None:
             node.destroy_node()
             if node.error is None:
-                print(f"recorder: closed {node.output_path}", flush=True)
+                print(f"recorder: closed {node.output_path} ({node.writer.message_count} messages)", flush=True)
         rclpy.try_shutdown()
     return code
 
