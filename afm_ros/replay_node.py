@@ -90,6 +90,9 @@ class ReplayNode(Node):
         self.path = v["file"]
         scan = session_channels(self.path)
         self.complete = scan.complete
+        if not scan.complete and not sum(scan.message_counts.values()):
+            raise SessionFileError(f"{scan.path} is incomplete and holds no intact message "
+                                   f"({scan.truncated_reason}): nothing to replay")
         if not scan.complete:
             self.get_logger().warn(f"{scan.path} is incomplete ({scan.truncated_reason}); replaying the "
                                    f"{sum(scan.message_counts.values())} intact messages")

@@ -189,6 +189,10 @@ def test_bad_files_give_clear_errors(ros_context, tmp_path, loop_session):
         make(empty)
     with pytest.raises(SessionFileError, match="file"):
         ReplayNode(context=ros_context)
+    header_only = tmp_path / "header_only.mcap"  # killed before the first chunk was flushed
+    header_only.write_bytes(loop_session.read_bytes()[:2000])
+    with pytest.raises(SessionFileError, match=f"{header_only} is incomplete.*nothing to replay"):
+        make(header_only)
     unknown = tmp_path / "unknown.mcap"
     _unknown_schema_file(unknown)
     with pytest.raises(SessionFileError, match=f"{unknown}.*/thing.*afm_no_such_msgs/msg/Thing.*not installed"):
