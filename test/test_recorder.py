@@ -354,3 +354,41 @@ def test_records_under_the_events_executor(ros_context, ros_namespace, tmp_path)
     idx, _ = chunk_stream([m for m in read_session(path) if m.topic.endswith("cantilever/deflection")])
     assert scan_session(path).complete
     assert np.array_equal(idx, np.arange(idx.size)) and idx.size == published
+
+
+@pytest.mark.parametrize("type_name", ["geometry_msgs/msg/Vector3Stamped", "rcl_interfaces/msg/ParameterEvent",
+                                       "diagnostic_msgs/msg/DiagnosticArray", "rosgraph_msgs/msg/Clock"])
+def test_schema_text_follows_rosbag2_and_defines_every_type(type_name):
+    """No DDS: the schema text of the types the instrument publishes, checked against rosbag2's
+    rule (root text, then each dependency depth first behind '=' * 80 + 'MSG: pkg/Type') and
+    against the field definitions rosbags ships for ROS 2 Jazzy (an independent source)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    text = mcap_io.message_definition(type_name)
+    pkg, _, name = type_name.split("/")
+    share = Path(os.environ.get("VIRTUAL_ENV", VENV_BIN.parent)) / "share"
+    blocks = text.split("\n" + "=" * 80 + "\n")
+    assert blocks[0] == (share / pkg / "msg" / f"{name}.msg").read_text()
+    deps = []
+    for block in blocks[1:]:
+        head, _, body = block.partition("\n")
+        assert head.startswith("MSG: ") and head.count("/") == 1  # rosbag2 writes 'pkg/Type'
+        dep_pkg, dep_name = head[5:].split("/")
+        assert body == (share / dep_pkg / "msg" / f"{dep_name}.msg").read_text()
+        deps.append(head[5:])
+    assert len(deps) == len(set(deps)), "a dependency appears twice"
+    if type_name == "geometry_msgs/msg/Vector3Stamped":
+        # root's dependencies in byte order, each followed by its own (Header -> Time)
+        assert deps == ["geometry_msgs/Vector3", "std_msgs/Header", "builtin_interfaces/Time"]
+    parsed = get_types_from_msg(text, type_name)
+    reference = get_typestore(Stores.ROS2_JAZZY).fielddefs
+    for t, definition in parsed.items():
+        assert definition[1] == reference[t][1], t
+    # every dependency of the reference definition is in the text
+    def closure(t, seen):
+        for _, (kind, spec) in reference[t][1]:
+            sub = spec if isinstance(spec, str) else (spec[0][1] if isinstance(spec[0], tuple) else spec[0])
+            if isinstance(sub, str) and "/" in sub and sub not in seen:
+                seen.add(sub)
+                closure(sub, seen)
+        return seen
+    assert closure(type_name, set()) <= set(parsed)
