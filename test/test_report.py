@@ -143,7 +143,10 @@ def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespa
     from afm_ros.afm_instrument import Instrument
     from rclpy.parameter import Parameter as P
     path = tmp_path / "job.mcap"
-    instrument = Instrument(context=ros_context, namespace=ros_namespace, executor="events")
+    import inspect
+    # if afm_instrument records by default, switch that off: this test adds its own recorder
+    no_record = {"record": False} if "record" in inspect.signature(Instrument).parameters else {}
+    instrument = Instrument(context=ros_context, namespace=ros_namespace, executor="events", **no_record)
     recorder = RecorderNode(context=ros_context, namespace=ros_namespace,
                             parameter_overrides=[P("output", value=str(path))])
     instrument.executor.add_node(recorder)
