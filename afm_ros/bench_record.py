@@ -1,8 +1,8 @@
 """Recorder benchmark (prints JSON): ``python -m afm_ros.bench_record [--seconds 4]``.
 
 All phases run in this one process, one after the other, each on a fresh private context with
-the instrument's nodes (cantilever, lock-in, z-controller) on one SingleThreadedExecutor, as
-``afm_instrument`` runs them, at the cantilever's ``output_sample_rate`` (default 900 kS/s of
+the instrument's nodes (cantilever, lock-in, z-controller) on one executor (``--executor``
+single or events, the ``afm_instrument`` default), at the cantilever's ``output_sample_rate`` (default 900 kS/s of
 deflection plus the same of tip-sample force):
 
 1. ``free_running``: cantilever ``real_time_factor`` 0 (as fast as possible), without and then
@@ -48,10 +48,20 @@ def _start_recorder_process(record: Path, compression: str, ns: str):
     return proc, stop
 
 
+EXECUTOR = "single"
+
+
+def _make_executor(ctx):
+    if EXECUTOR == "events":
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=ctx)
+    from rclpy.executors import SingleThreadedExecutor
+    return SingleThreadedExecutor(context=ctx)
+
+
 def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | None, compression: str = "zstd",
               separate_process: bool = False):
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
     from .cantilever_node import CantileverNode
@@ -61,7 +71,7 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
+    ex = _make_executor(ctx)
     ns = "/bench"
     try:
         cantilever = CantileverNode(context=ctx, namespace=ns, parameter_overrides=[
@@ -195,13 +205,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="measured wall time per phase [s]")
     parser.add_argument("--output-rate", type=float, default=900e3, help="cantilever output sample rate [S/s]")
+    parser.add_argument("--executor", choices=["single", "events"], default="single",
+                        help="executor of the instrument nodes (afm_instrument's default is events)")
     parser.add_argument("--dir", default=None, help="where to write the benchmark files (default: a temp dir)")
     args = parser.parse_args(argv)
+    global EXECUTOR
+    EXECUTOR = args.executor
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
     work = Path(args.dir or tempfile.mkdtemp(prefix="afm_bench_record_"))
     work.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%H%M%S")
-    res = {"output_sample_rate": args.output_rate, "seconds_per_phase": args.seconds, "cpu_count": os.cpu_count(),
+    res = {"executor": args.executor, "output_sample_rate": args.output_rate, "seconds_per_phase": args.seconds, "cpu_count": os.cpu_count(),
            "free_running": {}, "paced": {}}
     res["free_running"]["without_recorder"] = _run_loop(args.seconds, 0.0, args.output_rate, None)
     res["free_running"]["with_recorder_zstd"] = _run_loop(args.seconds, 0.0, args.output_rate,
