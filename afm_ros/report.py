@@ -142,8 +142,9 @@ def load_session(path) -> SessionData:
                                    np.array([d.header.stamp.sec + 1e-9 * d.header.stamp.nanosec for d in dec]))
     if "clock" in data.topics:
         msgs = by_topic[data.topics["clock"]]
+        clocks = [decode(m).clock for m in msgs]
         data.series["clock"] = Series(np.array([m.log_time for m in msgs], dtype=np.int64),
-                                      np.array([decode(m).clock.sec + 1e-9 * decode(m).clock.nanosec for m in msgs]))
+                                      np.array([c.sec + 1e-9 * c.nanosec for c in clocks]))
     # parameters: snapshots (metadata records, else initial ParameterEvents) and later changes
     data.initial_parameters = {n: dict(v) for n, v in parameter_metadata(scan).items()}
     from_events: dict[str, dict] = {}
