@@ -209,8 +209,8 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
     rec_kill = _start(["recorder_node", "--ros-args", "-p", f"output:={killed}", *rec_args])
     rec_term = _start(["recorder_node", "--ros-args", "-p", f"output:={termed}", *rec_args])
     try:
-        _wait_for_growth(killed, 200_000)
-        _wait_for_growth(termed, 200_000)
+        _wait_for_growth(killed, 50_000)  # zstd shrinks a settled oscillation a lot: a low bar
+        _wait_for_growth(termed, 50_000)
         time.sleep(1.3)  # not a multiple of the flush interval: the kill lands mid-interval
         t_kill = time.time_ns()
         rec_kill.send_signal(signal.SIGKILL)
