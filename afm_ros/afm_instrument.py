@@ -54,7 +54,8 @@ def make_executor(kind: str, context=None):
     raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
 
 
-def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True) -> dict[str, Node]:
+def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
+                record: bool = True) -> dict[str, Node]:
     """Create the instrument's nodes by role. Further blocks (e.g. the recorder) are added here."""
     from .lockin_node import LockInNode
     kw = {"context": context}
@@ -64,7 +65,9 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     if with_controller:
         from .z_controller_node import ZControllerNode
         nodes["z_controller"] = ZControllerNode(**kw)
-    # --- extra instrument blocks (e.g. nodes["recorder"] = RecorderNode(**kw)) go here ---
+    if record:  # last, so it is destroyed (file closed) after the publishers
+        from .recorder_node import RecorderNode
+        nodes["recorder"] = RecorderNode(**kw)
     return nodes
 
 
@@ -151,9 +154,9 @@ def settling_time(t: np.ndarray, amplitude: np.ndarray, setpoint: float, band: f
 class Instrument:
     """The nodes, a monitor and an executor; :meth:`run_job` performs the main job."""
 
-    def __init__(self, context=None, namespace: str | None = None, executor: str = "events"):
+    def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True):
         self.context = context
-        self.nodes = build_nodes(context, namespace)
+        self.nodes = build_nodes(context, namespace, record=record)
         kw = {"context": context}
         if namespace:
             kw["namespace"] = namespace
@@ -246,6 +249,9 @@ def parse_args(argv):
                         help="settling band as a fraction of the setpoint (default 0.01)")
     parser.add_argument("--executor", choices=["single", "multi", "events"], default="events",
                         help="executor for all nodes (default events: fastest and fair, see docs/cantilever.md)")
+    parser.add_argument("--no-record", action="store_true",
+                        help="do not record the session (default: ./afm_session_<date-time>.mcap, "
+                             "see docs/recording.md; -p recorder:output:=FILE chooses the file)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
@@ -269,14 +275,16 @@ def main(args=None):
     rclpy.init(args=argv)
     instrument = None
     try:
-        instrument = Instrument(executor=options.executor)
+        instrument = Instrument(executor=options.executor, record=not options.no_record)
+        if "recorder" in instrument.nodes:
+            print(f"recording to {instrument.nodes['recorder'].output_path}", flush=True)
         summary = instrument.run_job(options.duration, options.free_time, options.setpoint_ratio, options.band)
         print(summary.text(), flush=True)
         if options.json:
             print(json.dumps(asdict(summary)), flush=True)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, TimeoutError, RuntimeError) as exc:
+    except (ValueError, TimeoutError, RuntimeError) as exc:  # RecordingError is a RuntimeError
         print(f"afm_instrument: {exc}", file=sys.stderr)
         return 1
     finally:

@@ -14,8 +14,8 @@ NODE_SPECS = {
     "cantilever": ("afm_ros.cantilever_params", "CANTILEVER_NODE_SPECS"),
     "lockin": ("afm_ros.lockin", "LOCKIN_SPECS"),
     "z_controller": ("afm_ros.zcontrol", "Z_CONTROLLER_SPECS"),
-    "recorder": ("afm_ros.recorder_node", "RECORDER_SPECS"),
-    "replay": ("afm_ros.replay_node", "REPLAY_SPECS"),
+    "recorder": ("afm_ros.mcap_io", "RECORDER_SPECS"),
+    "replay": ("afm_ros.mcap_io", "REPLAY_SPECS"),
 }
 
 
@@ -37,8 +37,17 @@ def _yaml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
+        # shortest round-trip text, always with a '.' and a signed exponent so that YAML 1.1
+        # readers (PyYAML) and rcl's parser both read a double
         text = repr(value)
-        return text if ("." in text or "e" in text or "inf" in text or "nan" in text) else text + ".0"
+        if "e" in text:
+            mantissa, exponent = text.split("e")
+            if "." not in mantissa:
+                mantissa += ".0"
+            if exponent[0] not in "+-":
+                exponent = "+" + exponent
+            return f"{mantissa}e{exponent}"
+        return text if "." in text else text + ".0"
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
     if isinstance(value, str):

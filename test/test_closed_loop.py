@@ -16,7 +16,7 @@ from afm_ros.physics import Cantilever, Drive, seed_simulation, steady_amplitude
 
 @pytest.fixture
 def instrument(ros_context, ros_namespace):
-    inst = Instrument(context=ros_context, namespace=ros_namespace, executor="events")
+    inst = Instrument(context=ros_context, namespace=ros_namespace, executor="events", record=False)
     inst.set("cantilever", real_time_factor=0.0)
     yield inst
     inst.destroy()

@@ -119,12 +119,26 @@ def test_afm_instrument_runs_the_main_job_and_prints_the_summary(tmp_path):
     result = subprocess.run(
         [str(VENV / "bin" / "afm_instrument"), "--duration", "0.25",
          "--ros-args", "--params-file", str(params), "-p", "real_time_factor:=0.0"],
-        env=child_env(None, "OFF"), capture_output=True, text=True, timeout=120)
+        env=child_env(None, "OFF"), capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     for line in ("free amplitude", "free phase", "setpoint", "reached amplitude", "phase in contact",
                  "z piezo", "settling time"):
         assert line in result.stdout, result.stdout
     assert "not settled" not in result.stdout
+    # records by default into the working directory, like `ros2 bag record`, and says where
+    assert_complete_recording(tmp_path, result.stdout)
+
+
+def assert_complete_recording(directory, stdout):
+    from mcap.reader import make_reader
+    files = list(directory.glob("afm_session_*.mcap"))
+    assert len(files) == 1, (files, stdout)
+    assert f"recording to {files[0]}" in stdout or files[0].name in stdout, stdout
+    with open(files[0], "rb") as f:
+        summary = make_reader(f).get_summary()  # present only if the file was closed cleanly
+    assert summary is not None and summary.statistics.message_count > 0
+    topics = {c.topic for c in summary.channels.values()}
+    assert {"/cantilever/deflection", "/lockin/amplitude", "/z_controller/z_piezo"} <= topics, topics
 
 
 def test_afm_instrument_rejects_bad_arguments_clearly(tmp_path):
@@ -136,12 +150,14 @@ def test_afm_instrument_rejects_bad_arguments_clearly(tmp_path):
         assert text in result.stderr and "Traceback" not in result.stderr, result.stderr
 
 
-def test_afm_instrument_stops_cleanly_on_sigint():
+def test_afm_instrument_stops_cleanly_on_sigint(tmp_path):
     proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--duration", "100"],
-                            env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
     time.sleep(4.0)  # imports, numba cache load, nodes up, job running
     assert proc.poll() is None, proc.communicate()[1]
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert "Traceback" not in err
+    assert_complete_recording(tmp_path, out)  # Ctrl-C closes the session file with its summary
