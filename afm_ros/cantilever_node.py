@@ -17,12 +17,9 @@ import threading
 import time
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -33,6 +30,7 @@ from .cantilever_params import CANTILEVER_NODE_SPECS, build, check
 from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL
 from .physics.integrators import phase_at_step
 from .physics.simulation import Simulation
+from .node_main import run_node
 
 # Sample chunks: reliable, so a slow subscriber gets everything (or a visible index gap if its
 # queue of 200 chunks = 0.4 s simulated at the default chunk length overflows).
@@ -253,21 +251,7 @@ class CantileverNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = CantileverNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, ParameterException) as exc:
-        print(f"cantilever_node: invalid parameter: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(CantileverNode, "cantilever_node", args)
 
 
 if __name__ == "__main__":

@@ -14,11 +14,8 @@ import math
 import sys
 import threading
 
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Vector3Stamped
-from rclpy.exceptions import InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray
@@ -26,6 +23,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 from . import chunk_layout
 from .lockin import LOCKIN_SPECS, LockIn
 from .ros_params import declare, make_set_callback
+from .node_main import run_node
 
 # Input: reliable so a lost chunk is a real event (counted as an index gap), not a QoS choice.
 CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -95,22 +93,7 @@ class LockInNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = LockInNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, InvalidParameterValueException) as exc:  # bad start value (e.g. --params-file)
-        print(f"{LockInNode.__name__}: {exc}", file=sys.stderr)
-        status = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status
+    return run_node(LockInNode, "lockin_node", args)
 
 
 if __name__ == "__main__":

@@ -14,16 +14,14 @@ import math
 import sys
 import threading
 
-import rclpy
 from geometry_msgs.msg import Vector3Stamped
-from rclpy.exceptions import InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64
 
 from .ros_params import declare, make_set_callback
 from .zcontrol import Z_CONTROLLER_SPECS, ZController, check_limits
+from .node_main import run_node
 
 # Input depth 1: the controller always acts on the freshest amplitude. If it falls behind (e.g. the
 # lock-in publishes several outputs per executor cycle) older samples are skipped instead of
@@ -79,22 +77,7 @@ class ZControllerNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    status = 0
-    try:
-        node = ZControllerNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, InvalidParameterValueException) as exc:  # bad start value (e.g. --params-file)
-        print(f"{ZControllerNode.__name__}: {exc}", file=sys.stderr)
-        status = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status
+    return run_node(ZControllerNode, "z_controller_node", args)
 
 
 if __name__ == "__main__":

@@ -19,8 +19,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 from afm_ros.cantilever_node import CHUNK_QOS, Z_PIEZO_QOS, CantileverNode
 from afm_ros.cantilever_params import build, default_values
 from afm_ros.chunk_layout import unpack
-from afm_ros.physics import Simulation, analyze, free_solution, steady_state
-from afm_ros.physics.simulation import Samples
+from afm_ros.physics import Simulation, free_solution, steady_state
 
 A0 = 60e-9  # default free amplitude [m]
 

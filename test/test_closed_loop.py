@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 
 import pytest
-from rclpy.parameter import Parameter
 
 from afm_ros.afm_instrument import Instrument
 from afm_ros.physics import Cantilever, Drive, seed_simulation, steady_amplitude_phase, steady_state

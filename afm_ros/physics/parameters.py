@@ -8,7 +8,7 @@ checked against these specs, so a range is defined in exactly one place.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 
