@@ -167,6 +167,11 @@ class CantileverNode(Node):
         # for the current wait cycle is canceled before it is taken
         self._stopped = True
 
+    def destroy_node(self):
+        # the EventsExecutor may still hold a timer event of this node: make it a no-op
+        self._stopped = True
+        return super().destroy_node()
+
     def step_chunk(self) -> None:
         """Integrate one chunk and publish it (parameter changes and z_piezo applied first)."""
         self._apply_pending()
