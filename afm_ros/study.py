@@ -25,6 +25,7 @@ import numpy as np
 
 from .physics import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, NoForce, Simulation,
                       analyze, free_solution, make_force_model, steady_amplitude_phase, steady_state)
+from .physics.parameters import DRIVE_FORCE_SPEC
 from .physics.integrators import METHODS
 
 # --- parameters from flags ----------------------------------------------------------------
@@ -68,6 +69,9 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
             continue
         group.add_argument(_flag(name), dest=name, type=_number, default=spec.default, metavar="X",
                            help=f"{spec.description}{unit}; default {spec.default:g}, range {spec.range_text()}")
+    group.add_argument("--drive-force", dest="drive_force", type=_number, default=None, metavar="X",
+                       help=f"{DRIVE_FORCE_SPEC.description} [N]; overrides --free-amplitude; "
+                            f"range {DRIVE_FORCE_SPEC.range_text()}")
 
 
 def physics_from_args(ns: argparse.Namespace):
@@ -80,7 +84,10 @@ def physics_from_args(ns: argparse.Namespace):
         raw["drive_frequency"] = raw["resonance_frequency"]
     values = {name: PARAM_SPECS[name].validate(value) for name, value in raw.items()}
     cantilever = Cantilever(values["spring_constant"], values["resonance_frequency"], values["quality_factor"])
-    drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
+    if getattr(ns, "drive_force", None) is not None:
+        drive = Drive(values["drive_frequency"], DRIVE_FORCE_SPEC.validate(ns.drive_force))
+    else:
+        drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
     sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
     return cantilever, drive, sample, values["steps_per_period"]
 

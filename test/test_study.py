@@ -132,7 +132,8 @@ def test_bench_subcommand_tiny(capsys):
                                               ("--tip-radius", "nan", "tip_radius"),
                                               ("--steps-per-period", "10", "steps_per_period"),
                                               ("--spring-constant", "soft", "spring_constant"),
-                                              ("--sample-poisson-ratio", "0.6", "sample_poisson_ratio")])
+                                              ("--sample-poisson-ratio", "0.6", "sample_poisson_ratio"),
+                                              ("--drive-force", "2.0", "drive_force")])
 def test_bad_flag_exit_code_2_names_field(tmp_path, capsys, flag, value, field):
     code = study.main(["sweep", "--out", str(tmp_path / "o"), "--z-base", "40e-9", flag, value])
     assert code == 2
@@ -149,3 +150,12 @@ def test_bad_value_in_subprocess_no_traceback(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "afm_ros.study", "sweep", "--method", "rk5"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "method='rk5'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_drive_force_flag_is_the_same_drive_as_free_amplitude():
+    # F0 = k A0 / Q: 10 N/m * 30 nm / 25 = 12 nN drives the same oscillator as --free-amplitude 30e-9
+    parser = study.build_parser()
+    by_force = study.physics_from_args(parser.parse_args(["sweep", "--drive-force", "1.2e-8"]))[1]
+    by_amplitude = study.physics_from_args(parser.parse_args(["sweep", "--free-amplitude", "3e-8"]))[1]
+    assert by_force.force == pytest.approx(by_amplitude.force, rel=1e-12)
+    assert by_force.frequency == by_amplitude.frequency

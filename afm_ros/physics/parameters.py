@@ -92,6 +92,10 @@ CANTILEVER_SPECS = _specs(
     ParamSpec("steps_per_period", 220, "1", "RK4 integration steps per drive period", 20, 100000, kind=int),
 )
 
+# The drive can also be given directly as a force amplitude (instead of free_amplitude).
+DRIVE_FORCE_SPEC = ParamSpec("drive_force", 24e-9, "N",
+                             "drive force amplitude F0 (alternative to free_amplitude)", 0.0, 1e-3)
+
 # --- DMT tip-sample interaction (seed notebook values) -----------------------------------
 DMT_SPECS = _specs(
     ParamSpec("tip_radius", 20e-9, "m", "tip radius R", 1e-10, 1e-5),
@@ -167,11 +171,7 @@ class Drive:
 
     def __post_init__(self):
         object.__setattr__(self, "frequency", CANTILEVER_SPECS["drive_frequency"].validate(self.frequency))
-        force = self.force
-        if isinstance(force, bool) or not isinstance(force, (int, float)) or not math.isfinite(force) \
-                or not (0.0 <= force <= 1e-3):
-            raise ValueError(f"drive_force={force!r} N is out of range; allowed range [0, 0.001] N")
-        object.__setattr__(self, "force", float(force))
+        object.__setattr__(self, "force", DRIVE_FORCE_SPEC.validate(self.force))
         if not math.isfinite(self.phase):
             raise ValueError(f"drive_phase={self.phase!r} rad is not finite")
 
