@@ -1,5 +1,6 @@
 """Installed executables: colcon-built cantilever_node starts, publishes, obeys --ros-args and exits
-cleanly on Ctrl-C; a bad params file fails clearly; afm_instrument runs the main job.
+cleanly on Ctrl-C; the three installed node executables close the loop as separate processes; a
+bad params file fails clearly; afm_instrument runs the main job and records it.
 
 Subprocesses talk to this test over DDS on localhost in ROS_DOMAIN_ID 17 (this file's own id, so
 parallel test files do not cross-talk); the in-process test context joins the same domain.
@@ -161,3 +162,67 @@ def test_afm_instrument_stops_cleanly_on_sigint(tmp_path):
     assert proc.returncode == 0, err
     assert "Traceback" not in err
     assert_complete_recording(tmp_path, out)  # Ctrl-C closes the session file with its summary
+
+
+def test_installed_nodes_close_the_loop_across_processes(install, monkeypatch):
+    """cantilever_node, lockin_node and z_controller_node from the colcon install, three processes
+    over DDS: the lock-in reads the cantilever and the feedback brings the amplitude to its setpoint.
+
+    Defaults: z_base 40 nm gives a 57.4 nm steady amplitude at z_piezo = 0 (physics core), above
+    the 48 nm setpoint, so the controller must approach (z_piezo < 0). The loop settles in about
+    0.13 s simulated (see test_closed_loop.py); 30 s of wall time leaves room for start-up and a
+    loaded machine. 0.5 nm = 1 % of the setpoint, the settling band of the closed-loop test.
+    """
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import Float64
+
+    exe_dir = install / "afm_ros" / "lib" / "afm_ros"
+    ns = "/exe_loop"
+
+    def start(name):
+        return subprocess.Popen([str(exe_dir / name), "--ros-args", "-r", f"__ns:={ns}"], env=child_env(install),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    procs = [start("z_controller_node"), start("lockin_node")]
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    amplitudes, z_piezo = [], []
+    try:
+        node = Node("loop_listener", context=ctx, namespace=ns)
+        node.create_subscription(Float64, "lockin/amplitude", lambda m: amplitudes.append(m.data), 1000)
+        node.create_subscription(Float64, "z_controller/z_piezo", lambda m: z_piezo.append(m.data),
+                                 QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        deadline = time.monotonic() + 30.0
+        # the cantilever starts only once this listener sees the lock-in and the controller, so the
+        # whole approach is observed
+        while time.monotonic() < deadline and not (node.count_publishers(f"{ns}/lockin/amplitude")
+                                                   and node.count_publishers(f"{ns}/z_controller/z_piezo")):
+            executor.spin_once(timeout_sec=0.05)
+        procs.append(start("cantilever_node"))
+        while time.monotonic() < deadline and all(p.poll() is None for p in procs):
+            executor.spin_once(timeout_sec=0.05)
+            if len(amplitudes) > 500 and all(abs(a - 48e-9) < 0.5e-9 for a in amplitudes[-100:]):
+                break
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        outputs = []
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                outputs.append(p.communicate(timeout=20))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                outputs.append(p.communicate())
+    errors = "\n".join(err for _, err in outputs)
+    assert len(amplitudes) > 500, f"too few lock-in outputs ({len(amplitudes)}); stderr:\n{errors}"
+    assert max(amplitudes) > 55e-9  # the loop started from the uncorrected 57.4 nm amplitude
+    assert all(abs(a - 48e-9) < 0.5e-9 for a in amplitudes[-100:]), amplitudes[-5:]
+    assert z_piezo and z_piezo[-1] < -1e-9, z_piezo[-5:]  # approached the sample
+    assert [p.returncode for p in procs] == [0, 0, 0], errors
