@@ -31,3 +31,44 @@ def test_readme_table_matches_specs():
     readme = (ROOT / "README.md").read_text()
     for row in table_text().splitlines()[2:]:
         assert row in readme, f"README parameter table is missing or stale: {row}"
+
+
+def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_executor, ros_namespace, tmp_path):
+    """What `ros2 param describe` shows (the describe_parameters service) comes from the same specs:
+    description with unit and allowed range, read-only flag, and the default value."""
+    import rclpy
+    from rclpy.parameter import Parameter, parameter_value_to_python
+    from rclpy.parameter_client import AsyncParameterClient
+
+    from afm_ros.cantilever_node import CantileverNode
+    from afm_ros.lockin_node import LockInNode
+    from afm_ros.recorder_node import RecorderNode
+    from afm_ros.z_controller_node import ZControllerNode
+
+    kw = {"context": ros_context, "namespace": ros_namespace}
+    nodes = {"cantilever": CantileverNode(**kw), "lockin": LockInNode(**kw), "z_controller": ZControllerNode(**kw),
+             "recorder": RecorderNode(parameter_overrides=[Parameter("output", value=str(tmp_path / "s.mcap"))], **kw)}
+    client_node = rclpy.create_node("describer", context=ros_context, namespace=ros_namespace)
+    for node in [*nodes.values(), client_node]:
+        ros_executor.add_node(node)
+    specs_by_node = node_specs()
+    for name, node in nodes.items():
+        specs = specs_by_node[name]
+        client = AsyncParameterClient(client_node, f"{ros_namespace}/{name}")
+        assert client.wait_for_services(timeout_sec=10.0)
+        future = client.describe_parameters(list(specs))
+        ros_executor.spin_until_future_complete(future, timeout_sec=10.0)
+        descriptors = future.result().descriptors
+        values_future = client.get_parameters(list(specs))
+        ros_executor.spin_until_future_complete(values_future, timeout_sec=10.0)
+        values = values_future.result().values
+        for (pname, spec), descriptor, value in zip(specs.items(), descriptors, values):
+            assert descriptor.name == pname
+            assert spec.range_text() in descriptor.description, (name, pname, descriptor.description)
+            if spec.unit:
+                assert f"[{spec.unit}]" in descriptor.description, (name, pname, descriptor.description)
+            assert descriptor.read_only == (not spec.live), (name, pname)
+            if name == "recorder" and pname == "output":
+                continue  # overridden above so that the test writes into its temp dir
+            actual = parameter_value_to_python(value)
+            assert actual == spec.default, (name, pname, actual, spec.default)
