@@ -35,6 +35,7 @@ from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64
 
 from .cantilever_node import CantileverNode
+from . import node_main
 
 MONITOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -173,10 +174,16 @@ class Instrument:
     def sim_time(self) -> float:
         return self.cantilever.simulation.t
 
+    def context_ok(self) -> bool:
+        """False after Ctrl-C / SIGTERM (see afm_ros.node_main) or once the context is shut down."""
+        return node_main.running(self.context)
+
     def spin_until_sim(self, t_end: float, wall_timeout: float = 300.0) -> None:
         """Spin until the simulated time reaches ``t_end`` [s]."""
         deadline = time.monotonic() + wall_timeout
         while self.sim_time() < t_end:
+            if not self.context_ok():
+                raise ExternalShutdownException()
             if time.monotonic() > deadline:
                 raise TimeoutError(f"simulated time {self.sim_time():.4g} s did not reach {t_end:.4g} s "
                                    f"within {wall_timeout} s of wall time")
@@ -272,7 +279,7 @@ def main(args=None):
         print(f"afm_instrument: invalid --ros-args: {exc}", file=sys.stderr)
         return 2
     options = parse_args(plain[1:])
-    rclpy.init(args=argv)
+    node_main.init(argv)
     instrument = None
     try:
         instrument = Instrument(executor=options.executor, record=not options.no_record)

@@ -1,36 +1,68 @@
-"""The ``main()`` idiom of demo_nodes_py shared by the single-node executables."""
+"""Start-up and Ctrl-C handling shared by the executables (the demo_nodes_py ``main()`` idiom).
+
+rclpy's own signal handlers shut the context down from inside the signal, at any moment: a
+callback that is publishing then fails with "publisher's context is invalid", and Python's
+default handler raises KeyboardInterrupt at whatever line runs (even inside rclpy's Task
+constructor). Here SIGINT and SIGTERM only set a flag; the spin loops check it between
+callbacks, so every node finishes its callback, is destroyed and the context shut down in order
+(the recorder closes its file). A second Ctrl-C interrupts at once.
+"""
 from __future__ import annotations
 
+import signal
 import sys
 from typing import Callable
 
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+_stop_requested = False
+
+
+def _on_signal(signum, frame):
+    global _stop_requested
+    if _stop_requested:
+        raise KeyboardInterrupt
+    _stop_requested = True
+
+
+def init(args=None) -> None:
+    """``rclpy.init`` with SIGINT/SIGTERM turned into a stop request (see module docstring)."""
+    global _stop_requested
+    _stop_requested = False
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+
+def running(context=None) -> bool:
+    """True until Ctrl-C / SIGTERM was received or the context was shut down."""
+    return not _stop_requested and rclpy.ok(context=context)
 
 
 def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
-    """Init rclpy, spin the node until Ctrl-C / shutdown; return the exit status.
+    """Init rclpy, spin the node until Ctrl-C / SIGTERM; return the exit status.
 
     A bad start value (e.g. from ``--params-file``) prints one line naming the field and
-    returns 1. Ctrl-C can shut the context down while a callback is publishing; the resulting
-    "context is invalid" error is part of a clean stop, not a failure.
+    returns 1.
     """
-    rclpy.init(args=args)
+    init(args)
     node = None
     status = 0
     try:
         node = make_node()
-        rclpy.spin(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while running():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, InvalidParameterValueException) as exc:
         print(f"{program}: invalid parameter: {exc}", file=sys.stderr)
         status = 1
-    except Exception:
-        if rclpy.ok():
-            raise
     finally:
         if node is not None:
             node.destroy_node()

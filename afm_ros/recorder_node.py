@@ -33,6 +33,7 @@ from . import ros_params
 from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError, SessionWriter,
                       default_output_path, message_class, qos_profiles_yaml,
                       serialize_exact)
+from . import node_main
 
 PARAMETER_EVENTS = "/parameter_events"
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
@@ -275,21 +276,16 @@ class RecorderNode(Node):
 
 
 def main(args=None):
-    # rclpy.init installs handlers for SIGINT and SIGTERM that shut the context down; the loop
-    # below then ends and destroy_node() closes the file with its summary and index.
-    rclpy.init(args=args)
+    # SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
+    # with its summary and index.
+    node_main.init(args)
     node = None
     code = 0
     try:
         node = RecorderNode()
         print(f"recorder: recording to {node.output_path}", flush=True)
-        while rclpy.ok() and node.error is None:
-            try:
-                rclpy.spin_once(node, timeout_sec=0.2)
-            except Exception:
-                if rclpy.ok():
-                    raise
-                break  # a signal shut the context down in the middle of a callback
+        while node_main.running() and node.error is None:
+            rclpy.spin_once(node, timeout_sec=0.2)
         if node.error is not None:
             code = 1
     except (RecordingError, ValueError) as exc:

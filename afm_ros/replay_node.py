@@ -32,6 +32,7 @@ from .chunk_layout import unpack
 from .mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan, check_mcap_file, message_class,
                       read_session)
 from .recorder_node import matches, split_patterns
+from . import node_main
 
 CLOCK = "/clock"
 CHUNK_TYPE = "std_msgs/msg/Float64MultiArray"
@@ -203,12 +204,12 @@ class ReplayNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
+    node_main.init(args)
     node = None
     code = 0
     try:
         node = ReplayNode()
-        while rclpy.ok() and not node.done.is_set():
+        while node_main.running() and not node.done.is_set():
             rclpy.spin_once(node, timeout_sec=0.1)
         if node.error is not None:
             code = 1

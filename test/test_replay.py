@@ -127,6 +127,9 @@ def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_sess
     a_rec = np.array([recorded[s][0] for s in steady])
     p_live = np.array([live[s][1] for s in steady])
     p_rec = np.array([recorded[s][1] for s in steady])
+    diff = np.abs(a_live - a_rec)
+    bad = np.nonzero(diff)[0]
+    print("DEBUG", len(steady), len(bad), bad[:20], (np.array(steady)[bad[:5]] - common[0]) / 1e6 if len(bad) else None, diff.max(), lockin.lockin.stats if hasattr(lockin, "lockin") else None)
     assert np.max(np.abs(a_live - a_rec)) <= 1e-9 * np.max(a_rec)  # same arithmetic on the same samples
     assert np.max(np.abs(p_live - p_rec)) <= 1e-6  # [deg]
     # the z-controller ran on the replayed lock-in output
