@@ -27,7 +27,7 @@ from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from . import ros_params
 from .cantilever_params import CANTILEVER_NODE_SPECS, build, check
-from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL
+from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
 from .physics.integrators import phase_at_step
 from .physics.simulation import Simulation
 from .node_main import run_node
@@ -52,16 +52,13 @@ DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
 
 
-def chunk_message(preamble: np.ndarray, samples: np.ndarray) -> Float64MultiArray:
-    """Float64MultiArray in the chunk layout: ``preamble`` (6 values) followed by ``samples``."""
+def chunk_message(header: ChunkHeader, samples: np.ndarray) -> Float64MultiArray:
+    """Float64MultiArray in the chunk layout (``afm_ros.chunk_layout``): preamble, then ``samples``."""
     n = samples.shape[0]
-    buf = np.empty(PREAMBLE_LENGTH + n)
-    buf[:PREAMBLE_LENGTH] = preamble
-    buf[PREAMBLE_LENGTH:] = samples
     msg = Float64MultiArray()
     msg.layout.dim = [MultiArrayDimension(label=SAMPLES_LABEL, size=n, stride=n)]
     msg.layout.data_offset = PREAMBLE_LENGTH
-    msg.data = array.array("d", buf.tobytes())
+    msg.data = array.array("d", pack(header, samples).tobytes())
     return msg
 
 
@@ -180,16 +177,16 @@ class CantileverNode(Node):
         samples = sim.advance(s.chunk_steps, s.decimation)
         count = samples.z.shape[0]
         if count:
-            preamble = np.array([
-                float(self._next_index),
+            header = ChunkHeader(
+                self._next_index,
                 samples.segment_start + samples.first_step * samples.dt,
                 s.sample_interval,
                 phase_at_step(sim.segment_phase, samples.first_step, sim.steps_per_period),
                 sim.drive.frequency,
-                sim.z_offset])
-            self._pub_deflection.publish(chunk_message(preamble, samples.z))
+                sim.z_offset)
+            self._pub_deflection.publish(chunk_message(header, samples.z))
             if self._pub_force.get_subscription_count():
-                self._pub_force.publish(chunk_message(preamble, samples.force))
+                self._pub_force.publish(chunk_message(header, samples.force))
             self._next_index += count
         if self._values["publish_clock"]:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
