@@ -55,13 +55,20 @@ def _yaml_value(value) -> str:
     return str(value)
 
 
+def node_key(node: str) -> str:
+    """The params-file key of a node: ``/**/<node>`` matches the node in every namespace (rcl's
+    YAML parser supports ``/**`` and ``/*`` wildcards in node names)."""
+    return f"/**/{node}"
+
+
 def yaml_text(nodes: dict | None = None) -> str:
     nodes = node_specs() if nodes is None else nodes
     lines = ["# Defaults of every afm_ros node: the seed notebook's cantilever and DMT sample.",
              "# Generated from the parameter specs by `python -m afm_ros.config_gen yaml`; SI units.",
-             "# Use with: ros2 run afm_ros <node> --ros-args --params-file config/afm.yaml"]
+             "# Use with: ros2 run afm_ros <node> --ros-args --params-file config/afm.yaml",
+             "# The keys are /**/<node name>, so the file applies under any namespace (-r __ns:=/afm1)."]
     for node, specs in nodes.items():
-        lines += [f"{node}:", "  ros__parameters:"]
+        lines += [f"{node_key(node)}:", "  ros__parameters:"]
         for name, spec in specs.items():
             unit = f" [{spec.unit}]" if spec.unit else ""
             lines.append(f"    # {spec.description}{unit}; allowed {spec.range_text()}")

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from afm_ros.config_gen import node_specs, table_text
+from afm_ros.config_gen import node_key, node_specs, table_text, yaml_text
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -19,9 +19,20 @@ def test_every_node_has_specs():
     assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "recorder", "replay"}
 
 
+def test_yaml_file_is_the_generator_output():
+    # regenerate with: python -m afm_ros.config_gen yaml > config/afm.yaml
+    assert (ROOT / "config" / "afm.yaml").read_text() == yaml_text()
+
+
+def test_yaml_keys_match_every_namespace(config):
+    # /**/<node>: rcl applies the section to the node under any namespace (-r __ns:=/afm1)
+    assert set(config) == {node_key(node) for node in node_specs()}
+    assert all(key.startswith("/**/") for key in config)
+
+
 def test_yaml_holds_every_spec_default_and_validates(config):
     for node, specs in node_specs().items():
-        params = config[node]["ros__parameters"]
+        params = config[node_key(node)]["ros__parameters"]
         assert set(params) == set(specs), f"{node}: YAML and specs list different parameters"
         for name, spec in specs.items():
             assert spec.validate(params[name]) == spec.default, f"{node}.{name}"
@@ -72,3 +83,26 @@ def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_e
                 continue  # overridden above so that the test writes into its temp dir
             actual = parameter_value_to_python(value)
             assert actual == spec.default, (name, pname, actual, spec.default)
+
+
+def test_shipped_file_applies_under_a_namespace(ros_context, ros_namespace, tmp_path):
+    """The /**/<node> keys match the node in any namespace (here the test's /t_... namespace): a
+    temp copy of config/afm.yaml with one changed value gives the node that value (and the
+    unchanged file gives the defaults)."""
+    from afm_ros.z_controller_node import ZControllerNode
+
+    shipped = (ROOT / "config" / "afm.yaml").read_text()
+    assert "\n    setpoint: 4.8e-08\n" in shipped and "\n    p_gain: 0.1\n" in shipped
+    modified = tmp_path / "afm.yaml"
+    modified.write_text(shipped.replace("\n    setpoint: 4.8e-08\n", "\n    setpoint: 3.5e-08\n")
+                        .replace("\n    p_gain: 0.1\n", "\n    p_gain: 1\n"))  # an integer for a double
+    for path, setpoint, p_gain in [(ROOT / "config" / "afm.yaml", 4.8e-08, 0.1), (modified, 3.5e-08, 1.0)]:
+        node = ZControllerNode(context=ros_context, namespace=ros_namespace,
+                               cli_args=["--ros-args", "--params-file", str(path)])
+        try:
+            assert node.get_fully_qualified_name() == f"{ros_namespace}/z_controller"
+            assert node.get_parameter("setpoint").value == setpoint
+            assert node.get_parameter("p_gain").value == p_gain
+            assert type(node.get_parameter("p_gain").value) is float
+        finally:
+            node.destroy_node()
