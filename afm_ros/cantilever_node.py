@@ -1,12 +1,20 @@
 """ROS 2 node ``cantilever``: the physics core's RK4 cantilever, integrated in chunks paced
 against the wall clock, publishing deflection and tip-sample force as sample chunks.
 
-Topics (relative names, so a namespace applies):
+Topics (relative names, so a namespace applies to all of them except ``/diagnostics``):
 - publishes ``cantilever/deflection`` and ``cantilever/tip_sample_force``
   (std_msgs/Float64MultiArray, layout of :mod:`afm_ros.chunk_layout`; [m] and [N]),
-  ``/clock`` (rosgraph_msgs/Clock, simulated time, if ``publish_clock``) and ``/diagnostics``
-  (diagnostic_msgs/DiagnosticArray: achieved real-time factor, lag),
-- subscribes ``z_controller/z_piezo`` (std_msgs/Float64 [m]); the gap is z_base + z_piezo + z.
+  ``clock`` (rosgraph_msgs/Clock, simulated time, if ``publish_clock``: ``/clock`` in the root
+  namespace, ``/<ns>/clock`` under a namespace so two instruments never share one clock) and
+  ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: real-time factor, lag, feedback and consumers),
+- subscribes ``z_controller/z_command`` (std_msgs/Float64MultiArray, :mod:`afm_ros.chunk_layout`:
+  answered index, time, z [m]; the gap is z_base + z_piezo + z) and ``cantilever/ack``
+  (std_msgs/Int64MultiArray: what each consumer has handled).
+
+Each chunk waits for two gates (:mod:`afm_ros.flow`): the z controller's answer to the chunk
+``feedback_latency`` chunks back (lockstep: a deterministic closed loop) and the consumers'
+acknowledgements (at most ``flow_window`` chunks outstanding: a slow consumer slows the instrument
+down instead of losing samples). ``run_until`` pauses the integration at a chunk boundary.
 """
 from __future__ import annotations
 
@@ -21,35 +29,54 @@ from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 
-from . import ros_params
+from . import ros_params, topics
+from .topics import CONSUMER_QOS, HISTORY_QOS
 from .cantilever_params import CANTILEVER_NODE_SPECS, build, check
-from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
-from .physics.integrators import phase_at_step
-from .physics.simulation import Simulation
+from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
+from .flow import ChunkStarts, ConsumerWindow, FeedbackGate
 from .node_main import run_node
+from .physics.integrators import phase_at_step
+from .physics.parameters import CANTILEVER_SPECS, DMT_SPECS
+from .physics.simulation import Simulation
 
-# Sample chunks: reliable, so a slow subscriber gets everything (or a visible index gap if its
-# queue of 200 chunks = 0.4 s simulated at the default chunk length overflows).
-CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
-Z_PIEZO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
+# default chunk length), so a consumer that matches late (start-up, a restarted lock-in) still gets
+# the chunks it must answer; flow_window (<= 150) keeps every consumer inside that history.
+CHUNK_QOS = HISTORY_QOS
+# Inputs: every z command and acknowledgement counts (KEEP_ALL); transient local so the z
+# controller's initial command and a consumer's "ready" reach a cantilever that starts later.
+Z_COMMAND_QOS = CONSUMER_QOS
+ACK_QOS = CONSUMER_QOS
 CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
+ACK_TOPIC = topics.ACK
+Z_COMMAND_TOPIC = topics.Z_COMMAND
+
 # Paced: the timer runs at CATCH_UP times the chunk rate and integrates every chunk that is due,
-# at most MAX_BURST per callback, so a lag (start-up, a slow moment) is made up at up to
-# CATCH_UP * MAX_BURST times the requested real-time factor. real_time_factor 0: a zero-period
-# timer, one chunk per callback. Bursts are kept small because rclpy's Single/MultiThreadedExecutor
-# take one message per subscription per wait cycle: a long burst of chunks would overflow the
-# subscribers' queues. (Changing the timer period to 0 while lagging was tried: rclpy's
-# EventsExecutor then fired it erratically, and a guard condition is not supported by it.)
+# at most MAX_BURST per callback; z commands and acknowledgements also trigger a step, so a gated
+# loop runs at the speed of its slowest member. real_time_factor 0: as fast as the gates allow.
 CATCH_UP = 2.0
-MAX_BURST = 4
+MAX_BURST = 8
+IDLE_TIMER_PERIOD_S = 0.02  # paused: the timer only looks for a raised run_until
+FREE_RUN_TIMER_PERIOD_S = 0.001  # real_time_factor 0
 DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
+WAIT_WARNING_S = 2.0  # a gate closed this long (wall) is reported
+CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
+# parameters that change the integrated system (z_base only moves the gap, applied every chunk)
+PHYSICS_KEYS = (set(CANTILEVER_SPECS) | set(DMT_SPECS) | {"force_model"}) - {"z_base"}
+# run_until: a chunk boundary within this of the pause time counts as reaching it (float sums of
+# the step size); monitors waiting for the pause use the same tolerance.
+PAUSE_TOLERANCE_S = 1e-9
+
+
+def paused_at(t: float, run_until: float) -> bool:
+    """True if simulated time ``t`` [s] has reached ``run_until`` [s] (negative: never)."""
+    return run_until >= 0.0 and t >= run_until - PAUSE_TOLERANCE_S
 
 
 def chunk_message(header: ChunkHeader, samples: np.ndarray) -> Float64MultiArray:
@@ -67,8 +94,12 @@ def _time_msg(t: float) -> TimeMsg:
     return TimeMsg(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
 
 
+def _fqn(namespace: str, name: str) -> str:
+    return (namespace.rstrip("/") + "/" + name) if namespace not in ("", "/") else "/" + name
+
+
 class CantileverNode(Node):
-    """Tapping cantilever over a DMT sample, integrated in paced chunks (see module docstring)."""
+    """Tapping cantilever over a DMT sample, integrated in paced, gated chunks (see module docstring)."""
 
     def __init__(self, **kwargs):
         super().__init__("cantilever", **kwargs)
@@ -78,17 +109,21 @@ class CantileverNode(Node):
         self._setup = build(values)
         self._lock = threading.Lock()
         self._pending: dict = {}
-        self._z_piezo = 0.0
         s = self._setup
         self._sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
         self._sim.advance(0)  # load/compile the numba kernel now, not inside the first paced chunk
-        self._next_index = 0
+        self._gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
+        self._window = ConsumerWindow(values["flow_window"])
+        self._starts = ChunkStarts(0, keep=max(values["feedback_latency"], values["flow_window"]) + 2)
+        self._consumer_seen: dict[str, float] = {}
 
-        self._pub_deflection = self.create_publisher(Float64MultiArray, "cantilever/deflection", CHUNK_QOS)
-        self._pub_force = self.create_publisher(Float64MultiArray, "cantilever/tip_sample_force", CHUNK_QOS)
-        self._pub_clock = self.create_publisher(ClockMsg, "/clock", CLOCK_QOS)
+        self._pub_deflection = self.create_publisher(Float64MultiArray, topics.DEFLECTION, CHUNK_QOS)
+        self._pub_force = self.create_publisher(Float64MultiArray, topics.FORCE, CHUNK_QOS)
+        self._pub_clock = self.create_publisher(ClockMsg, "clock", CLOCK_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(Float64, "z_controller/z_piezo", self._on_z_piezo, Z_PIEZO_QOS)
+        self._z_sub = self.create_subscription(Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command,
+                                               Z_COMMAND_QOS)
+        self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
             CANTILEVER_NODE_SPECS, self._requested_values, check, self._queue_changes))
 
@@ -96,14 +131,32 @@ class CantileverNode(Node):
         self._wall_ref: float | None = None
         self._sim_ref = 0.0
         self._lag = 0.0
+        self.forgiven_lag_s = 0.0  # simulated time given up because a gate held the loop back
         self._diag_wall = None
         self._diag_sim = 0.0
         self._diag_cpu = 0.0
         self._chunks = 0
         self._stopped = False
         self._last_lag_warning = -math.inf
+        self._waiting_since: float | None = None
+        self._wait_kind = "feedback"
+        self._wait_reason = ""
+        self._last_wait_warning = -math.inf
+        self.wait_wall_s = {"feedback": 0.0, "consumers": 0.0}  # wall time a gate held the loop
+        self._paused_reported = False
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self._timer_period(), self._on_timer, clock=self._steady)
+        self._ready_line()
+
+    def _ready_line(self) -> None:
+        v, s = self._values, self._setup
+        self.get_logger().info(
+            f"ready: k={v['spring_constant']:g} N/m, f0={v['resonance_frequency']:g} Hz, Q={v['quality_factor']:g}, "
+            f"A0={v['free_amplitude']:g} m, z_base={v['z_base']:g} m, force {v['force_model']}, "
+            f"{v['steps_per_period']} steps/period, {1.0 / s.sample_interval:g} S/s in chunks of "
+            f"{s.samples_per_chunk} samples ({s.chunk_steps * s.dt:g} s), real_time_factor={v['real_time_factor']:g}, "
+            f"feedback_sync={v['feedback_sync']} (latency {v['feedback_latency']} chunk), "
+            f"flow_window={v['flow_window']}, run_until={v['run_until']:g} s")
 
     # --- parameters ------------------------------------------------------------------------
     def _requested_values(self) -> dict:
@@ -114,6 +167,10 @@ class CantileverNode(Node):
         """Accepted changes are applied at the next chunk boundary."""
         with self._lock:
             self._pending.update(changed)
+        if "run_until" in changed and self._paused_reported:
+            # a paused cantilever polls slowly: continue now, not at the next idle tick
+            self._set_timer_period(FREE_RUN_TIMER_PERIOD_S)
+            self._timer.reset()
 
     def _apply_pending(self) -> None:
         with self._lock:
@@ -122,25 +179,61 @@ class CantileverNode(Node):
             changed, self._pending = self._pending, {}
         old = self._setup
         self._values = {**self._values, **changed}
-        new = build(self._values)
+        v = self._values
+        new = build(v)
         self._setup = new
-        if set(changed) - {"z_base", "output_sample_rate", "chunk_duration", "real_time_factor", "publish_clock"}:
+        if set(changed) & PHYSICS_KEYS:
             self._sim.reconfigure(cantilever=new.cantilever, drive=new.drive, force_model=new.force_model,
                                   steps_per_period=new.steps_per_period)
-        if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps:
-            self._timer.timer_period_ns = int(self._timer_period() * 1e9)
+        if "feedback_sync" in changed or "feedback_latency" in changed:
+            self._gate.mode = v["feedback_sync"]
+            self._gate.latency = v["feedback_latency"]
+            if v["feedback_sync"] == "free":
+                self._gate.controller_gone()
+        if "flow_window" in changed:
+            self._window.window = v["flow_window"]
+        self._starts.resize(max(v["feedback_latency"], v["flow_window"]) + 2)
+        if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps or "run_until" in changed:
+            self._set_timer_period(self._timer_period())
             self._wall_ref = None  # re-anchor the pacing at the new rate
         self.get_logger().info("applied " + ", ".join(f"{k}={v!r}" for k, v in changed.items()))
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
-        return 0.0 if rtf == 0.0 else self._setup.chunk_steps * self._setup.dt / (rtf * CATCH_UP)
+        if paused_at(self._sim.t, self._values["run_until"]):
+            return IDLE_TIMER_PERIOD_S
+        if rtf == 0.0:
+            return FREE_RUN_TIMER_PERIOD_S
+        return self._setup.chunk_steps * self._setup.dt / (rtf * CATCH_UP)
 
-    def _on_z_piezo(self, msg: Float64) -> None:
-        if math.isfinite(msg.data):
-            self._z_piezo = msg.data
-        else:
-            self.get_logger().warning(f"ignoring non-finite z_piezo={msg.data!r}", throttle_duration_sec=5.0)
+    def _set_timer_period(self, period: float) -> None:
+        ns = int(period * 1e9)
+        if ns != self._timer.timer_period_ns:
+            self._timer.timer_period_ns = ns
+
+    # --- inputs ------------------------------------------------------------------------------
+    def _on_z_command(self, msg: Float64MultiArray) -> None:
+        try:
+            cmd = unpack_z_command(msg.data)
+        except ValueError as exc:
+            self.get_logger().warning(f"ignoring malformed z command: {exc}", throttle_duration_sec=5.0)
+            return
+        if not (math.isfinite(cmd.z) and math.isfinite(cmd.answered_end_time)):
+            self.get_logger().warning(f"ignoring non-finite z command z={cmd.z!r}", throttle_duration_sec=5.0)
+            return
+        self._gate.receive(cmd)
+        self._try_step(MAX_BURST)
+
+    def _on_ack(self, msg: Int64MultiArray) -> None:
+        if not msg.layout.dim or not msg.data:
+            return
+        name = msg.layout.dim[0].label
+        if self._window.receive(name, int(msg.data[0]), self._starts.next_index):
+            self._consumer_seen[name] = time.monotonic()
+            self.get_logger().info(f"consumer {name} acknowledges the stream (flow_window "
+                                   f"{self._window.window} chunks)")
+            self._publish_diagnostics(time.monotonic(), force=True)
+        self._try_step(MAX_BURST)
 
     # --- simulation --------------------------------------------------------------------------
     @property
@@ -151,12 +244,25 @@ class CantileverNode(Node):
     @property
     def samples_published(self) -> int:
         """Running sample index of the next sample to be published."""
-        return self._next_index
+        return self._starts.next_index
 
     @property
     def lag(self) -> float:
         """Simulated seconds the state is behind the requested time (paced mode; 0 otherwise)."""
         return self._lag
+
+    @property
+    def consumers(self) -> dict[str, int]:
+        """Acknowledging consumers and the next sample index each expects."""
+        return dict(self._window.acks)
+
+    @property
+    def feedback_locked(self) -> bool:
+        return self._gate.locked
+
+    @property
+    def paused(self) -> bool:
+        return paused_at(self._sim.t, self._values["run_until"])
 
     def stop(self) -> None:
         """Stop integrating (the node stays up; e.g. to drain subscribers at the end of a run)."""
@@ -169,16 +275,20 @@ class CantileverNode(Node):
         self._stopped = True
         return super().destroy_node()
 
-    def step_chunk(self) -> None:
-        """Integrate one chunk and publish it (parameter changes and z_piezo applied first)."""
+    def step_chunk(self, z_piezo: float | None = None) -> None:
+        """Integrate one chunk and publish it (pending parameter changes applied first).
+
+        ``z_piezo`` [m]: the piezo position for this chunk (default: what the feedback gate holds).
+        """
         self._apply_pending()
         s, sim = self._setup, self._sim
-        sim.z_offset = s.z_base + self._z_piezo
+        sim.z_offset = s.z_base + (self._gate.z if z_piezo is None else z_piezo)
         samples = sim.advance(s.chunk_steps, s.decimation)
         count = samples.z.shape[0]
+        first = self._starts.next_index
         if count:
             header = ChunkHeader(
-                self._next_index,
+                first,
                 samples.segment_start + samples.first_step * samples.dt,
                 s.sample_interval,
                 phase_at_step(sim.segment_phase, samples.first_step, sim.steps_per_period),
@@ -187,69 +297,162 @@ class CantileverNode(Node):
             self._pub_deflection.publish(chunk_message(header, samples.z))
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(chunk_message(header, samples.force))
-            self._next_index += count
+        self._starts.published(first + count)
         if self._values["publish_clock"]:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
         self._chunks += 1
+
+    def _gates_open(self, now: float) -> bool:
+        """Both gates (feedback, consumers) open; otherwise note why and since when."""
+        if not self._gate.ready(self._starts):
+            reason = (f"waiting for {Z_COMMAND_TOPIC} answering sample index "
+                      f"{self._gate.required_index(self._starts)}")
+            kind = "feedback"
+        elif not self._window.ready(self._starts):
+            behind = self._window.blocking(self._starts)
+            reason = f"waiting for consumers more than {self._window.window} chunks behind: {', '.join(behind)}"
+            kind = "consumers"
+        else:
+            if self._waiting_since is not None:
+                self.wait_wall_s[self._wait_kind] += now - self._waiting_since
+                self._waiting_since = None
+            return True
+        if self._waiting_since is None:
+            self._waiting_since = now
+            self._wait_kind = kind
+        self._wait_reason = reason
+        return False
+
+    def _try_step(self, max_chunks: int) -> int:
+        """Integrate up to ``max_chunks`` chunks while pacing, pause and both gates allow; return how many."""
+        if self._stopped:
+            return 0
+        done = 0
+        while done < max_chunks:
+            self._apply_pending()
+            if self.paused:
+                if not self._paused_reported:
+                    self._paused_reported = True
+                    self._set_timer_period(IDLE_TIMER_PERIOD_S)
+                break
+            if self._paused_reported:  # run_until was raised
+                self._paused_reported = False
+                self._wall_ref = None
+                self._set_timer_period(self._timer_period())
+            now = time.monotonic()
+            rtf = self._values["real_time_factor"]
+            if self._wall_ref is None:
+                self._wall_ref, self._sim_ref = now, self._sim.t
+            if rtf != 0.0:
+                chunk = self._setup.chunk_steps * self._setup.dt
+                target = self._sim_ref + (now - self._wall_ref) * rtf
+                # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
+                if target - self._sim.t < chunk * (1.0 - 1e-9):
+                    break
+            if not self._gates_open(now):
+                break
+            self.step_chunk(self._gate.take(self._starts))
+            done += 1
+        return done
 
     def _on_timer(self) -> None:
         if self._stopped:
             return
         start = time.monotonic()
-        if self._wall_ref is None:
-            self._wall_ref, self._sim_ref = start, self._sim.t
+        if self._diag_wall is None:
             self._diag_wall, self._diag_sim, self._diag_cpu = start, self._sim.t, time.process_time()
-        rtf = self._values["real_time_factor"]
-        for _ in range(1 if rtf == 0.0 else MAX_BURST):
-            if rtf != 0.0:
-                chunk = self._setup.chunk_steps * self._setup.dt
-                target = self._sim_ref + (time.monotonic() - self._wall_ref) * rtf
-                # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
-                if target - self._sim.t < chunk * (1.0 - 1e-9):
-                    break
-            self.step_chunk()
-            if self._wall_ref is None or self._values["real_time_factor"] != rtf:
-                break  # pacing re-anchored by a parameter change
-        if self._wall_ref is None:  # pacing re-anchored by a parameter change
-            return
+        self._try_step(MAX_BURST)
         now = time.monotonic()
-        if rtf != 0.0:
-            self._lag = max(0.0, self._sim_ref + (now - self._wall_ref) * rtf - self._sim.t)
-            # own throttle: rclpy's throttle_duration_sec inspects the caller's frame on every call,
-            # which costs more than a chunk when called once per chunk
-            if self._lag > max(10 * self._setup.chunk_steps * self._setup.dt, 0.05 * rtf) \
-                    and now - self._last_lag_warning > LAG_WARNING_PERIOD_S:
+        rtf = self._values["real_time_factor"]
+        if rtf != 0.0 and self._wall_ref is not None and not self.paused:
+            chunk = self._setup.chunk_steps * self._setup.dt
+            lag = self._sim_ref + (now - self._wall_ref) * rtf - self._sim.t
+            # a loop held back by a gate or a busy machine does not race afterwards to catch up more
+            # than a few chunks: the excess is given up (and counted), the real-time factor drops
+            limit = max(10 * chunk, 0.05 * rtf)
+            if lag > limit:
+                self.forgiven_lag_s += lag - limit
+                self._sim_ref += lag - limit
+                lag = limit
+            self._lag = max(0.0, lag)
+            if self.forgiven_lag_s > 0 and now - self._last_lag_warning > LAG_WARNING_PERIOD_S \
+                    and lag >= limit * 0.99:
                 self._last_lag_warning = now
                 self.get_logger().warning(
-                    f"cannot keep up with real_time_factor={rtf:g}: simulation lags {self._lag:.3g} s "
-                    f"(simulated) behind the requested time")
+                    f"cannot keep up with real_time_factor={rtf:g}" +
+                    (f" ({self._wait_reason})" if self._waiting_since is not None else " (CPU)") +
+                    f": {self.forgiven_lag_s:.3g} s of simulated time behind so far")
         else:
             self._lag = 0.0
+        if self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S \
+                and now - self._last_wait_warning > LAG_WARNING_PERIOD_S:
+            self._last_wait_warning = now
+            self.get_logger().warning(f"{self._wait_reason} for {now - self._waiting_since:.1f} s")
         if now - self._diag_wall >= DIAGNOSTICS_PERIOD_S:
+            self._check_graph(now)
             self._publish_diagnostics(now)
 
-    def _publish_diagnostics(self, now: float) -> None:
+    def _check_graph(self, now: float) -> None:
+        """Forget consumers and a z controller that left the graph (a gate must not wait for them)."""
+        if self._gate.locked and self._gate.mode == "auto" and self._z_sub.get_publisher_count() == 0:
+            self._gate.controller_gone()
+            self.get_logger().warning(f"no publisher on {Z_COMMAND_TOPIC} any more: feedback runs free")
+        if not self._window.acks:
+            return
+        present = {_fqn(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(
+            self.resolve_topic_name(ACK_TOPIC))}
+        for name in present:
+            self._consumer_seen[name] = now
+        absent = {n for n in self._window.acks if now - self._consumer_seen.get(n, now) > CONSUMER_ABSENT_S}
+        for name in self._window.forget_absent(set(self._window.acks) - absent):
+            self._consumer_seen.pop(name, None)
+            self.get_logger().warning(f"consumer {name} left the graph: no longer waited for")
+
+    def _publish_diagnostics(self, now: float, force: bool = False) -> None:
+        if self._diag_wall is None:
+            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._sim.t, time.process_time()
         cpu = time.process_time()
         wall = now - self._diag_wall
-        achieved = (self._sim.t - self._diag_sim) / wall
+        if wall <= 0.0 and not force:
+            return
+        achieved = (self._sim.t - self._diag_sim) / wall if wall > 0 else 0.0
         rtf = self._values["real_time_factor"]
-        lagging = rtf != 0.0 and achieved < 0.95 * rtf
+        paused = self.paused
+        lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
+        waiting = self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S
+        if waiting:
+            message = self._wait_reason
+        elif paused:
+            message = f"paused at run_until={self._values['run_until']:g} s"
+        elif lagging:
+            message = "lagging behind real_time_factor"
+        else:
+            message = "ok"
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if lagging else DiagnosticStatus.OK,
+            level=DiagnosticStatus.WARN if (lagging or waiting) else DiagnosticStatus.OK,
             name=f"{self.get_fully_qualified_name()}: simulation", hardware_id="afm_ros",
-            message=("lagging behind real_time_factor" if lagging else "ok"),
-            values=[KeyValue(key=k, value=f"{v:.6g}") for k, v in (
+            message=message,
+            values=[KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in (
                 ("real_time_factor_requested", rtf),
                 ("real_time_factor_achieved", achieved),
                 ("lag_s", self._lag),
+                ("simulated_time_lost_to_slowdowns_s", self.forgiven_lag_s),
                 ("simulated_time_s", self._sim.t),
-                ("samples_published", self._next_index),
+                ("samples_published", self._starts.next_index),
                 ("chunks", self._chunks),
-                ("process_cpu_fraction", (cpu - self._diag_cpu) / wall))])
+                ("paused", "true" if paused else "false"),
+                ("feedback_sync", self._values["feedback_sync"]),
+                ("feedback_locked", "true" if self._gate.locked else "false"),
+                ("feedback_latency_chunks", self._values["feedback_latency"]),
+                ("wall_s_waiting_for_feedback", self.wait_wall_s["feedback"]),
+                ("wall_s_waiting_for_consumers", self.wait_wall_s["consumers"]),
+                ("consumers", ",".join(sorted(self._window.acks))),
+                ("process_cpu_fraction", (cpu - self._diag_cpu) / wall if wall > 0 else 0.0))])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)
-        self._diag_wall, self._diag_sim, self._diag_cpu = now, self._sim.t, cpu
+        if not force:
+            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._sim.t, cpu
 
 
 def main(args=None):

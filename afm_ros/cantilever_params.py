@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from .flow import FEEDBACK_SYNC_MODES
 from .physics.forces import make_force_model
 from .physics.parameters import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, ParamSpec,
                                  check_steps_per_resonance)
@@ -26,6 +27,22 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "simulated seconds per wall-clock second; 0 runs as fast as possible", 0.0, 1000.0),
     ParamSpec("publish_clock", True, "", "publish the simulated time on /clock", kind=bool),
     ParamSpec("force_model", "dmt", "", "tip-sample force model", kind=str, choices=("dmt", "none")),
+    ParamSpec("feedback_sync", "auto", "",
+              "how z_controller/z_command is applied: 'lockstep' = chunk k always uses the answer to chunk "
+              "k - feedback_latency and waits for it (deterministic closed loop); 'auto' = lockstep once a z "
+              "controller answers, free before and after it leaves; 'free' = the latest command at each chunk "
+              "boundary, never waiting (timing dependent)", kind=str, choices=FEEDBACK_SYNC_MODES),
+    ParamSpec("feedback_latency", 1, "chunks",
+              "feedback delay in lockstep: the z computed from chunk k's lock-in outputs moves the piezo from "
+              "chunk k + feedback_latency on (1 chunk = chunk_duration of simulated time)", 1, 16, kind=int),
+    ParamSpec("flow_window", 32, "chunks",
+              "largest number of published chunks a consumer (lock-in, recorder, monitor) may not yet have "
+              "acknowledged on cantilever/ack; beyond it the cantilever waits (slows down) instead of letting "
+              "the consumer lose samples", 2, 150, kind=int),
+    ParamSpec("run_until", -1.0, "s",
+              "simulated time at which the integration pauses (at the first chunk boundary at or after it); "
+              "negative = no pause. Raise it to continue: scripted sessions step through their phases this way",
+              -1.0, 1e9),
 )}
 
 CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **NODE_SPECS}

@@ -43,18 +43,34 @@ def running(context=None) -> bool:
     return not _stop_requested and rclpy.ok(context=context)
 
 
+def make_executor(kind: str = "events", context=None):
+    """'events' (rclpy.experimental.EventsExecutor: serves every message with the least overhead,
+    the only one that keeps up with the 900 kS/s stream on 2 cores; the default), 'single' or 'multi'.
+    rclpy's Single/MultiThreadedExecutor take one message per subscription per wait cycle."""
+    if kind == "single":
+        return SingleThreadedExecutor(context=context)
+    if kind == "multi":
+        from rclpy.executors import MultiThreadedExecutor
+        return MultiThreadedExecutor(num_threads=2, context=context)
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
+
+
 def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
-    """Init rclpy, spin the node until Ctrl-C / SIGTERM; return the exit status.
+    """Init rclpy, spin the node on the EventsExecutor until Ctrl-C / SIGTERM; return the exit status.
 
     A bad start value (e.g. from ``--params-file``) prints one line naming the field and
     returns 1.
     """
     init(args)
     node = None
+    executor = None
     status = 0
     try:
         node = make_node()
-        executor = SingleThreadedExecutor()
+        executor = make_executor("events")
         executor.add_node(node)
         while running():
             executor.spin_once(timeout_sec=0.1)
@@ -64,7 +80,11 @@ def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
         print(f"{program}: invalid parameter: {exc}", file=sys.stderr)
         status = 1
     finally:
+        if executor is not None and node is not None:
+            executor.remove_node(node)
         if node is not None:
             node.destroy_node()
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return status

@@ -29,7 +29,10 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_parameter_events)
 
-from . import ros_params
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from . import ros_params, topics
+from .chunk_layout import cdr_chunk_index
 from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError, SessionWriter,
                       default_output_path, message_class, qos_profiles_yaml,
                       serialize_exact)
@@ -38,7 +41,40 @@ from . import node_main
 PARAMETER_EVENTS = "/parameter_events"
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
 _NO_INFO: dict = {}
-MIN_DEPTH = 100  # subscription queue [messages]; chunk topics arrive at ~50-500 Hz
+CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
+DIAGNOSTICS_PERIOD_S = 1.0
+
+
+class StreamCheck:
+    """Continuity of one recorded chunk topic: sample index gaps (lost samples) and repeats."""
+
+    def __init__(self):
+        self.next_index: int | None = None
+        self.first_index: int | None = None
+        self.chunks = 0
+        self.gap_events = 0
+        self.missing_samples = 0
+        self.repeated_samples = 0
+        self.unreadable = 0
+
+    def add(self, data: bytes) -> int | None:
+        """Account for one chunk; return the index after it (None if unreadable)."""
+        try:
+            first, count = cdr_chunk_index(data)
+        except ValueError:
+            self.unreadable += 1
+            return None
+        if self.next_index is None:
+            self.first_index = first
+        elif first > self.next_index:
+            self.gap_events += 1
+            self.missing_samples += first - self.next_index
+        elif first < self.next_index:
+            self.repeated_samples += min(count, self.next_index - first)
+        self.chunks += 1
+        end = first + count
+        self.next_index = end if self.next_index is None else max(self.next_index, end)
+        return end
 
 
 def split_patterns(text: str, namespace: str) -> list[str]:
@@ -82,6 +118,10 @@ class RecorderNode(Node):
         self._include = split_patterns(v["topics"], ns)
         self._exclude = split_patterns(v["exclude"], ns)
         self.writer = SessionWriter(self.output_path, compression=v["compression"], chunk_size=v["chunk_size"])
+        self._own_deflection = self.resolve_topic_name(topics.DEFLECTION)
+        self.streams: dict[str, StreamCheck] = {}
+        self._ack = topics.Acknowledger(self)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs: dict[str, object] = {}
         self._channel: dict[str, int] = {}
         self._sequence: dict[str, int] = {}
@@ -90,7 +130,6 @@ class RecorderNode(Node):
         self._snapshotted: set[str] = set()
         self._pending: set[str] = set()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.get_logger().info(f"recording to {self.output_path}")
         self._snapshot_own_parameters()
         self._discover()  # subscribe now, so a recorder started with the instrument misses nothing
         # once an executor runs the node, its type decides the callback form (see _upgrade)
@@ -98,7 +137,10 @@ class RecorderNode(Node):
         self._rec_timers = [
             self.create_timer(v["discovery_period"], self._discover, clock=self._steady),
             self.create_timer(v["flush_interval"], self._flush, clock=self._steady),
+            self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady),
         ]
+        self.get_logger().info(f"ready: recording to {self.output_path} ({v['compression']}, "
+                               f"flush every {v['flush_interval']:g} s)")
 
     # --- topics ---------------------------------------------------------------------------
     def _wanted(self, topic: str) -> bool:
@@ -111,11 +153,12 @@ class RecorderNode(Node):
         return not _hidden(topic)
 
     def _qos_for(self, infos) -> QoSProfile:
-        """Subscription QoS compatible with every publisher (rosbag2's adaptation rule)."""
+        """Subscription QoS compatible with every publisher (rosbag2's adaptation rule), KEEP_ALL so
+        the middleware never drops what the recorder has not written yet (the cantilever's flow
+        control bounds that backlog)."""
         reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
         transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
-        depth = max([MIN_DEPTH] + [int(i.qos_profile.depth) for i in infos])
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL,
                           reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
 
@@ -167,6 +210,8 @@ class RecorderNode(Node):
         self._channel[topic] = cid
         self._sequence.setdefault(topic, 0)  # /parameter_events may already hold snapshots
         self.received.setdefault(topic, 0)
+        if topic.endswith(CHUNK_TOPIC_SUFFIXES) and type_name == "std_msgs/msg/Float64MultiArray":
+            self.streams[topic] = StreamCheck()
         qos = qos_profile_parameter_events if topic == PARAMETER_EVENTS else self._qos_for(infos)
         sub = self.create_subscription(cls, topic, lambda data, t=topic: self._on_message(t, data, _NO_INFO),
                                        qos, raw=True)
@@ -184,6 +229,35 @@ class RecorderNode(Node):
             self._fail(exc)
             return
         self.received[topic] += 1
+        check = self.streams.get(topic)
+        if check is not None:
+            end = check.add(data)
+            if end is not None and topic == self._own_deflection:
+                self._ack.send(end)
+
+    def stream_report(self) -> dict:
+        """Per chunk topic: chunks, first index, lost (gap) and repeated samples."""
+        return {t: {"chunks": c.chunks, "first_index": c.first_index, "next_index": c.next_index,
+                    "gap_events": c.gap_events, "missing_samples": c.missing_samples,
+                    "repeated_samples": c.repeated_samples, "unreadable": c.unreadable}
+                for t, c in self.streams.items()}
+
+    def _publish_diagnostics(self) -> None:
+        lost = sum(c.missing_samples for c in self.streams.values())
+        failed = self.error is not None
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.ERROR if failed else (DiagnosticStatus.WARN if lost else DiagnosticStatus.OK),
+            name=f"{self.get_fully_qualified_name()}: recording", hardware_id="afm_ros",
+            message=(f"recording stopped: {self.error}" if failed else
+                     f"{lost} samples lost" if lost else "ok"),
+            values=[KeyValue(key="file", value=self.output_path),
+                    KeyValue(key="messages", value=str(self.writer.message_count)),
+                    KeyValue(key="lost_samples", value=str(lost))] +
+                   [KeyValue(key=f"{t}: missing_samples", value=str(c.missing_samples))
+                    for t, c in self.streams.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._pub_diag.publish(msg)
 
     # --- parameters -----------------------------------------------------------------------
     def _write_snapshot(self, node_name: str, params: list[ParameterMsg]) -> None:
@@ -280,12 +354,15 @@ def main(args=None):
     # with its summary and index.
     node_main.init(args)
     node = None
+    executor = None
     code = 0
     try:
         node = RecorderNode()
         print(f"recorder: recording to {node.output_path}", flush=True)
+        executor = node_main.make_executor("events")
+        executor.add_node(node)
         while node_main.running() and node.error is None:
-            rclpy.spin_once(node, timeout_sec=0.2)
+            executor.spin_once(timeout_sec=0.2)
         if node.error is not None:
             code = 1
     except (RecordingError, ValueError) as exc:
@@ -294,10 +371,16 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None and node is not None:
+            executor.remove_node(node)
         if node is not None:
             node.destroy_node()
             if node.error is None:
-                print(f"recorder: closed {node.output_path} ({node.writer.message_count} messages)", flush=True)
+                lost = sum(c.missing_samples for c in node.streams.values())
+                print(f"recorder: closed {node.output_path} ({node.writer.message_count} messages, "
+                      f"{lost} samples lost)", flush=True)
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return code
 

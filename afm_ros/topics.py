@@ -1,0 +1,50 @@
+"""Topic names and QoS of the instrument's data path, shared by the nodes (ROS import, no node).
+
+The data path is lossless by construction: publishers keep a transient-local history (a consumer
+that matches late still gets the recent messages), consumers subscribe KEEP_ALL (the middleware
+never drops a message the Python side has not taken yet) and acknowledge what they handled on
+``cantilever/ack``, and the cantilever keeps every consumer within ``flow_window`` chunks
+(:mod:`afm_ros.flow`), which also bounds the memory those queues can take.
+"""
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Int64MultiArray, MultiArrayDimension
+
+from .chunk_layout import ACK_READY
+
+DEFLECTION = "cantilever/deflection"
+FORCE = "cantilever/tip_sample_force"
+ACK = "cantilever/ack"
+LOCKIN_OUTPUTS = "lockin/outputs"
+Z_COMMAND = "z_controller/z_command"
+
+# publishers of the data path: reliable, history of 200 messages kept for late joiners
+HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# consumers of the data path: take everything, including the publisher's history
+CONSUMER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# one consumer's acknowledgement: only the latest matters
+ACK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class Acknowledger:
+    """Publishes a consumer's progress on ``cantilever/ack`` (std_msgs/Int64MultiArray)."""
+
+    def __init__(self, node, topic: str = ACK):
+        self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
+        self._msg = Int64MultiArray()
+        self._msg.layout.dim = [MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)]
+        self.next_index = ACK_READY
+        self.send(ACK_READY)
+
+    def send(self, next_index: int) -> None:
+        """Every deflection sample before ``next_index`` has been handled (ACK_READY: none yet)."""
+        self.next_index = int(next_index)
+        self._msg.data = [self.next_index]
+        self._pub.publish(self._msg)
+
+    def destroy(self, node) -> None:
+        node.destroy_publisher(self._pub)
