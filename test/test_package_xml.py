@@ -1,0 +1,43 @@
+"""package.xml lists every runtime dependency that afm_ros/ imports (rosdep keys)."""
+import ast
+import sys
+from pathlib import Path
+from xml.etree import ElementTree
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Python module -> rosdep key (rosdistro rosdep/python.yaml; python3-mcap-pip: see package.xml)
+PYTHON_KEYS = {"numpy": "python3-numpy", "numba": "python3-numba", "scipy": "python3-scipy",
+               "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "mcap": "python3-mcap-pip",
+               "yaml": "python3-yaml"}
+
+
+def imported_top_level_modules():
+    found = {}
+    for path in sorted((ROOT / "afm_ros").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                top = name.split(".")[0]
+                if top not in sys.stdlib_module_names and top not in ("afm_ros", "__future__"):
+                    found.setdefault(top, path.relative_to(ROOT).as_posix())
+    return found
+
+
+def test_every_imported_module_is_an_exec_depend():
+    package = ElementTree.parse(ROOT / "package.xml").getroot()
+    exec_depends = {e.text.strip() for tag in ("exec_depend", "depend") for e in package.findall(tag)}
+    missing = {module: (PYTHON_KEYS.get(module, module), where)
+               for module, where in imported_top_level_modules().items()
+               if PYTHON_KEYS.get(module, module) not in exec_depends}
+    assert not missing, f"package.xml lacks exec_depend for (module: (rosdep key, first importer)) {missing}"
+
+
+def test_the_scan_sees_the_known_imports():
+    modules = imported_top_level_modules()
+    assert {"rclpy", "numpy", "numba", "mcap", "tqdm", "std_msgs"} <= set(modules)
