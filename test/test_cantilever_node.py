@@ -16,7 +16,8 @@ from rclpy.parameter_client import AsyncParameterClient
 from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64, Float64MultiArray
 
-from afm_ros.cantilever_node import CHUNK_QOS, Z_PIEZO_QOS, CantileverNode
+from afm_ros.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
+from afm_ros.topics import CONSUMER_QOS, Acknowledger
 from afm_ros.cantilever_params import build, default_values
 from afm_ros.chunk_layout import unpack
 from afm_ros.physics import Simulation, free_solution, steady_state
@@ -25,12 +26,14 @@ A0 = 60e-9  # default free amplitude [m]
 
 
 class Collector(Node):
-    """Subscribes to the cantilever's chunks and keeps (header, samples) of each."""
+    """Subscribes to the cantilever's chunks and keeps (header, samples) of each; acknowledges them on
+    cantilever/ack like every consumer, so the cantilever never runs more than flow_window chunks ahead."""
 
     def __init__(self, ctx, ns, topic="cantilever/deflection"):
         super().__init__("collector", context=ctx, namespace=ns)
         self.chunks = []
-        self.create_subscription(Float64MultiArray, topic, self._on_chunk, CHUNK_QOS)
+        self.ack = Acknowledger(self)
+        self.create_subscription(Float64MultiArray, topic, self._on_chunk, CONSUMER_QOS)
         self.diagnostics = []
         self.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
 
@@ -39,6 +42,7 @@ class Collector(Node):
         header, samples = unpack(msg.data)
         assert msg.layout.dim[0].size == samples.shape[0]
         self.chunks.append((header, samples.copy()))
+        self.ack.send(header.first_sample_index + samples.shape[0])
 
     def samples(self):
         return sum(s.shape[0] for _, s in self.chunks)
@@ -136,8 +140,10 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     # the physics core's steady state at 30 nm
     result = call(client.set_parameters([Parameter("z_base", value=30e-9)])).results[0]
     assert result.successful, result.reason
-    n_before = len(col.chunks)
-    spin_until(ros_executor, lambda: len(col.chunks) >= n_before + 20)  # 40 ms simulated
+    # applied at a chunk boundary: wait for it, then 40 ms simulated more
+    spin_until(ros_executor, lambda: any(h.z_offset == 30e-9 for h, _ in col.chunks))
+    first_new = next(i for i, (h, _) in enumerate(col.chunks) if h.z_offset == 30e-9)
+    spin_until(ros_executor, lambda: len(col.chunks) >= first_new + 20)
     changed = [i for i, (h, _) in enumerate(col.chunks) if h.z_offset == 30e-9]
     assert changed and all(h.z_offset == 30e-9 for h, _ in col.chunks[changed[0]:])
     assert all(h.z_offset == 40e-9 for h, _ in col.chunks[:changed[0]])
@@ -174,6 +180,7 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     # must continue without a gap or jump
     result = call(client.set_parameters([Parameter("drive_frequency", value=44e3)])).results[0]
     assert result.successful, result.reason
+    spin_until(ros_executor, lambda: any(h.drive_frequency == 44e3 for h, _ in col.chunks))
     n_before = len(col.chunks)
     spin_until(ros_executor, lambda: len(col.chunks) >= n_before + 5)
     idx, t, z, off, phase = col.stream()
@@ -193,13 +200,15 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     assert np.max(np.abs(np.diff(z))) < 0.4 * A0
 
 
-def test_z_piezo_input_moves_the_gap(ros_context, ros_executor, ros_namespace):
+def test_z_command_input_moves_the_gap(ros_context, ros_executor, ros_namespace):
+    """An unsynchronised z command (answered index -1, e.g. a hand-written controller) is applied at
+    the next chunk boundary without engaging the lockstep."""
     node, col = start(ros_context, ros_executor, ros_namespace)
     pub_node = Node("z_pub", context=ros_context, namespace=ros_namespace)
     ros_executor.add_node(pub_node)
-    pub = pub_node.create_publisher(Float64, "z_controller/z_piezo", Z_PIEZO_QOS)
+    pub = pub_node.create_publisher(Float64MultiArray, "z_controller/z_command", Z_COMMAND_QOS)
     spin_until(ros_executor, lambda: pub.get_subscription_count() > 0)
-    pub.publish(Float64(data=20e-9))
+    pub.publish(Float64MultiArray(data=[-1.0, 0.0, 20e-9]))
     # gap = z_base + z_piezo + z: positive z_piezo retracts, z_offset = 40 + 20 nm
     spin_until(ros_executor, lambda: col.chunks and col.chunks[-1][0].z_offset == pytest.approx(60e-9))
     n = len(col.chunks)
@@ -208,6 +217,7 @@ def test_z_piezo_input_moves_the_gap(ros_context, ros_executor, ros_namespace):
     amp, _ = demodulate(z[-9000:], phase[-9000:])
     ss = steady_state(reference_simulation(z_base=60e-9)).analysis
     assert amp == pytest.approx(ss.amplitude, abs=2e-11)
+    assert not node.feedback_locked
 
 
 def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, ros_namespace):
@@ -250,9 +260,10 @@ def test_paced_run_follows_the_clock_and_reports_diagnostics(ros_context, ros_ex
     assert advanced <= 0.2 * wall + 2 * chunk
     assert advanced >= 0.5 * 0.2 * wall
     assert col.diagnostics, "no /diagnostics within 1.3 s (published every 1 s)"
-    values = {kv.key: float(kv.value) for kv in col.diagnostics[-1].status[0].values}
-    assert values["real_time_factor_requested"] == 0.2
-    assert 0.1 <= values["real_time_factor_achieved"] <= 0.21
+    values = {kv.key: kv.value for kv in col.diagnostics[-1].status[0].values}
+    assert float(values["real_time_factor_requested"]) == 0.2
+    assert 0.1 <= float(values["real_time_factor_achieved"]) <= 0.21
+    assert values["consumers"] == f"{ros_namespace}/collector" and values["feedback_locked"] == "false"
     idx, *_ = col.stream()
     assert np.array_equal(idx, np.arange(idx.shape[0]))
 

@@ -15,7 +15,8 @@ from afm_ros.physics import Cantilever, Drive, seed_simulation, steady_amplitude
 
 @pytest.fixture
 def instrument(ros_context, ros_namespace):
-    inst = Instrument(context=ros_context, namespace=ros_namespace, executor="events", record=False)
+    inst = Instrument(context=ros_context, namespace=ros_namespace, executor="events", record=False,
+                      keep_history=True)
     inst.set("cantilever", real_time_factor=0.0)
     yield inst
     inst.destroy()
@@ -62,7 +63,7 @@ def test_z_base_step_is_compensated_by_the_feedback(instrument):
     z_before = summary.z_piezo_m
     t0 = instrument.sim_time()
     instrument.set("cantilever", z_base=summary.z_base_m - 3e-9)
-    instrument.spin_until_sim(t0 + 0.1)
+    assert instrument.advance(0.1) == pytest.approx(t0 + 0.1, abs=1e-9)
     mon = instrument.monitor
     z_after = [z for t, z in zip(mon.z_piezo_t, mon.z_piezo) if t > t0 + 0.075]
     _, a, _ = mon.window(t0 + 0.075, t0 + 1.0)

@@ -11,15 +11,15 @@ import time
 
 import numpy as np
 import pytest
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, Float64MultiArray
 
-from afm_ros.z_controller_node import INPUT_QOS, Z_QOS, ZControllerNode
+from afm_ros import topics
+from afm_ros.chunk_layout import OutputBatch, pack_outputs, unpack_z_command
+from afm_ros.z_controller_node import Z_QOS, ZControllerNode
 from afm_ros.zcontrol import Z_CONTROLLER_SPECS, ZController
 
 A_FREE = 60e-9  # [m]
@@ -179,24 +179,30 @@ RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000, reliabilit
 
 
 class Harness(Node):
-    """Plays the lock-in (publishes lockin/xy with sim-time stamps) and records the outputs."""
+    """Plays the lock-in (publishes lockin/outputs batches, one output sample per deflection chunk of
+    CHUNK samples, with sim-time stamps) and records the z controller's outputs and z commands."""
+
+    CHUNK = 1000
 
     def __init__(self, ctx, ns):
         super().__init__("harness", context=ctx, namespace=ns)
-        self.pub = self.create_publisher(Vector3Stamped, "lockin/xy", INPUT_QOS)
-        self.z, self.error = [], []
+        self.pub = self.create_publisher(Float64MultiArray, topics.LOCKIN_OUTPUTS, topics.HISTORY_QOS)
+        self.z, self.error, self.commands = [], [], []
+        self.next_index = 0
         z_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
                            durability=Z_QOS.durability)
         self.create_subscription(Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), z_qos)
         self.create_subscription(Float64, "z_controller/error", lambda m: self.error.append(m.data), RECORD_QOS)
+        self.create_subscription(Float64MultiArray, topics.Z_COMMAND,
+                                 lambda m: self.commands.append(unpack_z_command(m.data)), topics.CONSUMER_QOS)
 
     def send(self, amplitude, t_ns):
-        msg = Vector3Stamped()
-        msg.header.stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+        t = t_ns * 1e-9
+        first, self.next_index = self.next_index, self.next_index + self.CHUNK
         # amplitude split over X and Y: the node must use |X + iY|
-        msg.vector.x = amplitude * math.cos(1.2)
-        msg.vector.y = -amplitude * math.sin(1.2)
-        self.pub.publish(msg)
+        batch = OutputBatch(first, self.next_index, t + 1e-6, np.array([t]),
+                            np.array([amplitude * math.cos(1.2)]), np.array([-amplitude * math.sin(1.2)]))
+        self.pub.publish(Float64MultiArray(data=pack_outputs(batch).tolist()))
 
 
 def spin_until(executor, condition, timeout=15.0):
@@ -213,13 +219,13 @@ def start(ctx, executor, ns, **params):
     executor.add_node(node)
     executor.add_node(harness)
     spin_until(executor, lambda: harness.pub.get_subscription_count() > 0
-               and node.pub_error.get_subscription_count() > 0 and len(harness.z) >= 1)  # the initial z arrives (transient local)
+               and node.pub_error.get_subscription_count() > 0 and len(harness.z) >= 1
+               and len(harness.commands) >= 1)  # the initial z arrives (transient local)
     return node, harness
 
 
 def feed(executor, harness, amplitudes, t0_ns, step_ns):
-    """Send samples one by one, each after the previous one was answered (the node's input queue
-    is one deep by design: it acts on the freshest amplitude)."""
+    """Send samples one by one, each after the previous one was answered."""
     for k, a in enumerate(amplitudes):
         n_error = len(harness.error)
         harness.send(a, t0_ns + k * step_ns)
@@ -277,19 +283,24 @@ def test_node_parameters(ros_context, ros_executor, ros_namespace):
     spin_until(ros_executor, lambda: len(harness.z) > n and harness.z[-1] == 100e-9)
 
 
-def test_node_skipped_samples_keep_the_integral_exact(ros_context, ros_executor, ros_namespace):
-    """A burst the node cannot keep up with: it acts on the freshest sample (queue depth 1) and
-    integrates over the stamp difference, so with a constant error z ends where processing every
-    sample would: z = z0 + i_gain * e * (t_last - t_first) (+ p_gain * e from the first sample on)."""
+def test_node_answers_every_chunk_in_order(ros_context, ros_executor, ros_namespace):
+    """A burst of 199 batches published without spinning: none is skipped (KEEP_ALL input), every
+    output sample is one controller step, and each batch gets its z command, so with a constant
+    error z ends at z0 + i_gain * e * (t_last - t_first)."""
     node, harness = start(ros_context, ros_executor, ros_namespace, p_gain=0.0)
+    assert harness.commands[0].answered_end_index == 0 and harness.commands[0].z == 0.0  # start position
     feed(ros_executor, harness, [55e-9], 0, 0)  # first sample: initialises (no integration)
     z0 = harness.z[-1]
     for k in range(1, 200):
         harness.send(55e-9, k * 1_000_000)  # 199 samples, 1 ms apart, without spinning
-    spin_until(ros_executor, lambda: len(harness.error) >= 2 and node.controller.t_last == pytest.approx(0.199))
-    assert len(harness.error) < 200  # some samples were skipped ...
+    spin_until(ros_executor, lambda: harness.commands and harness.commands[-1].answered_end_index == 200 * Harness.CHUNK)
+    assert len(harness.error) == 200
+    answered = [c.answered_end_index for c in harness.commands[1:]]
+    assert answered == [Harness.CHUNK * (k + 1) for k in range(200)]
     expected = z0 + I * (SETPOINT - 55e-9) * 0.199
-    assert harness.z[-1] == pytest.approx(expected, rel=1e-9)  # ... without changing the integral
+    assert harness.z[-1] == pytest.approx(expected, rel=1e-9)
+    assert harness.commands[-1].z == harness.z[-1]
+    assert node.lost_samples == 0 and node.stale_batches == 0
 
 
 def test_non_finite_samples_and_time_going_back():
