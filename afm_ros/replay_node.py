@@ -35,6 +35,11 @@ from .recorder_node import matches, split_patterns
 from . import node_main
 
 CLOCK = "/clock"
+
+
+def is_clock(topic: str) -> bool:
+    """The simulated clock: ``/clock``, or ``/<ns>/clock`` of an instrument in a namespace."""
+    return topic == CLOCK or topic.endswith(CLOCK)
 CHUNK_TYPE = "std_msgs/msg/Float64MultiArray"
 
 
@@ -100,7 +105,7 @@ class ReplayNode(Node):
         include = split_patterns(v["topics"], "/")
         exclude = split_patterns(v["exclude"], "/")
         if not v["publish_clock"]:
-            exclude.append(CLOCK)
+            exclude += [CLOCK, "*" + CLOCK]
         self._replay_pubs: dict[str, object] = {}
         self._types: dict[str, str] = {}
         unknown = []
@@ -119,7 +124,7 @@ class ReplayNode(Node):
             except ValueError:
                 unknown.append(f"{topic} (type {type_name} is not installed)")
                 continue
-            name = topic if topic == CLOCK or not v["topic_prefix"] else \
+            name = topic if is_clock(topic) or not v["topic_prefix"] else \
                 "/" + v["topic_prefix"].strip("/") + topic
             self._replay_pubs[topic] = self.create_publisher(
                 cls, name, _qos_from_metadata(ch.metadata.get("offered_qos_profiles", "")))
@@ -127,8 +132,9 @@ class ReplayNode(Node):
         if unknown:
             raise SessionFileError(f"{scan.path}: cannot replay {', '.join(unknown)}; exclude these topics "
                                    "(parameter 'exclude') or install their message packages")
-        self._derive_clock = v["publish_clock"] and CLOCK not in self._replay_pubs
-        self._clock_pub = self.create_publisher(ClockMsg, CLOCK, 10) if self._derive_clock else None
+        self._derive_clock = v["publish_clock"] and not any(is_clock(t) for t in self._replay_pubs)
+        # derived clock: relative, like the cantilever's (/clock in the root namespace)
+        self._clock_pub = self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
         self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
         self.done = threading.Event()
         self.error: Exception | None = None

@@ -97,7 +97,7 @@ ROLES = {
     "xy": "lockin/xy",
     "z_piezo": "z_controller/z_piezo",
     "error": "z_controller/error",
-    "clock": "/clock",
+    "clock": "clock",  # /clock, or /<ns>/clock of an instrument in a namespace
 }
 
 

@@ -101,7 +101,7 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
         assert header.profile == "ros2"
         assert "afm_ros" in header.library
         counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
-        for topic in (defl, force, "/clock", "/parameter_events"):
+        for topic in (defl, force, defl.replace("cantilever/deflection", "clock"), "/parameter_events"):
             assert topic in counts, f"{topic} not recorded (default = all topics)"
         # every message the recorder counted is in the file (+ the recorder's own parameter snapshots)
         for topic, n in received.items():

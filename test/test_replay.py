@@ -49,7 +49,7 @@ def loop_session(tmp_path_factory):
             Parameter("output_sample_rate", value=OUTPUT_RATE)])
         nodes = [cantilever, LockInNode(context=ctx, namespace="/a"), ZControllerNode(context=ctx, namespace="/a")]
         recorder = RecorderNode(context=ctx, namespace="/a", parameter_overrides=[
-            Parameter("output", value=str(path)), Parameter("topics", value="cantilever/*,lockin/*,z_controller/*,/clock")])
+            Parameter("output", value=str(path)), Parameter("topics", value="cantilever/*,lockin/*,z_controller/*,clock")])
         for n in nodes + [recorder]:
             ex.add_node(n)
         spin(ex, RECORD_S)
@@ -66,7 +66,7 @@ def loop_session(tmp_path_factory):
 
 
 class Sink(rclpy.node.Node):
-    def __init__(self, ctx, ns):
+    def __init__(self, ctx, ns, clock="/clock"):
         super().__init__("sink", context=ctx, namespace=ns)
         self.xy, self.amp, self.phase, self.z, self.clock, self.chunks = [], [], [], [], [], []
         q = 1000
@@ -74,7 +74,7 @@ class Sink(rclpy.node.Node):
         self.create_subscription(Float64, "lockin/amplitude", lambda m: self.amp.append(m.data), q)
         self.create_subscription(Float64, "lockin/phase", lambda m: self.phase.append(m.data), q)
         self.create_subscription(Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), q)
-        self.create_subscription(Clock, "/clock", lambda m: self.clock.append(m.clock.sec + 1e-9 * m.clock.nanosec), q)
+        self.create_subscription(Clock, clock, lambda m: self.clock.append(m.clock.sec + 1e-9 * m.clock.nanosec), q)
         self.create_subscription(Float64MultiArray, "cantilever/deflection", self.chunks.append, q)
 
 
@@ -146,10 +146,10 @@ def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_sess
 
 
 def test_rate_scales_timing_and_prefix_renames(loop_session, ros_context, ros_executor):
-    sink = Sink(ros_context, "/fast/a")
+    sink = Sink(ros_context, "/fast/a", clock="/a/clock")
     replay = ReplayNode(context=ros_context, parameter_overrides=[
         Parameter("file", value=str(loop_session)), Parameter("topic_prefix", value="/fast"),
-        Parameter("topics", value="/a/cantilever/deflection,/clock"), Parameter("rate", value=4.0),
+        Parameter("topics", value="/a/cantilever/deflection,/a/clock"), Parameter("rate", value=4.0),
         Parameter("start_delay", value=0.2)])
     ros_executor.add_node(sink)
     ros_executor.add_node(replay)
@@ -157,14 +157,14 @@ def test_rate_scales_timing_and_prefix_renames(loop_session, ros_context, ros_ex
     t_first = time.monotonic()
     spin(ros_executor, until=replay.done.is_set, timeout=20)
     wall = time.monotonic() - t_first
-    logs = [m.log_time for m in read_session(loop_session) if m.topic in ("/a/cantilever/deflection", "/clock")]
+    logs = [m.log_time for m in read_session(loop_session) if m.topic in ("/a/cantilever/deflection", "/a/clock")]
     span = (max(logs) - min(logs)) * 1e-9
     # Played at rate 4 the recorded span takes span/4 of wall time; the tolerance (+-35 % and
     # 0.15 s) covers executor latency on a loaded 2-core machine, while rate 1 (or 2) would fail.
     assert span / 4 * 0.65 - 0.15 <= wall <= span / 4 * 1.35 + 0.15, (wall, span)
     spin(ros_executor, 0.3)
     assert len(sink.chunks) == replay.published["/a/cantilever/deflection"]
-    assert replay.published["/clock"] > 0 and len(sink.clock) > 0  # recorded /clock, not prefixed
+    assert replay.published["/a/clock"] > 0 and len(sink.clock) > 0  # recorded /a/clock, not prefixed
 
 
 def _unknown_schema_file(path):
@@ -235,7 +235,7 @@ def test_truncated_file_plays_the_intact_part(ros_context, ros_executor, tmp_pat
 def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros_executor):
     from rclpy.parameter_client import AsyncParameterClient
     replay = ReplayNode(context=ros_context, namespace="/rt", parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topics", value="/clock"),
+        Parameter("file", value=str(loop_session)), Parameter("topics", value="/a/clock"),
         Parameter("start_delay", value=5.0)])
     ros_executor.add_node(replay)
     client = AsyncParameterClient(replay, "/rt/replay")
@@ -251,12 +251,12 @@ def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros
 
 
 def test_loop_replays_again(loop_session, ros_context, ros_executor):
-    n_clock = scan_session(loop_session).message_counts["/clock"]
+    n_clock = scan_session(loop_session).message_counts["/a/clock"]
     replay = ReplayNode(context=ros_context, namespace="/lp", parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topics", value="/clock"),
+        Parameter("file", value=str(loop_session)), Parameter("topics", value="/a/clock"),
         Parameter("rate", value=20.0), Parameter("loop", value=True), Parameter("start_delay", value=0.0)])
     ros_executor.add_node(replay)
-    spin(ros_executor, until=lambda: replay.published["/clock"] > 2 * n_clock, timeout=20)
+    spin(ros_executor, until=lambda: replay.published["/a/clock"] > 2 * n_clock, timeout=20)
     assert not replay.done.is_set()  # still looping
     ros_executor.remove_node(replay)
     replay.destroy_node()
