@@ -246,6 +246,7 @@ def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
     fallback refusal, ``describe_parameter`` with ranges) and warns about unknown start keys.
     """
     overrides = _overrides(node)
+    _warn_unknown(node, specs, overrides)  # first: a typo'd key explains a start value that fails below
     values = {}
     for name, spec in specs.items():
         value = spec.default
@@ -257,7 +258,6 @@ def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
     node.add_pre_set_parameters_callback(_pre_set_callback(specs))
     node.add_on_set_parameters_callback(_fallback_on_set_callback(specs))
     _install_describe(node, specs)
-    _warn_unknown(node, specs, overrides)
     return values
 
 
