@@ -309,9 +309,10 @@ def test_start_values_are_converted_and_validated_like_live_values(ros_context):
         assert node.get_parameter("enabled").value is False
     finally:
         node.destroy_node()
-    for bad, text in [(Parameter("setpoint", value="abc"), "setpoint='abc' is not a number; allowed range [0, 1e-06] m"),
-                      (Parameter("setpoint", value=2e-6), "setpoint=2e-06 m is out of range; allowed range [0, 1e-06] m"),
-                      (Parameter("p_gain", value=True), "p_gain=True is not a number; allowed range [0, 100] m/m")]:
+    for bad, text in [
+            (Parameter("setpoint", value="abc"), "setpoint='abc' is not a number; allowed range [0, 1e-06] m"),
+            (Parameter("setpoint", value=2e-6), "setpoint=2e-06 m is out of range; allowed range [0, 1e-06] m"),
+            (Parameter("p_gain", value=True), "p_gain=True is not a number; allowed range [0, 100] m/m")]:
         with pytest.raises(ValueError) as info:
             ZControllerNode(context=ros_context, parameter_overrides=[bad])
         assert str(info.value) == text

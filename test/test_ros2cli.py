@@ -73,9 +73,9 @@ def afm_processes(ros2_env, ros_namespace, tmp_path):
         log.close()
 
 
-def ros2(env, *args, timeout_option=True):
-    """Run `ros2 ARGS --no-daemon [--timeout 30]`; return (exit code, stdout, stderr)."""
-    cmd = [str(ROS2), *args, "--no-daemon", *(["--timeout", WAIT] if timeout_option else [])]
+def ros2(env, command, verb, *args):
+    """Run `ros2 COMMAND VERB --no-daemon --timeout 30 ARGS`; return (exit code, stdout, stderr)."""
+    cmd = [str(ROS2), command, verb, "--no-daemon", "--timeout", WAIT, *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -88,6 +88,11 @@ def test_readme_param_commands(afm_processes, ros2_env, ros_namespace):
     assert ros2(ros2_env, "param", "get", cantilever, "z_base") == (0, "Double value is: 3e-08\n", "")
     assert ros2(ros2_env, "param", "set", z_controller, "setpoint", "40e-9") == (0, "Set parameter successful\n", "")
     assert ros2(ros2_env, "param", "get", z_controller, "setpoint") == (0, "Double value is: 4e-08\n", "")
+
+    # a negative exponent value: argparse needs "--" before it (README)
+    assert ros2(ros2_env, "param", "set", z_controller, "z_min", "--", "-1.5e-7") == \
+        (0, "Set parameter successful\n", "")
+    assert ros2(ros2_env, "param", "get", z_controller, "z_min") == (0, "Double value is: -1.5e-07\n", "")
 
     # an integer for a double: stays a double
     assert ros2(ros2_env, "param", "set", cantilever, "quality_factor", "30") == (0, "Set parameter successful\n", "")
