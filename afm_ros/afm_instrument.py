@@ -308,6 +308,7 @@ class Instrument:
         self._clients: dict[str, AsyncParameterClient] = {}
         self.wall_start = time.monotonic()
         self.t_paused = 0.0
+        self.hold_sim_wall = (math.nan, math.nan)  # simulated and wall seconds of the last hold
 
     @property
     def cantilever(self) -> CantileverNode:
@@ -331,7 +332,7 @@ class Instrument:
         while not condition():
             if not self.context_ok():
                 raise ExternalShutdownException()
-            self.executor.spin_once(timeout_sec=0.05)
+            node_main.spin_for(self.executor, 0.01)
             mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
             now = time.monotonic()
             if mark != last_mark:
@@ -343,7 +344,7 @@ class Instrument:
     def _cantilever_status(self) -> str:
         if not self.attached:
             c = self.cantilever
-            return (f"t={c.simulation.t:.6g} s, paused={c.paused}, " +
+            return (f"t={c.sim_time:.6g} s, paused={c.paused}, " +
                     (c._wait_reason if c._waiting_since is not None else "not waiting"))
         status = self.monitor.diagnostics.get(f"{self._fqn('cantilever')}: simulation")
         return status.message if status is not None else "no diagnostics from the cantilever"
@@ -385,6 +386,15 @@ class Instrument:
             wanted.add(self.monitor.get_fully_qualified_name())
             self.spin_until(lambda: wanted <= set(self.cantilever.consumers),
                             f"waiting for the consumers {sorted(wanted)} to acknowledge")
+
+    def wait_for_consumer(self, name: str) -> None:
+        """Until the cantilever lists ``name`` (fully qualified) among its acknowledging consumers."""
+        if not self.attached:
+            self.spin_until(lambda: name in self.cantilever.consumers, f"waiting for consumer {name}")
+            return
+        self.spin_until(lambda: name in self.monitor.diagnostic_values(
+            self._fqn("cantilever"), "simulation").get("consumers", "").split(","),
+            f"waiting for consumer {name} (cantilever diagnostics)")
 
     def advance_to(self, t_end: float) -> float:
         """Run the simulation to the first chunk boundary at or after ``t_end`` [s] and wait until every
@@ -453,7 +463,9 @@ class Instrument:
         else:
             hold = WindowStats(t_enable + 0.75 * duration, math.inf)
             mon.windows.append(hold)
+            wall_hold = time.monotonic()
             self.advance_to(t_enable + duration)
+            self.hold_sim_wall = (self.t_paused - t_enable, time.monotonic() - wall_hold)
             self.wait_recorded()
             t_end = self.t_paused
         wall = time.monotonic() - wall0
@@ -476,7 +488,7 @@ class Instrument:
         last = time.monotonic()
         try:
             while self.context_ok():
-                self.executor.spin_once(timeout_sec=0.05)
+                node_main.spin_for(self.executor, 0.05)
                 if time.monotonic() - last >= 5.0:
                     last = time.monotonic()
                     print(f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  outputs={mon.outputs}",
@@ -533,10 +545,13 @@ def main(args=None):
     try:
         plain = remove_ros_args(argv)
     except Exception as exc:  # rclpy's RCLInvalidROSArgsError, e.g. a params file that cannot be read
-        print(f"afm_instrument: invalid --ros-args: {exc}", file=sys.stderr)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"afm_instrument: invalid --ros-args: {first}", file=sys.stderr)
         return 2
     options = parse_args(plain[1:])
-    node_main.init(argv)
+    failed = node_main.exit_on_startup_error("afm_instrument", argv)
+    if failed is not None:
+        return failed
     instrument = None
     status = 0
     try:

@@ -1,188 +1,182 @@
-"""Benchmark of the full loop in one process: cantilever + lock-in + z-controller.
+"""Benchmark of the closed loop in its process layouts (prints JSON; writes only to a temp dir).
 
-``python -m afm_ros.bench_loop [--seconds 5] [--executors single,multi,events] [--paced 2]
-[--chunk-durations 0.002,0.005]``
+``python -m afm_ros.bench_loop [--hold 4] [--repeats 2] [--layouts one,one+recorder,three,three+recorder]
+[--latencies 2] [--paced-hold 20]``
 
-Seed cantilever, DMT sample, 200 steps per period, 900 kS/s deflection published. For each
-executor it runs as fast as possible (real_time_factor 0), then paced at ``--paced``, and prints
-one JSON object with, per run (the fastest executor is then also run with every
-``--chunk-durations`` value): sustained real-time factor (simulated s / wall s), process CPU
-use (CPU s / wall s; 2.0 = both cores), deflection samples published vs received by a separate
-subscriber node (counted by sample index: gaps and duplicates), lock-in output samples, the
-cantilever's lag behind the requested time, and the latency from a z step (z_base -5 nm, feedback
-on hold) to the lock-in amplitude response, in simulated and wall time.
+Every run is the scripted job of ``afm_instrument`` (withdraw, free, engage, hold) with the
+seed cantilever at the defaults (220 steps/period, 900 kS/s, 2 ms chunks, lockstep: the
+deterministic loop), the cantilever as fast as the loop allows (``real_time_factor`` 0). The
+real-time factor is the simulated hold time over the wall time it took. Layouts:
+
+- ``one``: cantilever, lock-in and z controller in one process on one EventsExecutor, as
+  ``afm_instrument --no-record`` (the job's monitor in the same process);
+- ``one+recorder``: the same plus the recorder (zstd, file in a temp dir), as ``afm_instrument``;
+- ``three``: ``cantilever_node``, ``lockin_node`` and ``z_controller_node`` as three processes (the
+  ``ros2 run`` layout; DDS over the loopback), the job attached from this process;
+- ``three+recorder``: the same plus ``recorder_node`` as a fourth process.
+
+Runs are interleaved (repeat 1 of every layout, then repeat 2, ...) so a busy moment of the
+machine does not hit one layout only. Reported per run: real-time factor, CPU seconds per
+simulated second of each process, lost samples (the monitor's and the recorder's count) and the
+summary's reached amplitude. Finally, ``three+recorder`` is run paced at ``real_time_factor`` 1
+for ``--paced-hold`` simulated seconds: achieved factor and lost samples (the headline
+``ros2 run`` usage in real time).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import signal
+import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
-import numpy as np
-
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")  # keep the benchmark's DDS traffic local
-
-import rclpy  # noqa: E402
-from geometry_msgs.msg import Vector3Stamped  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-
-from .afm_instrument import MONITOR_QOS, build_nodes, make_executor  # noqa: E402
-from .cantilever_node import CHUNK_QOS  # noqa: E402
-from .chunk_layout import PREAMBLE_LENGTH  # noqa: E402
+LAYOUTS = ("one", "one+recorder", "three", "three+recorder")
 
 
-class Counter(Node):
-    """Counts deflection samples by running index and keeps lock-in outputs with receive times."""
-
-    def __init__(self, **kwargs):
-        super().__init__("bench_counter", **kwargs)
-        self.first_index = None
-        self.next_index = None
-        self.received = 0
-        self.gaps = 0
-        self.duplicates = 0
-        self.chunk_wall: list[tuple[float, float, float]] = []  # (wall, t_start, z_offset)
-        self.lockin: list[tuple[float, float, float]] = []  # (wall received, sim time, amplitude)
-        self.create_subscription(Float64MultiArray, "cantilever/deflection", self._on_chunk, CHUNK_QOS)
-        self.create_subscription(Vector3Stamped, "lockin/xy", self._on_xy, MONITOR_QOS)
-
-    def _on_chunk(self, msg):
-        pre = msg.data[:PREAMBLE_LENGTH]
-        first, n = int(pre[0]), len(msg.data) - PREAMBLE_LENGTH
-        if self.first_index is None:
-            self.first_index = self.next_index = first
-        if first > self.next_index:
-            self.gaps += first - self.next_index
-        elif first < self.next_index:
-            self.duplicates += self.next_index - first
-        self.next_index = max(self.next_index, first + n)
-        self.received += n
-        self.chunk_wall.append((time.monotonic(), pre[1], pre[5]))
-
-    def _on_xy(self, msg):
-        t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-        self.lockin.append((time.monotonic(), t, float(np.hypot(msg.vector.x, msg.vector.y))))
+def _cpu_of(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _spin_for(executor, seconds):
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        executor.spin_once(timeout_sec=0.01)
+def _self_cpu() -> float:
+    t = os.times()
+    return t.user + t.system
 
 
-def run(executor_kind: str, rtf: float, seconds: float, controller: bool = True,
-        chunk_duration: float = 2e-3) -> dict:
-    """One run in a private context; returns the measured numbers."""
+def _executable(name: str) -> str:
+    exe = Path(sys.executable).parent / name
+    return str(exe) if exe.exists() else name
+
+
+def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: float = 0.0) -> dict:
+    import rclpy
+    from .afm_instrument import Instrument
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    ns = f"/bench_{executor_kind}_{str(rtf).replace('.', '_')}"
+    cwd = os.getcwd()
+    os.chdir(tmp)
+    inst = None
     try:
-        nodes = build_nodes(ctx, ns, with_controller=controller)
-        cant = nodes["cantilever"]
-        results = cant.set_parameters([Parameter("steps_per_period", value=200),
-                                       Parameter("output_sample_rate", value=900e3),
-                                       Parameter("force_model", value="dmt"),
-                                       Parameter("chunk_duration", value=float(chunk_duration)),
-                                       Parameter("real_time_factor", value=float(rtf))])
-        assert all(r.successful for r in results), [r.reason for r in results]
-        if controller:
-            # engaged at 80 % of the free amplitude from the start: the loop really works during the run
-            nodes["z_controller"].set_parameters([Parameter("enabled", value=True)])
-        counter = Counter(context=ctx, namespace=ns)
-        executor = make_executor(executor_kind, ctx)
-        for node in [*nodes.values(), counter]:
-            executor.add_node(node)
-        _spin_for(executor, 1.0)  # warm-up: discovery, numba cache loading, first chunks
-        wall0, cpu0, sim0, pub0 = time.monotonic(), time.process_time(), cant.simulation.t, cant.samples_published
-        lockin0 = len(counter.lockin)
-        _spin_for(executor, seconds)
-        wall = time.monotonic() - wall0
-        cpu = time.process_time() - cpu0
-        sim = cant.simulation.t - sim0
-        published = cant.samples_published - pub0
-        lag = cant.lag  # seconds of simulated time behind the requested time (paced runs)
-        lockin_out = len(counter.lockin) - lockin0
-
-        # z step latency: hold z, lower z_base by 5 nm, find the lock-in response
-        latency = {}
-        if controller:
-            nodes["z_controller"].set_parameters([Parameter("disabled_action", value="hold"),
-                                                  Parameter("enabled", value=False)])
-        _spin_for(executor, 0.3)
-        a_before = counter.lockin[-1][2] if counter.lockin else float("nan")
-        z_base = cant.get_parameter("z_base").value
-        n_lockin, n_chunks = len(counter.lockin), len(counter.chunk_wall)
-        wall_step = time.monotonic()
-        cant.set_parameters([Parameter("z_base", value=z_base - 5e-9)])
-        _spin_for(executor, max(0.5, 0.05 / rtf if rtf else 0.0))
-        prev = counter.chunk_wall[n_chunks - 1][2] if n_chunks else float("nan")
-        # the first chunk whose gap offset dropped by the 5 nm step (z_piezo is held)
-        step_chunk = next((c for c in counter.chunk_wall[n_chunks:] if c[2] < prev - 4e-9), None)
-        after = counter.lockin[n_lockin:]
-        if step_chunk is not None and after:
-            a_final = after[-1][2]
-            threshold = 0.1 * abs(a_final - a_before)
-            hit = next((s for s in after if s[1] >= step_chunk[1] and abs(s[2] - a_before) > threshold), None)
-            if hit is not None:
-                latency = {
-                    "amplitude_before_m": a_before, "amplitude_after_m": a_final,
-                    "response_criterion": "first lock-in sample 10% of the way to the new amplitude",
-                    "sim_latency_s": hit[1] - step_chunk[1],
-                    "wall_latency_from_request_s": hit[0] - wall_step,
-                    "wall_latency_from_step_chunk_received_s": hit[0] - step_chunk[0],
-                }
-        cant.stop()
-        _spin_for(executor, 0.5)  # drain what is still in flight
-        expected = cant.samples_published - (counter.first_index or 0)
-        for node in [*nodes.values(), counter]:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        return {
-            "executor": executor_kind, "chunk_duration_s": chunk_duration,
-            "real_time_factor_requested": rtf, "wall_s": wall,
-            "real_time_factor_achieved": sim / wall, "cpu_fraction": cpu / wall,
-            "lag_at_end_s": lag,
-            "samples_published_in_window": published,
-            "output_sample_rate_hz_simulated": published / sim if sim else 0.0,
-            "deflection_samples_published_total_since_first_received": expected,
-            "deflection_samples_received_total": counter.received,
-            "index_gaps": counter.gaps, "duplicates": counter.duplicates,
-            "lockin_outputs_in_window": lockin_out,
-            "z_step_latency": latency,
-        }
+        inst = Instrument(context=ctx, namespace="/bench_one", record=record)
+        inst.set("cantilever", real_time_factor=rtf, feedback_latency=latency)
+        cpu0 = _self_cpu()
+        summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
+        cpu = _self_cpu() - cpu0
+        sim, wall = inst.hold_sim_wall
+        return {"real_time_factor": sim / wall, "hold_simulated_s": sim, "hold_wall_s": wall,
+                "cpu_s_per_simulated_s": {"process": cpu / summary.simulated_time_s},
+                "lost_samples_monitor": summary.lost_samples,
+                "lost_samples_recorder": summary.recording.get("lost_samples") if record else None,
+                "recording_complete": summary.recording.get("complete") if record else None,
+                "reached_amplitude_m": summary.reached_amplitude_m}
     finally:
+        if inst is not None:
+            inst.destroy()
         rclpy.try_shutdown(context=ctx)
+        os.chdir(cwd)
+
+
+def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0) -> dict:
+    import rclpy
+    from .afm_instrument import Instrument
+    ns = f"/bench_three_{os.getpid()}"
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}
+    ros = ["--ros-args", "-r", f"__ns:={ns}"]
+    cmds = {"cantilever": [_executable("cantilever_node"), *ros, "-p", "run_until:=0.0",
+                           "-p", f"real_time_factor:={rtf}", "-p", f"feedback_latency:={latency}"],
+            "lockin": [_executable("lockin_node"), *ros],
+            "z_controller": [_executable("z_controller_node"), *ros]}
+    if record:
+        cmds["recorder"] = [_executable("recorder_node"), *ros, "-p", f"output:={tmp / f'three_{time.time_ns()}.mcap'}"]
+    procs = {k: subprocess.Popen(c, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for k, c in cmds.items()}
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    inst = None
+    try:
+        inst = Instrument(context=ctx, namespace=ns, attach=True)
+        if record:  # the job waits for the recorder too, so the recording starts at t = 0
+            inst.wait_for_consumer(f"{ns}/recorder")
+        cpu0 = {k: _cpu_of(p.pid) for k, p in procs.items()}
+        self0 = _self_cpu()
+        summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
+        cpu = {k: _cpu_of(p.pid) - cpu0[k] for k, p in procs.items()}
+        cpu["job_monitor"] = _self_cpu() - self0
+        sim, wall = inst.hold_sim_wall
+        recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording") if record else {}
+        if record:  # the recorder's last diagnostics after the hold (published once per second)
+            from .node_main import spin_for
+            spin_for(inst.executor, 2.5)
+            recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording")
+        diag = inst.monitor.diagnostic_values(f"{ns}/cantilever", "simulation")
+        return {"real_time_factor": sim / wall, "hold_simulated_s": sim, "hold_wall_s": wall,
+                "cpu_s_per_simulated_s": {k: v / summary.simulated_time_s for k, v in cpu.items()},
+                "lost_samples_monitor": summary.lost_samples,
+                "lost_samples_recorder": int(recorder["lost_samples"]) if "lost_samples" in recorder else None,
+                "cantilever_achieved_real_time_factor_last_second": float(
+                    diag.get("real_time_factor_achieved", "nan")),
+                "reached_amplitude_m": summary.reached_amplitude_m}
+    finally:
+        if inst is not None:
+            inst.destroy()
+        rclpy.try_shutdown(context=ctx)
+        for p in procs.values():
+            p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m afm_ros.bench_loop", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seconds", type=float, default=5.0, help="measured wall seconds per run")
-    parser.add_argument("--executors", default="single,multi,events",
-                        help="comma-separated executors to compare at real_time_factor 0")
-    parser.add_argument("--paced", type=float, default=2.0, help="real-time factor of the paced run")
-    parser.add_argument("--no-controller", action="store_true", help="cantilever + lock-in only")
-    parser.add_argument("--chunk-durations", default="0.002,0.005",
-                        help="cantilever chunk_duration values [s] for the fastest executor (default 0.002,0.005)")
+    parser.add_argument("--hold", type=float, default=4.0, help="simulated seconds of the measured hold (default 4)")
+    parser.add_argument("--repeats", type=int, default=2, help="runs per layout, interleaved (default 2)")
+    parser.add_argument("--layouts", default=",".join(LAYOUTS), help="comma-separated subset of " + ", ".join(LAYOUTS))
+    parser.add_argument("--latencies", default="2", help="comma-separated feedback_latency values [chunks] (default 2)")
+    parser.add_argument("--paced-hold", type=float, default=20.0,
+                        help="simulated seconds of the paced three+recorder run at real_time_factor 1 (0: skip)")
     args = parser.parse_args(argv)
-    controller = not args.no_controller
-    load_before = os.getloadavg()
-    runs = []
-    for kind in args.executors.split(","):
-        runs.append(run(kind, 0.0, args.seconds, controller))
-    best = max(runs, key=lambda r: r["real_time_factor_achieved"])["executor"]
-    for i, chunk in enumerate(float(c) for c in args.chunk_durations.split(",")):
-        if i:  # the first chunk duration's as-fast-as-possible run is the executor comparison above
-            runs.append(run(best, 0.0, args.seconds, controller, chunk))
-        runs.append(run(best, args.paced, args.seconds, controller, chunk))
-    print(json.dumps({"benchmark": "afm_ros full loop" + ("" if controller else " without z-controller"),
-                      "cores": os.cpu_count(), "steps_per_period": 200, "output_sample_rate_hz": 900e3,
-                      "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]],
-                      "fastest_executor": best, "runs": runs}, indent=1))
+    layouts = [x for x in args.layouts.split(",") if x]
+    for x in layouts:
+        if x not in LAYOUTS:
+            parser.error(f"--layouts: {x!r} is not one of {', '.join(LAYOUTS)}")
+    latencies = [int(x) for x in args.latencies.split(",")]
+    domain = 100 + os.getpid() % 100
+    out = {"hold_simulated_s": args.hold, "cpu_count": os.cpu_count(), "load_average_at_start": os.getloadavg(),
+           "runs": {}}
+    with tempfile.TemporaryDirectory(prefix="afm_bench_loop_") as tmp:
+        tmp = Path(tmp)
+        for rep in range(args.repeats):
+            for latency in latencies:
+                for layout in layouts:
+                    record = layout.endswith("+recorder")
+                    if layout.startswith("one"):
+                        r = run_one_process(tmp, args.hold, record, latency)
+                    else:
+                        r = run_processes(tmp, args.hold, record, latency, domain)
+                    key = f"{layout}, feedback_latency {latency}"
+                    out["runs"].setdefault(key, []).append(r)
+                    print(f"{key}: real-time factor {r['real_time_factor']:.2f}", file=sys.stderr, flush=True)
+        for key, runs in out["runs"].items():
+            rates = sorted(r["real_time_factor"] for r in runs)
+            out.setdefault("real_time_factor", {})[key] = {"min": rates[0], "max": rates[-1],
+                                                           "median": rates[len(rates) // 2]}
+        if args.paced_hold > 0:
+            r = run_processes(tmp, args.paced_hold, True, latencies[0], domain, rtf=1.0)
+            out["paced_three+recorder_real_time_factor_1"] = r
+        out["load_average_at_end"] = os.getloadavg()
+    print(json.dumps(out, indent=2))
     return 0
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import array
 import math
+import queue
 import sys
 import threading
 import time
@@ -39,7 +40,7 @@ from .cantilever_params import CANTILEVER_NODE_SPECS, build, check
 from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
 from .flow import ChunkStarts, ConsumerWindow, FeedbackGate
 from .node_main import run_node
-from .physics.integrators import phase_at_step
+from .physics.integrators import phase_at_step, samples_in_range
 from .physics.parameters import CANTILEVER_SPECS, DMT_SPECS
 from .physics.simulation import Simulation
 
@@ -144,8 +145,20 @@ class CantileverNode(Node):
         self._last_wait_warning = -math.inf
         self.wait_wall_s = {"feedback": 0.0, "consumers": 0.0}  # wall time a gate held the loop
         self._paused_reported = False
+        # The RK4 kernel runs in a worker thread (numba nogil), so the second core integrates the
+        # next chunk while the executor thread serves the consumers. Decisions (parameters, gates,
+        # z) are taken under _step_lock when a chunk is submitted; the worker owns the Simulation
+        # while a chunk is in flight, and publishes it.
+        self._step_lock = threading.RLock()
+        self._in_flight = False
+        self._t_end = self._sim.t  # simulated time at the end of the last submitted chunk [s]
+        self._timer_dirty = False
+        self.worker_error: BaseException | None = None
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(self._timer_period(), self._on_timer, clock=self._steady)
+        self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}-rk4", daemon=True)
+        self._worker.start()
         self._ready_line()
 
     def _ready_line(self) -> None:
@@ -168,7 +181,7 @@ class CantileverNode(Node):
         with self._lock:
             self._pending.update(changed)
         if "run_until" in changed and self._paused_reported:
-            # a paused cantilever polls slowly: continue now, not at the next idle tick
+            # a paused cantilever polls slowly: continue at the next fast tick, not the next idle one
             self._set_timer_period(FREE_RUN_TIMER_PERIOD_S)
             self._timer.reset()
 
@@ -194,13 +207,13 @@ class CantileverNode(Node):
             self._window.window = v["flow_window"]
         self._starts.resize(max(v["feedback_latency"], v["flow_window"]) + 2)
         if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps or "run_until" in changed:
-            self._set_timer_period(self._timer_period())
+            self._timer_dirty = True
             self._wall_ref = None  # re-anchor the pacing at the new rate
         self.get_logger().info("applied " + ", ".join(f"{k}={v!r}" for k, v in changed.items()))
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
-        if paused_at(self._sim.t, self._values["run_until"]):
+        if paused_at(self._t_end, self._values["run_until"]):
             return IDLE_TIMER_PERIOD_S
         if rtf == 0.0:
             return FREE_RUN_TIMER_PERIOD_S
@@ -221,14 +234,17 @@ class CantileverNode(Node):
         if not (math.isfinite(cmd.z) and math.isfinite(cmd.answered_end_time)):
             self.get_logger().warning(f"ignoring non-finite z command z={cmd.z!r}", throttle_duration_sec=5.0)
             return
-        self._gate.receive(cmd)
+        with self._step_lock:
+            self._gate.receive(cmd)
         self._try_step(MAX_BURST)
 
     def _on_ack(self, msg: Int64MultiArray) -> None:
         if not msg.layout.dim or not msg.data:
             return
         name = msg.layout.dim[0].label
-        if self._window.receive(name, int(msg.data[0]), self._starts.next_index):
+        with self._step_lock:
+            new = self._window.receive(name, int(msg.data[0]), self._starts.next_index)
+        if new:
             self._consumer_seen[name] = time.monotonic()
             self.get_logger().info(f"consumer {name} acknowledges the stream (flow_window "
                                    f"{self._window.window} chunks)")
@@ -240,6 +256,11 @@ class CantileverNode(Node):
     def simulation(self) -> Simulation:
         """The physics state (read-only use, e.g. tests and diagnostics)."""
         return self._sim
+
+    @property
+    def sim_time(self) -> float:
+        """Simulated time [s] at the end of the last chunk handed to the integrator."""
+        return self._t_end
 
     @property
     def samples_published(self) -> int:
@@ -262,7 +283,7 @@ class CantileverNode(Node):
 
     @property
     def paused(self) -> bool:
-        return paused_at(self._sim.t, self._values["run_until"])
+        return paused_at(self._t_end, self._values["run_until"])
 
     def stop(self) -> None:
         """Stop integrating (the node stays up; e.g. to drain subscribers at the end of a run)."""
@@ -273,20 +294,57 @@ class CantileverNode(Node):
     def destroy_node(self):
         # the EventsExecutor may still hold a timer event of this node: make it a no-op
         self._stopped = True
+        self._jobs.put(None)
+        if self._worker.is_alive() and threading.current_thread() is not self._worker:
+            self._worker.join(timeout=5.0)
         return super().destroy_node()
 
-    def step_chunk(self, z_piezo: float | None = None) -> None:
-        """Integrate one chunk and publish it (pending parameter changes applied first).
+    def _work(self) -> None:
+        """Worker thread: integrate and publish submitted chunks, then look for the next one."""
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                if not self._stopped:
+                    self._run_chunk(*job)
+            except BaseException as exc:  # noqa: BLE001 - reported, the node stops integrating
+                self.worker_error = exc
+                self._stopped = True
+                self.get_logger().error(f"integration failed: {exc!r}")
+            finally:
+                self._in_flight = False
+            if not self._stopped:
+                self._try_step(MAX_BURST, from_worker=True)
 
-        ``z_piezo`` [m]: the piezo position for this chunk (default: what the feedback gate holds).
-        """
+    def step_chunk(self, z_piezo: float | None = None) -> None:
+        """Integrate one chunk in the calling thread and publish it (pending parameter changes applied
+        first); ``z_piezo`` [m]: the piezo position for this chunk (default: what the feedback gate holds)."""
+        with self._step_lock:
+            job = self._submit(self._gate.z if z_piezo is None else z_piezo, queue_it=False)
+        self._run_chunk(*job)
+        self._in_flight = False
+
+    def _submit(self, z_piezo: float, queue_it: bool = True) -> tuple:
+        """Book the next chunk (indices, time, z) and hand it to the worker; call with _step_lock held."""
         self._apply_pending()
         s, sim = self._setup, self._sim
-        sim.z_offset = s.z_base + (self._gate.z if z_piezo is None else z_piezo)
-        samples = sim.advance(s.chunk_steps, s.decimation)
-        count = samples.z.shape[0]
+        count = samples_in_range(sim.n, s.chunk_steps, s.decimation)
         first = self._starts.next_index
-        if count:
+        self._starts.published(first + count)
+        self._t_end = sim.segment_start + (sim.n + s.chunk_steps) * sim.dt  # = sim.t after the chunk
+        self._chunks += 1
+        self._in_flight = True
+        job = (s, z_piezo, first, self._values["publish_clock"])
+        if queue_it:
+            self._jobs.put(job)
+        return job
+
+    def _run_chunk(self, s, z_piezo: float, first: int, publish_clock: bool) -> None:
+        sim = self._sim
+        sim.z_offset = s.z_base + z_piezo
+        samples = sim.advance(s.chunk_steps, s.decimation)
+        if samples.z.shape[0]:
             header = ChunkHeader(
                 first,
                 samples.segment_start + samples.first_step * samples.dt,
@@ -297,10 +355,8 @@ class CantileverNode(Node):
             self._pub_deflection.publish(chunk_message(header, samples.z))
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(chunk_message(header, samples.force))
-        self._starts.published(first + count)
-        if self._values["publish_clock"]:
+        if publish_clock:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
-        self._chunks += 1
 
     def _gates_open(self, now: float) -> bool:
         """Both gates (feedback, consumers) open; otherwise note why and since when."""
@@ -323,36 +379,44 @@ class CantileverNode(Node):
         self._wait_reason = reason
         return False
 
-    def _try_step(self, max_chunks: int) -> int:
-        """Integrate up to ``max_chunks`` chunks while pacing, pause and both gates allow; return how many."""
+    def _try_step(self, max_chunks: int, from_worker: bool = False) -> int:
+        """Submit up to ``max_chunks`` chunks while pacing, pause and both gates allow; return how many.
+
+        Called by the timer, by z commands and acknowledgements (gates opening) and by the worker
+        when it finished a chunk; one chunk is in flight at a time.
+        """
         if self._stopped:
             return 0
         done = 0
-        while done < max_chunks:
-            self._apply_pending()
-            if self.paused:
-                if not self._paused_reported:
-                    self._paused_reported = True
-                    self._set_timer_period(IDLE_TIMER_PERIOD_S)
-                break
-            if self._paused_reported:  # run_until was raised
-                self._paused_reported = False
-                self._wall_ref = None
-                self._set_timer_period(self._timer_period())
-            now = time.monotonic()
-            rtf = self._values["real_time_factor"]
-            if self._wall_ref is None:
-                self._wall_ref, self._sim_ref = now, self._sim.t
-            if rtf != 0.0:
-                chunk = self._setup.chunk_steps * self._setup.dt
-                target = self._sim_ref + (now - self._wall_ref) * rtf
-                # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
-                if target - self._sim.t < chunk * (1.0 - 1e-9):
+        with self._step_lock:
+            while done < max_chunks and not self._in_flight and not self._stopped:
+                self._apply_pending()
+                if self.paused:
+                    if not self._paused_reported:
+                        self._paused_reported = True
+                        self._timer_dirty = True
                     break
-            if not self._gates_open(now):
-                break
-            self.step_chunk(self._gate.take(self._starts))
-            done += 1
+                if self._paused_reported:  # run_until was raised
+                    self._paused_reported = False
+                    self._wall_ref = None
+                    self._timer_dirty = True
+                now = time.monotonic()
+                rtf = self._values["real_time_factor"]
+                if self._wall_ref is None:
+                    self._wall_ref, self._sim_ref = now, self._t_end
+                if rtf != 0.0:
+                    chunk = self._setup.chunk_steps * self._setup.dt
+                    target = self._sim_ref + (now - self._wall_ref) * rtf
+                    # 1e-9 relative slack: float rounding must not postpone a due chunk by a timer period
+                    if target - self._t_end < chunk * (1.0 - 1e-9):
+                        break
+                if not self._gates_open(now):
+                    break
+                self._submit(self._gate.take(self._starts))
+                done += 1
+            if self._timer_dirty and not from_worker:
+                self._timer_dirty = False
+                self._set_timer_period(self._timer_period())
         return done
 
     def _on_timer(self) -> None:
@@ -360,19 +424,19 @@ class CantileverNode(Node):
             return
         start = time.monotonic()
         if self._diag_wall is None:
-            self._diag_wall, self._diag_sim, self._diag_cpu = start, self._sim.t, time.process_time()
+            self._diag_wall, self._diag_sim, self._diag_cpu = start, self._t_end, time.process_time()
         self._try_step(MAX_BURST)
         now = time.monotonic()
         rtf = self._values["real_time_factor"]
         if rtf != 0.0 and self._wall_ref is not None and not self.paused:
             chunk = self._setup.chunk_steps * self._setup.dt
-            lag = self._sim_ref + (now - self._wall_ref) * rtf - self._sim.t
+            lag = self._sim_ref + (now - self._wall_ref) * rtf - self._t_end
             # a loop held back by a gate or a busy machine does not race afterwards to catch up more
             # than a few chunks: the excess is given up (and counted), the real-time factor drops
             limit = max(10 * chunk, 0.05 * rtf)
             if lag > limit:
                 self.forgiven_lag_s += lag - limit
-                self._sim_ref += lag - limit
+                self._sim_ref -= lag - limit
                 lag = limit
             self._lag = max(0.0, lag)
             if self.forgiven_lag_s > 0 and now - self._last_lag_warning > LAG_WARNING_PERIOD_S \
@@ -395,7 +459,8 @@ class CantileverNode(Node):
     def _check_graph(self, now: float) -> None:
         """Forget consumers and a z controller that left the graph (a gate must not wait for them)."""
         if self._gate.locked and self._gate.mode == "auto" and self._z_sub.get_publisher_count() == 0:
-            self._gate.controller_gone()
+            with self._step_lock:
+                self._gate.controller_gone()
             self.get_logger().warning(f"no publisher on {Z_COMMAND_TOPIC} any more: feedback runs free")
         if not self._window.acks:
             return
@@ -404,18 +469,20 @@ class CantileverNode(Node):
         for name in present:
             self._consumer_seen[name] = now
         absent = {n for n in self._window.acks if now - self._consumer_seen.get(n, now) > CONSUMER_ABSENT_S}
-        for name in self._window.forget_absent(set(self._window.acks) - absent):
+        with self._step_lock:
+            gone = self._window.forget_absent(set(self._window.acks) - absent)
+        for name in gone:
             self._consumer_seen.pop(name, None)
             self.get_logger().warning(f"consumer {name} left the graph: no longer waited for")
 
     def _publish_diagnostics(self, now: float, force: bool = False) -> None:
         if self._diag_wall is None:
-            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._sim.t, time.process_time()
+            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._t_end, time.process_time()
         cpu = time.process_time()
         wall = now - self._diag_wall
         if wall <= 0.0 and not force:
             return
-        achieved = (self._sim.t - self._diag_sim) / wall if wall > 0 else 0.0
+        achieved = (self._t_end - self._diag_sim) / wall if wall > 0 else 0.0
         rtf = self._values["real_time_factor"]
         paused = self.paused
         lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
@@ -437,7 +504,7 @@ class CantileverNode(Node):
                 ("real_time_factor_achieved", achieved),
                 ("lag_s", self._lag),
                 ("simulated_time_lost_to_slowdowns_s", self.forgiven_lag_s),
-                ("simulated_time_s", self._sim.t),
+                ("simulated_time_s", self._t_end),
                 ("samples_published", self._starts.next_index),
                 ("chunks", self._chunks),
                 ("paused", "true" if paused else "false"),
@@ -452,7 +519,7 @@ class CantileverNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)
         if not force:
-            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._sim.t, cpu
+            self._diag_wall, self._diag_sim, self._diag_cpu = now, self._t_end, cpu
 
 
 def main(args=None):

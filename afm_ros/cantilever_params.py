@@ -32,7 +32,10 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "k - feedback_latency and waits for it (deterministic closed loop); 'auto' = lockstep once a z "
               "controller answers, free before and after it leaves; 'free' = the latest command at each chunk "
               "boundary, never waiting (timing dependent)", kind=str, choices=FEEDBACK_SYNC_MODES),
-    ParamSpec("feedback_latency", 1, "chunks",
+    # 2: the shortest delay at which the cantilever integrates the next chunk while the lock-in and
+    # z controller handle the previous one (the second core works); 1 serialises the loop (measured
+    # in README: one process with recorder 1.5x instead of 2.1x real time, 3+1 processes below 1x)
+    ParamSpec("feedback_latency", 2, "chunks",
               "feedback delay in lockstep: the z computed from chunk k's lock-in outputs moves the piezo from "
               "chunk k + feedback_latency on (1 chunk = chunk_duration of simulated time)", 1, 16, kind=int),
     ParamSpec("flow_window", 32, "chunks",

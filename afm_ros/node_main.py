@@ -29,13 +29,34 @@ def _on_signal(signum, frame):
     _stop_requested = True
 
 
+class StartupError(ValueError):
+    """The ROS arguments cannot be used (e.g. a missing or malformed --params-file)."""
+
+
 def init(args=None) -> None:
-    """``rclpy.init`` with SIGINT/SIGTERM turned into a stop request (see module docstring)."""
+    """``rclpy.init`` with SIGINT/SIGTERM turned into a stop request (see module docstring).
+
+    StartupError (one line) if rcl refuses the arguments, e.g. a params file it cannot read or parse.
+    """
     global _stop_requested
     _stop_requested = False
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # rclpy's RCLError / RCLInvalidROSArgsError carry rcl's multi-line text
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise StartupError(f"invalid --ros-args: {first}") from None
+
+
+def exit_on_startup_error(program: str, args=None) -> int | None:
+    """:func:`init`; on a StartupError print one line and return exit status 1 (None if fine)."""
+    try:
+        init(args)
+    except StartupError as exc:
+        print(f"{program}: {exc}", file=sys.stderr)
+        return 1
+    return None
 
 
 def running(context=None) -> bool:
@@ -58,13 +79,25 @@ def make_executor(kind: str = "events", context=None):
     raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
 
 
+def spin_for(executor, seconds: float) -> None:
+    """Serve callbacks for up to ``seconds`` of wall time. The EventsExecutor runs its C++ loop that
+    long (one call instead of one Python round trip per message); other executors take one callback."""
+    if type(executor).__name__ == "EventsExecutor":
+        from rclpy.task import Future
+        executor.spin_until_future_complete(Future(), timeout_sec=seconds)
+    else:
+        executor.spin_once(timeout_sec=seconds)
+
+
 def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
     """Init rclpy, spin the node on the EventsExecutor until Ctrl-C / SIGTERM; return the exit status.
 
     A bad start value (e.g. from ``--params-file``) prints one line naming the field and
     returns 1.
     """
-    init(args)
+    failed = exit_on_startup_error(program, args)
+    if failed is not None:
+        return failed
     node = None
     executor = None
     status = 0
@@ -73,7 +106,7 @@ def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
         executor = make_executor("events")
         executor.add_node(node)
         while running():
-            executor.spin_once(timeout_sec=0.1)
+            spin_for(executor, 0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, InvalidParameterValueException) as exc:

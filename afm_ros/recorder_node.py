@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import fnmatch
 import os
+import queue
 import sys
+import threading
 import time
 
 import rclpy
@@ -118,6 +120,13 @@ class RecorderNode(Node):
         self._include = split_patterns(v["topics"], ns)
         self._exclude = split_patterns(v["exclude"], ns)
         self.writer = SessionWriter(self.output_path, compression=v["compression"], chunk_size=v["chunk_size"])
+        # Messages are handed to a writer thread (MCAP framing, compression, file writes), so the
+        # executor thread only queues raw bytes; the thread acknowledges a deflection chunk once it
+        # is written, so a slow disk slows the instrument down instead of growing the queue.
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._writer_lock = threading.Lock()
+        self._thread_error: RecordingError | None = None
+        self._writer_thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
         self._own_deflection = self.resolve_topic_name(topics.DEFLECTION)
         self.streams: dict[str, StreamCheck] = {}
         self._ack = topics.Acknowledger(self)
@@ -130,6 +139,7 @@ class RecorderNode(Node):
         self._snapshotted: set[str] = set()
         self._pending: set[str] = set()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._writer_thread.start()
         self._snapshot_own_parameters()
         self._discover()  # subscribe now, so a recorder started with the instrument misses nothing
         # once an executor runs the node, its type decides the callback form (see _upgrade)
@@ -206,7 +216,8 @@ class RecorderNode(Node):
             self._subs[topic] = None
             return
         qos_text = qos_profiles_yaml([i.qos_profile for i in infos])
-        cid = self.writer.add_channel(topic, type_name, qos_text)
+        with self._writer_lock:
+            cid = self.writer.add_channel(topic, type_name, qos_text)
         self._channel[topic] = cid
         self._sequence.setdefault(topic, 0)  # /parameter_events may already hold snapshots
         self.received.setdefault(topic, 0)
@@ -219,21 +230,52 @@ class RecorderNode(Node):
         self._upgrade(topic, sub)
 
     def _on_message(self, topic: str, data: bytes, info) -> None:
-        if self.error is not None:
+        if self.error is not None or self._check_writer():
             return
         now = time.time_ns()
         seq = self._sequence[topic] = self._sequence[topic] + 1
-        try:
-            self.writer.write(self._channel[topic], data, now, info.get("source_timestamp") or now, seq)
-        except RecordingError as exc:
-            self._fail(exc)
-            return
+        self._queue.put((topic, self._channel[topic], data, now, info.get("source_timestamp") or now, seq))
         self.received[topic] += 1
-        check = self.streams.get(topic)
-        if check is not None:
-            end = check.add(data)
-            if end is not None and topic == self._own_deflection:
-                self._ack.send(end)
+
+    def _write_loop(self) -> None:
+        """Writer thread: write queued messages (and run queued file operations) in order."""
+        q = self._queue
+        while True:
+            items = [q.get()]
+            while len(items) < 512:
+                try:
+                    items.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            acks = None
+            with self._writer_lock:
+                for item in items:
+                    if item is None:
+                        return
+                    if self._thread_error is not None:
+                        continue  # a write failed: drop the rest (the node reports it)
+                    try:
+                        if callable(item):
+                            item()
+                            continue
+                        topic, cid, data, log_time, publish_time, seq = item
+                        self.writer.write(cid, data, log_time, publish_time, seq)
+                    except RecordingError as exc:
+                        self._thread_error = exc
+                        continue
+                    check = self.streams.get(topic)
+                    if check is not None:
+                        end = check.add(data)
+                        if end is not None and topic == self._own_deflection:
+                            acks = end
+            if acks is not None and self._thread_error is None:
+                self._ack.send(acks)
+
+    def _check_writer(self) -> bool:
+        """Move a failure of the writer thread into the node (error, log, subscriptions dropped)."""
+        if self._thread_error is not None and self.error is None:
+            self._fail(self._thread_error)
+        return self.error is not None
 
     def stream_report(self) -> dict:
         """Per chunk topic: chunks, first index, lost (gap) and repeated samples."""
@@ -261,6 +303,10 @@ class RecorderNode(Node):
 
     # --- parameters -----------------------------------------------------------------------
     def _write_snapshot(self, node_name: str, params: list[ParameterMsg]) -> None:
+        with self._writer_lock:
+            self._write_snapshot_locked(node_name, params)
+
+    def _write_snapshot_locked(self, node_name: str, params: list[ParameterMsg]) -> None:
         if PARAMETER_EVENTS not in self._channel:
             from rclpy.qos import qos_profile_parameter_events as q
             self._channel[PARAMETER_EVENTS] = self.writer.add_channel(
@@ -317,11 +363,8 @@ class RecorderNode(Node):
 
     # --- file -----------------------------------------------------------------------------
     def _flush(self) -> None:
-        if self.error is None:
-            try:
-                self.writer.flush()
-            except RecordingError as exc:
-                self._fail(exc)
+        if not self._check_writer():
+            self._queue.put(self.writer.flush)
 
     def _fail(self, exc: RecordingError) -> None:
         if self.error is not None:
@@ -334,7 +377,11 @@ class RecorderNode(Node):
         self._subs = {t: None for t in self._subs}
 
     def close(self) -> None:
-        """Write summary and footer (complete file) unless a write failed earlier."""
+        """Write what is queued, then summary and footer (complete file) unless a write failed."""
+        if self._writer_thread.is_alive():
+            self._queue.put(None)
+            self._writer_thread.join()
+        self._check_writer()
         if self.writer.closed or self.error is not None:
             return
         try:
@@ -352,7 +399,9 @@ class RecorderNode(Node):
 def main(args=None):
     # SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
     # with its summary and index.
-    node_main.init(args)
+    failed = node_main.exit_on_startup_error("recorder", args)
+    if failed is not None:
+        return failed
     node = None
     executor = None
     code = 0
@@ -362,7 +411,7 @@ def main(args=None):
         executor = node_main.make_executor("events")
         executor.add_node(node)
         while node_main.running() and node.error is None:
-            executor.spin_once(timeout_sec=0.2)
+            node_main.spin_for(executor, 0.2)
         if node.error is not None:
             code = 1
     except (RecordingError, ValueError) as exc:

@@ -210,7 +210,9 @@ class ReplayNode(Node):
 
 
 def main(args=None):
-    node_main.init(args)
+    failed = node_main.exit_on_startup_error("replay", args)
+    if failed is not None:
+        return failed
     node = None
     code = 0
     try:

@@ -15,7 +15,7 @@ from .chunk_layout import ACK_READY
 
 DEFLECTION = "cantilever/deflection"
 FORCE = "cantilever/tip_sample_force"
-ACK = "cantilever/ack"
+ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by ros2 topic list nor recorded
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
 

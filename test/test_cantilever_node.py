@@ -251,10 +251,10 @@ def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, 
 def test_paced_run_follows_the_clock_and_reports_diagnostics(ros_context, ros_executor, ros_namespace):
     node, col = start(ros_context, ros_executor, ros_namespace, real_time_factor=0.2)
     spin_until(ros_executor, lambda: col.chunks)
-    t0, sim0 = time.monotonic(), node.simulation.t
+    t0, sim0 = time.monotonic(), node.sim_time
     spin_until(ros_executor, lambda: time.monotonic() - t0 > 1.3)
     wall = time.monotonic() - t0
-    advanced = node.simulation.t - sim0
+    advanced = node.sim_time - sim0
     chunk = 2e-3
     # never ahead of the requested time (allow the chunk in progress); behind only under heavy load
     assert advanced <= 0.2 * wall + 2 * chunk
@@ -310,9 +310,9 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
     try:
         for n in nodes:
             executor.add_node(n)
-        spin_until(executor, lambda: node.simulation.t >= 0.04)  # ~200 amplitude decay times
+        spin_until(executor, lambda: node.sim_time >= 0.04)  # ~200 amplitude decay times
         node.stop()
-        t_end = node.simulation.t
+        t_end = node.sim_time
         spin_until(executor, lambda: xy and xy[-1].header.stamp.sec + 1e-9 * xy[-1].header.stamp.nanosec
                    >= t_end - 2e-3)
         last = [m for m in xy if m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec > t_end - 5e-3]

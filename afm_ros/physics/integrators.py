@@ -41,7 +41,7 @@ def samples_in_range(n0: int, nsteps: int, decimation: int) -> int:
     return 0 if last < first else (last - first) // decimation + 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
              decimation, out_z, out_v, out_f):
     z = y[0]
