@@ -386,6 +386,23 @@ class Instrument:
             wanted.add(self.monitor.get_fully_qualified_name())
             self.spin_until(lambda: wanted <= set(self.cantilever.consumers),
                             f"waiting for the consumers {sorted(wanted)} to acknowledge")
+            if "recorder" in self.nodes:
+                self.wait_for_recorder(self.nodes["recorder"].get_fully_qualified_name())
+
+    def instrument_topics(self) -> set[str]:
+        return {self.monitor.resolve_topic_name(t) for t in topics.INSTRUMENT_TOPICS}
+
+    def wait_for_recorder(self, name: str) -> None:
+        """Until the recorder ``name`` (fully qualified) acknowledges the stream and records every
+        topic of the instrument (in one process: asks it; attached: its /diagnostics)."""
+        self.wait_for_consumer(name)
+        wanted = self.instrument_topics()
+        rec = self.nodes.get("recorder")
+        if rec is not None and rec.get_fully_qualified_name() == name:
+            self.spin_until(lambda: wanted <= set(rec.topics), f"waiting for {name} to subscribe to {sorted(wanted)}")
+            return
+        self.spin_until(lambda: wanted <= set(self.monitor.diagnostic_values(name, "recording").get(
+            "topics", "").split(",")), f"waiting for {name} to subscribe to {sorted(wanted)} (its diagnostics)")
 
     def wait_for_consumer(self, name: str) -> None:
         """Until the cantilever lists ``name`` (fully qualified) among its acknowledging consumers."""
@@ -411,7 +428,8 @@ class Instrument:
         return self.advance_to(self.t_paused + seconds)
 
     def wait_recorded(self) -> None:
-        """In one process: until the recorder has written every published chunk."""
+        """In one process: until the recorder has written every published chunk and taken every
+        message still on its way (the topics are not ordered with each other)."""
         rec = self.nodes.get("recorder")
         if rec is None:
             return
@@ -419,6 +437,7 @@ class Instrument:
         end = self.cantilever.samples_published
         self.spin_until(lambda: rec.error is not None or (topic in rec.streams and rec.streams[topic].next_index == end),
                         "waiting for the recorder to write the last chunks")
+        rec.drain(self.executor)
 
     def recording_status(self) -> dict:
         rec = self.nodes.get("recorder")

@@ -105,7 +105,7 @@ def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: in
     try:
         inst = Instrument(context=ctx, namespace=ns, attach=True)
         if record:  # the job waits for the recorder too, so the recording starts at t = 0
-            inst.wait_for_consumer(f"{ns}/recorder")
+            inst.wait_for_recorder(f"{ns}/recorder")
         cpu0 = {k: _cpu_of(p.pid) for k, p in procs.items()}
         self0 = _self_cpu()
         summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)

@@ -24,7 +24,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from . import chunk_layout, topics
@@ -34,8 +33,9 @@ from .ros_params import declare, make_set_callback
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
 CHUNK_QOS = topics.CONSUMER_QOS
-# Per-sample outputs: reliable, deep enough for the burst of output samples of several chunks.
-OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
+# Per-sample outputs: reliable, with a history of 200 samples for a subscriber that matches late
+# (e.g. a recorder that discovers the topic after the first outputs).
+OUTPUT_QOS = topics.HISTORY_QOS
 BATCH_QOS = topics.HISTORY_QOS
 DIAGNOSTICS_PERIOD_S = 1.0
 WARNING_PERIOD_S = 5.0

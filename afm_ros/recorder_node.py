@@ -43,6 +43,10 @@ from . import node_main
 PARAMETER_EVENTS = "/parameter_events"
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
 _NO_INFO: dict = {}
+FAST_DISCOVERY_PERIOD_S = 0.05
+DRAIN_QUIET_S = 0.25
+DRAIN_LIMIT_S = 3.0
+FAST_DISCOVERY_FOR_S = 3.0
 CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
 DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -139,6 +143,8 @@ class RecorderNode(Node):
         self._snapshotted: set[str] = set()
         self._pending: set[str] = set()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._started = time.monotonic()
+        self.last_receive = self._started
         self._writer_thread.start()
         self._snapshot_own_parameters()
         self._discover()  # subscribe now, so a recorder started with the instrument misses nothing
@@ -149,6 +155,8 @@ class RecorderNode(Node):
             self.create_timer(v["flush_interval"], self._flush, clock=self._steady),
             self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady),
         ]
+        # the first seconds, when the instrument's topics appear, are searched every 50 ms
+        self._fast_discovery = self.create_timer(FAST_DISCOVERY_PERIOD_S, self._discover_fast, clock=self._steady)
         self.get_logger().info(f"ready: recording to {self.output_path} ({v['compression']}, "
                                f"flush every {v['flush_interval']:g} s)")
 
@@ -188,6 +196,16 @@ class RecorderNode(Node):
         """Callbacks with message info give publish_time = source timestamp; rclpy 7.1's
         EventsExecutor fails on them ('null argument to internal routine'), so not there."""
         return type(self.executor).__name__ != "EventsExecutor"
+
+    def _discover_fast(self) -> None:
+        self._discover()
+        if time.monotonic() - self._started > FAST_DISCOVERY_FOR_S:
+            self._fast_discovery.cancel()
+
+    @property
+    def topics(self) -> list[str]:
+        """Topics subscribed (being recorded)."""
+        return sorted(t for t, sub in self._subs.items() if sub is not None)
 
     def _discover(self) -> None:
         if self.error is not None:
@@ -233,6 +251,7 @@ class RecorderNode(Node):
         if self.error is not None or self._check_writer():
             return
         now = time.time_ns()
+        self.last_receive = time.monotonic()
         seq = self._sequence[topic] = self._sequence[topic] + 1
         self._queue.put((topic, self._channel[topic], data, now, info.get("source_timestamp") or now, seq))
         self.received[topic] += 1
@@ -271,6 +290,14 @@ class RecorderNode(Node):
             if acks is not None and self._thread_error is None:
                 self._ack.send(acks)
 
+    def drain(self, executor, quiet: float = DRAIN_QUIET_S, limit: float = DRAIN_LIMIT_S) -> None:
+        """Take what the middleware still holds for the recorder: spin until nothing arrived for
+        ``quiet`` wall seconds (at most ``limit``). Messages of different topics are not ordered
+        with each other, so the last z piezo sample may arrive after the last chunk."""
+        end = time.monotonic() + limit
+        while time.monotonic() < end and time.monotonic() - self.last_receive < quiet:
+            node_main.spin_for(executor, 0.02)
+
     def _check_writer(self) -> bool:
         """Move a failure of the writer thread into the node (error, log, subscriptions dropped)."""
         if self._thread_error is not None and self.error is None:
@@ -293,6 +320,7 @@ class RecorderNode(Node):
             message=(f"recording stopped: {self.error}" if failed else
                      f"{lost} samples lost" if lost else "ok"),
             values=[KeyValue(key="file", value=self.output_path),
+                    KeyValue(key="topics", value=",".join(self.topics)),
                     KeyValue(key="messages", value=str(self.writer.message_count)),
                     KeyValue(key="lost_samples", value=str(lost))] +
                    [KeyValue(key=f"{t}: missing_samples", value=str(c.missing_samples))
@@ -412,6 +440,8 @@ def main(args=None):
         executor.add_node(node)
         while node_main.running() and node.error is None:
             node_main.spin_for(executor, 0.2)
+        if node.error is None:
+            node.drain(executor)  # what was published before the stop is still recorded
         if node.error is not None:
             code = 1
     except (RecordingError, ValueError) as exc:

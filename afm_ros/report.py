@@ -372,6 +372,24 @@ def write_figures(data: SessionData, out: Path) -> list[Path]:
 # --- markdown ------------------------------------------------------------------------------
 
 
+def lost_samples(index: np.ndarray) -> tuple[int, int]:
+    """(samples missing, gaps) in a recorded running sample index (sorted by arrival)."""
+    if index.size < 2:
+        return 0, 0
+    step = np.diff(index)
+    gaps = step > 1
+    return int(np.sum(step[gaps] - 1)), int(np.count_nonzero(gaps))
+
+
+def stream_completeness(index: np.ndarray) -> str:
+    """One sentence: complete, or how many samples were lost in how many gaps (and repeats)."""
+    lost, gaps = lost_samples(index)
+    repeats = int(np.count_nonzero(np.diff(index) < 1)) if index.size > 1 else 0
+    text = ("complete: no sample lost (no gap in the sample index)" if lost == 0
+            else f"{lost} samples lost in {gaps} gaps of the sample index")
+    return text + (f", {repeats} repeated or out-of-order samples" if repeats else "")
+
+
 def _fmt(value, unit="", scale=1.0):
     if value is None:
         return "—"
@@ -397,9 +415,11 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path) -> Path:
 
     if data.deflection is not None:
         d = data.deflection
-        gaps = int(np.count_nonzero(np.diff(d.index) != 1))
-        lines += ["", f"Deflection: {d.index.size} samples, simulated {d.t[0]:.6g} s to {d.t[-1]:.6g} s, "
-                  f"{gaps} discontinuities in the sample index."]
+        lines += ["", f"Deflection: {d.index.size} samples, simulated {d.t[0]:.6g} s to {d.t[-1]:.6g} s; "
+                  + stream_completeness(d.index) + "."]
+        if data.force is not None:
+            lines += ["", f"Tip-sample force: {data.force.index.size} samples; "
+                      + stream_completeness(data.force.index) + "."]
 
     numbers = tracking_numbers(data)
     lines += ["", "## Setpoint tracking", ""]
@@ -464,7 +484,12 @@ def make_report(session, out_dir=None) -> Report:
     out.mkdir(parents=True, exist_ok=True)
     figures = write_figures(data, out)
     md = write_markdown(data, figures, out)
-    return Report(md, figures, tracking_numbers(data), data)
+    numbers = tracking_numbers(data)
+    for role, stream in (("deflection", data.deflection), ("force", data.force)):
+        if stream is not None:
+            numbers[f"{role}_samples"] = int(stream.index.size)
+            numbers[f"{role}_lost_samples"], numbers[f"{role}_gaps"] = lost_samples(stream.index)
+    return Report(md, figures, numbers, data)
 
 
 def main(argv=None) -> int:

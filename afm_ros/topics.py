@@ -19,6 +19,11 @@ ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by r
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
 
+# every topic an instrument publishes (relative to its namespace); a recorder must have them all
+# before a scripted session starts, or its first samples would be missing
+INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
+                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND)
+
 # publishers of the data path: reliable, history of 200 messages kept for late joiners
 HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)

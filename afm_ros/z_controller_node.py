@@ -19,7 +19,6 @@ import threading
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from . import chunk_layout, topics
@@ -28,10 +27,10 @@ from .ros_params import declare, make_set_callback
 from .zcontrol import Z_CONTROLLER_SPECS, ZController, check_limits
 
 INPUT_QOS = topics.CONSUMER_QOS
-# z_piezo: transient-local depth 1 so a late subscriber gets the current position at once.
-Z_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
-ERROR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE)
+# z_piezo and error: transient local with a history of 200 samples, so a late subscriber gets the
+# current position at once and a recorder that matches late the recent samples.
+Z_QOS = topics.HISTORY_QOS
+ERROR_QOS = topics.HISTORY_QOS
 COMMAND_QOS = topics.HISTORY_QOS
 DIAGNOSTICS_PERIOD_S = 1.0
 
