@@ -201,6 +201,7 @@ class StartupBench:
         while not arrivals and time.monotonic() < deadline and child.proc.poll() is None:
             self.executor.spin_once(timeout_sec=0.002)
         status = child.stop()
+        if os.environ.get("BS_DEBUG"): print("spawn=%.3f" % child.spawn_time, child.lines)
         self.node.destroy_subscription(sub)
         if fed:
             self.node.destroy_timer(fed[1])

@@ -60,7 +60,8 @@ RECORDER_SPECS = _specs(
     ParamSpec("output", "", "", "output .mcap file; empty = afm_session_<YYYY_MM_DD-HH_MM_SS>.mcap "
               "in the current working directory", kind=str, live=False),
     ParamSpec("topics", "", "", "comma-separated topic names or glob patterns (relative names resolve "
-              "in the recorder's namespace); empty = every topic (/parameter_events is always recorded)",
+              "in the recorder's namespace); empty = every topic, or under a namespace every topic of that "
+              "namespace plus /diagnostics and /rosout (/parameter_events is always recorded)",
               kind=str, live=False),
     ParamSpec("exclude", "", "", "comma-separated topic names or glob patterns never recorded",
               kind=str, live=False),

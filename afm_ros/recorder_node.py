@@ -41,6 +41,7 @@ from .mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError,
 from . import node_main
 
 PARAMETER_EVENTS = "/parameter_events"
+GLOBAL_TOPICS = ("/diagnostics", "/rosout")
 PARAMETER_EVENT_TYPE = "rcl_interfaces/msg/ParameterEvent"
 _NO_INFO: dict = {}
 FAST_DISCOVERY_PERIOD_S = 0.05
@@ -168,7 +169,13 @@ class RecorderNode(Node):
             return False
         if self._include:
             return matches(topic, self._include)
-        return not _hidden(topic)
+        return not _hidden(topic) and self._in_scope(topic)
+
+    def _in_scope(self, name: str) -> bool:
+        """Default scope: every topic / node in the root namespace; under a namespace (one instrument
+        of several) only its own, plus the global /diagnostics and /rosout."""
+        ns = self.get_namespace()
+        return ns == "/" or name.startswith(ns.rstrip("/") + "/") or name in GLOBAL_TOPICS
 
     def _qos_for(self, infos) -> QoSProfile:
         """Subscription QoS compatible with every publisher (rosbag2's adaptation rule), KEEP_ALL so
@@ -359,7 +366,8 @@ class RecorderNode(Node):
         me = self.get_fully_qualified_name()
         for name, ns in self.get_node_names_and_namespaces():
             fqn = (ns.rstrip("/") + "/" + name) if ns != "/" else "/" + name
-            if fqn == me or fqn in self._snapshotted or fqn in self._pending or _hidden(fqn):
+            if fqn == me or fqn in self._snapshotted or fqn in self._pending or _hidden(fqn) \
+                    or not self._in_scope(fqn):
                 continue
             client = self._param_clients.get(fqn)
             if client is None:
