@@ -45,7 +45,8 @@ from .cantilever_node import PAUSE_TOLERANCE_S, CantileverNode
 from .node_main import make_executor
 
 ROLES = ("cantilever", "lockin", "z_controller")
-STALL_TIMEOUT_S = 60.0  # wall seconds without simulated progress before the job gives up
+STALL_TIMEOUT_S = 60.0
+INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
 
 
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
@@ -109,6 +110,71 @@ class WindowStats:
     @property
     def z(self) -> float:
         return self.sum_z / self.nz if self.nz else math.nan
+
+
+class RollingStats:
+    """Amplitude/phase/z statistics over the most recent ``span`` simulated seconds, in 10 ms bins
+    (bounded memory for a session of any length); same properties as :class:`WindowStats`."""
+
+    BIN_S = 0.01
+
+    def __init__(self, span: float):
+        self.span = span
+        self.bins: dict[int, list] = {}  # bin -> [n, sum da, sum da^2, sum phase, nz, sum z]
+        self.ref: float | None = None  # amplitudes are summed relative to the first one (precision)
+
+    def _bin(self, t: float) -> list:
+        k = int(math.floor(t / self.BIN_S))
+        b = self.bins.get(k)
+        if b is None:
+            b = self.bins[k] = [0, 0.0, 0.0, 0.0, 0, 0.0]
+            oldest = k - int(math.ceil(self.span / self.BIN_S))
+            for old in [j for j in self.bins if j <= oldest]:
+                del self.bins[old]
+        return b
+
+    def add_outputs(self, t: np.ndarray, a: np.ndarray, p: np.ndarray) -> None:
+        for ti, ai, pi in zip(t.tolist(), a.tolist(), p.tolist()):
+            if self.ref is None:
+                self.ref = ai
+            b = self._bin(ti)
+            d = ai - self.ref
+            b[0] += 1
+            b[1] += d
+            b[2] += d * d
+            b[3] += pi
+
+    def add_z(self, t: float, z: float) -> None:
+        b = self._bin(t)
+        b[4] += 1
+        b[5] += z
+
+    def _sum(self, i: int) -> float:
+        return sum(b[i] for b in self.bins.values())
+
+    @property
+    def n(self) -> int:
+        return int(self._sum(0))
+
+    @property
+    def amplitude(self) -> float:
+        n = self._sum(0)
+        return self.ref + self._sum(1) / n if n else math.nan
+
+    @property
+    def amplitude_std(self) -> float:
+        n = self._sum(0)
+        return math.sqrt(max(0.0, self._sum(2) / n - (self._sum(1) / n) ** 2)) if n else math.nan
+
+    @property
+    def phase(self) -> float:
+        n = self._sum(0)
+        return self._sum(3) / n if n else math.nan
+
+    @property
+    def z(self) -> float:
+        nz = self._sum(4)
+        return self._sum(5) / nz if nz else math.nan
 
 
 @dataclass
@@ -241,13 +307,14 @@ class Summary:
     lost_samples: int  # lock-in input samples that never produced outputs (index gaps)
     non_finite_outputs: int
     recording: dict = field(default_factory=dict)  # file, complete, lost samples (when recording)
+    hold_window: str = "the last quarter of the hold"
     wall_time_s: float = 0.0
     real_time_factor: float = 0.0
 
     def deterministic_part(self) -> dict:
         """Everything that must repeat exactly between runs (not wall time, not the file name)."""
         d = asdict(self)
-        for k in ("wall_time_s", "real_time_factor", "recording"):
+        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
             d.pop(k)
         return d
 
@@ -262,7 +329,7 @@ class Summary:
             f"  setpoint            {self.setpoint_m * nm:9.3f} nm "
             f"({100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free)",
             f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
-            f"(std {self.amplitude_std_m * nm:.3f} nm over the last quarter of the hold)",
+            f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
             f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
             f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
             f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
@@ -474,8 +541,8 @@ class Instrument:
         latency = int(self.get("cantilever", "feedback_latency"))
         z_base = float(self.get("cantilever", "z_base"))
         if interactive:
-            # the hold statistics cover the last quarter of the time since engaging
-            hold = WindowStats(t_enable, math.inf)
+            # the hold statistics cover the last second before Ctrl-C
+            hold = RollingStats(INTERACTIVE_HOLD_SPAN_S)
             mon.windows.append(hold)
             self._run_until_interrupted()
             t_end = mon.answer_time
@@ -497,6 +564,7 @@ class Instrument:
             simulated_time_s=t_end - t_start, feedback_latency_chunks=latency,
             lockin_outputs=mon.outputs, lost_samples=mon.lost_input_samples,
             non_finite_outputs=mon.non_finite_outputs, recording=self.recording_status(),
+            hold_window=("the last second before Ctrl-C" if interactive else "the last quarter of the hold"),
             wall_time_s=wall, real_time_factor=(t_end - t_start) / wall if wall > 0 else math.inf)
 
     def _run_until_interrupted(self) -> None:

@@ -153,11 +153,11 @@ class StartupBench:
         fs, f, n = 900e3, 45e3, 1800  # 2 ms = 90 whole drive periods: every chunk starts at phase 0
         return 60e-9 * np.cos(2.0 * math.pi * f * np.arange(n) / fs - 1.0)
 
-    def _qos(self, topic: str):
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        durability = DurabilityPolicy.TRANSIENT_LOCAL if topic == "z_controller/z_piezo" else DurabilityPolicy.VOLATILE
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200 if durability == DurabilityPolicy.VOLATILE else 1,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=durability)
+    @staticmethod
+    def _qos(durability):
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=durability)
 
     def _msg_type(self, topic: str):
         from std_msgs.msg import Float64, Float64MultiArray
@@ -170,7 +170,10 @@ class StartupBench:
         from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
         from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
-        pub = self.node.create_publisher(Float64MultiArray, f"{ns}/{topic}", self._qos(topic))
+        from rclpy.qos import DurabilityPolicy
+
+        # transient local + reliable is compatible with any reliable subscription
+        pub = self.node.create_publisher(Float64MultiArray, f"{ns}/{topic}", self._qos(DurabilityPolicy.TRANSIENT_LOCAL))
         samples = self._deflection_chunk
         n = samples.shape[0]
         state = {"index": 0}
@@ -193,16 +196,25 @@ class StartupBench:
         self.run_counter += 1
         ns = f"/bench_startup_{os.getpid()}_{self.run_counter}"
         arrivals: list = []
-        sub = self.node.create_subscription(self._msg_type(topic), f"{ns}/{topic}",
-                                            lambda msg: arrivals.append(time.monotonic()), self._qos(topic))
+        from rclpy.event_handler import SubscriptionEventCallbacks
+        from rclpy.qos import DurabilityPolicy
+
+        # A volatile and a transient-local subscription: whichever the node's publisher is
+        # compatible with receives (a transient-local one also gets what was published before the
+        # match, e.g. a start value or the chunks of a gated cantilever); the other one stays silent.
+        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda event: None)
+        subs = [self.node.create_subscription(self._msg_type(topic), f"{ns}/{topic}",
+                                              lambda msg: arrivals.append(time.monotonic()), self._qos(d),
+                                              event_callbacks=quiet)
+                for d in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL)]
         fed = self._feeder(ns, feed) if feed else None
         child = _Child(cmd + ["--ros-args", "-r", f"__ns:={ns}"], env, self.tmp)
         deadline = child.spawn_time + self.timeout
         while not arrivals and time.monotonic() < deadline and child.proc.poll() is None:
             self.executor.spin_once(timeout_sec=0.002)
         status = child.stop()
-        if os.environ.get("BS_DEBUG"): print("spawn=%.3f" % child.spawn_time, child.lines)
-        self.node.destroy_subscription(sub)
+        for sub in subs:
+            self.node.destroy_subscription(sub)
         if fed:
             self.node.destroy_timer(fed[1])
             self.node.destroy_publisher(fed[0])
@@ -237,7 +249,7 @@ def _command(node: str, tree: str | None) -> list:
 
 
 def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"), trees: dict | None = None,
-        current: bool = True, timeout: float = 90.0) -> dict:
+        current: bool = True, timeout: float = 30.0) -> dict:
     variants = ({"current": None} if current else {}) | dict(trees or {})
     tmp = tempfile.mkdtemp(prefix="afm_bench_startup_")
     bench = StartupBench(tmp, timeout)
@@ -303,7 +315,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tree", action="append", default=[], metavar="LABEL=DIR",
                     help="also run python -m afm_ros.<node> with PYTHONPATH=DIR, reported as LABEL")
     ap.add_argument("--no-current", action="store_true", help="do not measure the installed package")
-    ap.add_argument("--timeout", type=float, default=90.0, help="seconds to wait for a first message")
+    ap.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for a first message")
     args = ap.parse_args(argv)
     nodes = tuple(n.strip() for n in args.nodes.split(",") if n.strip())
     for n in nodes:

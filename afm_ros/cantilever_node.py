@@ -62,7 +62,8 @@ Z_COMMAND_TOPIC = topics.Z_COMMAND
 # loop runs at the speed of its slowest member. real_time_factor 0: as fast as the gates allow.
 CATCH_UP = 2.0
 MAX_BURST = 8
-IDLE_TIMER_PERIOD_S = 0.02  # paused: the timer only looks for a raised run_until
+IDLE_TIMER_PERIOD_S = 0.02  # paused or waiting: the timer only looks now and then
+IDLE_AFTER_WAIT_S = 0.1  # a gate closed this long (wall) counts as idle
 FREE_RUN_TIMER_PERIOD_S = 0.001  # real_time_factor 0
 DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
@@ -213,11 +214,16 @@ class CantileverNode(Node):
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
-        if paused_at(self._t_end, self._values["run_until"]):
+        if paused_at(self._t_end, self._values["run_until"]) or self._idle_waiting():
             return IDLE_TIMER_PERIOD_S
         if rtf == 0.0:
             return FREE_RUN_TIMER_PERIOD_S
         return self._setup.chunk_steps * self._setup.dt / (rtf * CATCH_UP)
+
+    def _idle_waiting(self) -> bool:
+        """A gate has been closed for a while: the callbacks that open it wake the node, the timer
+        only needs to look now and then (an idle node stays below 1 % of a core)."""
+        return self._waiting_since is not None and time.monotonic() - self._waiting_since > IDLE_AFTER_WAIT_S
 
     def _set_timer_period(self, period: float) -> None:
         ns = int(period * 1e9)
@@ -370,6 +376,8 @@ class CantileverNode(Node):
             kind = "consumers"
         else:
             if self._waiting_since is not None:
+                if now - self._waiting_since > IDLE_AFTER_WAIT_S:
+                    self._timer_dirty = True  # back from an idle wait: the pacing timer again
                 self.wait_wall_s[self._wait_kind] += now - self._waiting_since
                 self._waiting_since = None
             return True
@@ -448,6 +456,9 @@ class CantileverNode(Node):
                     f": {self.forgiven_lag_s:.3g} s of simulated time behind so far")
         else:
             self._lag = 0.0
+        if self._idle_waiting() and self._timer.timer_period_ns != int(IDLE_TIMER_PERIOD_S * 1e9):
+            self._timer_dirty = True
+            self._try_step(0)  # applies the idle period
         if self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S \
                 and now - self._last_wait_warning > LAG_WARNING_PERIOD_S:
             self._last_wait_warning = now

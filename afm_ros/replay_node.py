@@ -144,7 +144,7 @@ class ReplayNode(Node):
         self._anchor = (time.monotonic(), 0.0)  # (wall, recording seconds) at the last rate change
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
             REPLAY_SPECS, lambda: dict(self._values), None, self._apply))
-        self.get_logger().info(f"replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
+        self.get_logger().info(f"ready: replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
                                f"at rate {self._rate:g}")
         self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
         self._thread.start()

@@ -7,6 +7,7 @@ parallel test files do not cross-talk); the in-process test context joins the sa
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -226,3 +227,26 @@ def test_installed_nodes_close_the_loop_across_processes(install, monkeypatch):
     assert all(abs(a - 48e-9) < 0.5e-9 for a in amplitudes[-100:]), amplitudes[-5:]
     assert z_piezo and z_piezo[-1] < -1e-9, z_piezo[-5:]  # approached the sample
     assert [p.returncode for p in procs] == [0, 0, 0], errors
+
+
+def test_afm_instrument_interactive_runs_until_ctrl_c_then_prints_the_summary(tmp_path):
+    proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--interactive", "--json"],
+                            env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    lines = []
+    deadline = time.monotonic() + 120
+    while not any("running until Ctrl-C" in line for line in lines):  # engaged, now free-running
+        assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[1]
+        lines.append(proc.stdout.readline())
+    status = proc.stdout.readline()  # the first status line: it keeps running after engaging
+    assert status.startswith("t=") and "z_piezo=" in status
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    summary = json.loads(out.strip().splitlines()[-1])
+    # engaged and regulating when interrupted (the status line comes after 5 s of wall time): the
+    # hold statistics cover the last simulated second, long after the ~0.13 s settling
+    assert summary["simulated_time_s"] > 1.0 and summary["hold_window"] == "the last second before Ctrl-C"
+    assert summary["reached_amplitude_m"] == pytest.approx(summary["setpoint_m"], rel=1e-3)
+    assert summary["lost_samples"] == 0 and summary["recording"]["complete"]
