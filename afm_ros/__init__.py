@@ -1,2 +1,8 @@
 """afm_ros: a ROS 2 Jazzy emulator of a tapping-mode atomic force microscope."""
 __version__ = "0.1.0"
+
+# Before any afm_ros module imports numba: a writable place for the compiled kernels, also when
+# the package itself is installed read-only (see afm_ros/numba_cache.py).
+from . import numba_cache as _numba_cache
+
+_numba_cache.configure()

@@ -89,9 +89,12 @@ def settling_time(tau: float, order: int, fraction: float = 0.99) -> float:
 SETTLING_99_IN_TAU = {n: settling_time(1.0, n) for n in range(1, MAX_ORDER + 1)}
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cascade(state, col, x, alpha, order):
-    """Run value x through ``order`` first-order stages stored in state[:, col]; return the output."""
+    """Run value x through ``order`` first-order stages stored in state[:, col]; return the output.
+
+    Inlined into its callers at numba's IR level: called with the literal columns 0 and 1 it would
+    otherwise be compiled (and cached) once per literal, which only costs start-up time."""
     for k in range(order):
         s = state[k, col]
         s += alpha * (x - s)

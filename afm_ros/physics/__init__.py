@@ -1,15 +1,34 @@
-"""Physics core (numpy + numba, no ROS): parameters, force models, integrators, analysis."""
-from .analysis import PeriodAnalysis, SteadyStateResult, analyze, cleveland_sin_phase, steady_state
-from .analytic import free_solution, steady_amplitude_phase
-from .forces import DMTForce, NoForce, make_force_model, tip_sample_force
-from .integrators import METHODS
-from .parameters import (ALL_PHYSICS_SPECS, CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive,
-                         ParamSpec)
-from .simulation import Samples, Simulation, seed_simulation
+"""Physics core (numpy + numba, no ROS): parameters, force models, integrators, analysis.
 
-__all__ = [
-    "PeriodAnalysis", "SteadyStateResult", "analyze", "cleveland_sin_phase", "steady_state",
-    "free_solution", "steady_amplitude_phase", "DMTForce", "NoForce", "make_force_model",
-    "tip_sample_force", "METHODS", "ALL_PHYSICS_SPECS", "CANTILEVER_SPECS", "DMT_SPECS",
-    "Cantilever", "DMTSample", "Drive", "ParamSpec", "Samples", "Simulation", "seed_simulation",
-]
+The names below are imported on first use (PEP 562), so ``from afm_ros.physics.parameters import
+ParamSpec`` (the z controller, the ROS parameter glue) does not pull in numba and the kernels.
+"""
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "PeriodAnalysis": "analysis", "SteadyStateResult": "analysis", "analyze": "analysis",
+    "cleveland_sin_phase": "analysis", "steady_state": "analysis",
+    "free_solution": "analytic", "steady_amplitude_phase": "analytic",
+    "DMTForce": "forces", "NoForce": "forces", "make_force_model": "forces", "tip_sample_force": "forces",
+    "METHODS": "integrators",
+    "ALL_PHYSICS_SPECS": "parameters", "CANTILEVER_SPECS": "parameters", "DMT_SPECS": "parameters",
+    "Cantilever": "parameters", "DMTSample": "parameters", "Drive": "parameters", "ParamSpec": "parameters",
+    "Samples": "simulation", "Simulation": "simulation", "seed_simulation": "simulation",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -134,8 +134,11 @@ def advance(method: int, y: np.ndarray, n0: int, nsteps: int, dt: float, mass: f
 
     ``out_*`` must hold at least :func:`samples_in_range` (n0, nsteps, decimation) values.
     """
-    return _advance(method, y, n0, nsteps, dt, 1.0 / mass, spring_constant, damping, table,
-                    model, fp, z_offset, decimation, out_z, out_v, out_f)
+    # Plain int/float arguments, whatever the caller passed (numpy scalars, an int z_offset ...):
+    # the kernel then has exactly one compiled (and cached) specialisation to load at start-up.
+    # The conversions are exact, so results do not change.
+    return _advance(int(method), y, int(n0), int(nsteps), float(dt), 1.0 / float(mass), float(spring_constant),
+                    float(damping), table, int(model), fp, float(z_offset), int(decimation), out_z, out_v, out_f)
 
 
 def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
