@@ -501,7 +501,7 @@ class Instrument:
         if rec is None:
             return
         topic = rec.resolve_topic_name(topics.DEFLECTION)
-        end = self.cantilever.samples_published
+        end = self.cantilever.samples_submitted
         self.spin_until(lambda: rec.error is not None or (topic in rec.streams and rec.streams[topic].next_index == end),
                         "waiting for the recorder to write the last chunks")
         rec.drain(self.executor)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .node_main import spin_for
+
 
 def _cpu() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
@@ -48,7 +50,7 @@ def _start_recorder_process(record: Path, compression: str, ns: str):
     return proc, stop
 
 
-EXECUTOR = "single"
+EXECUTOR = "events"
 
 
 def _make_executor(ctx):
@@ -90,22 +92,22 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
         if proc is not None:  # wait until the recorder process records (discovery takes a moment)
             deadline = time.monotonic() + 20
             while not (record.exists() and record.stat().st_size > 100_000) and time.monotonic() < deadline:
-                ex.spin_once(timeout_sec=0.005)
+                spin_for(ex, 0.005)
         # warm-up (discovery, first chunks), then the measured window
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.005)
-        sim0, wall0, cpu0 = cantilever.simulation.t, time.monotonic(), _cpu()
+            spin_for(ex, 0.005)
+        sim0, wall0, cpu0 = cantilever.sim_time, time.monotonic(), _cpu()
         end = wall0 + seconds
         while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.005)
-        sim1, wall1, cpu1 = cantilever.simulation.t, time.monotonic(), _cpu()
+            spin_for(ex, 0.005)
+        sim1, wall1, cpu1 = cantilever.sim_time, time.monotonic(), _cpu()
         published = cantilever.samples_published
         ex.remove_node(cantilever)
         cantilever.destroy_node()
         end = time.monotonic() + 1.0  # let the recorder drain its queues
         while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.005)
+            spin_for(ex, 0.005)
         result = {"real_time_factor": (sim1 - sim0) / (wall1 - wall0),
                   "cpu_fraction_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
                   "samples_published": int(published)}
@@ -182,12 +184,12 @@ def _replay_throughput(path: Path) -> dict:
         ex.add_node(replay)
         t_start = time.monotonic() + 0.5  # start_delay
         while not replay.done.is_set():
-            ex.spin_once(timeout_sec=0.005)
+            spin_for(ex, 0.005)
         play_s = time.monotonic() - t_start
         published = sum(replay.published.values())
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.005)
+            spin_for(ex, 0.005)
         out.update({"replay_messages_per_s": published / play_s,
                     "replay_MB_per_s": nbytes / play_s / 1e6,
                     "replay_messages": published,
@@ -205,7 +207,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="measured wall time per phase [s]")
     parser.add_argument("--output-rate", type=float, default=900e3, help="cantilever output sample rate [S/s]")
-    parser.add_argument("--executor", choices=["single", "events"], default="single",
+    parser.add_argument("--executor", choices=["single", "events"], default="events",
                         help="executor of the instrument nodes (afm_instrument's default is events)")
     parser.add_argument("--dir", default=None, help="where to write the benchmark files (default: a temp dir)")
     args = parser.parse_args(argv)

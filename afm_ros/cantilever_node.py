@@ -69,6 +69,7 @@ DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
 WAIT_WARNING_S = 2.0  # a gate closed this long (wall) is reported
 CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
+CONSUMER_TIMEOUT_S = 10.0  # a consumer that blocks the loop without progress this long is dropped
 # parameters that change the integrated system (z_base only moves the gap, applied every chunk)
 PHYSICS_KEYS = (set(CANTILEVER_SPECS) | set(DMT_SPECS) | {"force_model"}) - {"z_base"}
 # run_until: a chunk boundary within this of the pause time counts as reaching it (float sums of
@@ -118,6 +119,8 @@ class CantileverNode(Node):
         self._window = ConsumerWindow(values["flow_window"])
         self._starts = ChunkStarts(0, keep=max(values["feedback_latency"], values["flow_window"]) + 2)
         self._consumer_seen: dict[str, float] = {}
+        self._consumer_progress: dict[str, float] = {}  # wall time of each consumer's last progress
+        self.consumers_dropped: list[str] = []
 
         self._pub_deflection = self.create_publisher(Float64MultiArray, topics.DEFLECTION, CHUNK_QOS)
         self._pub_force = self.create_publisher(Float64MultiArray, topics.FORCE, CHUNK_QOS)
@@ -153,6 +156,7 @@ class CantileverNode(Node):
         self._step_lock = threading.RLock()
         self._in_flight = False
         self._t_end = self._sim.t  # simulated time at the end of the last submitted chunk [s]
+        self._published_end = 0  # sample index after the last published chunk
         self._timer_dirty = False
         self.worker_error: BaseException | None = None
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
@@ -249,7 +253,10 @@ class CantileverNode(Node):
             return
         name = msg.layout.dim[0].label
         with self._step_lock:
+            before = self._window.acks.get(name)
             new = self._window.receive(name, int(msg.data[0]), self._starts.next_index)
+            if new or self._window.acks.get(name) != before:
+                self._consumer_progress[name] = time.monotonic()
         if new:
             self._consumer_seen[name] = time.monotonic()
             self.get_logger().info(f"consumer {name} acknowledges the stream (flow_window "
@@ -269,9 +276,14 @@ class CantileverNode(Node):
         return self._t_end
 
     @property
-    def samples_published(self) -> int:
-        """Running sample index of the next sample to be published."""
+    def samples_submitted(self) -> int:
+        """Running sample index after the last chunk handed to the integrator (all of them get published)."""
         return self._starts.next_index
+
+    @property
+    def samples_published(self) -> int:
+        """Running sample index after the last published chunk (the samples published so far)."""
+        return self._published_end
 
     @property
     def lag(self) -> float:
@@ -311,9 +323,8 @@ class CantileverNode(Node):
             job = self._jobs.get()
             if job is None:
                 return
-            try:
-                if not self._stopped:
-                    self._run_chunk(*job)
+            try:  # a booked chunk is always published, also after stop(): indices stay exact
+                self._run_chunk(*job)
             except BaseException as exc:  # noqa: BLE001 - reported, the node stops integrating
                 self.worker_error = exc
                 self._stopped = True
@@ -363,6 +374,7 @@ class CantileverNode(Node):
                 self._pub_force.publish(chunk_message(header, samples.force))
         if publish_clock:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
+        self._published_end = first + samples.z.shape[0]
 
     def _gates_open(self, now: float) -> bool:
         """Both gates (feedback, consumers) open; otherwise note why and since when."""
@@ -485,6 +497,18 @@ class CantileverNode(Node):
         for name in gone:
             self._consumer_seen.pop(name, None)
             self.get_logger().warning(f"consumer {name} left the graph: no longer waited for")
+        # a consumer that holds the loop without any progress for CONSUMER_TIMEOUT_S (e.g. killed,
+        # before DDS notices that its process is gone) is dropped, so the instrument goes on; it
+        # will count the samples it misses if it comes back
+        with self._step_lock:
+            stuck = [n for n in self._window.blocking(self._starts)
+                     if now - self._consumer_progress.get(n, now) > CONSUMER_TIMEOUT_S]
+            self._window.forget_absent(set(self._window.acks) - set(stuck))
+        for name in stuck:
+            self._consumer_seen.pop(name, None)
+            self.consumers_dropped.append(name)
+            self.get_logger().error(f"consumer {name} made no progress for {CONSUMER_TIMEOUT_S:g} s while the "
+                                    f"loop waited for it: no longer waited for (it may lose samples)")
 
     def _publish_diagnostics(self, now: float, force: bool = False) -> None:
         if self._diag_wall is None:
@@ -525,6 +549,7 @@ class CantileverNode(Node):
                 ("wall_s_waiting_for_feedback", self.wait_wall_s["feedback"]),
                 ("wall_s_waiting_for_consumers", self.wait_wall_s["consumers"]),
                 ("consumers", ",".join(sorted(self._window.acks))),
+                ("consumers_dropped", ",".join(self.consumers_dropped)),
                 ("process_cpu_fraction", (cpu - self._diag_cpu) / wall if wall > 0 else 0.0))])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

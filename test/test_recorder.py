@@ -83,12 +83,14 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
     assert future.result().results[0].successful
     spin_for(ros_executor, 0.7)
 
-    # stop the source first, let the recorder drain, then close (what SIGINT does)
+    # stop the source first (its last booked chunk is still published), let the recorder write
+    # everything, then close (what SIGINT does)
     ros_executor.remove_node(cantilever)
-    published = cantilever.samples_published
     cantilever_params = {name: p.value for name, p in cantilever._parameters.items()}
     cantilever.destroy_node()
-    spin_for(ros_executor, 0.5)
+    published = cantilever.samples_published
+    spin_until(ros_executor, lambda: recorder.streams[defl].next_index == published)
+    recorder.drain(ros_executor)
     received = dict(recorder.received)
     ros_executor.remove_node(recorder)
     recorder.destroy_node()
@@ -344,9 +346,10 @@ def test_records_under_the_events_executor(ros_context, ros_namespace, tmp_path)
         ex.add_node(recorder)
         spin_for(ex, 1.0)
         ex.remove_node(cantilever)
-        published = cantilever.samples_published
         cantilever.destroy_node()
-        spin_for(ex, 0.3)
+        published = cantilever.samples_published
+        topic = f"{ros_namespace}/cantilever/deflection"
+        spin_until(ex, lambda: topic in recorder.streams and recorder.streams[topic].next_index == published)
         ex.remove_node(recorder)
         recorder.destroy_node()
     finally:
