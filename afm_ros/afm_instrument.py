@@ -32,7 +32,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -41,12 +41,16 @@ from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
 from . import chunk_layout, node_main, topics
-from .cantilever_node import PAUSE_TOLERANCE_S, CantileverNode
+from .cantilever_node import PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS, CantileverNode
 from .node_main import make_executor
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
+
+
+class BlowUpError(RuntimeError):
+    """The cantilever's integration blew up (non-finite or runaway state)."""
 
 
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
@@ -399,6 +403,7 @@ class Instrument:
         while not condition():
             if not self.context_ok():
                 raise ExternalShutdownException()
+            self._check_blowup()
             node_main.spin_for(self.executor, 0.01)
             mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
             now = time.monotonic()
@@ -407,6 +412,20 @@ class Instrument:
             elif now - last_progress > stall_timeout:
                 raise TimeoutError(f"no progress for {stall_timeout:g} s of wall time while {what}; "
                                    f"the cantilever says: {self._cantilever_status()}")
+
+    def _check_blowup(self) -> None:
+        """A blown-up integration ends the job with what happened (never a summary over garbage)."""
+        if not self.attached:
+            b = self.cantilever.blowup
+            if b is not None:
+                params = ", ".join(f"{k}={b['parameters'][k]!r}" for k in PHYSICS_REPORT_KEYS)
+                raise BlowUpError(f"the integration blew up at t={b['simulated_time_s']:.6g} s ({b['what']}, gap "
+                                  f"offset {b['z_offset_m']:g} m); no summary. In force: {params}")
+            return
+        status = self.monitor.diagnostics.get(f"{self._fqn('cantilever')}: simulation")
+        if status is not None and status.level == DiagnosticStatus.ERROR:
+            values = {kv.key: kv.value for kv in status.values}
+            raise BlowUpError(f"{status.message}; no summary. In force: {values.get('blowup_parameters', '?')}")
 
     def _cantilever_status(self) -> str:
         if not self.attached:

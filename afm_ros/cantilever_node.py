@@ -36,7 +36,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 
 from . import ros_params, topics
 from .topics import CONSUMER_QOS, HISTORY_QOS
-from .cantilever_params import CANTILEVER_NODE_SPECS, build, check
+from .cantilever_params import CANTILEVER_NODE_SPECS, build, check_all
 from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
 from .flow import ChunkStarts, ConsumerWindow, FeedbackGate
 from .node_main import run_node
@@ -69,6 +69,11 @@ DIAGNOSTICS_PERIOD_S = 1.0
 LAG_WARNING_PERIOD_S = 5.0
 WAIT_WARNING_S = 2.0  # a gate closed this long (wall) is reported
 CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
+RUNAWAY_DEFLECTION_M = 1e-3  # a deflection beyond 1 mm is a numerical runaway, not a cantilever
+PHYSICS_REPORT_KEYS = ("spring_constant", "resonance_frequency", "quality_factor", "drive_frequency",
+                       "free_amplitude", "z_base", "steps_per_period", "force_model", "tip_radius",
+                       "hamaker_constant", "intermolecular_distance", "tip_youngs_modulus",
+                       "sample_youngs_modulus", "tip_poisson_ratio", "sample_poisson_ratio")
 CONSUMER_TIMEOUT_S = 10.0  # a consumer that blocks the loop without progress this long is dropped
 # parameters that change the integrated system (z_base only moves the gap, applied every chunk)
 PHYSICS_KEYS = (set(CANTILEVER_SPECS) | set(DMT_SPECS) | {"force_model"}) - {"z_base"}
@@ -107,7 +112,7 @@ class CantileverNode(Node):
     def __init__(self, **kwargs):
         super().__init__("cantilever", **kwargs)
         values = ros_params.declare(self, CANTILEVER_NODE_SPECS)  # ValueError on a bad start value
-        check(values)
+        check_all(values)
         self._values = values
         self._setup = build(values)
         self._lock = threading.Lock()
@@ -130,7 +135,7 @@ class CantileverNode(Node):
                                                Z_COMMAND_QOS)
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
-            CANTILEVER_NODE_SPECS, self._requested_values, check, self._queue_changes))
+            CANTILEVER_NODE_SPECS, self._requested_values, check_all, self._queue_changes))
 
         # pacing state: simulated time should be sim_ref + (wall - wall_ref) * real_time_factor
         self._wall_ref: float | None = None
@@ -157,6 +162,8 @@ class CantileverNode(Node):
         self._in_flight = False
         self._t_end = self._sim.t  # simulated time at the end of the last submitted chunk [s]
         self._published_end = 0  # sample index after the last published chunk
+        self.blowup: dict | None = None  # what blew up, where, with which parameters (None: running)
+        self.blowups = 0
         self._timer_dirty = False
         self.worker_error: BaseException | None = None
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
@@ -215,6 +222,11 @@ class CantileverNode(Node):
             self._timer_dirty = True
             self._wall_ref = None  # re-anchor the pacing at the new rate
         self.get_logger().info("applied " + ", ".join(f"{k}={v!r}" for k, v in changed.items()))
+        if self.blowup is not None:
+            self._sim.y[:] = 0.0
+            self.get_logger().warning(f"restarting from rest (z = 0, v = 0) at t={self._sim.t:.6g} s after the "
+                                      f"blow-up at t={self.blowup['simulated_time_s']:.6g} s")
+            self.blowup = None
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
@@ -360,7 +372,12 @@ class CantileverNode(Node):
     def _run_chunk(self, s, z_piezo: float, first: int, publish_clock: bool) -> None:
         sim = self._sim
         sim.z_offset = s.z_base + z_piezo
+        n0, y0 = sim.n, sim.y.copy()
         samples = sim.advance(s.chunk_steps, s.decimation)
+        if not (np.isfinite(samples.z).all() and np.isfinite(samples.force).all() and np.isfinite(sim.y).all()
+                and float(np.max(np.abs(samples.z), initial=0.0)) < RUNAWAY_DEFLECTION_M):
+            self._blew_up(s, first, n0, y0, samples)
+            return
         if samples.z.shape[0]:
             header = ChunkHeader(
                 first,
@@ -375,6 +392,33 @@ class CantileverNode(Node):
         if publish_clock:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
         self._published_end = first + samples.z.shape[0]
+
+    def _blew_up(self, s, first: int, n0: int, y0: np.ndarray, samples) -> None:
+        """Non-finite or runaway state in this chunk: publish nothing of it, stop, report (log,
+        /diagnostics ERROR with the parameters in force); the next parameter change restarts."""
+        sim = self._sim
+        bad = int(np.count_nonzero(~np.isfinite(samples.z)))
+        t0 = sim.segment_start + n0 * sim.dt
+        sim.n, sim.y[:] = n0, y0  # the simulated time does not advance over the failed chunk
+        with self._step_lock:
+            self._starts.unpublish()
+            self._t_end = sim.t
+            self._chunks -= 1
+            self.blowup = {
+                "simulated_time_s": t0, "sample_index": first,
+                "what": (f"{bad} non-finite deflection samples" if bad else
+                         f"deflection beyond {RUNAWAY_DEFLECTION_M:g} m (runaway)"),
+                "z_offset_m": sim.z_offset,
+                "parameters": dict(self._values)}
+        self.blowups += 1
+        v = self._values
+        self.get_logger().error(
+            f"integration blew up in the chunk at t={t0:.6g} s ({self.blowup['what']}; gap offset "
+            f"z_base + z_piezo = {sim.z_offset:g} m): nothing of it is published and the cantilever stops. In force: "
+            + ", ".join(f"{k}={v[k]!r}" for k in PHYSICS_REPORT_KEYS)
+            + ". Change a parameter (e.g. a smaller steps/stiffness ratio: raise steps_per_period, lower "
+            "sample_youngs_modulus, raise z_base) to restart from rest (z = 0, v = 0) at this time.")
+        self._publish_diagnostics(time.monotonic(), force=True)
 
     def _gates_open(self, now: float) -> bool:
         """Both gates (feedback, consumers) open; otherwise note why and since when."""
@@ -411,6 +455,8 @@ class CantileverNode(Node):
         with self._step_lock:
             while done < max_chunks and not self._in_flight and not self._stopped:
                 self._apply_pending()
+                if self.blowup is not None:
+                    break
                 if self.paused:
                     if not self._paused_reported:
                         self._paused_reported = True
@@ -522,7 +568,11 @@ class CantileverNode(Node):
         paused = self.paused
         lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
         waiting = self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S
-        if waiting:
+        if self.blowup is not None:
+            b = self.blowup
+            message = (f"integration blew up at t={b['simulated_time_s']:.6g} s ({b['what']}); stopped until a "
+                       f"parameter changes")
+        elif waiting:
             message = self._wait_reason
         elif paused:
             message = f"paused at run_until={self._values['run_until']:g} s"
@@ -531,7 +581,8 @@ class CantileverNode(Node):
         else:
             message = "ok"
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if (lagging or waiting) else DiagnosticStatus.OK,
+            level=(DiagnosticStatus.ERROR if self.blowup is not None else
+                   DiagnosticStatus.WARN if (lagging or waiting) else DiagnosticStatus.OK),
             name=f"{self.get_fully_qualified_name()}: simulation", hardware_id="afm_ros",
             message=message,
             values=[KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in (
@@ -550,6 +601,9 @@ class CantileverNode(Node):
                 ("wall_s_waiting_for_consumers", self.wait_wall_s["consumers"]),
                 ("consumers", ",".join(sorted(self._window.acks))),
                 ("consumers_dropped", ",".join(self.consumers_dropped)),
+                ("blowups", self.blowups),
+                *([("blowup_parameters", ", ".join(f"{k}={self.blowup['parameters'][k]!r}"
+                                                   for k in PHYSICS_REPORT_KEYS))] if self.blowup else []),
                 ("process_cpu_fraction", (cpu - self._diag_cpu) / wall if wall > 0 else 0.0))])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

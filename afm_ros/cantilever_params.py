@@ -13,8 +13,8 @@ from typing import Any
 
 from .flow import FEEDBACK_SYNC_MODES
 from .physics.forces import make_force_model
-from .physics.parameters import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, ParamSpec,
-                                 check_steps_per_resonance)
+from .physics.parameters import (CANTILEVER_SPECS, DMT_SPECS, DRIVE_FORCE_SPEC, Cantilever, DMTSample, Drive,
+                                 ParamSpec, check_steps_per_resonance)
 
 NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("output_sample_rate", 900e3, "Hz",
@@ -53,6 +53,9 @@ CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, 
 # A chunk is one message per topic; above this many integration steps per chunk a single
 # callback would block the executor for seconds and a message would exceed ~8 MB.
 MAX_STEPS_PER_CHUNK = 10_000_000
+# Each chunk costs the executors of every consumer a few messages of ~20-50 us each: above this
+# rate no 2-core machine keeps up (the default, 2 ms chunks at real time, is 500/s).
+MAX_CHUNKS_PER_WALL_SECOND = 5000
 
 
 def default_values() -> dict[str, Any]:
@@ -110,6 +113,31 @@ def check(values: dict[str, Any]) -> None:
             f"steps, i.e. chunk_duration <= {MAX_STEPS_PER_CHUNK * dt:g} s")
     if not math.isfinite(values["z_base"]):
         raise ValueError(f"z_base={values['z_base']!r} m is not finite")
+    force = values["spring_constant"] * values["free_amplitude"] / values["quality_factor"]
+    if force > DRIVE_FORCE_SPEC.high:
+        raise ValueError(
+            f"free_amplitude={values['free_amplitude']:g} m with spring_constant={values['spring_constant']:g} N/m "
+            f"and quality_factor={values['quality_factor']:g} needs a drive force F0 = k*A0/Q = {force:g} N, above "
+            f"the allowed {DRIVE_FORCE_SPEC.high:g} N: lower free_amplitude or spring_constant, or raise quality_factor "
+            f"(free_amplitude <= {DRIVE_FORCE_SPEC.high * values['quality_factor'] / values['spring_constant']:g} m "
+            f"at these values)")
+    rtf = values["real_time_factor"]
+    if rtf > 0.0:
+        chunk_time = chunk_steps * dt
+        rate = rtf / chunk_time
+        if rate > MAX_CHUNKS_PER_WALL_SECOND:
+            raise ValueError(
+                f"chunk_duration={values['chunk_duration']:g} s at real_time_factor={rtf:g} asks for {rate:.4g} chunks "
+                f"per wall-clock second; at most {MAX_CHUNKS_PER_WALL_SECOND} can be published and served: allowed "
+                f"chunk_duration >= {rtf / MAX_CHUNKS_PER_WALL_SECOND:g} s at this real_time_factor (or a lower "
+                f"real_time_factor)")
+
+
+def check_all(values: dict[str, Any]) -> None:
+    """Everything a parameter change must pass before it is accepted: the cross-field checks and
+    building the physics objects (so a change that was accepted can never fail later)."""
+    check(values)
+    build(values)
 
 
 def build(values: dict[str, Any]) -> CantileverSetup:

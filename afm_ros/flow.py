@@ -39,6 +39,11 @@ class ChunkStarts:
         """A chunk ending before ``end_index`` was published."""
         self._starts.append(int(end_index))
 
+    def unpublish(self) -> None:
+        """Take back the last booked chunk (it was never published, e.g. the integration blew up)."""
+        if len(self._starts) > 1:
+            self._starts.pop()
+
     def back(self, chunks: int) -> int:
         """Start index of the chunk ``chunks - 1`` chunks before the next one (``back(1)`` = next_index);
         the oldest kept start if fewer chunks were published."""
