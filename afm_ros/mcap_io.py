@@ -26,18 +26,22 @@ import argparse
 import datetime as _dt
 import functools
 import importlib
+import io
 import json
 import os
 import re
+import stat
+import struct
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 from mcap import __version__ as _MCAP_VERSION
-from mcap.exceptions import McapError
-from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Footer, Header, Message, MessageIndex, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from .physics.parameters import ParamSpec
@@ -361,6 +365,19 @@ class SessionScan:
     message_counts: dict = field(default_factory=dict)  # topic -> count
     header: Header | None = None
     compression: str = ""
+    damaged: list = field(default_factory=list)  # (offset, length, reason) of every skipped region
+    skipped_messages: int = 0  # messages in skipped chunks (from their message indexes, where intact)
+    chunks: int = 0  # intact chunks read
+
+    @property
+    def damage_text(self) -> str:
+        """One sentence on the damage met ('' if none)."""
+        if not self.damaged:
+            return ""
+        size = sum(n for _, n, _ in self.damaged)
+        first = self.damaged[0]
+        return (f"{len(self.damaged)} damaged region(s) skipped ({size} bytes, first at byte {first[0]}: "
+                f"{first[2]}); {self.skipped_messages} messages lost there, every intact chunk after it read")
 
     @property
     def topics(self) -> dict[str, str]:
@@ -370,12 +387,17 @@ class SessionScan:
 
 
 def check_mcap_file(path: str | os.PathLike) -> Path:
-    """Raise SessionFileError unless ``path`` exists and starts with the MCAP magic."""
+    """Raise SessionFileError unless ``path`` is a regular file that starts with the MCAP magic."""
     p = Path(path)
     if not p.exists():
         raise SessionFileError(f"session file {p} does not exist")
     if p.is_dir():
         raise SessionFileError(f"session file {p} is a directory, not an .mcap file")
+    mode = p.stat().st_mode
+    if not stat.S_ISREG(mode):
+        kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if (stat.S_ISCHR(mode) or stat.S_ISBLK(mode)) \
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file"
+        raise SessionFileError(f"session file {p} is {kind}, not a regular .mcap file (it could block forever)")
     try:
         with open(p, "rb") as f:
             head = f.read(len(MCAP_MAGIC))
@@ -387,72 +409,155 @@ def check_mcap_file(path: str | os.PathLike) -> Path:
     return p
 
 
-class _CountingFile:
-    """Read-only file wrapper that remembers how far the parser consumed it (not a RawIOBase, so
-    the mcap reader does not put a read-ahead buffer in between)."""
+_OPCODES = {o.value for o in Opcode}
+_RECORD_CLASSES = {Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
+                   Opcode.CHUNK: Chunk, Opcode.MESSAGE_INDEX: MessageIndex, Opcode.METADATA: Metadata}
+_RESYNC_WINDOW = 64 << 20  # how far past a damaged record header to look for the next record [B]
 
-    def __init__(self, f):
-        self._f = f
-        self.pos = 0
 
-    def read(self, size=-1):
-        data = self._f.read(size)
-        self.pos += len(data)
-        return data
+def _parse(opcode: int, body: bytes):
+    cls = _RECORD_CLASSES.get(opcode)
+    if cls is None:
+        return None
+    stream = ReadDataStream(io.BytesIO(body))
+    return cls.read(stream, len(body)) if cls is Message else cls.read(stream)
+
+
+def _plausible_record_at(f, pos: int, size: int) -> bool:
+    """A record header at ``pos`` whose end is the file end or another record header."""
+    f.seek(pos)
+    head = f.read(9)
+    if len(head) < 9 or head[0] not in _OPCODES:
+        return False
+    end = pos + 9 + struct.unpack_from("<Q", head, 1)[0]
+    if end > size:
+        return False
+    if end == size or end + len(MCAP_MAGIC) == size:
+        return True
+    f.seek(end)
+    nxt = f.read(1)
+    return bool(nxt) and nxt[0] in _OPCODES
+
+
+_RESYNC_OPCODES = frozenset((Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.DATA_END, Opcode.CHANNEL, Opcode.SCHEMA,
+                             Opcode.METADATA, Opcode.MESSAGE))
+
+
+def _resync(f, start: int, size: int) -> int | None:
+    """Offset of the next plausible record after damage at ``start`` (None: none found)."""
+    pos = start + 1
+    limit = min(size, start + _RESYNC_WINDOW)
+    while pos < limit:
+        f.seek(pos)
+        block = f.read(min(1 << 20, limit - pos) + 9)
+        n = min(len(block), limit - pos)
+        for k in range(n):
+            if block[k] not in _RESYNC_OPCODES:
+                continue
+            if k + 9 <= len(block):  # reject the (typical) random length without touching the file
+                end = pos + k + 9 + struct.unpack_from("<Q", block, k + 1)[0]
+                if end > size:
+                    continue
+            if _plausible_record_at(f, pos + k, size):
+                return pos + k
+        pos += n
+    return None
 
 
 def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
                  topics: set[str] | None = None) -> Iterator[SessionMessage]:
-    """Yield every readable message in file order (complete or truncated file).
+    """Yield every readable message in file order (complete, truncated or damaged file).
 
     ``scan`` (optional) is filled while reading: schemas, channels, metadata, counts and, once the
-    generator is exhausted, whether the file was complete or why reading stopped. Raises
-    SessionFileError for a missing or non-MCAP file. Reading stops at the first damaged record.
+    generator is exhausted, whether the file was complete, why reading stopped early, and every
+    damaged region it skipped. Every chunk carries its own length and CRC: a chunk that fails them
+    is skipped (its message index, if intact, says how many messages it held) and reading goes on
+    with the next record; a damaged record header is skipped by finding the next plausible record.
+    Raises SessionFileError for a missing, non-regular or non-MCAP file.
     """
     p = check_mcap_file(path)
     scan = scan if scan is not None else SessionScan(p)
     scan.path = p
-    scan.file_size = p.stat().st_size
+    size = scan.file_size = p.stat().st_size
+    saw_footer = False
+    skipped_chunk_end = None  # end of the last skipped chunk: its message indexes follow it
     with open(p, "rb") as f:
-        counting = _CountingFile(f)
-        reader = StreamReader(counting, validate_crcs=True)
-        last_good = 0
-        saw_footer = False
-        try:
-            for record in reader.records:
-                if isinstance(record, Message):
-                    ch = scan.channels.get(record.channel_id)
-                    if ch is None:
-                        continue
-                    if topics is not None and ch.topic not in topics:
+        pos = len(MCAP_MAGIC)
+        scan.bytes_read = pos
+        while pos < size:
+            f.seek(pos)
+            head = f.read(9)
+            if len(head) < 9:
+                if not (saw_footer or head == MCAP_MAGIC[:len(head)]):
+                    scan.truncated_reason = f"file ends inside a record header at byte {pos} of {size}"
+                break
+            opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
+            end = pos + 9 + length
+            if opcode not in _OPCODES or end > size:
+                if opcode in _OPCODES and _resync(f, pos, size) is None:
+                    scan.truncated_reason = (f"file ends inside a record: intact up to byte {pos} of {size} "
+                                             f"(a {Opcode(opcode).name.lower()} record of {length} bytes)")
+                    break
+                nxt = _resync(f, pos, size)
+                if nxt is None:
+                    scan.damaged.append((pos, size - pos, f"unreadable record header (opcode {opcode:#04x})"))
+                    scan.truncated_reason = f"damaged at byte {pos}: no intact record after it"
+                    break
+                scan.damaged.append((pos, nxt - pos, f"unreadable record header (opcode {opcode:#04x})"))
+                pos = nxt
+                continue
+            f.seek(pos + 9)
+            body = f.read(length)
+            try:
+                record = _parse(opcode, body)
+                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else None
+            except Exception as exc:  # noqa: BLE001 - any parser error is damage of this record
+                reason = f"{type(exc).__name__}: {exc}".strip(": ")
+                scan.damaged.append((pos, end - pos, f"{'chunk' if opcode == Opcode.CHUNK else 'record'} "
+                                     f"{reason[:200]}"))
+                skipped_chunk_end = end if opcode == Opcode.CHUNK else None
+                pos = end
+                continue
+            if inner is not None:
+                scan.chunks += 1
+                skipped_chunk_end = None
+                records = inner
+            elif isinstance(record, MessageIndex):
+                if skipped_chunk_end is not None:  # the index of a skipped chunk: what was lost
+                    scan.skipped_messages += len(record.records)
+                records = []
+            else:
+                records = [record] if record is not None else []
+            for rec in records:
+                if isinstance(rec, Message):
+                    ch = scan.channels.get(rec.channel_id)
+                    if ch is None or (topics is not None and ch.topic not in topics):
                         continue
                     scan.message_counts[ch.topic] = scan.message_counts.get(ch.topic, 0) + 1
                     schema = scan.schemas.get(ch.schema_id)
-                    yield SessionMessage(ch.topic, schema.name if schema else "", record.data, record.log_time,
-                                         record.publish_time, record.sequence, record.channel_id)
-                elif isinstance(record, Channel):
-                    scan.channels.setdefault(record.id, record)
-                elif isinstance(record, Schema):
-                    scan.schemas.setdefault(record.id, record)
-                elif isinstance(record, Metadata):
-                    scan.metadata.append(record)
-                elif isinstance(record, Header):
-                    scan.header = record
-                elif isinstance(record, Footer):
+                    yield SessionMessage(ch.topic, schema.name if schema else "", rec.data, rec.log_time,
+                                         rec.publish_time, rec.sequence, rec.channel_id)
+                elif isinstance(rec, Channel):
+                    scan.channels.setdefault(rec.id, rec)
+                elif isinstance(rec, Schema):
+                    scan.schemas.setdefault(rec.id, rec)
+                elif isinstance(rec, Metadata):
+                    scan.metadata.append(rec)
+                elif isinstance(rec, Header):
+                    scan.header = rec
+                elif isinstance(rec, Footer):
                     saw_footer = True
-                last_good = counting.pos
-        except (McapError, EOFError, ValueError, KeyError, IndexError, OSError) as exc:
-            scan.truncated_reason = (f"{type(exc).__name__}: {exc}".strip(": ") or type(exc).__name__)
-        except Exception as exc:  # the mcap parser raises assorted errors on damaged data
-            scan.truncated_reason = f"{type(exc).__name__}: {exc}"
-        scan.bytes_read = last_good
-        if not scan.truncated_reason and not saw_footer:
-            scan.truncated_reason = "no footer (the recorder did not close the file)"
-        scan.complete = saw_footer and not scan.truncated_reason
-    if not scan.complete and scan.truncated_reason and (
-            scan.truncated_reason.startswith("EndOfFile") or counting.pos >= scan.file_size):
-        scan.truncated_reason = (f"file ends inside a record: intact up to byte {scan.bytes_read} of "
-                                 f"{scan.file_size} ({scan.truncated_reason})")
+            pos = end
+            scan.bytes_read = pos
+            if saw_footer:
+                break
+    if not scan.truncated_reason and not saw_footer:
+        scan.truncated_reason = "no footer (the recorder did not close the file)"
+    if scan.damaged and not scan.truncated_reason:
+        scan.truncated_reason = scan.damage_text
+    elif scan.damaged:
+        scan.truncated_reason += "; " + scan.damage_text
+    scan.complete = saw_footer and not scan.damaged and scan.truncated_reason == ""
 
 
 def scan_session(path: str | os.PathLike) -> SessionScan:

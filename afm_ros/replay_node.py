@@ -136,6 +136,7 @@ class ReplayNode(Node):
         # derived clock: relative, like the cantilever's (/clock in the root namespace)
         self._clock_pub = self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
         self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
+        self.damage = ""  # what damage playback met (empty: none)
         self.done = threading.Event()
         self.error: Exception | None = None
         self._stop = threading.Event()
@@ -178,7 +179,8 @@ class ReplayNode(Node):
                 self._play_once()
                 if not self._values["loop"]:
                     break
-            self.get_logger().info(f"replay of {self.path} finished: {sum(self.published.values())} messages")
+            self.get_logger().info(f"replay of {self.path} finished: {sum(self.published.values())} messages"
+                                   + (f" ({self.damage})" if self.damage else ""))
         except Exception as exc:  # reported to main; the node stays inspectable
             self.error = exc
             self.get_logger().error(f"replay of {self.path} failed: {exc}")
@@ -190,7 +192,12 @@ class ReplayNode(Node):
             self._anchor = (time.monotonic(), 0.0)
         first = None
         scan = SessionScan(self.path)
+        damaged = 0
         for m in read_session(self.path, scan, topics=set(self._replay_pubs)):
+            if len(scan.damaged) > damaged:  # met damage on the way: say so now, and what is skipped
+                damaged = len(scan.damaged)
+                self.damage = scan.damage_text
+                self.get_logger().warning(f"{self.path} is damaged: {scan.damage_text}; replaying on")
             if first is None:
                 first = m.log_time
             if not self._wait_until((m.log_time - first) * 1e-9):

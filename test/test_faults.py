@@ -146,3 +146,107 @@ def test_instrument_with_a_blow_up_reports_it_instead_of_a_summary(tmp_path):
     assert "Traceback" not in result.stderr
     assert "afm_instrument summary" not in result.stdout  # no settling time or amplitude over garbage
     assert "blew up" in result.stderr and "sample_youngs_modulus=10000000000000.0" in result.stderr
+
+
+# --- damaged files -----------------------------------------------------------------------------
+
+def _session_with_chunks(path: Path, n: int = 3000) -> dict[str, int]:
+    """A real session file (our writer): n deflection-like chunks and n clock messages, small
+    MCAP chunks so the file has dozens of them; returns the message count per topic."""
+    from rosgraph_msgs.msg import Clock
+    from rclpy.serialization import serialize_message
+    from afm_ros.cantilever_node import chunk_message
+    from afm_ros.chunk_layout import ChunkHeader
+    from afm_ros.mcap_io import SessionWriter
+    w = SessionWriter(path, compression="zstd", chunk_size=64 * 1024)
+    defl = w.add_channel("/cantilever/deflection", "std_msgs/msg/Float64MultiArray")
+    clock = w.add_channel("/clock", "rosgraph_msgs/msg/Clock")
+    rng = np.random.default_rng(1)
+    for k in range(n):
+        samples = rng.normal(size=60) * 1e-8
+        msg = chunk_message(ChunkHeader(60 * k, k * 6e-5, 1e-6, 0.0, 45e3, 4e-8), samples)
+        w.write(defl, serialize_message(msg), 1_000_000 * k + 1)
+        c = Clock()
+        c.clock.nanosec = 60_000 * (k + 1)
+        w.write(clock, serialize_message(c), 1_000_000 * k + 2)
+    w.close()
+    return {"/cantilever/deflection": n, "/clock": n}
+
+
+def _chunks(path: Path):
+    from mcap.reader import make_reader
+    with open(path, "rb") as f:
+        return sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
+def _flip(path: Path, offset: int, mask: int = 0x10) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= mask
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("where", ["payload", "length"])
+def test_damaged_middle_chunk_is_skipped_and_every_intact_chunk_kept(tmp_path, where):
+    from afm_ros.mcap_io import SessionScan, read_session, recover, scan_session
+    path = tmp_path / "session.mcap"
+    counts = _session_with_chunks(path)
+    chunks = _chunks(path)
+    assert len(chunks) > 20
+    bad = chunks[len(chunks) // 2]
+    # ground truth from the intact file: the messages of that chunk are those logged in its time range
+    # (the synthetic log times are unique and increasing)
+    in_bad = sum(1 for m in read_session(path) if bad.message_start_time <= m.log_time <= bad.message_end_time)
+    assert in_bad > 0
+    # a flipped bit in the compressed messages (the chunk CRC catches it), or in the chunk's length
+    # field (the record boundary is lost: the reader must find the next record)
+    _flip(path, bad.chunk_start_offset + (bad.chunk_length // 2 if where == "payload" else 8))
+    scan = SessionScan(path)
+    got = sum(1 for _ in read_session(path, scan))
+    assert not scan.complete and len(scan.damaged) == 1
+    assert scan.damaged[0][0] == bad.chunk_start_offset
+    # exactly the damaged chunk's messages are missing: every other chunk, before and after, is read
+    assert scan.chunks == len(chunks) - 1
+    assert got == sum(counts.values()) - in_bad
+    if where == "payload":  # the chunk's message index follows it intact and says what was lost
+        assert scan.skipped_messages == in_bad
+    assert "damaged" in scan.truncated_reason and str(bad.chunk_start_offset) in scan.truncated_reason
+    # recover keeps every intact chunk after the damage too
+    out = tmp_path / "recovered.mcap"
+    result = recover(path, out)
+    assert result.messages == got
+    rec = scan_session(out)
+    assert rec.complete and sum(rec.message_counts.values()) == got
+
+
+def test_fifo_is_refused_by_every_reader(tmp_path):
+    from afm_ros.mcap_io import SessionFileError, read_session
+    fifo = tmp_path / "session.mcap"
+    os.mkfifo(fifo)
+    with pytest.raises(SessionFileError, match="FIFO"):
+        next(read_session(fifo))
+    for cmd in (["afm_report", str(fifo)], ["python", "-m", "afm_ros.mcap_io", "info", str(fifo)]):
+        exe = [str(BIN / cmd[0])] + cmd[1:] if cmd[0] != "python" else [sys.executable] + cmd[1:]
+        result = subprocess.run(exe, capture_output=True, text=True, timeout=60)
+        assert result.returncode != 0 and "FIFO" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_replay_and_report_warn_about_damage_and_say_what_they_read(ros_context, ros_executor, tmp_path, capsys):
+    from afm_ros import report
+    from afm_ros.replay_node import ReplayNode
+    path = tmp_path / "session.mcap"
+    counts = _session_with_chunks(path)
+    bad = _chunks(path)[len(_chunks(path)) // 2]
+    _flip(path, bad.chunk_start_offset + bad.chunk_length // 2)
+    replay = ReplayNode(context=ros_context, parameter_overrides=[
+        Parameter("file", value=str(path)), Parameter("rate", value=1000.0), Parameter("start_delay", value=0.0),
+        Parameter("topic_prefix", value="/replayed")])
+    ros_executor.add_node(replay)
+    spin_until(ros_executor, replay.done.is_set, timeout=60)
+    assert replay.error is None
+    assert "damaged region" in replay.damage and "messages lost there" in replay.damage
+    assert 0 < sum(replay.published.values()) < sum(counts.values())
+    # the report reads the intact part and says that the file is damaged
+    assert report.main([str(path), "--out", str(tmp_path / "rep")]) == 0
+    err = capsys.readouterr().err
+    assert "damaged region" in err
+    assert "damaged region" in (tmp_path / "rep" / "report.md").read_text()
