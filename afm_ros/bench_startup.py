@@ -16,10 +16,15 @@ arrival, in this process's subscriber, of the node's first message:
   spawn, so the node answers as soon as it is matched and ready;
 - ``z_controller``: the ``z_controller/z_piezo`` value it publishes at start (transient local).
 
-``ready_line_s`` is the time of the node's "ready" log line (the end of its constructor: the
+``first_published_s`` is when the node published its first message, from the source time stamp
+DDS puts on it (wall clock, same host), reported when that message (publication sequence number 1)
+was received, i.e. the node's transient-local history still held it when this process's
+subscription matched; it does not contain the discovery time. ``ready_line_s`` is the time of
+the node's "ready" log line (the end of its constructor: the
 kernels are loaded, the publishers exist), which DDS discovery does not delay. The **baseline**,
 measured in the same run, is a bare rclpy process (``python -c``: import rclpy, init, create a
-node and a publisher of ``cantilever/deflection``, publish every 2 ms as the cantilever does)
+node and a reliable, transient-local publisher of ``cantilever/deflection`` (as the cantilever's),
+publish every 2 ms as the cantilever does)
 timed the same way: what any Python ROS 2 node costs on this machine (interpreter, rclpy, DDS
 discovery and matching).
 
@@ -74,15 +79,17 @@ READY_LINE = re.compile(r"\]: (ready:|lock-in: reference|z controller: setpoint)
 
 BASELINE_CODE = """
 import rclpy
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 rclpy.init()
 node = rclpy.create_node("baseline")
 pub = node.create_publisher(Float64MultiArray, "cantilever/deflection",
                             QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
-                                       reliability=ReliabilityPolicy.RELIABLE))
+                                       reliability=ReliabilityPolicy.RELIABLE,
+                                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
 msg = Float64MultiArray()
 msg.data = [0.0] * 1806
+
 node.create_timer(0.002, lambda: pub.publish(msg))
 try:
     rclpy.spin(node)
@@ -108,6 +115,7 @@ class _Child:
         self.lines: list = []
         self.ready_time = None
         self.spawn_time = time.monotonic()
+        self.spawn_wall_ns = time.time_ns()
         self.proc = subprocess.Popen(cmd, env=env, cwd=cwd, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         self._threads = [threading.Thread(target=self._read, args=(s,), daemon=True)
@@ -215,8 +223,10 @@ class StartupBench:
         # compatible with receives (a transient-local one also gets what was published before the
         # match, e.g. a start value or the chunks of a gated cantilever); the other one stays silent.
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda event: None)
-        subs = [self.node.create_subscription(self._msg_type(topic), f"{ns}/{topic}",
-                                              lambda msg: arrivals.append(time.monotonic()), self._qos(d),
+        def on_message(msg, info):
+            arrivals.append((time.monotonic(), info["publication_sequence_number"], info["source_timestamp"]))
+
+        subs = [self.node.create_subscription(self._msg_type(topic), f"{ns}/{topic}", on_message, self._qos(d),
                                               event_callbacks=quiet)
                 for d in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL)]
         fed = self._feeder(ns, feed) if feed else None
@@ -224,14 +234,23 @@ class StartupBench:
         deadline = child.spawn_time + self.timeout
         while not arrivals and time.monotonic() < deadline and child.proc.poll() is None:
             self.executor.spin_once(timeout_sec=0.002)
+        # the other subscription may still be receiving the history with the node's first message
+        linger = time.monotonic() + 0.3
+        while arrivals and time.monotonic() < linger and not any(a[1] == 1 for a in arrivals):
+            self.executor.spin_once(timeout_sec=0.01)
         status = child.stop()
         for sub in subs:
             self.node.destroy_subscription(sub)
         if fed:
             self.node.destroy_timer(fed[1])
             self.node.destroy_publisher(fed[0])
+        first = arrivals[0] if arrivals else None
+        seq1 = [a for a in arrivals if a[1] == 1]
         result = {
-            "first_message_s": arrivals[0] - child.spawn_time if arrivals else None,
+            "first_message_s": first[0] - child.spawn_time if first else None,
+            # the writer's own time stamp of its first message (sequence number 1), if that one was
+            # received (a transient-local history still held it): publication time, without discovery
+            "first_published_s": (seq1[0][2] - child.spawn_wall_ns) * 1e-9 if seq1 else None,
             "ready_line_s": None if child.ready_time is None else child.ready_time - child.spawn_time,
             "exit_status": status,
         }
@@ -301,6 +320,9 @@ def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"
 
     def summary(runs):
         out = {"first_message_s": _stats([r["first_message_s"] for r in runs])}
+        published = [r["first_published_s"] for r in runs]
+        if any(x is not None for x in published):
+            out["first_published_s"] = _stats(published)
         lines = [r["ready_line_s"] for r in runs]
         if any(x is not None for x in lines):
             out["ready_line_s"] = _stats(lines)
