@@ -269,6 +269,9 @@ class CantileverNode(Node):
             new = self._window.receive(name, int(msg.data[0]), self._starts.next_index)
             if new or self._window.acks.get(name) != before:
                 self._consumer_progress[name] = time.monotonic()
+        if before is not None and name not in self._window.acks:
+            self.get_logger().info(f"consumer {name} leaves the stream: no longer waited for")
+            self._publish_diagnostics(time.monotonic(), force=True)
         if new:
             self._consumer_seen[name] = time.monotonic()
             self.get_logger().info(f"consumer {name} acknowledges the stream (flow_window "

@@ -132,8 +132,10 @@ def unpack_z_command(data) -> ZCommand:
 # --- consumer acknowledgement (topic ``cantilever/ack``, std_msgs/Int64MultiArray) ----------------
 # ``layout.dim[0].label`` = the consumer's fully qualified node name, ``data = [next_index]``: every
 # deflection sample before ``next_index`` has been received and handled. ``READY`` (-1): subscribed
-# and waiting, nothing received yet.
+# and waiting, nothing received yet. ``LEAVING`` (-2): stops consuming (closing, or its output
+# failed): not to be waited for any more.
 ACK_READY = -1
+ACK_LEAVING = -2
 
 
 def cdr_chunk_index(data: bytes) -> tuple[int, int]:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from .chunk_layout import ACK_READY, ZCommand
+from .chunk_layout import ACK_LEAVING, ACK_READY, ZCommand
 
 FEEDBACK_SYNC_MODES = ("auto", "lockstep", "free")
 
@@ -142,6 +142,9 @@ class ConsumerWindow:
     def receive(self, name: str, next_index: int, stream_next_index: int) -> bool:
         """Record an acknowledgement; return True if ``name`` is a new consumer."""
         new = name not in self.acks
+        if next_index == ACK_LEAVING:
+            self.acks.pop(name, None)
+            return False
         if next_index == ACK_READY:
             # subscribed, nothing received yet: chunks from now on are for it (the transient-local
             # history of the chunk topics also brings it the recent ones)

@@ -406,6 +406,7 @@ class RecorderNode(Node):
         if self.error is not None:
             return
         self.error = exc
+        self._ack.leave()  # the instrument must not wait for a recorder that cannot write
         self.get_logger().error(str(exc))
         for sub in self._subs.values():
             if sub is not None:
@@ -414,6 +415,8 @@ class RecorderNode(Node):
 
     def close(self) -> None:
         """Write what is queued, then summary and footer (complete file) unless a write failed."""
+        if self.context.ok():
+            self._ack.leave()
         if self._writer_thread.is_alive():
             self._queue.put(None)
             self._writer_thread.join()

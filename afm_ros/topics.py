@@ -11,7 +11,7 @@ from __future__ import annotations
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
 
-from .chunk_layout import ACK_READY
+from .chunk_layout import ACK_LEAVING, ACK_READY
 
 DEFLECTION = "cantilever/deflection"
 FORCE = "cantilever/tip_sample_force"
@@ -50,6 +50,10 @@ class Acknowledger:
         self.next_index = int(next_index)
         self._msg.data = [self.next_index]
         self._pub.publish(self._msg)
+
+    def leave(self) -> None:
+        """Stop being waited for (closing, or the consumer's output failed)."""
+        self.send(ACK_LEAVING)
 
     def destroy(self, node) -> None:
         node.destroy_publisher(self._pub)

@@ -250,3 +250,36 @@ def test_replay_and_report_warn_about_damage_and_say_what_they_read(ros_context,
     err = capsys.readouterr().err
     assert "damaged region" in err
     assert "damaged region" in (tmp_path / "rep" / "report.md").read_text()
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB tmpfs: a disk that fills up during a session (CI runs as root; skipped elsewhere)."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    result = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)], capture_output=True)
+    if result.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {result.stderr.decode().strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file_readable(small_disk):
+    from afm_ros.mcap_io import SessionScan, read_session
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
+    result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--ros-args",
+                             "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25"],
+                            env=env, capture_output=True, text=True, timeout=300, cwd=small_disk)
+    assert result.returncode == 1
+    assert "Traceback" not in result.stderr
+    assert "No space left on device" in result.stderr and "the recording is incomplete" in result.stderr
+    assert "recording           INCOMPLETE" in result.stdout
+    # the partial file is readable up to the failure: chunks flushed before it are intact
+    path = next(small_disk.glob("afm_session_*.mcap"))
+    scan = SessionScan(path)
+    chunks = [m for m in read_session(path, scan) if m.topic.endswith("cantilever/deflection")]
+    assert not scan.complete and scan.truncated_reason
+    assert len(chunks) > 100  # more than 0.2 s simulated made it to the disk
