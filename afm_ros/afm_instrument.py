@@ -37,6 +37,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
@@ -46,6 +47,7 @@ from .node_main import make_executor
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
+WAIT_POLL_S = 0.25  # while waiting, look at conditions the monitor cannot see (recorder, blow-up, Ctrl-C)
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
 
 
@@ -232,6 +234,7 @@ class Monitor(Node):
         self.lost_input_samples = 0  # lock-in batches that skipped input samples (the lock-in lost chunks)
         self.lost_batches = 0  # batches between consecutive ones that never reached the monitor
         self.diagnostics: dict[str, object] = {}
+        self.waiter = None  # (condition, future): the job waits for condition(); completed here
         self._ack = topics.Acknowledger(self)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS)
         self.create_subscription(Float64MultiArray, topics.Z_COMMAND, self._on_command, topics.CONSUMER_QOS)
@@ -261,6 +264,13 @@ class Monitor(Node):
             self.y.extend(b.y.tolist())
         self.outputs_end_index, self.outputs_end_time = b.input_end_index, b.input_end_time
         self._ack.send(b.input_end_index)
+        self._poke()
+
+    def _poke(self) -> None:
+        if self.waiter is not None:
+            condition, future = self.waiter
+            if not future.done() and condition():
+                future.set_result(True)
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         try:
@@ -275,10 +285,12 @@ class Monitor(Node):
         if self.keep_history:
             self.z_piezo_t.append(c.answered_end_time)
             self.z_piezo.append(c.z)
+        self._poke()
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
             self.diagnostics[status.name] = status
+        self._poke()
 
     def diagnostic_values(self, node_fqn: str, suffix: str) -> dict[str, str]:
         status = self.diagnostics.get(f"{node_fqn}: {suffix}")
@@ -400,11 +412,23 @@ class Instrument:
         """Spin until ``condition()``; TimeoutError if the loop makes no progress for ``stall_timeout`` wall s."""
         last_progress = time.monotonic()
         last_mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
+        reached = Future()  # completed by the monitor's callbacks as soon as the condition holds
+        self.monitor.waiter = (condition, reached)
+        try:
+            self._spin_until(condition, reached, what, stall_timeout, last_progress, last_mark)
+        finally:
+            self.monitor.waiter = None
+
+    def _spin_until(self, condition, reached, what, stall_timeout, last_progress, last_mark) -> None:
+        events = node_main.is_events_executor(self.executor)
         while not condition():
             if not self.context_ok():
                 raise ExternalShutdownException()
             self._check_blowup()
-            node_main.spin_for(self.executor, 0.01)
+            if events:  # one C++ loop until the monitor completes the future (or a poll)
+                self.executor.spin_until_future_complete(reached, timeout_sec=WAIT_POLL_S)
+            else:
+                self.executor.spin_once(timeout_sec=0.01)
             mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
             now = time.monotonic()
             if mark != last_mark:
@@ -592,9 +616,10 @@ class Instrument:
         mon = self.monitor
         print("running until Ctrl-C (ros2 param set works now)", flush=True)
         last = time.monotonic()
+        stop = node_main.stop_future()
         try:
             while self.context_ok():
-                node_main.spin_for(self.executor, 0.05)
+                node_main.serve(self.executor, stop, done=lambda: time.monotonic() - last >= 5.0)
                 if time.monotonic() - last >= 5.0:
                     last = time.monotonic()
                     print(f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  outputs={mon.outputs}",

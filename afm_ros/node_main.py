@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from typing import Callable
 
 import rclpy
@@ -20,6 +21,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 _stop_requested = False
+_stop_futures: list = []  # completed by the first Ctrl-C / SIGTERM (see serve)
 
 
 def _on_signal(signum, frame):
@@ -27,6 +29,9 @@ def _on_signal(signum, frame):
     if _stop_requested:
         raise KeyboardInterrupt
     _stop_requested = True
+    for future in _stop_futures:
+        if not future.done():
+            future.set_result(True)
 
 
 class StartupError(ValueError):
@@ -79,14 +84,56 @@ def make_executor(kind: str = "events", context=None):
     raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
 
 
-def spin_for(executor, seconds: float) -> None:
-    """Serve callbacks for up to ``seconds`` of wall time. The EventsExecutor runs its C++ loop that
-    long (one call instead of one Python round trip per message); other executors take one callback."""
-    if type(executor).__name__ == "EventsExecutor":
-        from rclpy.task import Future
-        executor.spin_until_future_complete(Future(), timeout_sec=seconds)
+# rclpy 7.1's EventsExecutor.spin_until_future_complete serves callbacks in one C++ loop (much less
+# overhead per message than spin_once), but leaks ~32 bytes per call (measured: 1.6 MB per 50 000
+# calls): it is called with long timeouts and woken by completing the future instead.
+SERVE_TIMEOUT_S = 1.0
+
+
+def is_events_executor(executor) -> bool:
+    return type(executor).__name__ == "EventsExecutor"
+
+
+def serve(executor, until, poll: float = SERVE_TIMEOUT_S, done=None) -> None:
+    """Serve callbacks until ``until`` (an rclpy Future) is done, ``done()`` is true (checked every
+    ``poll`` seconds), Ctrl-C / SIGTERM arrives or the context shuts down; with the EventsExecutor
+    in C++ loops of up to ``poll`` seconds."""
+    context = getattr(executor, "context", None)
+    while not until.done() and not _stop_requested and rclpy.ok(context=context):
+        if done is not None and done():
+            return
+        if is_events_executor(executor):
+            executor.spin_until_future_complete(until, timeout_sec=poll)
+        else:
+            executor.spin_once(timeout_sec=min(poll, 0.1))
+
+
+def stop_future():
+    """A Future completed by the first Ctrl-C / SIGTERM (to wake an executor spinning on it)."""
+    from rclpy.task import Future
+    future = Future()
+    if _stop_requested:
+        future.set_result(True)
     else:
-        executor.spin_once(timeout_sec=seconds)
+        _stop_futures.append(future)
+    return future
+
+
+def spin_for(executor, seconds: float) -> None:
+    """Serve callbacks for up to ``seconds`` of wall time.
+
+    One ``spin_once`` per callback: rclpy 7.1's EventsExecutor.spin_until_future_complete would
+    serve them in one C++ loop, but it leaks ~32 bytes per call (measured: 1.6 MB per 50 000 calls),
+    which a long session cannot afford.
+    """
+    end = time.monotonic() + seconds
+    spin_once = executor.spin_once
+    monotonic = time.monotonic
+    while True:
+        remaining = end - monotonic()
+        if remaining <= 0.0:
+            return
+        spin_once(timeout_sec=remaining)
 
 
 def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
@@ -105,8 +152,7 @@ def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
         node = make_node()
         executor = make_executor("events")
         executor.add_node(node)
-        while running():
-            spin_for(executor, 0.1)
+        serve(executor, stop_future())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, ParameterException, InvalidParameterValueException) as exc:

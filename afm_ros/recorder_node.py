@@ -449,8 +449,8 @@ def main(args=None):
         print(f"recorder: recording to {node.output_path}", flush=True)
         executor = node_main.make_executor("events")
         executor.add_node(node)
-        while node_main.running() and node.error is None:
-            node_main.spin_for(executor, 0.2)
+        node_main.serve(executor, node_main.stop_future(), poll=0.5,
+                        done=lambda: node.error is not None or node._check_writer())
         if node.error is None:
             node.drain(executor)  # what was published before the stop is still recorded
         if node.error is not None:

@@ -283,3 +283,45 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     chunks = [m for m in read_session(path, scan) if m.topic.endswith("cantilever/deflection")]
     assert not scan.complete and scan.truncated_reason
     assert len(chunks) > 100  # more than 0.2 s simulated made it to the disk
+
+
+def _rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+
+
+def test_long_session_memory_stays_flat(tmp_path):
+    """afm_instrument for 120 simulated seconds (as fast as possible, recording): RSS sampled every
+    0.5 s of wall time must not grow between the first third of the run and its end, except by the
+    recorder's MCAP chunk index (the file's summary, ~2 KB per chunk; 3 KB allowed) and 1.5 MB of
+    allocator noise. The old monitor kept three floats per lock-in output (~100 kB per simulated
+    second, 8 MB over the 80 s compared here)."""
+    import json
+    import time
+    from mcap.reader import make_reader
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--duration", "120", "--json", "--ros-args",
+                             "-p", "real_time_factor:=0.0"], env=env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    samples = []
+    while proc.poll() is None:
+        try:
+            samples.append((time.monotonic(), _rss_kb(proc.pid)))
+        except (FileNotFoundError, StopIteration, ProcessLookupError):
+            break
+        time.sleep(0.5)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["simulated_time_s"] >= 120 and summary["lost_samples"] == 0
+    assert summary["recording"]["complete"]
+    with open(summary["recording"]["file"], "rb") as f:
+        chunks = len(make_reader(f).get_summary().chunk_indexes)
+    wall = summary["wall_time_s"]
+    t_end = samples[-1][0]
+    third = [kb for t, kb in samples if abs(t - (t_end - wall * 2 / 3)) <= 1.0]
+    last = [kb for t, kb in samples if t >= t_end - 2.0]
+    assert third and last
+    growth_kb = max(last) - min(third)
+    allowed_kb = 1536 + 3 * chunks * 2 / 3
+    assert growth_kb < allowed_kb, f"RSS grew {growth_kb} kB over {wall * 2 / 3:.0f} s ({chunks} MCAP chunks)"
