@@ -40,7 +40,7 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "chunk k + feedback_latency on (1 chunk = chunk_duration of simulated time)", 1, 16, kind=int),
     ParamSpec("flow_window", 32, "chunks",
               "largest number of published chunks a consumer (lock-in, recorder, monitor) may not yet have "
-              "acknowledged on cantilever/ack; beyond it the cantilever waits (slows down) instead of letting "
+              "acknowledged on cantilever/_ack; beyond it the cantilever waits (slows down) instead of letting "
               "the consumer lose samples", 2, 150, kind=int),
     ParamSpec("run_until", -1.0, "s",
               "simulated time at which the integration pauses (at the first chunk boundary at or after it); "
