@@ -78,10 +78,16 @@ def test_full_session_report(sessions, tmp_path):
 
     rep = report.make_report(full, tmp_path / "again")
     data = rep.data
-    # the deflection stream is gap-free, so every sample has its force partner
-    assert np.array_equal(data.deflection.index, np.arange(data.deflection.index.size))
+    # the deflection stream is gap-free (indices 0 .. N-1 in order), so every sample has its force partner
+    d = data.deflection
+    assert (d.first_index, d.last_index, d.lost, d.gaps, d.repeats) == (0, d.samples - 1, 0, 0, 0)
+    assert data.fd.pairs == d.samples == data.force.samples
+    # the figure keeps min(N, MAX_SCATTER_POINTS) pairs, evenly spaced in the sample index
     gap, force, index = report.force_distance(data)
-    assert index.size == data.deflection.index.size
+    n, m = d.samples, report.MAX_SCATTER_POINTS
+    assert index.size == min(n, m)
+    step = np.diff(index)
+    assert np.all(step >= max(1, n // m)) and np.all(step <= -(-n // m))
     # The reconstructed (gap, force) pairs lie on the physics core's DMT curve: the cantilever
     # computed each force from exactly this gap, so only rounding separates them (1e-9 relative
     # to the largest force). A pairing off by one sample would miss by the force change per
@@ -91,6 +97,9 @@ def test_full_session_report(sessions, tmp_path):
     scale = np.max(np.abs(expected))
     assert scale > 0, "the tip never reached the sample: force-distance would be trivial"
     assert np.max(np.abs(force - expected)) <= 1e-9 * scale
+    # the extremes in the numbers are over all pairs, so they bound the kept ones
+    assert rep.numbers["min_gap_m"] <= gap.min() and rep.numbers["max_force_n"] >= force.max()
+    assert rep.numbers["min_force_n"] <= force.min()
     # the setpoint is read from the recorded z_controller parameters
     from afm_ros.zcontrol import Z_CONTROLLER_SPECS
     assert rep.numbers["setpoint_m"] == pytest.approx(Z_CONTROLLER_SPECS["setpoint"].default)
@@ -114,8 +123,9 @@ def test_truncated_session_report(sessions, tmp_path):
     for name in ("deflection_force.png", "lockin_z.png", "force_distance.png"):
         assert _is_png(out / name), name
     rep = report.make_report(cut, tmp_path / "again")
-    idx = rep.data.deflection.index
-    assert 0 < idx.size and np.array_equal(idx, np.arange(idx.size))  # the intact prefix, no holes
+    d = rep.data.deflection
+    assert 0 < d.samples  # the intact prefix, no holes: indices 0 .. N-1 in order
+    assert (d.first_index, d.last_index, d.lost, d.gaps, d.repeats) == (0, d.samples - 1, 0, 0, 0)
 
 
 def test_subset_session_report(sessions, tmp_path):

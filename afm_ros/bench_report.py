@@ -1,0 +1,266 @@
+"""Benchmark of ``afm_report`` on synthetic sessions of growing length: wall time and peak memory.
+
+``python -m afm_ros.bench_report [--seconds 10 60 600] [--rate 90e3] [--keep DIR]`` prints one JSON
+document. For every length it writes a synthetic session (:func:`write_synthetic_session`) into a
+temporary directory (removed afterwards unless ``--keep``) and runs, each in a fresh process:
+
+- ``baseline``: :func:`afm_ros.mcap_io.read_session` over the whole file, no message decoded (the
+  floor any reader of the file pays: decompression and record parsing);
+- ``report``: ``afm_report SESSION --out DIR`` (two passes over the file).
+
+Reported per run: wall time [s], peak resident set size [MB] (``ru_maxrss`` of the child), file
+size, messages and samples. The synthetic session has the instrument's message pattern (2 ms
+chunks of deflection and tip-sample force with a /clock message each, lock-in amplitude, phase and
+xy, z piezo and error at ``series_rate``, an engage via ``/parameter_events``) at a reduced sample
+rate by default (``--rate 900e3`` for the instrument's rate; the number of messages, which sets most
+of the report's cost, does not depend on it).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .chunk_layout import PREAMBLE_LENGTH
+
+WALL_START_NS = 1_700_000_000 * 10**9  # log_time of simulated t = 0 (real-time pacing)
+NS = "/syn"
+
+
+def _chunk_prefix(n: int) -> bytes:
+    """CDR of a std_msgs/Float64MultiArray with one dimension 'samples' up to its float data."""
+    label = b"samples\x00"
+    head = (b"\x00\x01\x00\x00" + struct.pack("<II", 1, len(label)) + label
+            + struct.pack("<IIII", n, n, PREAMBLE_LENGTH, PREAMBLE_LENGTH + n))
+    return head + b"\x00" * ((-(len(head) - 4)) % 8)
+
+
+def _float64(value: float) -> bytes:
+    return b"\x00\x01\x00\x00" + struct.pack("<d", value)
+
+
+def _stamp(t: float) -> tuple[int, int]:
+    sec = int(math.floor(t))
+    return sec, int(round((t - sec) * 1e9))
+
+
+def _clock(sec: int, nanosec: int) -> bytes:
+    return b"\x00\x01\x00\x00" + struct.pack("<iI", sec, nanosec)
+
+
+def _vector3_stamped(sec: int, nanosec: int, x: float, y: float) -> bytes:
+    # stamp, frame_id '' (length 1: the terminating NUL), padding to 8, vector x y z
+    return b"\x00\x01\x00\x00" + struct.pack("<iII", sec, nanosec, 1) + b"\x00" * 4 + struct.pack("<ddd", x, y, 0.0)
+
+
+def _parameter_event(node: str, new: dict | None = None, changed: dict | None = None) -> bytes:
+    from rcl_interfaces.msg import Parameter, ParameterEvent, ParameterType, ParameterValue
+
+    from .mcap_io import serialize_exact
+
+    def msg(name, value):
+        if isinstance(value, bool):
+            v = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
+        else:
+            v = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(value))
+        return Parameter(name=name, value=v)
+
+    return serialize_exact(ParameterEvent(node=node, new_parameters=[msg(k, v) for k, v in (new or {}).items()],
+                                          changed_parameters=[msg(k, v) for k, v in (changed or {}).items()]))
+
+
+def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chunk_s: float = 0.002,
+                            series_rate: float = 100.0, samples_per_period: int = 20,
+                            compression: str = "zstd", non_finite_chunks=(), non_finite_amplitudes=()) -> dict:
+    """Write a session of ``seconds`` simulated seconds into ``path`` and return what it holds.
+
+    Deflection: ``A_d sin(2 pi i / P - pi/2)`` (P = ``samples_per_period``, every chunk holds whole
+    periods, so every chunk has the same samples); z_offset constant; force: the DMT model (default
+    sample) at gap = z_offset + deflection. /clock once per chunk (its end time), receive time =
+    WALL_START_NS + simulated time (real-time pacing). At ``series_rate``: lock-in amplitude (free
+    amplitude before engaging, then an exponential approach to the setpoint), phase, xy (stamped
+    with the exact simulated time), z piezo and, after engaging, error = setpoint - amplitude. The
+    z_controller's ``enabled`` switches on at ``engage_time_s`` (a /parameter_events change).
+    ``non_finite_chunks``: chunk numbers whose deflection sample 1 is NaN; ``non_finite_amplitudes``:
+    series sample numbers whose amplitude is NaN.
+
+    Returns the expected report numbers (``expected``) and the construction constants.
+    """
+    from .mcap_io import SessionWriter
+    from .physics.forces import DMTForce
+
+    n = int(round(sample_rate * chunk_s))
+    if n % samples_per_period:
+        raise ValueError(f"a chunk of {n} samples does not hold whole periods of {samples_per_period}")
+    chunks = int(round(seconds / chunk_s))
+    every = int(round(1.0 / (series_rate * chunk_s)))  # chunks per series sample
+    dt = 1.0 / sample_rate
+    amp_d, z_offset = 20e-9, 10e-9
+    i = np.arange(n)
+    deflection = amp_d * np.sin(2.0 * np.pi * i / samples_per_period - np.pi / 2.0)
+    force = DMTForce().force(z_offset + deflection)
+    free_amp, setpoint, tau = 60e-9, 48e-9, 0.02
+    phase_free, phase_contact, z_free, z_contact = 90.0, 45.0, 0.0, -15e-9
+    series_dt = every * chunk_s
+    engage = (round(0.1 * seconds / series_dt) + 0.5) * series_dt  # half way between two series samples
+
+    w = SessionWriter(path, compression=compression)
+    ch = {name: w.add_channel(f"{NS}/{name}" if name != "/parameter_events" else name, typ) for name, typ in (
+        ("cantilever/deflection", "std_msgs/msg/Float64MultiArray"),
+        ("cantilever/tip_sample_force", "std_msgs/msg/Float64MultiArray"),
+        ("clock", "rosgraph_msgs/msg/Clock"),
+        ("lockin/amplitude", "std_msgs/msg/Float64"), ("lockin/phase", "std_msgs/msg/Float64"),
+        ("lockin/xy", "geometry_msgs/msg/Vector3Stamped"),
+        ("z_controller/z_piezo", "std_msgs/msg/Float64"), ("z_controller/error", "std_msgs/msg/Float64"),
+        ("/parameter_events", "rcl_interfaces/msg/ParameterEvent"))}
+    w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", new={"setpoint": setpoint,
+                                                                                "enabled": False}), WALL_START_NS)
+    w.write(ch["/parameter_events"], _parameter_event(f"{NS}/cantilever", new={"output_sample_rate": sample_rate}),
+            WALL_START_NS)
+    prefix = _chunk_prefix(n)
+    d_bytes, f_bytes = deflection.tobytes(), force.tobytes()
+    bad_d = deflection.copy()
+    bad_d[1] = np.nan
+    bad_d_bytes = bad_d.tobytes()
+    non_finite_chunks, non_finite_amplitudes = set(non_finite_chunks), set(non_finite_amplitudes)
+    pre = np.empty(PREAMBLE_LENGTH)
+    freq = sample_rate / samples_per_period
+    engaged = False
+    series_times, amplitudes = [], []
+    for k in range(chunks):
+        t_start = k * chunk_s
+        pre[:] = (k * n, t_start, dt, 0.0, freq, z_offset)
+        sec, nsec = _stamp((k + 1) * chunk_s)
+        t_end = sec + 1e-9 * nsec  # what a reader makes of the stamp
+        log = WALL_START_NS + sec * 10**9 + nsec
+        if not engaged and t_end > engage:
+            engaged = True
+            w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", changed={"enabled": True}),
+                    WALL_START_NS + int(round(engage * 1e9)))
+        head = prefix + pre.tobytes()
+        w.write(ch["cantilever/deflection"], head + (bad_d_bytes if k in non_finite_chunks else d_bytes), log)
+        w.write(ch["cantilever/tip_sample_force"], head + f_bytes, log)
+        w.write(ch["clock"], _clock(sec, nsec), log)
+        if (k + 1) % every == 0:
+            contact = t_end > engage
+            a = setpoint + (free_amp - setpoint) * math.exp(-(t_end - engage) / tau) if contact else free_amp
+            if len(series_times) in non_finite_amplitudes:
+                a_written = float("nan")
+            else:
+                a_written = a
+            series_times.append(t_end)
+            amplitudes.append(a_written)
+            ph = phase_contact if contact else phase_free
+            w.write(ch["lockin/amplitude"], _float64(a_written), log)
+            w.write(ch["lockin/phase"], _float64(ph), log)
+            w.write(ch["lockin/xy"], _vector3_stamped(sec, nsec, a * math.cos(math.radians(ph)),
+                                                      -a * math.sin(math.radians(ph))), log)
+            w.write(ch["z_controller/z_piezo"], _float64(z_contact if contact else z_free), log)
+            if contact:
+                w.write(ch["z_controller/error"], _float64(setpoint - a), log)
+    w.close()
+
+    # expected numbers from the same sample times and today's definitions
+    t, a = np.array(series_times), np.array(amplitudes)
+    ok = np.isfinite(a)
+    after = (t > engage) & ok
+    ta, aa = t[t > engage], a[t > engage]
+    band = 0.02 * setpoint
+    settled = np.abs(aa - setpoint) <= band
+    outside = np.flatnonzero(~settled & np.isfinite(aa))
+    settling = 0.0 if outside.size == 0 else float(ta[outside[-1] + 1] - ta[0])
+    tail = after & (t >= ta[-1] - 0.2 * (ta[-1] - ta[0]))
+    gap = z_offset + deflection
+    expected = {
+        "deflection_samples": chunks * n, "force_samples": chunks * n,
+        "deflection_lost_samples": 0, "deflection_gaps": 0, "force_lost_samples": 0, "force_gaps": 0,
+        "deflection_non_finite": len(non_finite_chunks), "amplitude_non_finite": len(non_finite_amplitudes),
+        "free_amplitude_m": free_amp, "setpoint_m": setpoint, "setpoint_from_error_m": setpoint,
+        "engage_time_s": engage, "reached_amplitude_m": float(np.mean(a[tail])),
+        "settling_time_s": settling, "contact_phase_deg": phase_contact, "contact_z_piezo_m": z_contact,
+        "min_gap_m": float(gap.min()), "max_force_n": float(force.max()), "min_force_n": float(force.min()),
+        "force_distance_pairs": chunks * n,
+    }
+    return {"path": str(path), "seconds": chunks * chunk_s, "sample_rate": sample_rate, "chunk_samples": n,
+            "chunks": chunks, "series_samples": len(series_times), "z_offset_m": z_offset,
+            "deflection_amplitude_m": amp_d, "samples_per_period": samples_per_period,
+            "bytes": os.path.getsize(path), "messages": w.message_count, "expected": expected}
+
+
+# --- benchmark -------------------------------------------------------------------------------
+
+_BASELINE = ("import sys; from afm_ros.mcap_io import read_session\n"
+             "n = sum(1 for _ in read_session(sys.argv[1]))\nprint(n)\n")
+
+
+def _run_child(cmd: list[str]) -> dict:
+    """Run ``cmd`` in a fresh process: wall time and the child's peak RSS (own wait4 rusage)."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    out, err = proc.stdout.read(), proc.stderr.read()
+    proc.stdout.close()
+    proc.stderr.close()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {err.strip()[-500:]}")
+    return {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),
+            "cpu_s": round(usage.ru_utime + usage.ru_stime, 2), "stdout": out.strip()[-200:]}
+
+
+def report_command(session, out_dir) -> list[str]:
+    return [sys.executable, "-m", "afm_ros.report", str(session), "--out", str(out_dir)]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m afm_ros.bench_report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, nargs="+", default=[10.0, 60.0, 600.0],
+                        help="simulated lengths of the synthetic sessions [s]")
+    parser.add_argument("--rate", type=float, default=90e3, help="sample rate [S/s] (instrument: 900e3)")
+    parser.add_argument("--series-rate", type=float, default=1000.0, help="lock-in/z rate [Hz] (instrument: 1000)")
+    parser.add_argument("--keep", help="write the sessions and reports here instead of a removed temp dir")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="afm_bench_report_") as tmp:
+        base = Path(args.keep) if args.keep else Path(tmp)
+        base.mkdir(parents=True, exist_ok=True)
+        runs = []
+        for seconds in args.seconds:
+            path = base / f"synthetic_{seconds:g}s.mcap"
+            if path.exists():
+                path.unlink()
+            start = time.perf_counter()
+            info = write_synthetic_session(path, seconds, sample_rate=args.rate, series_rate=args.series_rate,
+                                           samples_per_period=3 if args.rate >= 900e3 else 20)
+            write_s = time.perf_counter() - start
+            baseline = _run_child([sys.executable, "-c", _BASELINE, str(path)])
+            rep = _run_child(report_command(path, base / f"report_{seconds:g}s"))
+            numbers = {}
+            md = (base / f"report_{seconds:g}s" / "report.md").read_text()
+            numbers["complete_streams"] = md.count("complete: no sample lost")
+            runs.append({"simulated_s": info["seconds"], "sample_rate": args.rate,
+                         "samples_per_stream": info["expected"]["deflection_samples"],
+                         "messages": info["messages"], "file_mb": round(info["bytes"] / 1e6, 1),
+                         "write_s": round(write_s, 1),
+                         "baseline_read_session": {k: baseline[k] for k in ("wall_s", "cpu_s", "peak_rss_mb")},
+                         "report": {k: rep[k] for k in ("wall_s", "cpu_s", "peak_rss_mb")},
+                         "report_md_streams_complete": numbers["complete_streams"]})
+            path.unlink()
+        print(json.dumps({"benchmark": "afm_report on synthetic sessions",
+                          "python": sys.version.split()[0], "cpus": os.cpu_count(),
+                          "load_average_1min": round(os.getloadavg()[0], 2), "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

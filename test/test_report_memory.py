@@ -1,0 +1,191 @@
+"""afm_report in bounded memory on a long session, exact numbers from streamed data, non-finite
+samples, and one-line errors for files from other tools (issue 8).
+
+The sessions are synthetic (afm_ros.bench_report.write_synthetic_session): the instrument's message
+pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an engage on
+/parameter_events) with known contents, so every number the report makes has an exact expectation.
+"""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afm_ros import report
+from afm_ros.bench_report import write_synthetic_session
+from afm_ros.mcap_io import SessionWriter
+
+BIN = Path(sys.executable).parent
+
+
+def _run_measured(*args) -> tuple[int, str, str, float]:
+    """afm_report in a fresh process: (exit status, stdout, stderr, peak RSS of that process [MB]).
+
+    The peak is the kernel's high-water mark of exactly this child (ru_maxrss from os.wait4), not a
+    sampled value, so no timing luck is involved. Output goes to files (no pipe can fill up).
+    """
+    import tempfile
+    exe = [str(BIN / "afm_report")] if (BIN / "afm_report").exists() else [sys.executable, "-m", "afm_ros.report"]
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as devnull:
+        proc = subprocess.Popen(exe + [str(a) for a in args], stdin=devnull, stdout=out, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        return proc.returncode, out.read().decode(), err.read().decode(), usage.ru_maxrss / 1024
+
+
+def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
+    """600 simulated seconds: 300 000 chunks per stream (more than report.TABLE_CAP /clock messages,
+    so the time table really is decimated), 12 M samples per stream, 60 000 lock-in outputs. The old
+    in-memory report needed ~161 B per sample pair (~1.9 GB here); the streaming one must stay under
+    report.PEAK_RSS_BOUND_MB, measured as the kernel's high-water mark of the report process."""
+    path = tmp_path / "long.mcap"
+    info = write_synthetic_session(path, 600.0)
+    assert info["chunks"] > report.TABLE_CAP and info["bytes"] < 200e6
+    status, out, err, peak_mb = _run_measured(path, "--out", tmp_path / "rep", "--json")
+    assert status == 0, err
+    assert "Traceback" not in err
+    assert peak_mb < report.PEAK_RSS_BOUND_MB, f"peak RSS {peak_mb:.0f} MB"
+    numbers = json.loads(out.strip().splitlines()[-1])
+    exp = info["expected"]
+    # counts are exact
+    for key in ("deflection_samples", "force_samples", "deflection_lost_samples", "deflection_gaps",
+                "force_lost_samples", "force_gaps", "deflection_non_finite", "force_distance_pairs"):
+        assert numbers[key] == exp[key], key
+    assert numbers["force_distance_kept"] == report.MAX_SCATTER_POINTS
+    # The tracking numbers average values the generator wrote: constants, or (reached amplitude) an
+    # exponential that has decayed below one ulp of the setpoint long before the window. Averaging
+    # N equal doubles is exact to a few ulp: 1e-12 relative.
+    for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m",
+                "setpoint_from_error_m"):
+        assert numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+    assert numbers["setpoint_m"] == exp["setpoint_m"]
+    # Engage time: the parameter event's receive time mapped through /clock receive times; log times
+    # near 1.7e18 ns are doubles with a 256 ns step when interpolated: 1e-6 s.
+    assert numbers["engage_time_s"] == pytest.approx(exp["engage_time_s"], abs=1e-6)
+    # settling time: a difference of two sample times the generator wrote (the same doubles)
+    assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
+    # force-distance extremes over ALL 12 M pairs: the same doubles as the generator's period
+    for key in ("min_gap_m", "max_force_n", "min_force_n"):
+        assert numbers[key] == exp[key], key
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert md.count("complete: no sample lost") == 2
+    assert "File complete" in md and "every 2nd /clock message" in md
+    for name in ("deflection_force.png", "lockin_z.png", "force_distance.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 5000
+
+
+def test_kept_force_distance_pairs_are_exact_and_evenly_spaced(tmp_path):
+    """60 s (1.2 M pairs > MAX_SCATTER_POINTS): exactly MAX_SCATTER_POINTS pairs are kept, evenly
+    spaced in the sample index, and each one lies on the DMT curve the generator used (gap and force
+    of the same sample: exact, 0 relative error; a pairing off by one sample would miss by up to
+    the force's full range)."""
+    from afm_ros.physics.forces import DMTForce
+    path = tmp_path / "s.mcap"
+    info = write_synthetic_session(path, 60.0)
+    data = report.load_session(path)
+    gap, force, index = report.force_distance(data)
+    n, m = info["expected"]["force_distance_pairs"], report.MAX_SCATTER_POINTS
+    assert index.size == m
+    assert np.all(np.diff(index) >= n // m) and np.all(np.diff(index) <= -(-n // m))
+    assert np.array_equal(force, DMTForce().force(gap))
+    i, period = index % info["chunk_samples"], info["samples_per_period"]  # the generator's expression
+    assert np.array_equal(gap, info["z_offset_m"] + info["deflection_amplitude_m"]
+                          * np.sin(2.0 * np.pi * i / period - np.pi / 2.0))
+    assert data.passes == 2
+
+
+def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
+    """Old recordings could hold NaN samples: they are counted, reported, left out of the envelope,
+    the force-distance numbers and every average (the numbers equal those of the finite samples)."""
+    path = tmp_path / "nan.mcap"
+    # series samples: 100 Hz, engage at 0.405 s; 399 = the last one (inside the reached-amplitude
+    # window), 5 = before engaging (outside the free-amplitude window)
+    info = write_synthetic_session(path, 4.0, non_finite_chunks=(10, 500), non_finite_amplitudes=(5, 399))
+    rep = report.make_report(path, tmp_path / "rep")
+    exp, numbers = info["expected"], rep.numbers
+    assert numbers["deflection_non_finite"] == 2 and numbers["force_non_finite"] == 0
+    assert numbers["amplitude_non_finite"] == 2
+    assert rep.data.fd.non_finite == 2 and numbers["force_distance_pairs"] == exp["force_distance_pairs"]
+    for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg"):
+        assert math_finite(numbers[key]) and numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+    assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
+    assert numbers["min_gap_m"] == exp["min_gap_m"]
+    md = rep.markdown.read_text()
+    assert "2 non-finite samples" in md and "2 non-finite amplitude samples" in md
+    assert "2 non-finite pairs left out" in md
+    env = rep.data.deflection.envelope
+    assert not env.is_raw and np.all(np.isfinite(env.lo[~np.isnan(env.lo)]))
+
+
+def math_finite(x) -> bool:
+    return x is not None and np.isfinite(x)
+
+
+# --- files from other tools -----------------------------------------------------------------
+
+
+def _foreign(path, topic, type_name, payload):
+    w = SessionWriter(path)
+    cid = w.add_channel(topic, type_name)
+    w.write(cid, payload, 1_000_000_000)
+    w.close()
+
+
+def _string_cdr(text: str) -> bytes:
+    raw = text.encode() + b"\x00"
+    return b"\x00\x01\x00\x00" + struct.pack("<I", len(raw)) + raw
+
+
+def _not_a_chunk() -> bytes:
+    # a well-formed Float64MultiArray with no layout dimension, data_offset 0 and three values
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Float64MultiArray
+    return serialize_message(Float64MultiArray(data=[1.0, 2.0, 3.0]))
+
+
+FOREIGN = {
+    "string_deflection": ("/x/cantilever/deflection", "std_msgs/msg/String", _string_cdr("hello"),
+                          ["/x/cantilever/deflection", "std_msgs/msg/String", "std_msgs/msg/Float64MultiArray"]),
+    "garbage_deflection": ("/x/cantilever/deflection", "std_msgs/msg/Float64MultiArray", b"\x00\x01\x00\x00garbage",
+                           ["/x/cantilever/deflection", "does not deserialise"]),
+    "not_a_chunk": ("/x/cantilever/tip_sample_force", "std_msgs/msg/Float64MultiArray", _not_a_chunk(),
+                    ["/x/cantilever/tip_sample_force", "not a sample chunk in the afm_ros layout"]),
+    "garbage_amplitude": ("/x/lockin/amplitude", "std_msgs/msg/Float64", b"\x00\x01\x00",
+                          ["/x/lockin/amplitude", "does not deserialise as std_msgs/msg/Float64"]),
+    "clock_of_other_type": ("/clock", "std_msgs/msg/Float64", b"\x00\x01\x00\x00" + bytes(8),
+                            ["/clock", "rosgraph_msgs/msg/Clock"]),
+    "garbage_parameter_event": ("/parameter_events", "rcl_interfaces/msg/ParameterEvent", b"\x00\x01\x00\x00\xff",
+                                ["/parameter_events", "does not deserialise"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(FOREIGN))
+def test_foreign_file_gives_one_line_error(tmp_path, capsys, case):
+    topic, type_name, payload, words = FOREIGN[case]
+    path = tmp_path / f"{case}.mcap"
+    _foreign(path, topic, type_name, payload)
+    assert report.main([str(path), "--out", str(tmp_path / "rep")]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("afm_report: error: ") and str(path) in err
+    for w in words:
+        assert w in err
+
+
+@pytest.mark.parametrize("case", ["string_deflection", "garbage_deflection"])
+def test_foreign_file_from_the_command_line_no_traceback(tmp_path, case):
+    topic, type_name, payload, words = FOREIGN[case]
+    path = tmp_path / f"{case}.mcap"
+    _foreign(path, topic, type_name, payload)
+    status, out, err, _ = _run_measured(path, "--out", tmp_path / "rep")
+    assert status == 1
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert words[0] in err
