@@ -21,7 +21,6 @@ import argparse
 import json
 import math
 import os
-import resource
 import struct
 import subprocess
 import sys
@@ -81,7 +80,8 @@ def _parameter_event(node: str, new: dict | None = None, changed: dict | None = 
 
 def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chunk_s: float = 0.002,
                             series_rate: float = 100.0, samples_per_period: int = 20,
-                            compression: str = "zstd", non_finite_chunks=(), non_finite_amplitudes=()) -> dict:
+                            compression: str = "zstd", non_finite_chunks=(), non_finite_amplitudes=(),
+                            record_setpoint: bool = True) -> dict:
     """Write a session of ``seconds`` simulated seconds into ``path`` and return what it holds.
 
     Deflection: ``A_d sin(2 pi i / P - pi/2)`` (P = ``samples_per_period``, every chunk holds whole
@@ -92,7 +92,8 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     with the exact simulated time), z piezo and, after engaging, error = setpoint - amplitude. The
     z_controller's ``enabled`` switches on at ``engage_time_s`` (a /parameter_events change).
     ``non_finite_chunks``: chunk numbers whose deflection sample 1 is NaN; ``non_finite_amplitudes``:
-    series sample numbers whose amplitude is NaN.
+    series sample numbers whose amplitude is NaN. ``record_setpoint`` False: the z_controller's
+    parameters lack ``setpoint`` (the report must rebuild it from the error).
 
     Returns the expected report numbers (``expected``) and the construction constants.
     """
@@ -103,7 +104,7 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     if n % samples_per_period:
         raise ValueError(f"a chunk of {n} samples does not hold whole periods of {samples_per_period}")
     chunks = int(round(seconds / chunk_s))
-    every = int(round(1.0 / (series_rate * chunk_s)))  # chunks per series sample
+    series_dt = 1.0 / series_rate
     dt = 1.0 / sample_rate
     amp_d, z_offset = 20e-9, 10e-9
     i = np.arange(n)
@@ -111,7 +112,6 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     force = DMTForce().force(z_offset + deflection)
     free_amp, setpoint, tau = 60e-9, 48e-9, 0.02
     phase_free, phase_contact, z_free, z_contact = 90.0, 45.0, 0.0, -15e-9
-    series_dt = every * chunk_s
     engage = (round(0.1 * seconds / series_dt) + 0.5) * series_dt  # half way between two series samples
 
     w = SessionWriter(path, compression=compression)
@@ -123,8 +123,8 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
         ("lockin/xy", "geometry_msgs/msg/Vector3Stamped"),
         ("z_controller/z_piezo", "std_msgs/msg/Float64"), ("z_controller/error", "std_msgs/msg/Float64"),
         ("/parameter_events", "rcl_interfaces/msg/ParameterEvent"))}
-    w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", new={"setpoint": setpoint,
-                                                                                "enabled": False}), WALL_START_NS)
+    z_params = {"setpoint": setpoint, "enabled": False} if record_setpoint else {"enabled": False}
+    w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", new=z_params), WALL_START_NS)
     w.write(ch["/parameter_events"], _parameter_event(f"{NS}/cantilever", new={"output_sample_rate": sample_rate}),
             WALL_START_NS)
     prefix = _chunk_prefix(n)
@@ -136,38 +136,46 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     pre = np.empty(PREAMBLE_LENGTH)
     freq = sample_rate / samples_per_period
     engaged = False
+
+    def _engage() -> bool:
+        w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", changed={"enabled": True}),
+                WALL_START_NS + int(round(engage * 1e9)))
+        return True
+
     series_times, amplitudes = [], []
     for k in range(chunks):
         t_start = k * chunk_s
         pre[:] = (k * n, t_start, dt, 0.0, freq, z_offset)
         sec, nsec = _stamp((k + 1) * chunk_s)
         t_end = sec + 1e-9 * nsec  # what a reader makes of the stamp
-        log = WALL_START_NS + sec * 10**9 + nsec
-        if not engaged and t_end > engage:
-            engaged = True
-            w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", changed={"enabled": True}),
-                    WALL_START_NS + int(round(engage * 1e9)))
-        head = prefix + pre.tobytes()
-        w.write(ch["cantilever/deflection"], head + (bad_d_bytes if k in non_finite_chunks else d_bytes), log)
-        w.write(ch["cantilever/tip_sample_force"], head + f_bytes, log)
-        w.write(ch["clock"], _clock(sec, nsec), log)
-        if (k + 1) % every == 0:
-            contact = t_end > engage
-            a = setpoint + (free_amp - setpoint) * math.exp(-(t_end - engage) / tau) if contact else free_amp
-            if len(series_times) in non_finite_amplitudes:
-                a_written = float("nan")
-            else:
-                a_written = a
-            series_times.append(t_end)
+        chunk_log = WALL_START_NS + sec * 10**9 + nsec
+        # in receive-time order: the series samples up to the chunk's end (the engage event at its
+        # time among them), then the chunk and its /clock
+        while (len(series_times) + 1) * series_dt <= (k + 1) * chunk_s * (1 + 1e-12):
+            sec_s, nsec_s = _stamp((len(series_times) + 1) * series_dt)
+            t_s = sec_s + 1e-9 * nsec_s
+            log = WALL_START_NS + sec_s * 10**9 + nsec_s
+            contact = t_s > engage
+            if contact and not engaged:
+                engaged = _engage()
+            a = setpoint + (free_amp - setpoint) * math.exp(-(t_s - engage) / tau) if contact else free_amp
+            a_written = float("nan") if len(series_times) in non_finite_amplitudes else a
+            series_times.append(t_s)
             amplitudes.append(a_written)
             ph = phase_contact if contact else phase_free
             w.write(ch["lockin/amplitude"], _float64(a_written), log)
             w.write(ch["lockin/phase"], _float64(ph), log)
-            w.write(ch["lockin/xy"], _vector3_stamped(sec, nsec, a * math.cos(math.radians(ph)),
+            w.write(ch["lockin/xy"], _vector3_stamped(sec_s, nsec_s, a * math.cos(math.radians(ph)),
                                                       -a * math.sin(math.radians(ph))), log)
             w.write(ch["z_controller/z_piezo"], _float64(z_contact if contact else z_free), log)
             if contact:
                 w.write(ch["z_controller/error"], _float64(setpoint - a), log)
+        if not engaged and t_end >= engage:
+            engaged = _engage()
+        head = prefix + pre.tobytes()
+        w.write(ch["cantilever/deflection"], head + (bad_d_bytes if k in non_finite_chunks else d_bytes), chunk_log)
+        w.write(ch["cantilever/tip_sample_force"], head + f_bytes, chunk_log)
+        w.write(ch["clock"], _clock(sec, nsec), chunk_log)
     w.close()
 
     # expected numbers from the same sample times and today's definitions
@@ -202,21 +210,34 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
 _BASELINE = ("import sys; from afm_ros.mcap_io import read_session\n"
              "n = sum(1 for _ in read_session(sys.argv[1]))\nprint(n)\n")
 
+# A child's ru_maxrss starts at its parent's resident size (Linux keeps the high-water mark of the
+# memory image it had before exec, and subprocess spawns with vfork), so measuring from a large
+# process (pytest, this benchmark) would report the parent. The command therefore runs under a
+# small intermediate (python -S, ~10 MB) whose only child it is: an upper bound that is off by at
+# most the intermediate's size, and the kernel's exact high-water mark (no sampling).
+_PROBE = ("import resource, subprocess, sys\n"
+          "rc = subprocess.call(sys.argv[2:])\n"
+          "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))\n"
+          "sys.exit(rc)\n")
+
+
+def run_measured(cmd: list[str], timeout: float = 3600.0) -> dict:
+    """Run ``cmd``: exit status, stdout, stderr, wall time [s] and peak RSS [MB] of that process."""
+    with tempfile.TemporaryDirectory(prefix="afm_rss_") as tmp:
+        rss = Path(tmp) / "maxrss_kb"
+        start = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-S", "-c", _PROBE, str(rss), *[str(c) for c in cmd]],
+                              capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+        wall = time.perf_counter() - start
+        return {"status": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr, "wall_s": wall,
+                "peak_rss_mb": int(rss.read_text()) / 1024}
+
 
 def _run_child(cmd: list[str]) -> dict:
-    """Run ``cmd`` in a fresh process: wall time and the child's peak RSS (own wait4 rusage)."""
-    start = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - start
-    out, err = proc.stdout.read(), proc.stderr.read()
-    proc.stdout.close()
-    proc.stderr.close()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {err.strip()[-500:]}")
-    return {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),
-            "cpu_s": round(usage.ru_utime + usage.ru_stime, 2), "stdout": out.strip()[-200:]}
+    r = run_measured(cmd)
+    if r["status"] != 0:
+        raise RuntimeError(f"{' '.join(map(str, cmd))} failed ({r['status']}): {r['stderr'].strip()[-500:]}")
+    return {"wall_s": round(r["wall_s"], 2), "peak_rss_mb": round(r["peak_rss_mb"], 1)}
 
 
 def report_command(session, out_dir) -> list[str]:
@@ -252,8 +273,7 @@ def main(argv=None) -> int:
                          "samples_per_stream": info["expected"]["deflection_samples"],
                          "messages": info["messages"], "file_mb": round(info["bytes"] / 1e6, 1),
                          "write_s": round(write_s, 1),
-                         "baseline_read_session": {k: baseline[k] for k in ("wall_s", "cpu_s", "peak_rss_mb")},
-                         "report": {k: rep[k] for k in ("wall_s", "cpu_s", "peak_rss_mb")},
+                         "baseline_read_session": baseline, "report": rep,
                          "report_md_streams_complete": numbers["complete_streams"]})
             path.unlink()
         print(json.dumps({"benchmark": "afm_report on synthetic sessions",

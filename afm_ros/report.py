@@ -252,6 +252,97 @@ class StrideTable:
         return out
 
 
+class TimeMapTable:
+    """(log_time ns, simulated time s) points for the time mapping, at most ``cap`` of them.
+
+    Every point is kept until the table is full; then the table becomes a simplified polyline
+    (swinging-door): a point is dropped only if the straight line between its kept neighbours passes
+    within ``tol`` [s] of it, so pauses and rate changes (corners) stay; when full again, ``tol``
+    doubles and the kept points are simplified once more. Interpolating the table differs from
+    interpolating every point by at most ``error_bound`` (the sum of the tolerances, < 2 tol).
+    """
+
+    TOL0 = 1e-6  # [s] first tolerance once the table is full
+
+    def __init__(self, cap: int = TABLE_CAP):
+        self.cap = cap
+        self.x = np.empty(min(cap, 1024), dtype=np.int64)
+        self.y = np.empty(min(cap, 1024))
+        self.n = 0
+        self.seen = 0
+        self.tol = 0.0
+        self.error_bound = 0.0
+        self._pending = None  # last point seen but not kept (tol > 0)
+        self._lo, self._hi = -math.inf, math.inf  # slopes from the last kept point that cover the dropped ones
+
+    def _keep(self, x, y) -> None:
+        if self.n == self.x.shape[0]:
+            size = min(self.cap + 1, 2 * self.n)
+            self.x, self.y = np.resize(self.x, size), np.resize(self.y, size)
+        self.x[self.n], self.y[self.n] = x, y
+        self.n += 1
+
+    def add(self, x: int, y: float) -> None:
+        self.seen += 1
+        self._add(x, y)
+        if self.n >= self.cap:
+            self._shrink()
+
+    def _add(self, x, y) -> None:
+        if self.tol == 0.0 or self.n == 0 or self.tol == math.inf:
+            self._keep(x, y)
+            return
+        ax, ay = int(self.x[self.n - 1]), float(self.y[self.n - 1])
+        dx = x - ax
+        if dx > 0:
+            lo = max(self._lo, (y - self.tol - ay) / dx)
+            hi = min(self._hi, (y + self.tol - ay) / dx)
+            if lo <= hi:  # one line from the last kept point covers every dropped point and this one
+                self._lo, self._hi, self._pending = lo, hi, (x, y)
+                return
+        if self._pending is not None:  # the previous point becomes a corner; start again from it
+            self._keep(*self._corner())
+            self._pending = None
+            self._lo, self._hi = -math.inf, math.inf
+            self._add(x, y)
+        else:  # not after the last kept point (unsorted receive times): keep it as it is
+            self._keep(x, y)
+
+    def _shrink(self) -> None:
+        x, y = self.arrays()
+        tol = self.tol
+        while True:  # simplify the kept points with a doubled tolerance until half the table is free
+            tol = max(2.0 * tol, self.TOL0)
+            self.tol, self.n, self._pending, self._lo, self._hi = tol, 0, None, -math.inf, math.inf
+            for xi, yi in zip(x.tolist(), y.tolist()):
+                self._add(xi, yi)
+            if self.n + 1 <= self.cap // 2:
+                self.error_bound += tol  # the kept points were within the old bound, now within tol of them
+                return
+            if tol > 1.0:  # not a time map (e.g. unsorted receive times): every second point
+                x, y = self.arrays()
+                keep = np.unique(np.r_[np.arange(0, x.size, 2), x.size - 1])
+                self.n, self._pending = keep.size, None
+                self.x[: self.n], self.y[: self.n] = x[keep], y[keep]
+                self.tol, self.error_bound = math.inf, math.inf
+                return
+
+    def _corner(self) -> tuple[int, float]:
+        """The pending point moved (by <= tol) onto a line from the last kept point that passes within
+        tol of every point dropped since."""
+        ax, ay = int(self.x[self.n - 1]), float(self.y[self.n - 1])
+        px, py = self._pending
+        slope = min(max((py - ay) / (px - ax), self._lo), self._hi)
+        return px, ay + slope * (px - ax)
+
+    def arrays(self) -> list[np.ndarray]:
+        x, y = self.x[: self.n].copy(), self.y[: self.n].copy()
+        if self._pending is not None:
+            px, py = self._corner()
+            x, y = np.append(x, px), np.append(y, py)
+        return [x, y]
+
+
 class Envelope:
     """A trace for a figure: every sample while short, else min/max in fixed time bins."""
 
@@ -534,7 +625,7 @@ def _survey(path) -> tuple[SessionScan, dict, dict, dict, list, list]:
                 header, samples = _cdr_chunk(m.data)
                 s = chunks.get(m.topic)
                 if s is None:
-                    s = chunks[m.topic] = ChunkStream(m.topic, receive=StrideTable((np.int64, np.float64)))
+                    s = chunks[m.topic] = ChunkStream(m.topic, receive=TimeMapTable())
                 s.survey(header, samples.shape[0], m.log_time)
             elif role == "parameter_events":
                 from rclpy.serialization import deserialize_message
@@ -543,8 +634,9 @@ def _survey(path) -> tuple[SessionScan, dict, dict, dict, list, list]:
             else:
                 s = series.get(m.topic)
                 if s is None:
-                    dtypes = {"xy": (np.int64, np.float64), "clock": (np.int64, np.float64)}.get(role, (np.int64,))
-                    s = series[m.topic] = Series(m.topic, role, times=StrideTable(dtypes))
+                    times = TimeMapTable() if role == "clock" else \
+                        StrideTable((np.int64, np.float64) if role == "xy" else (np.int64,))
+                    s = series[m.topic] = Series(m.topic, role, times=times)
                 if role == "xy":
                     stamp = _cdr_vector3_stamped(m.data)[0]
                     s.survey(m.log_time, stamp)
@@ -635,22 +727,25 @@ def _plan(data: SessionData, events: list) -> _Plan:
     for node, values in from_events.items():
         data.initial_parameters.setdefault(node, values)
 
-    ref = None
+    ref = table = None
     clock = data.series.get("clock")
     if clock is not None and clock.count >= 2:
-        lt, t = clock.times.arrays()
-        ref = (lt, t)
+        table, what = clock.times, "/clock"
     else:
         for s in (data.deflection, data.force):
             if s is not None and s.messages >= 2:
-                ref = tuple(s.receive.arrays())
+                table, what = s.receive, s.topic + " chunks"
                 break
-    if ref is not None:
-        order = np.argsort(ref[0], kind="stable")
-        ref = (ref[0][order], ref[1][order])
-        stride = clock.times.stride if clock is not None and clock.count >= 2 else None
-        if stride and stride > 1:
-            data.notes.append(f"The time mapping uses every {_nth(stride)} /clock message.")
+    if table is not None:
+        lt, t = table.arrays()
+        order = np.argsort(lt, kind="stable")
+        ref = (lt[order], t[order])
+        if table.tol > 0:
+            bound = (f"within {table.error_bound * 1e6:.3g} µs of" if math.isfinite(table.error_bound)
+                     else "close to")
+            data.notes.append(f"Times from receive times: the mapping through {table.seen} {what} messages "
+                              f"is a polyline of {table.n + (table._pending is not None)} points, {bound} "
+                              "the one through all of them.")
     t0 = min((s.min_log for s in data.series.values() if s.min_log is not None), default=0)
     if ref is None and data.deflection is None:
         data.time_axis = "wall time since first message [s]"
@@ -805,7 +900,7 @@ class _Collector:
             fd.min_gap = min(fd.min_gap, float(gap[ok].min()))
             fd.max_force = max(fd.max_force, float(force[ok].max()))
             fd.min_force = min(fd.min_force, float(force[ok].min()))
-        room = MAX_SCATTER_POINTS - self._kept_n
+        room = (MAX_SCATTER_POINTS if self._kept is None else self._kept[0].shape[0]) - self._kept_n
         if room <= 0:
             return
         span, base, m = self.data.deflection.index_span, self.data.deflection.min_index, MAX_SCATTER_POINTS
@@ -953,7 +1048,9 @@ class _Collector:
                 self.fd.gap, self.fd.force, self.fd.index = (k[: self._kept_n] for k in self._kept)
             self.data.fd = self.fd if self.fd.pairs else None
 
-    def run(self, path, roles) -> None:
+    def run(self, path, roles, limits: dict) -> None:
+        """Read the chosen topics of ``path``, at most ``limits[topic]`` messages each (what pass 1
+        saw: a file that grows meanwhile, e.g. one still being recorded, is reported as surveyed)."""
         self._kept, self._kept_n = None, 0
         topics = {self.data.topics[r]: r for r in roles if r in self.data.topics}
         streams = {"deflection": self.data.deflection, "force": self.data.force}
@@ -961,6 +1058,8 @@ class _Collector:
         for m in read_session(path, SessionScan(Path(path)), set(topics)):
             role = topics[m.topic]
             counts[m.topic] += 1
+            if counts[m.topic] > limits.get(m.topic, 0):
+                continue
             try:
                 if role in CHUNK_ROLES:
                     self.chunk(role, streams[role], m.data)
@@ -1018,14 +1117,14 @@ def load_session(path) -> SessionData:
                    if role in data.topics and data.topics[role] in series}
     plan = _plan(data, events)
     collector = _Collector(data, plan)
-    collector.run(path, [r for r in ("deflection", "force", "xy") + SCALAR_ROLES])
+    collector.run(path, ["deflection", "force", "xy", *SCALAR_ROLES], counts)
     data.passes = 2
     if plan.setpoint is None and collector.median.seen and "amplitude" in data.series:
         # no setpoint parameter recorded: the setpoint is rebuilt from the error, and the tracking
         # numbers that compare with it need the amplitude once more
         plan.setpoint = float(np.median(collector.median.arrays()[0]))
         again = _Collector(data, plan, tracking_only=True)
-        again.run(path, ["xy", "amplitude"])
+        again.run(path, ["xy", "amplitude"], counts)
         data.passes = 3
         collector.tail, collector.after_n, collector.settling, collector.ta0 = \
             again.tail, again.after_n, again.settling, again.ta0

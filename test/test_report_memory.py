@@ -8,9 +8,7 @@ pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an eng
 from __future__ import annotations
 
 import json
-import os
 import struct
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,7 +16,7 @@ import numpy as np
 import pytest
 
 from afm_ros import report
-from afm_ros.bench_report import write_synthetic_session
+from afm_ros.bench_report import run_measured, write_synthetic_session
 from afm_ros.mcap_io import SessionWriter
 
 BIN = Path(sys.executable).parent
@@ -27,18 +25,13 @@ BIN = Path(sys.executable).parent
 def _run_measured(*args) -> tuple[int, str, str, float]:
     """afm_report in a fresh process: (exit status, stdout, stderr, peak RSS of that process [MB]).
 
-    The peak is the kernel's high-water mark of exactly this child (ru_maxrss from os.wait4), not a
-    sampled value, so no timing luck is involved. Output goes to files (no pipe can fill up).
+    The peak is the kernel's high-water mark (ru_maxrss) of the report process alone, taken by a
+    small intermediate process (see bench_report.run_measured: measured from pytest directly, a
+    child's ru_maxrss would start at pytest's own size). No sampling, so no timing luck.
     """
-    import tempfile
     exe = [str(BIN / "afm_report")] if (BIN / "afm_report").exists() else [sys.executable, "-m", "afm_ros.report"]
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as devnull:
-        proc = subprocess.Popen(exe + [str(a) for a in args], stdin=devnull, stdout=out, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        return proc.returncode, out.read().decode(), err.read().decode(), usage.ru_maxrss / 1024
+    r = run_measured(exe + [str(a) for a in args], timeout=600)
+    return r["status"], r["stdout"], r["stderr"], r["peak_rss_mb"]
 
 
 def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
@@ -77,7 +70,9 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
         assert numbers[key] == exp[key], key
     md = (tmp_path / "rep" / "report.md").read_text()
     assert md.count("complete: no sample lost") == 2
-    assert "File complete" in md and "every 2nd /clock message" in md
+    assert "File complete" in md
+    # 300 000 /clock messages > TABLE_CAP: the time map became a polyline (the clock here is one line)
+    assert "mapping through 300000 /clock messages is a polyline of" in md
     for name in ("deflection_force.png", "lockin_z.png", "force_distance.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 5000
 
@@ -123,6 +118,53 @@ def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
     assert "2 non-finite pairs left out" in md
     env = rep.data.deflection.envelope
     assert not env.is_raw and np.all(np.isfinite(env.lo[~np.isnan(env.lo)]))
+
+
+def test_time_map_table_keeps_corners_and_bounds_its_error():
+    """The /clock table of a long session: 1 M messages (2000 s at 500 Hz) with two pauses, a change
+    of real-time factor and receive-time jitter (sigma 0.02 / 0.2 / 2 ms), into a table of 4096 rows.
+    Interpolating the table must stay within its stated error bound of interpolating every message,
+    everywhere (checked at 300 000 receive times), and with no jitter the pauses stay corners within 1 us
+    (a stride-decimated table would cut them by up to the stride)."""
+    rng = np.random.default_rng(3)
+    n = 1_000_000
+    t = np.arange(1, n + 1) * 0.002
+    wall = t.copy()
+    wall[300_000:] += 5.0  # paused for 5 s
+    wall[700_000:] += 3.0
+    wall[500_000:] = wall[500_000] + (wall[500_000:] - wall[500_000]) * 2.0  # half real time from here
+    for sigma in (0.0, 2e4, 2e5, 2e6):  # [ns]
+        lt = np.maximum.accumulate((1_700_000_000e9 + wall * 1e9 + rng.normal(0, sigma, n)).astype(np.int64))
+        table = report.TimeMapTable(cap=4096)
+        for a, b in zip(lt.tolist(), t.tolist()):
+            table.add(a, b)
+        x, y = table.arrays()
+        assert x.size <= 4096 and table.seen == n
+        q = np.r_[np.sort(rng.integers(lt[0], lt[-1], 200_000)), lt[::10]]
+        err = np.max(np.abs(np.interp(q, x, y) - np.interp(q, lt, t)))
+        assert err <= table.error_bound <= 2 * table.tol, (sigma, err, table.error_bound)
+        if sigma == 0.0:
+            assert table.error_bound <= 1e-6
+            assert x.size < 20  # four straight pieces and their corners
+    # while it has room, the table is every point, untouched
+    small = report.TimeMapTable(cap=4096)
+    for a, b in zip(lt[:4000].tolist(), t[:4000].tolist()):
+        small.add(a, b)
+    x, y = small.arrays()
+    assert np.array_equal(x, lt[:4000]) and np.array_equal(y, t[:4000]) and small.tol == 0
+
+
+def test_setpoint_rebuilt_from_the_error_when_no_parameter_was_recorded(tmp_path):
+    """No setpoint parameter in the file: the setpoint is the median of amplitude + error over the
+    last 20 % of the error (as before), and the numbers that compare with it (rms error, settling)
+    need a third read of the amplitude; they equal those of a file with the parameter."""
+    with_param, without = tmp_path / "a.mcap", tmp_path / "b.mcap"
+    write_synthetic_session(with_param, 4.0)
+    write_synthetic_session(without, 4.0, record_setpoint=False)
+    a, b = report.load_session(with_param), report.load_session(without)
+    assert (a.passes, b.passes) == (2, 3)
+    assert b.tracking["setpoint_m"] == b.tracking["setpoint_from_error_m"] == a.tracking["setpoint_m"]
+    assert b.tracking == a.tracking
 
 
 def math_finite(x) -> bool:
