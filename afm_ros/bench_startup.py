@@ -282,6 +282,7 @@ def _command(node: str, tree: str | None) -> list:
 def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"), trees: dict | None = None,
         current: bool = True, timeout: float = 30.0) -> dict:
     variants = ({"current": None} if current else {}) | dict(trees or {})
+    load_before = os.getloadavg()[0]
     tmp = tempfile.mkdtemp(prefix="afm_bench_startup_")
     bench = StartupBench(tmp, timeout)
     try:
@@ -331,7 +332,8 @@ def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"
     import numba
     return {
         "benchmark": "spawn -> first message received by a subscriber in the benchmark process [s]",
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numba": numba.__version__},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numba": numba.__version__,
+                    "load_average_1min_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)]},
         "repeats": repeats,
         "baseline_bare_rclpy": summary(baseline),
         "variants": {v: {"command": " ".join(_command(nodes[0], tree)) + (f" (PYTHONPATH={tree})" if tree else ""),
