@@ -14,22 +14,25 @@
   every change, the setpoint-tracking numbers (free amplitude, setpoint, reached amplitude,
   settling time, phase and z piezo in contact) and the force-distance extremes (over all pairs).
 
-Memory does not grow with the session: the file is streamed twice and never held.
+Memory does not grow with the session (peak RSS < :data:`PEAK_RSS_BOUND_MB` for one instrument's
+recording of any length): the file is streamed twice and never held.
 
-- Pass 1 (cheap, nothing but the chunk preambles and the small messages is parsed): topics, their
-  types and counts, the /clock table (receive time -> simulated time), the sample-index continuity
-  and time range of every chunk stream, parameters and their changes, first/last receive times of
-  every series and a table of every k-th sample time of each series.
+- Pass 1 (nothing but the chunk preambles and the small messages is parsed): topics, their types
+  and counts, the /clock table (receive time -> simulated time), the sample-index continuity and
+  time range of every chunk stream, parameters and their changes, first/last receive times of
+  every series and a table of the sample times of each series.
 - Between the passes: topic per role, the time mapping, engage time, setpoint and the averaging
   windows of the tracking numbers (today's definitions, e.g. the last 20 % after engaging).
 - Pass 2: the chunks one at a time and the series in batches feed fixed-size accumulators:
   min/max envelopes with :data:`ENVELOPE_BINS` bins over the time range known from pass 1, the
   last :data:`ZOOM_PERIODS` drive periods, running sums over the windows, an O(1) settling tracker,
-  the force-distance extremes and an evenly spaced subset of the (gap, force) pairs.
+  the force-distance extremes over all pairs and an evenly spaced subset of them.
 
-Every table is capped (:data:`TABLE_CAP` rows, the stride doubles when full), so the numbers are
-exactly those of a full in-memory computation while a series has at most TABLE_CAP samples
-(about 260 s at 1 kHz) and the window bounds move by at most a few samples beyond.
+Tables hold at most :data:`TABLE_CAP` rows. Until then everything is exact (the numbers equal those
+of the former in-memory report bit for bit). Beyond, the time map becomes a polyline within a
+stated tolerance of the full one (:class:`TimeMapTable`), the series' sample-time tables keep every
+k-th time (the start of the free-amplitude window may move by < k samples; the other windows'
+bounds stay exact), and the setpoint-from-error median is taken over every k-th value.
 
 Works on truncated and damaged files (reads the intact part, says so) and on files with only some
 topics (figures and numbers whose inputs are missing are skipped with a note). A file from another
@@ -541,7 +544,7 @@ class Series:
     last_log: int | None = None
     min_log: int | None = None
     max_log: int | None = None
-    times: StrideTable | None = None  # log_time (and stamp for xy, value for clock) of every k-th message
+    times: StrideTable | TimeMapTable | None = None  # log_time (and xy stamp / clock value) of the messages
     stamp_first: float = float("nan")  # xy only: header stamps [s]
     stamp_last: float = float("nan")
     stamp_min: float = float("inf")
@@ -559,7 +562,8 @@ class Series:
         self.last_log = log_time
         self.min_log = log_time if self.min_log is None else min(self.min_log, log_time)
         self.max_log = log_time if self.max_log is None else max(self.max_log, log_time)
-        self.times.add(log_time, *extra)
+        if self.times is not None:
+            self.times.add(log_time, *extra)
 
 
 @dataclass
@@ -634,8 +638,9 @@ def _survey(path) -> tuple[SessionScan, dict, dict, dict, list, list]:
             else:
                 s = series.get(m.topic)
                 if s is None:
-                    times = TimeMapTable() if role == "clock" else \
-                        StrideTable((np.int64, np.float64) if role == "xy" else (np.int64,))
+                    # sample times are needed for the time map (clock) and the amplitude's windows
+                    times = {"clock": TimeMapTable, "xy": lambda: StrideTable((np.int64, np.float64)),
+                             "amplitude": lambda: StrideTable((np.int64,))}.get(role, lambda: None)()
                     s = series[m.topic] = Series(m.topic, role, times=times)
                 if role == "xy":
                     stamp = _cdr_vector3_stamped(m.data)[0]
@@ -744,7 +749,7 @@ def _plan(data: SessionData, events: list) -> _Plan:
             bound = (f"within {table.error_bound * 1e6:.3g} µs of" if math.isfinite(table.error_bound)
                      else "close to")
             data.notes.append(f"Times from receive times: the mapping through {table.seen} {what} messages "
-                              f"is a polyline of {table.n + (table._pending is not None)} points, {bound} "
+                              f"is a polyline of {lt.size} points, {bound} "
                               "the one through all of them.")
     t0 = min((s.min_log for s in data.series.values() if s.min_log is not None), default=0)
     if ref is None and data.deflection is None:
@@ -813,9 +818,9 @@ class _Collector:
         self.contact = {"phase": WindowMean(), "z_piezo": WindowMean()}
         self.median = StrideTable((np.float64,))
         self.pending: dict[str, list] = {r: [] for r in SCALAR_ROLES}  # (log_time, value) not yet handled
-        self.stamps: dict[str, deque] = {r: deque() for r in ("amplitude", "phase")
+        self.stamps: dict[str, deque] = {r: deque() for r in (("amplitude",) if tracking_only else
+                                                              ("amplitude", "phase"))
                                          if r in data.series and data.series[r].stamped}
-        self.stamp_n = {r: 0 for r in self.stamps}
         self.amp_hist = (np.empty(0), np.empty(0))  # recent amplitude (t, a) for the error interpolation
         self.err_wait: list = []  # (t, value) of error samples in the window, waiting for amplitude
         self.err_wait_n = 0
@@ -1129,10 +1134,10 @@ def load_session(path) -> SessionData:
         collector.tail, collector.after_n, collector.settling, collector.ta0 = \
             again.tail, again.after_n, again.settling, again.ta0
     data.tracking = _tracking(data, plan, collector)
-    if not plan.exact_bounds and data.tracking:
+    if not plan.exact_bounds and "free_amplitude_m" in data.tracking:
         stride = data.series["amplitude"].times.stride
-        data.notes.append(f"Averaging windows start within {stride} amplitude samples of their definition "
-                          f"(the amplitude's sample times are kept for every {_nth(stride)} sample).")
+        data.notes.append(f"The free-amplitude window starts within {stride} amplitude samples of its "
+                          f"definition (the amplitude's sample times are kept for every {_nth(stride)} sample).")
     return data
 
 
