@@ -86,7 +86,13 @@ def settling_time(tau: float, order: int, fraction: float = 0.99) -> float:
 
 
 # 99 % settling time in units of tau for orders 1..8 (Erlang CDF): 4.61, 6.64, 8.41, 10.05, 11.6, 13.11, 14.57, 16.0
-SETTLING_99_IN_TAU = {n: settling_time(1.0, n) for n in range(1, MAX_ORDER + 1)}
+def __getattr__(name: str):
+    """SETTLING_99_IN_TAU is computed on first use, so importing the lock-in does not load scipy."""
+    if name == "SETTLING_99_IN_TAU":
+        table = {n: settling_time(1.0, n) for n in range(1, MAX_ORDER + 1)}
+        globals()[name] = table
+        return table
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @njit(cache=True, inline="always")

@@ -196,7 +196,7 @@ def test_lockin_filter_stage_is_inlined_not_compiled_per_column():
 
 @pytest.mark.parametrize("module,forbidden", [
     ("afm_ros.cantilever_node", ("matplotlib", "tqdm", "scipy.integrate", "afm_ros.physics.analysis")),
-    ("afm_ros.lockin_node", ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal")),
+    ("afm_ros.lockin_node", ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal", "scipy.special")),
     ("afm_ros.z_controller_node", ("matplotlib", "tqdm", "numba", "scipy")),
 ])
 def test_node_imports_stay_light(module, forbidden):
