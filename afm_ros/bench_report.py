@@ -1,15 +1,16 @@
 """Benchmark of ``afm_report`` on synthetic sessions of growing length: wall time and peak memory.
 
-``python -m afm_ros.bench_report [--seconds 10 60 600] [--rate 90e3] [--keep DIR]`` prints one JSON
-document. For every length it writes a synthetic session (:func:`write_synthetic_session`) into a
+``python -m afm_ros.bench_report [--seconds 10 60 600] [--rate 90e3] [--series-rate 1000] [--keep DIR]``
+prints one JSON document. For every length it writes a synthetic session (:func:`write_synthetic_session`) into a
 temporary directory (removed afterwards unless ``--keep``) and runs, each in a fresh process:
 
 - ``baseline``: :func:`afm_ros.mcap_io.read_session` over the whole file, no message decoded (the
   floor any reader of the file pays: decompression and record parsing);
-- ``report``: ``afm_report SESSION --out DIR`` (two passes over the file).
+- ``report``: ``afm_report SESSION --out DIR --json`` (two passes over the file); ``numbers_exact``
+  says whether its counts and tracking numbers are those the session was built with.
 
-Reported per run: wall time [s], peak resident set size [MB] (``ru_maxrss`` of the child), file
-size, messages and samples. The synthetic session has the instrument's message pattern (2 ms
+Reported per run: wall time [s] and peak resident set size [MB] of each process (the kernel's
+``ru_maxrss``, see :func:`run_measured`), file size, messages and samples. The synthetic session has the instrument's message pattern (2 ms
 chunks of deflection and tip-sample force with a /clock message each, lock-in amplitude, phase and
 xy, z piezo and error at ``series_rate``, an engage via ``/parameter_events``) at a reduced sample
 rate by default (``--rate 900e3`` for the instrument's rate; the number of messages, which sets most
@@ -233,15 +234,32 @@ def run_measured(cmd: list[str], timeout: float = 3600.0) -> dict:
                 "peak_rss_mb": int(rss.read_text()) / 1024}
 
 
-def _run_child(cmd: list[str]) -> dict:
+def _run_child(cmd: list[str]) -> tuple[dict, str]:
     r = run_measured(cmd)
     if r["status"] != 0:
         raise RuntimeError(f"{' '.join(map(str, cmd))} failed ({r['status']}): {r['stderr'].strip()[-500:]}")
-    return {"wall_s": round(r["wall_s"], 2), "peak_rss_mb": round(r["peak_rss_mb"], 1)}
+    return {"wall_s": round(r["wall_s"], 2), "peak_rss_mb": round(r["peak_rss_mb"], 1)}, r["stdout"]
+
+
+def _numbers_exact(numbers: dict, expected: dict) -> bool:
+    """Counts equal, averages within 1e-12 relative, engage time within 1 us (receive-time mapping)."""
+    for key, want in expected.items():
+        got = numbers.get(key)
+        if got is None:
+            return False
+        tol = 1e-6 if key == "engage_time_s" else 1e-12 * abs(want)
+        if abs(got - want) > tol:
+            return False
+    return True
+
+
+def _period(n: int) -> int:
+    """Samples per drive period: the largest divisor of the chunk length from 20 down to 3."""
+    return next((p for p in range(20, 2, -1) if n % p == 0), n)
 
 
 def report_command(session, out_dir) -> list[str]:
-    return [sys.executable, "-m", "afm_ros.report", str(session), "--out", str(out_dir)]
+    return [sys.executable, "-m", "afm_ros.report", str(session), "--out", str(out_dir), "--json"]
 
 
 def main(argv=None) -> int:
@@ -262,20 +280,20 @@ def main(argv=None) -> int:
                 path.unlink()
             start = time.perf_counter()
             info = write_synthetic_session(path, seconds, sample_rate=args.rate, series_rate=args.series_rate,
-                                           samples_per_period=3 if args.rate >= 900e3 else 20)
+                                           samples_per_period=_period(int(round(args.rate * 0.002))))
             write_s = time.perf_counter() - start
-            baseline = _run_child([sys.executable, "-c", _BASELINE, str(path)])
-            rep = _run_child(report_command(path, base / f"report_{seconds:g}s"))
-            numbers = {}
-            md = (base / f"report_{seconds:g}s" / "report.md").read_text()
-            numbers["complete_streams"] = md.count("complete: no sample lost")
-            runs.append({"simulated_s": info["seconds"], "sample_rate": args.rate,
+            baseline, _ = _run_child([sys.executable, "-c", _BASELINE, str(path)])
+            out = base / f"report_{seconds:g}s"
+            rep, stdout = _run_child(report_command(path, out))
+            numbers = json.loads(stdout.strip().splitlines()[-1])
+            runs.append({"simulated_s": info["seconds"], "sample_rate": args.rate, "series_rate": args.series_rate,
                          "samples_per_stream": info["expected"]["deflection_samples"],
                          "messages": info["messages"], "file_mb": round(info["bytes"] / 1e6, 1),
-                         "write_s": round(write_s, 1),
-                         "baseline_read_session": baseline, "report": rep,
-                         "report_md_streams_complete": numbers["complete_streams"]})
-            path.unlink()
+                         "write_s": round(write_s, 1), "baseline_read_session": baseline, "report": rep,
+                         "numbers_exact": _numbers_exact(numbers, info["expected"]),
+                         "streams_complete": (out / "report.md").read_text().count("complete: no sample lost")})
+            if not args.keep:
+                path.unlink()
         print(json.dumps({"benchmark": "afm_report on synthetic sessions",
                           "python": sys.version.split()[0], "cpus": os.cpu_count(),
                           "load_average_1min": round(os.getloadavg()[0], 2), "runs": runs}, indent=1))
