@@ -292,14 +292,16 @@ def _rss_kb(pid: int) -> int:
 
 def test_long_session_memory_stays_flat(tmp_path):
     """afm_instrument for 120 simulated seconds (as fast as possible, recording): RSS sampled every
-    0.5 s of wall time must not grow between the first third of the run and its end, except by the
-    recorder's MCAP chunk index (the file's summary, ~2 KB per chunk; 3 KB allowed) and 1.5 MB of
-    allocator noise. The old monitor kept three floats per lock-in output (~100 kB per simulated
+    0.5 s of wall time must not grow between the first third of the run and its end (medians of
+    5 s windows), except by the recorder's MCAP chunk index (the file's summary, ~2 KB per chunk;
+    3 KB allowed) and 1.5 MB of allocator noise. The old monitor kept three floats per lock-in output (~100 kB per simulated
     second, 8 MB over the 80 s compared here)."""
     import json
     import time
     from mcap.reader import make_reader
-    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    # a fixed mmap threshold: the recorder's 4 MB chunk buffers go back to the OS when freed instead
+    # of raising glibc's heap high-water mark in steps, so RSS measures live memory
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "MALLOC_MMAP_THRESHOLD_": "262144"}
     proc = subprocess.Popen([str(BIN / "afm_instrument"), "--duration", "120", "--json", "--ros-args",
                              "-p", "real_time_factor:=0.0"], env=env, cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -319,9 +321,11 @@ def test_long_session_memory_stays_flat(tmp_path):
         chunks = len(make_reader(f).get_summary().chunk_indexes)
     wall = summary["wall_time_s"]
     t_end = samples[-1][0]
-    third = [kb for t, kb in samples if abs(t - (t_end - wall * 2 / 3)) <= 1.0]
-    last = [kb for t, kb in samples if t >= t_end - 2.0]
-    assert third and last
-    growth_kb = max(last) - min(third)
+    # medians over 5 s windows: the recorder's chunk buffers make RSS swing by +-2-3 MB around a
+    # constant level as they are allocated and freed; a leak moves the level
+    third = [kb for t, kb in samples if abs(t - (t_end - wall * 2 / 3)) <= 2.5]
+    last = [kb for t, kb in samples if t >= t_end - 5.0]
+    assert len(third) >= 5 and len(last) >= 5
+    growth_kb = float(np.median(last) - np.median(third))
     allowed_kb = 1536 + 3 * chunks * 2 / 3
     assert growth_kb < allowed_kb, f"RSS grew {growth_kb} kB over {wall * 2 / 3:.0f} s ({chunks} MCAP chunks)"
