@@ -329,3 +329,28 @@ def test_long_session_memory_stays_flat(tmp_path):
     growth_kb = float(np.median(last) - np.median(third))
     allowed_kb = 1536 + 3 * chunks * 2 / 3
     assert growth_kb < allowed_kb, f"RSS grew {growth_kb} kB over {wall * 2 / 3:.0f} s ({chunks} MCAP chunks)"
+
+
+@pytest.mark.parametrize("args,field", [
+    (["recorder_node", "-p", "chunk_size:=10"], "chunk_size"),
+    (["recorder_node", "-p", "flush_interval:=0.01"], "flush_interval"),
+    (["replay_node", "-p", "start_delay:=100.0", "-p", "file:=x.mcap"], "start_delay"),
+    (["afm_instrument", "-p", "steps_per_period:=10"], "steps_per_period"),
+    (["cantilever_node", "--params-file", "/nonexistent/afm.yaml"], "/nonexistent/afm.yaml"),
+    (["lockin_node", "--params-file", "MALFORMED"], "params file"),
+    (["z_controller_node", "--params-file", "MALFORMED"], "params file"),
+    (["recorder_node", "--params-file", "MALFORMED"], "params file"),
+    (["afm_instrument", "--params-file", "MALFORMED"], "params file"),
+])
+def test_bad_start_values_give_one_line_and_no_traceback(args, field, tmp_path):
+    malformed = tmp_path / "bad.yaml"
+    malformed.write_text("a: [\n")
+    exe, *rest = args
+    cmd = [str(BIN / exe), "--ros-args", *[str(malformed) if a == "MALFORMED" else a for a in rest]]
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    result = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr, result.stderr
+    ours = [line for line in result.stderr.splitlines() if line.startswith(exe.replace("_node", "") + ":")
+            or line.startswith(exe + ":")]
+    assert len(ours) == 1 and field in ours[0], result.stderr
