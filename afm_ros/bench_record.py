@@ -102,9 +102,9 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
         while time.monotonic() < end:
             spin_for(ex, 0.005)
         sim1, wall1, cpu1 = cantilever.sim_time, time.monotonic(), _cpu()
-        published = cantilever.samples_published
         ex.remove_node(cantilever)
-        cantilever.destroy_node()
+        cantilever.destroy_node()  # publishes the chunk in flight
+        published = cantilever.samples_published
         end = time.monotonic() + 1.0  # let the recorder drain its queues
         while time.monotonic() < end:
             spin_for(ex, 0.005)
