@@ -8,6 +8,8 @@ and the simulated time ``t_start + i * sample_interval`` [s]; the drive phase at
 """
 from __future__ import annotations
 
+import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,36 +140,69 @@ ACK_READY = -1
 ACK_LEAVING = -2
 
 
-def cdr_chunk_index(data: bytes) -> tuple[int, int]:
-    """(first_sample_index, sample count) of a chunk from its serialized std_msgs/Float64MultiArray
-    (CDR, as a raw subscription or a recording holds it) without deserialising the samples.
+class ChunkLayoutError(ValueError):
+    """A well-formed Float64MultiArray that is not a sample chunk of this layout."""
 
-    ValueError if the bytes are not a chunk of this layout.
+
+def _cdr_order(data) -> str:
+    if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
+        raise ValueError("no CDR encapsulation header")
+    return "<" if data[1] == 1 else ">"
+
+
+def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
+    """Header and samples (a read-only view, no copy for little-endian data) of a chunk from its
+    serialized std_msgs/Float64MultiArray (CDR, as a raw subscription or a recording holds it).
+
+    ValueError if the bytes are not a Float64MultiArray; ChunkLayoutError if it is one but not a
+    chunk of this layout.
     """
     mv = memoryview(data)
-    if len(mv) < 4 or mv[1] not in (0, 1):
-        raise ValueError("not a CDR message")
-    order = "little" if mv[1] == 1 else "big"
-    pos = 4  # encapsulation header; alignment is relative to the byte after it
+    order = _cdr_order(mv)
+    u32 = struct.Struct(order + "I")
 
-    def u32(p: int) -> tuple[int, int]:
-        p = 4 + ((p - 4 + 3) & ~3)
+    def take(p: int) -> tuple[int, int]:
+        p = 4 + ((p - 4 + 3) & ~3)  # CDR alignment is relative to the byte after the 4-byte header
         if p + 4 > len(mv):
-            raise ValueError("truncated Float64MultiArray")
-        return int.from_bytes(mv[p:p + 4], order), p + 4
+            raise ValueError("the Float64MultiArray ends inside its layout")
+        return u32.unpack_from(mv, p)[0], p + 4
 
-    ndim, pos = u32(pos)
+    ndim, pos = take(4)
+    if ndim == 1 and len(mv) >= 12:  # the usual layout: one dimension, read in one go
+        length = u32.unpack_from(mv, 8)[0]
+        p = 4 + ((12 + length - 4 + 3) & ~3)
+        if p + 16 <= len(mv):
+            _, _, offset, count = struct.unpack_from(order + "IIII", mv, p)
+            return _chunk_values(mv, order, offset, count, 4 + ((p + 16 - 4 + 7) & ~7))
     if ndim > 16:
-        raise ValueError(f"{ndim} layout dimensions: not a sample chunk")
+        raise ValueError(f"{ndim} layout dimensions: not a Float64MultiArray of this kind")
     for _ in range(ndim):
-        length, pos = u32(pos)
+        length, pos = take(pos)
         pos += length
-        _, pos = u32(pos)
-        _, pos = u32(pos)
-    offset, pos = u32(pos)
-    count, pos = u32(pos)
-    pos = 4 + ((pos - 4 + 7) & ~7)
-    if offset != PREAMBLE_LENGTH or count < PREAMBLE_LENGTH or pos + 8 * count > len(mv):
-        raise ValueError("not an afm_ros sample chunk (data_offset or length)")
-    first = np.frombuffer(mv[pos:pos + 8], dtype="<f8" if order == "little" else ">f8")[0]
-    return int(first), count - PREAMBLE_LENGTH
+        _, pos = take(pos)
+        _, pos = take(pos)
+    offset, pos = take(pos)
+    count, pos = take(pos)
+    return _chunk_values(mv, order, offset, count, 4 + ((pos - 4 + 7) & ~7))
+
+
+def _chunk_values(mv, order: str, offset: int, count: int, pos: int) -> tuple[ChunkHeader, np.ndarray]:
+    if pos + 8 * count > len(mv):
+        raise ValueError(f"{count} values announced, the message holds fewer")
+    if offset != PREAMBLE_LENGTH or count < PREAMBLE_LENGTH:
+        raise ChunkLayoutError(f"layout.data_offset {offset} and {count} values (the afm_ros chunk layout has a "
+                               f"{PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})")
+    arr = np.frombuffer(mv[pos:pos + 8 * count], dtype=order + "f8")
+    if order == ">":
+        arr = arr.astype(np.float64)
+    p = arr[:PREAMBLE_LENGTH].tolist()
+    if not (math.isfinite(p[0]) and p[0] >= 0 and p[0] == int(p[0]) and math.isfinite(p[1])
+            and math.isfinite(p[2]) and p[2] > 0):
+        raise ChunkLayoutError(f"implausible preamble (first index {p[0]}, t_start {p[1]}, interval {p[2]})")
+    return ChunkHeader(int(p[0]), p[1], p[2], p[3], p[4], p[5]), arr[PREAMBLE_LENGTH:]
+
+
+def cdr_chunk_index(data) -> tuple[int, int]:
+    """(first_sample_index, sample count) of a serialized chunk (see :func:`cdr_chunk`)."""
+    header, samples = cdr_chunk(data)
+    return header.first_sample_index, samples.shape[0]

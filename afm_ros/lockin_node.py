@@ -20,7 +20,7 @@ import threading
 import time
 
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -136,19 +136,12 @@ class LockInNode(Node):
 
     def _publish_diagnostics(self) -> None:
         s = self.lockin.stats
-        lost = s.missing_samples > 0
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if lost else DiagnosticStatus.OK,
-            name=f"{self.get_fully_qualified_name()}: input stream", hardware_id="afm_ros",
-            message=(f"{s.missing_samples} samples lost in {s.gap_events} gaps" if lost else "ok"),
-            values=[KeyValue(key=k, value=str(v)) for k, v in (
-                ("chunks", s.chunks), ("samples", s.samples), ("gap_events", s.gap_events),
-                ("missing_samples", s.missing_samples), ("duplicate_samples", s.duplicate_samples),
-                ("restarts", s.restarts), ("malformed_chunks", self.bad_chunks),
-                ("next_index", self._ack.next_index))])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(msg)
+        topics.publish_status(
+            self, self._pub_diag, "input stream",
+            f"{s.missing_samples} samples lost in {s.gap_events} gaps" if s.missing_samples else None,
+            {"chunks": s.chunks, "samples": s.samples, "gap_events": s.gap_events,
+             "missing_samples": s.missing_samples, "duplicate_samples": s.duplicate_samples,
+             "restarts": s.restarts, "malformed_chunks": self.bad_chunks, "next_index": self._ack.next_index})
 
 
 def main(args=None):

@@ -54,7 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .chunk_layout import PREAMBLE_LENGTH, ChunkHeader
+from .chunk_layout import PREAMBLE_LENGTH, ChunkHeader, ChunkLayoutError, cdr_chunk
+from .chunk_layout import _cdr_order as chunk_layout_cdr_order
 from .mcap_io import SessionFileError, SessionScan, parameter_metadata, read_session
 
 PEAK_RSS_BOUND_MB = 300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
@@ -99,8 +100,7 @@ class ReportError(RuntimeError):
     """The file is not a session this report understands (message names topic and problem)."""
 
 
-class _LayoutError(ValueError):
-    """A well-formed Float64MultiArray that is not a sample chunk of the afm_ros layout."""
+_LayoutError = ChunkLayoutError
 
 
 def _role_of(topic: str) -> str | None:
@@ -113,10 +113,7 @@ def _role_of(topic: str) -> str | None:
 # --- CDR parsing of the few message types the report reads (strict lengths, no rclpy) -----------
 
 
-def _cdr_order(data) -> str:
-    if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
-        raise ValueError("no CDR encapsulation header")
-    return "<" if data[1] == 1 else ">"
+_cdr_order = chunk_layout_cdr_order
 
 
 def _cdr_float64(data) -> float:
@@ -150,53 +147,7 @@ def _cdr_vector3_stamped(data) -> tuple[float, float, float]:
     return sec + 1e-9 * nanosec, x, y
 
 
-def _cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
-    """A sample chunk (std_msgs/msg/Float64MultiArray in the afm_ros layout) -> header, samples."""
-    mv = memoryview(data)
-    order = _cdr_order(mv)
-    u32 = struct.Struct(order + "I")
-    pos = 4
-
-    def take(p):
-        p = 4 + ((p - 4 + 3) & ~3)
-        if p + 4 > len(mv):
-            raise ValueError("the Float64MultiArray ends inside its layout")
-        return u32.unpack_from(mv, p)[0], p + 4
-
-    ndim, pos = take(pos)
-    if ndim == 1 and len(mv) >= 12:  # the usual layout: one dimension, read in one go
-        length = u32.unpack_from(mv, 8)[0]
-        p = 4 + ((12 + length - 4 + 3) & ~3)
-        if p + 16 <= len(mv):
-            _, _, offset, count = struct.unpack_from(order + "IIII", mv, p)
-            return _chunk_values(mv, order, offset, count, 4 + ((p + 16 - 4 + 7) & ~7))
-    if ndim > 16:
-        raise ValueError(f"{ndim} layout dimensions")
-    for _ in range(ndim):
-        length, pos = take(pos)
-        pos += length
-        _, pos = take(pos)
-        _, pos = take(pos)
-    offset, pos = take(pos)
-    count, pos = take(pos)
-    return _chunk_values(mv, order, offset, count, 4 + ((pos - 4 + 7) & ~7))
-
-
-def _chunk_values(mv, order, offset, count, pos):
-    if pos + 8 * count > len(mv):
-        raise ValueError(f"{count} values announced, the message holds fewer")
-    if offset != PREAMBLE_LENGTH or count < PREAMBLE_LENGTH:
-        raise _LayoutError(f"layout.data_offset {offset} and {count} values (the afm_ros chunk layout has a "
-                           f"{PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})")
-    arr = np.frombuffer(mv[pos:pos + 8 * count], dtype=order + "f8")
-    if order == ">":
-        arr = arr.astype(np.float64)
-    p = arr[:PREAMBLE_LENGTH].tolist()
-    if not (math.isfinite(p[0]) and p[0] >= 0 and p[0] == int(p[0]) and math.isfinite(p[1])
-            and math.isfinite(p[2]) and p[2] > 0):
-        raise _LayoutError(f"implausible preamble (first index {p[0]}, t_start {p[1]}, interval {p[2]})")
-    header = ChunkHeader(int(p[0]), p[1], p[2], p[3], p[4], p[5])
-    return header, arr[PREAMBLE_LENGTH:]
+_cdr_chunk = cdr_chunk  # the chunk parser lives with the layout (afm_ros.chunk_layout)
 
 
 def _param_value(v):

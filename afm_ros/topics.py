@@ -8,6 +8,7 @@ never drops a message the Python side has not taken yet) and acknowledge what th
 """
 from __future__ import annotations
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
 
@@ -57,3 +58,15 @@ class Acknowledger:
 
     def destroy(self, node) -> None:
         node.destroy_publisher(self._pub)
+
+
+def publish_status(node, publisher, what: str, problem: str | None, values: dict, level: int | None = None) -> None:
+    """One DiagnosticStatus named ``<node fqn>: <what>`` on ``/diagnostics``: OK with message "ok"
+    unless ``problem`` (then WARN, or ``level``); every value as text."""
+    status = DiagnosticStatus(
+        level=(level if level is not None else DiagnosticStatus.WARN if problem else DiagnosticStatus.OK),
+        name=f"{node.get_fully_qualified_name()}: {what}", hardware_id="afm_ros", message=problem or "ok",
+        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)

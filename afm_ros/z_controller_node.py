@@ -16,7 +16,7 @@ import math
 import sys
 import threading
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
@@ -112,19 +112,12 @@ class ZControllerNode(Node):
 
     def _publish_diagnostics(self) -> None:
         c = self.controller
-        lost = self.lost_samples > 0
-        status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if lost else DiagnosticStatus.OK,
-            name=f"{self.get_fully_qualified_name()}: feedback", hardware_id="afm_ros",
-            message=(f"{self.lost_samples} input samples never answered" if lost else "ok"),
-            values=[KeyValue(key=k, value=str(v)) for k, v in (
-                ("answered_end_index", self.answered_end_index), ("z_piezo_m", c.z), ("error_m", c.error),
-                ("enabled", c.params["enabled"]), ("lost_batches", self.lost_batches),
-                ("lost_samples", self.lost_samples), ("stale_batches", self.stale_batches),
-                ("rejected_samples", c.rejected_samples))])
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(msg)
+        topics.publish_status(
+            self, self._pub_diag, "feedback",
+            f"{self.lost_samples} input samples never answered" if self.lost_samples else None,
+            {"answered_end_index": self.answered_end_index, "z_piezo_m": c.z, "error_m": c.error,
+             "enabled": c.params["enabled"], "lost_batches": self.lost_batches, "lost_samples": self.lost_samples,
+             "stale_batches": self.stale_batches, "rejected_samples": c.rejected_samples})
 
 
 def main(args=None):
