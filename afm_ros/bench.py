@@ -89,7 +89,7 @@ def _rhs_factory():
     sim = seed_simulation(Z_BASE, SPP)
     c, d = sim.cantilever, sim.drive
     k, damp, inv_m, f0, w, ph = c.spring_constant, c.damping, 1.0 / c.mass, d.force, d.omega, d.phase
-    a0, hr6, hertz, fad = (float(x) for x in sim._fp)
+    a0, hr6, hertz, fad = (float(x) for x in sim._fp[:4])
     z_base = Z_BASE
     cos, sqrt = math.cos, math.sqrt
 

@@ -1,4 +1,4 @@
-"""Fixed-step integrators for m z'' = -k z - c z' + F0 cos(w t + phi) + Fts(z_offset + z).
+"""Fixed-step integrators for m z'' = -k z - c z' + F0 cos(w t + phi) + Fts(z_offset + z, z').
 
 All integrators advance a state chunk by chunk. The step size is one drive period divided
 by an integer ``steps_per_period``, and the drive is read from a table indexed by the
@@ -57,7 +57,7 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     dth = dt * h
     dt_sixth = dt * sixth
     for i in range(nsteps):
-        f1 = tip_sample_force(model, fp, z_offset + z)
+        f1 = tip_sample_force(model, fp, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z
             out_v[written] = v
@@ -75,14 +75,14 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
             a1 = (-k * z - c * v + drive0 + f1) * inv_m
             z2 = z + h * v
             v2 = v + h * a1
-            a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2)) * inv_m
+            a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2, v2)) * inv_m
             z3 = z2 + hh * a1
             v3 = v + h * a2
-            a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3)) * inv_m
+            a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3, v3)) * inv_m
             z_dt = z + dt * v
             z4 = z_dt + dth * a2
             v4 = v + dt * a3
-            a4 = (-k * z4 - c * v4 + table[j + 2] + tip_sample_force(model, fp, z_offset + z4)) * inv_m
+            a4 = (-k * z4 - c * v4 + table[j + 2] + tip_sample_force(model, fp, z_offset + z4, v4)) * inv_m
             z = z_dt + dt_sixth * (a1 + a2 + a3)
             v = (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4
         elif method == RK4_FROZEN_FORCE:
