@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from .forces import tip_sample_force
+from .noise import THERMAL_STREAM, normal_at
 
 EULER = 0
 VERLET_NOTEBOOK = 1
@@ -43,7 +44,7 @@ def samples_in_range(n0: int, nsteps: int, decimation: int) -> int:
 
 @njit(cache=True, nogil=True)
 def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
-             decimation, out_z, out_v, out_f):
+             decimation, out_z, out_v, out_f, noise_sigma, noise_seed, noise_n0):
     z = y[0]
     v = y[1]
     z_prev = y[2]
@@ -57,6 +58,9 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     dth = dt * h
     dt_sixth = dt * sixth
     for i in range(nsteps):
+        # thermal force: drawn once per step (a pure function of seed and absolute step index) and
+        # held through the stages; added last, so 0.0 leaves the deterministic sums bit-identical
+        fth = noise_sigma * normal_at(noise_seed, THERMAL_STREAM, noise_n0 + i) if noise_sigma > 0.0 else 0.0
         f1 = tip_sample_force(model, fp, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z
@@ -72,43 +76,43 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
             # z_new = z + dt v + dt^2/6 (a1 + a2 + a3)): algebraically identical, but one multiply-
             # add shorter on the force -> position -> force dependency chain (~7% faster).
             drive_half = table[j + 1]
-            a1 = (-k * z - c * v + drive0 + f1) * inv_m
+            a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
             z2 = z + h * v
             v2 = v + h * a1
-            a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2, v2)) * inv_m
+            a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2, v2) + fth) * inv_m
             z3 = z2 + hh * a1
             v3 = v + h * a2
-            a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3, v3)) * inv_m
+            a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3, v3) + fth) * inv_m
             z_dt = z + dt * v
             z4 = z_dt + dth * a2
             v4 = v + dt * a3
-            a4 = (-k * z4 - c * v4 + table[j + 2] + tip_sample_force(model, fp, z_offset + z4, v4)) * inv_m
+            a4 = (-k * z4 - c * v4 + table[j + 2] + tip_sample_force(model, fp, z_offset + z4, v4) + fth) * inv_m
             z = z_dt + dt_sixth * (a1 + a2 + a3)
             v = (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4
         elif method == RK4_FROZEN_FORCE:
             # the seed notebook's scheme: Fts held at the step's start value in all four stages
             drive_half = table[j + 1]
-            a1 = (-k * z - c * v + drive0 + f1) * inv_m
+            a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
             z2 = z + h * v
             v2 = v + h * a1
-            a2 = (-k * z2 - c * v2 + drive_half + f1) * inv_m
+            a2 = (-k * z2 - c * v2 + drive_half + f1 + fth) * inv_m
             z3 = z + h * v2
             v3 = v + h * a2
-            a3 = (-k * z3 - c * v3 + drive_half + f1) * inv_m
+            a3 = (-k * z3 - c * v3 + drive_half + f1 + fth) * inv_m
             z4 = z + dt * v3
             v4 = v + dt * a3
-            a4 = (-k * z4 - c * v4 + table[j + 2] + f1) * inv_m
+            a4 = (-k * z4 - c * v4 + table[j + 2] + f1 + fth) * inv_m
             z = z + sixth * (v + 2.0 * v2 + 2.0 * v3 + v4)
             v = v + sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         elif method == EULER:
-            a = (-k * z - c * v + drive0 + f1) * inv_m
+            a = (-k * z - c * v + drive0 + f1 + fth) * inv_m
             z_prev = z
             z = z + dt * v
             v = v + dt * a
         else:
             # notebook Verlet: z_{n+1} = 2 z_n - z_{n-1} + a_n dt^2, v_{n+1} = (z_{n+1} - z_{n-1}) / 2dt,
             # with an Euler first step; a_n uses the lagged velocity estimate.
-            a = (-k * z - c * v + drive0 + f1) * inv_m
+            a = (-k * z - c * v + drive0 + f1 + fth) * inv_m
             if n0 + i == 0:
                 z_new = z + dt * v
                 v = v + dt * a
@@ -129,16 +133,19 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
 def advance(method: int, y: np.ndarray, n0: int, nsteps: int, dt: float, mass: float,
             spring_constant: float, damping: float, table: np.ndarray, model: int, fp: np.ndarray,
             z_offset: float, decimation: int, out_z: np.ndarray, out_v: np.ndarray,
-            out_f: np.ndarray) -> int:
+            out_f: np.ndarray, noise_sigma: float = 0.0, noise_seed: int = 0, noise_n0: int = 0) -> int:
     """Advance ``y`` in place by ``nsteps`` steps from step index ``n0``; return samples written.
 
     ``out_*`` must hold at least :func:`samples_in_range` (n0, nsteps, decimation) values.
+    ``noise_sigma`` [N]: standard deviation of the per-step thermal force (0: deterministic), the
+    force of step i being number ``noise_n0 + i`` of ``noise_seed``'s thermal stream.
     """
     # Plain int/float arguments, whatever the caller passed (numpy scalars, an int z_offset ...):
     # the kernel then has exactly one compiled (and cached) specialisation to load at start-up.
     # The conversions are exact, so results do not change.
     return _advance(int(method), y, int(n0), int(nsteps), float(dt), 1.0 / float(mass), float(spring_constant),
-                    float(damping), table, int(model), fp, float(z_offset), int(decimation), out_z, out_v, out_f)
+                    float(damping), table, int(model), fp, float(z_offset), int(decimation), out_z, out_v, out_f,
+                    float(noise_sigma), int(noise_seed), int(noise_n0))
 
 
 def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:

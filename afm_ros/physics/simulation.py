@@ -8,6 +8,7 @@ import numpy as np
 
 from .forces import DMTForce, NoForce
 from .integrators import METHODS, advance, drive_table, phase_at_step, samples_in_range
+from .noise import thermal_force_sigma
 from .parameters import CANTILEVER_SPECS, Cantilever, Drive, check_steps_per_resonance
 
 
@@ -71,6 +72,9 @@ class Simulation:
         self.steps_per_period = self._validated_spp(steps_per_period, self.drive, self.cantilever)
         self.y = np.array([float(z0), float(v0), float(z0)])
         self.n = 0
+        self.temperature = 0.0  # [K] of the thermal force; 0: deterministic (see set_thermal)
+        self.noise_seed = 0
+        self.noise_index = 0  # absolute step count since the start: the thermal stream's counter
         self.segment_start = float(t0)
         self.segment_phase = self.drive.phase
         self._rebuild()
@@ -133,6 +137,14 @@ class Simulation:
             self.z_offset = float(z_offset)
         self._rebuild()
 
+    def set_thermal(self, temperature: float, seed: int = 0) -> None:
+        """Thermal force of the cantilever's own damping at ``temperature`` [K] (0: off), from the
+        counter-based stream of ``seed`` (the same seed gives the same run, chunked or not)."""
+        thermal_force_sigma(temperature, self.cantilever.damping, self.dt)  # validates
+        if isinstance(seed, bool) or int(seed) != seed or not 0 <= int(seed) < 2 ** 63:
+            raise ValueError(f"noise_seed={seed!r} must be an integer in [0, 2^63)")
+        self.temperature, self.noise_seed = float(temperature), int(seed)
+
     # --- integration ---------------------------------------------------------------------
     def advance(self, nsteps: int, decimation: int = 1, record: bool = True) -> Samples:
         """Integrate ``nsteps`` steps; return the samples at step indices divisible by ``decimation``."""
@@ -147,10 +159,12 @@ class Simulation:
         out_z, out_v, out_f = np.empty(count), np.empty(count), np.empty(count)
         n0 = self.n
         c = self.cantilever
+        sigma = thermal_force_sigma(self.temperature, c.damping, self.dt) if self.temperature > 0.0 else 0.0
         advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
                 self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
-                out_z, out_v, out_f)
+                out_z, out_v, out_f, sigma, self.noise_seed, self.noise_index)
         self.n += nsteps
+        self.noise_index += nsteps
         first = -(-n0 // decimation) * decimation
         return Samples(first, decimation, self.dt, self.segment_start, self.segment_phase,
                        self.drive.frequency, self.z_offset, out_z, out_v, out_f)

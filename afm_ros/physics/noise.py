@@ -1,0 +1,72 @@
+"""Seeded, counter-based noise (no ROS): thermal force and detector noise.
+
+Every random number is a pure function of ``(seed, stream, index)``: a run split into chunks of
+any sizes draws exactly the numbers of one long run, and a recorded session can be reproduced
+from its seed. The generator is SplitMix64 (Steele, Lea and Flood 2014) applied to the mixed
+counter, Gaussian by Box-Muller.
+
+- Thermal (Brownian) force: white, one-sided power spectral density ``S_F = 4 kB T c`` with
+  ``c = m w0 / Q`` the cantilever's own damping (fluctuation-dissipation), drawn once per
+  integration step and held through the RK4 stages: standard deviation ``sqrt(S_F / (2 dt))``.
+  For the undriven free cantilever this gives equipartition, ``k <z^2> = kB T``.
+- Detector noise: white noise of one-sided density ``D`` [m/sqrt(Hz)] added to the *measured*
+  deflection samples only, standard deviation ``D sqrt(fs / 2)`` at the output rate ``fs``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+BOLTZMANN = 1.380649e-23  # [J/K]
+THERMAL_STREAM = 1
+DETECTOR_STREAM = 2
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_STREAM = np.uint64(0xD1B54A32D192ED03)
+_TWO_PI = 2.0 * math.pi
+_INV_2_53 = 1.0 / 9007199254740992.0
+
+
+@njit(cache=True, inline="always")
+def _splitmix(x):
+    z = x + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _MIX1
+    z = (z ^ (z >> np.uint64(27))) * _MIX2
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True, inline="always")
+def normal_at(seed: int, stream: int, index: int) -> float:
+    """Standard normal number number ``index`` of ``stream`` for ``seed`` (Box-Muller)."""
+    key = _splitmix(np.uint64(seed) ^ (np.uint64(stream) * _STREAM))
+    h1 = _splitmix(key ^ np.uint64(index))
+    h2 = _splitmix(h1)
+    u1 = (float(h1 >> np.uint64(11)) + 1.0) * _INV_2_53  # (0, 1]
+    u2 = float(h2 >> np.uint64(11)) * _INV_2_53  # [0, 1)
+    return math.sqrt(-2.0 * math.log(u1)) * math.cos(_TWO_PI * u2)
+
+
+@njit(cache=True)
+def normals(seed: int, stream: int, first: int, count: int) -> np.ndarray:
+    out = np.empty(count)
+    for i in range(count):
+        out[i] = normal_at(seed, stream, first + i)
+    return out
+
+
+def thermal_force_sigma(temperature: float, damping: float, dt: float) -> float:
+    """Standard deviation [N] of the per-step thermal force: sqrt(4 kB T c / (2 dt))."""
+    if temperature < 0 or not math.isfinite(temperature):
+        raise ValueError(f"temperature={temperature!r} K must be finite and >= 0")
+    return math.sqrt(2.0 * BOLTZMANN * temperature * damping / dt)
+
+
+def detector_noise(seed: int, first_index: int, count: int, density: float, sample_interval: float) -> np.ndarray:
+    """Detector noise [m] of the output samples ``first_index ...`` (density [m/sqrt(Hz)])."""
+    if density == 0.0 or count == 0:
+        return np.zeros(count)
+    sigma = density * math.sqrt(0.5 / sample_interval)
+    return sigma * normals(int(seed), DETECTOR_STREAM, int(first_index), int(count))
