@@ -292,6 +292,10 @@ class Monitor(Node):
             self.diagnostics[status.name] = status
         self._poke()
 
+    def destroy_node(self):
+        self._ack.leave()  # a cantilever that keeps running must not wait for the job's monitor
+        return super().destroy_node()
+
     def diagnostic_values(self, node_fqn: str, suffix: str) -> dict[str, str]:
         status = self.diagnostics.get(f"{node_fqn}: {suffix}")
         return {} if status is None else {kv.key: kv.value for kv in status.values}
@@ -392,6 +396,7 @@ class Instrument:
         self.wall_start = time.monotonic()
         self.t_paused = 0.0
         self.hold_sim_wall = (math.nan, math.nan)  # simulated and wall seconds of the last hold
+        self.attached_recorder: str | None = None  # a recorder running beside attached nodes
 
     @property
     def cantilever(self) -> CantileverNode:
@@ -440,6 +445,8 @@ class Instrument:
     def _check_blowup(self) -> None:
         """A blown-up integration ends the job with what happened (never a summary over garbage)."""
         if not self.attached:
+            if self.cantilever.worker_error is not None:
+                raise BlowUpError(f"the cantilever's integration failed: {self.cantilever.worker_error!r}")
             b = self.cantilever.blowup
             if b is not None:
                 params = ", ".join(f"{k}={b['parameters'][k]!r}" for k in PHYSICS_REPORT_KEYS)
@@ -491,6 +498,12 @@ class Instrument:
         """Until the z controller's start command and (in one process) every consumer reached the loop."""
         self.spin_until(lambda: self.monitor.answer_index >= 0, "waiting for the z controller's first command "
                         f"on {self._fqn('z_controller')}/z_command")
+        if self.attached:
+            names = {(ns.rstrip("/") + "/" + n) if ns != "/" else "/" + n
+                     for n, ns in self.monitor.get_node_names_and_namespaces()}
+            if self._fqn("recorder") in names:  # record from t = 0, and report it in the summary
+                self.wait_for_recorder(self._fqn("recorder"))
+                self.attached_recorder = self._fqn("recorder")
         if not self.attached:
             wanted = {n.get_fully_qualified_name() for r, n in self.nodes.items() if r in ("lockin", "recorder")}
             wanted.add(self.monitor.get_fully_qualified_name())
@@ -551,6 +564,17 @@ class Instrument:
 
     def recording_status(self) -> dict:
         rec = self.nodes.get("recorder")
+        if rec is None and self.attached_recorder is not None:
+            # a separate recorder: its /diagnostics after the last chunk (published once per second)
+            end = time.monotonic() + 2.5
+            while time.monotonic() < end:
+                node_main.spin_for(self.executor, 0.1)
+            v = self.monitor.diagnostic_values(self.attached_recorder, "recording")
+            lost = int(v.get("lost_samples", "-1"))
+            status = self.monitor.diagnostics.get(f"{self.attached_recorder}: recording")
+            failed = status is not None and status.level == DiagnosticStatus.ERROR
+            return {"file": v.get("file", "?"), "complete": lost == 0 and not failed, "lost_samples": lost,
+                    "error": status.message if failed else ""}
         if rec is None:
             return {}
         lost = sum(c.missing_samples for c in rec.streams.values())

@@ -41,7 +41,8 @@ from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unp
 from .flow import ChunkStarts, ConsumerWindow, FeedbackGate
 from .node_main import run_node
 from .physics.integrators import phase_at_step, samples_in_range
-from .physics.parameters import CANTILEVER_SPECS, DMT_SPECS
+from .physics.noise import detector_noise
+from .physics.parameters import CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS
 from .physics.simulation import Simulation
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
@@ -76,7 +77,7 @@ PHYSICS_REPORT_KEYS = ("spring_constant", "resonance_frequency", "quality_factor
                        "sample_youngs_modulus", "tip_poisson_ratio", "sample_poisson_ratio")
 CONSUMER_TIMEOUT_S = 10.0  # a consumer that blocks the loop without progress this long is dropped
 # parameters that change the integrated system (z_base only moves the gap, applied every chunk)
-PHYSICS_KEYS = (set(CANTILEVER_SPECS) | set(DMT_SPECS) | {"force_model"}) - {"z_base"}
+PHYSICS_KEYS = (set(CANTILEVER_SPECS) | set(DMT_SPECS) | set(DISSIPATION_SPECS) | {"force_model"}) - {"z_base"}
 # run_until: a chunk boundary within this of the pause time counts as reaching it (float sums of
 # the step size); monitors waiting for the pause use the same tolerance.
 PAUSE_TOLERANCE_S = 1e-9
@@ -119,6 +120,7 @@ class CantileverNode(Node):
         self._pending: dict = {}
         s = self._setup
         self._sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
+        self._sim.set_thermal(values["temperature"], values["noise_seed"])
         self._sim.advance(0)  # load/compile the numba kernel now, not inside the first paced chunk
         self._gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
         self._window = ConsumerWindow(values["flow_window"])
@@ -210,6 +212,8 @@ class CantileverNode(Node):
         if set(changed) & PHYSICS_KEYS:
             self._sim.reconfigure(cantilever=new.cantilever, drive=new.drive, force_model=new.force_model,
                                   steps_per_period=new.steps_per_period)
+        if "temperature" in changed or "noise_seed" in changed:
+            self._sim.set_thermal(v["temperature"], v["noise_seed"])
         if "feedback_sync" in changed or "feedback_latency" in changed:
             self._gate.mode = v["feedback_sync"]
             self._gate.latency = v["feedback_latency"]
@@ -230,7 +234,7 @@ class CantileverNode(Node):
 
     def _timer_period(self) -> float:
         rtf = self._values["real_time_factor"]
-        if paused_at(self._t_end, self._values["run_until"]) or self._idle_waiting():
+        if paused_at(self._t_end, self._values["run_until"]) or self._idle_waiting() or self.blowup is not None:
             return IDLE_TIMER_PERIOD_S
         if rtf == 0.0:
             return FREE_RUN_TIMER_PERIOD_S
@@ -341,18 +345,30 @@ class CantileverNode(Node):
             try:  # a booked chunk is always published, also after stop(): indices stay exact
                 self._run_chunk(*job)
             except BaseException as exc:  # noqa: BLE001 - reported, the node stops integrating
-                self.worker_error = exc
-                self._stopped = True
-                self.get_logger().error(f"integration failed: {exc!r}")
+                self._worker_failed(exc)
             finally:
                 self._in_flight = False
             if not self._stopped:
-                self._try_step(MAX_BURST, from_worker=True)
+                try:
+                    self._try_step(MAX_BURST, from_worker=True)
+                except BaseException as exc:  # noqa: BLE001 - same: never a silently dead thread
+                    self._worker_failed(exc)
+
+    def _worker_failed(self, exc: BaseException) -> None:
+        self.worker_error = exc
+        self._stopped = True
+        self.get_logger().error(f"integration failed: {exc!r}; the cantilever stopped")
+        try:
+            self._publish_diagnostics(time.monotonic(), force=True)
+        except Exception:  # noqa: BLE001 - the node may be shutting down
+            pass
 
     def step_chunk(self, z_piezo: float | None = None) -> None:
         """Integrate one chunk in the calling thread and publish it (pending parameter changes applied
         first); ``z_piezo`` [m]: the piezo position for this chunk (default: what the feedback gate holds)."""
         with self._step_lock:
+            if self._in_flight:
+                raise RuntimeError("step_chunk: a chunk is being integrated by the worker; stop() the node first")
             job = self._submit(self._gate.z if z_piezo is None else z_piezo, queue_it=False)
         self._run_chunk(*job)
         self._in_flight = False
@@ -367,12 +383,13 @@ class CantileverNode(Node):
         self._t_end = sim.segment_start + (sim.n + s.chunk_steps) * sim.dt  # = sim.t after the chunk
         self._chunks += 1
         self._in_flight = True
-        job = (s, z_piezo, first, self._values["publish_clock"])
+        job = (s, z_piezo, first, self._values["publish_clock"],
+               (self._values["detector_noise_density"], self._values["noise_seed"]))
         if queue_it:
             self._jobs.put(job)
         return job
 
-    def _run_chunk(self, s, z_piezo: float, first: int, publish_clock: bool) -> None:
+    def _run_chunk(self, s, z_piezo: float, first: int, publish_clock: bool, detector=(0.0, 0)) -> None:
         sim = self._sim
         sim.z_offset = s.z_base + z_piezo
         n0, y0 = sim.n, sim.y.copy()
@@ -389,7 +406,11 @@ class CantileverNode(Node):
                 phase_at_step(sim.segment_phase, samples.first_step, sim.steps_per_period),
                 sim.drive.frequency,
                 sim.z_offset)
-            self._pub_deflection.publish(chunk_message(header, samples.z))
+            measured = samples.z
+            if detector[0] > 0.0:  # the detector's noise is in the measurement, never in the dynamics
+                measured = samples.z + detector_noise(detector[1], first, samples.z.shape[0], detector[0],
+                                                      s.sample_interval)
+            self._pub_deflection.publish(chunk_message(header, measured))
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(chunk_message(header, samples.force))
         if publish_clock:
@@ -414,6 +435,7 @@ class CantileverNode(Node):
                 "z_offset_m": sim.z_offset,
                 "parameters": dict(self._values)}
         self.blowups += 1
+        self._timer_dirty = True  # stopped: the timer idles (applied by the executor thread)
         v = self._values
         self.get_logger().error(
             f"integration blew up in the chunk at t={t0:.6g} s ({self.blowup['what']}; gap offset "
@@ -497,17 +519,23 @@ class CantileverNode(Node):
         self._try_step(MAX_BURST)
         now = time.monotonic()
         rtf = self._values["real_time_factor"]
-        if rtf != 0.0 and self._wall_ref is not None and not self.paused:
-            chunk = self._setup.chunk_steps * self._setup.dt
-            lag = self._sim_ref + (now - self._wall_ref) * rtf - self._t_end
-            # a loop held back by a gate or a busy machine does not race afterwards to catch up more
-            # than a few chunks: the excess is given up (and counted), the real-time factor drops
-            limit = max(10 * chunk, 0.05 * rtf)
-            if lag > limit:
-                self.forgiven_lag_s += lag - limit
-                self._sim_ref -= lag - limit
-                lag = limit
-            self._lag = max(0.0, lag)
+        lag = None
+        with self._step_lock:  # the worker re-anchors the pacing too
+            if rtf != 0.0 and self._wall_ref is not None and not self.paused and self.blowup is None \
+                    and self.worker_error is None:
+                chunk = self._setup.chunk_steps * self._setup.dt
+                lag = self._sim_ref + (now - self._wall_ref) * rtf - self._t_end
+                # a loop held back by a gate or a busy machine does not race afterwards to catch up
+                # more than a few chunks: the excess is given up (and counted), the real-time factor drops
+                limit = max(10 * chunk, 0.05 * rtf)
+                if lag > limit:
+                    self.forgiven_lag_s += lag - limit
+                    self._sim_ref -= lag - limit
+                    lag = limit
+                self._lag = max(0.0, lag)
+            else:
+                self._lag = 0.0
+        if lag is not None:
             if self.forgiven_lag_s > 0 and now - self._last_lag_warning > LAG_WARNING_PERIOD_S \
                     and lag >= limit * 0.99:
                 self._last_lag_warning = now
@@ -515,8 +543,6 @@ class CantileverNode(Node):
                     f"cannot keep up with real_time_factor={rtf:g}" +
                     (f" ({self._wait_reason})" if self._waiting_since is not None else " (CPU)") +
                     f": {self.forgiven_lag_s:.3g} s of simulated time behind so far")
-        else:
-            self._lag = 0.0
         if self._idle_waiting() and self._timer.timer_period_ns != int(IDLE_TIMER_PERIOD_S * 1e9):
             self._timer_dirty = True
             self._try_step(0)  # applies the idle period
@@ -550,8 +576,10 @@ class CantileverNode(Node):
         # before DDS notices that its process is gone) is dropped, so the instrument goes on; it
         # will count the samples it misses if it comes back
         with self._step_lock:
+            # no progress while the loop was waiting for it (not while paused or idle before)
+            since = self._waiting_since if self._waiting_since is not None else now
             stuck = [n for n in self._window.blocking(self._starts)
-                     if now - self._consumer_progress.get(n, now) > CONSUMER_TIMEOUT_S]
+                     if now - max(self._consumer_progress.get(n, now), since) > CONSUMER_TIMEOUT_S]
             self._window.forget_absent(set(self._window.acks) - set(stuck))
         for name in stuck:
             self._consumer_seen.pop(name, None)
@@ -571,7 +599,9 @@ class CantileverNode(Node):
         paused = self.paused
         lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
         waiting = self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S
-        if self.blowup is not None:
+        if self.worker_error is not None:
+            message = f"integration failed: {self.worker_error!r}; the cantilever stopped"
+        elif self.blowup is not None:
             b = self.blowup
             message = (f"integration blew up at t={b['simulated_time_s']:.6g} s ({b['what']}); stopped until a "
                        f"parameter changes")
@@ -584,7 +614,7 @@ class CantileverNode(Node):
         else:
             message = "ok"
         status = DiagnosticStatus(
-            level=(DiagnosticStatus.ERROR if self.blowup is not None else
+            level=(DiagnosticStatus.ERROR if (self.blowup is not None or self.worker_error is not None) else
                    DiagnosticStatus.WARN if (lagging or waiting) else DiagnosticStatus.OK),
             name=f"{self.get_fully_qualified_name()}: simulation", hardware_id="afm_ros",
             message=message,
@@ -594,7 +624,8 @@ class CantileverNode(Node):
                 ("lag_s", self._lag),
                 ("simulated_time_lost_to_slowdowns_s", self.forgiven_lag_s),
                 ("simulated_time_s", self._t_end),
-                ("samples_published", self._starts.next_index),
+                ("samples_published", self._published_end),
+                ("samples_submitted", self._starts.next_index),
                 ("chunks", self._chunks),
                 ("paused", "true" if paused else "false"),
                 ("feedback_sync", self._values["feedback_sync"]),

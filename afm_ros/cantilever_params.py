@@ -13,8 +13,9 @@ from typing import Any
 
 from .flow import FEEDBACK_SYNC_MODES
 from .physics.forces import make_force_model
-from .physics.parameters import (CANTILEVER_SPECS, DMT_SPECS, DRIVE_FORCE_SPEC, Cantilever, DMTSample, Drive,
-                                 ParamSpec, check_steps_per_resonance)
+from .physics.forces import FORCE_MODELS
+from .physics.parameters import (CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS, DRIVE_FORCE_SPEC, NOISE_SPECS,
+                                 Cantilever, DMTSample, Drive, ParamSpec, check_steps_per_resonance)
 
 NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("output_sample_rate", 900e3, "Hz",
@@ -26,7 +27,9 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("real_time_factor", 1.0, "1",
               "simulated seconds per wall-clock second; 0 runs as fast as possible", 0.0, 1000.0),
     ParamSpec("publish_clock", True, "", "publish the simulated time on /clock", kind=bool),
-    ParamSpec("force_model", "dmt", "", "tip-sample force model", kind=str, choices=("dmt", "none")),
+    ParamSpec("force_model", "dmt", "", "tip-sample force model: dmt (conservative), viscoelastic_dmt "
+              "(Kelvin-Voigt contact, sample_viscosity), hysteresis_dmt (hamaker_constant_retract on retraction), "
+              "none (free cantilever)", kind=str, choices=FORCE_MODELS),
     ParamSpec("feedback_sync", "auto", "",
               "how z_controller/z_command is applied: 'lockstep' = chunk k always uses the answer to chunk "
               "k - feedback_latency and waits for it (deterministic closed loop); 'auto' = lockstep once a z "
@@ -48,7 +51,8 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               -1.0, 1e9),
 )}
 
-CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **NODE_SPECS}
+CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS, **NOISE_SPECS,
+                                               **NODE_SPECS}
 
 # A chunk is one message per topic; above this many integration steps per chunk a single
 # callback would block the executor for seconds and a message would exceed ~8 MB.
@@ -147,7 +151,8 @@ def build(values: dict[str, Any]) -> CantileverSetup:
     cantilever = Cantilever(values["spring_constant"], values["resonance_frequency"], values["quality_factor"])
     drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
     sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
-    model = make_force_model(values["force_model"], sample)
+    model = make_force_model(values["force_model"], sample, viscosity=values["sample_viscosity"],
+                             hamaker_retract=values["hamaker_constant_retract"])
     dt, decimation, chunk_steps = _geometry(values)
     return CantileverSetup(cantilever, drive, model, values["steps_per_period"], values["z_base"], dt,
                            decimation, decimation * dt, chunk_steps)

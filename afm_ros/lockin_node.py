@@ -143,6 +143,10 @@ class LockInNode(Node):
              "missing_samples": s.missing_samples, "duplicate_samples": s.duplicate_samples,
              "restarts": s.restarts, "malformed_chunks": self.bad_chunks, "next_index": self._ack.next_index})
 
+    def destroy_node(self):
+        self._ack.leave()  # a cantilever that keeps running must not wait for this lock-in
+        return super().destroy_node()
+
 
 def main(args=None):
     return run_node(LockInNode, "lockin_node", args)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 import time
 from typing import Callable
 
@@ -29,7 +30,13 @@ def _on_signal(signum, frame):
     if _stop_requested:
         raise KeyboardInterrupt
     _stop_requested = True
-    for future in _stop_futures:
+    if _stop_futures:
+        # not from the handler itself: the main thread may hold a future's lock right now
+        threading.Thread(target=_complete_stop_futures, daemon=True).start()
+
+
+def _complete_stop_futures():
+    for future in list(_stop_futures):
         if not future.done():
             future.set_result(True)
 

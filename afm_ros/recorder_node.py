@@ -289,6 +289,10 @@ class RecorderNode(Node):
                     except RecordingError as exc:
                         self._thread_error = exc
                         continue
+                    except BaseException as exc:  # noqa: BLE001 - never die silently: the node reports it
+                        self._thread_error = RecordingError(f"writing {self.output_path} failed: {exc!r}; "
+                                                            "recording stopped, the file is incomplete")
+                        continue
                     check = self.streams.get(topic)
                     if check is not None:
                         end = check.add(data)
@@ -415,11 +419,11 @@ class RecorderNode(Node):
 
     def close(self) -> None:
         """Write what is queued, then summary and footer (complete file) unless a write failed."""
-        if self.context.ok():
-            self._ack.leave()
         if self._writer_thread.is_alive():
             self._queue.put(None)
             self._writer_thread.join()
+        if self.context.ok():
+            self._ack.leave()
         self._check_writer()
         if self.writer.closed or self.error is not None:
             return

@@ -8,6 +8,8 @@ never drops a message the Python side has not taken yet) and acknowledge what th
 """
 from __future__ import annotations
 
+import threading
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
@@ -37,24 +39,41 @@ ACK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
 
 
 class Acknowledger:
-    """Publishes a consumer's progress on ``cantilever/ack`` (std_msgs/Int64MultiArray)."""
+    """Publishes a consumer's progress on ``cantilever/_ack`` (std_msgs/Int64MultiArray).
+
+    Thread-safe (the recorder acknowledges from its writer thread); after :meth:`leave` nothing
+    more is sent, so a consumer that left cannot sign up again by a late acknowledgement.
+    """
 
     def __init__(self, node, topic: str = ACK):
         self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
         self._msg = Int64MultiArray()
         self._msg.layout.dim = [MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)]
+        self._lock = threading.Lock()
+        self.left = False
         self.next_index = ACK_READY
         self.send(ACK_READY)
 
     def send(self, next_index: int) -> None:
         """Every deflection sample before ``next_index`` has been handled (ACK_READY: none yet)."""
-        self.next_index = int(next_index)
-        self._msg.data = [self.next_index]
-        self._pub.publish(self._msg)
+        with self._lock:
+            if self.left:
+                return
+            self.next_index = int(next_index)
+            self._msg.data = [self.next_index]
+            self._pub.publish(self._msg)
 
     def leave(self) -> None:
-        """Stop being waited for (closing, or the consumer's output failed)."""
-        self.send(ACK_LEAVING)
+        """Stop being waited for (closing, or the consumer's output failed); final."""
+        with self._lock:
+            if self.left:
+                return
+            self.left = True
+            self._msg.data = [ACK_LEAVING]
+            try:
+                self._pub.publish(self._msg)
+            except Exception:  # noqa: BLE001 - the context may already be gone at shutdown
+                pass
 
     def destroy(self, node) -> None:
         node.destroy_publisher(self._pub)

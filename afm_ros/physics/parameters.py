@@ -107,6 +107,26 @@ DMT_SPECS = _specs(
     ParamSpec("sample_poisson_ratio", 0.3, "1", "Poisson ratio of the sample", -1.0, 0.5, low_open=True),
 )
 
+# --- dissipation of the tip-sample contact (viscoelastic_dmt, hysteresis_dmt) -----------------
+DISSIPATION_SPECS = _specs(
+    ParamSpec("sample_viscosity", 0.0, "Pa s",
+              "Kelvin-Voigt viscosity eta of the sample in contact (force_model viscoelastic_dmt)", 0.0, 1e6),
+    ParamSpec("hamaker_constant_retract", 6.4e-20, "J",
+              "Hamaker constant while the tip retracts (force_model hysteresis_dmt; hamaker_constant on approach)",
+              0.0, 1e-17),
+)
+
+# --- thermal and detector noise ----------------------------------------------------------------
+NOISE_SPECS = _specs(
+    ParamSpec("temperature", 0.0, "K",
+              "temperature of the thermal (Brownian) force, fluctuation-dissipation strength 4 kB T m w0/Q; "
+              "0 = deterministic", 0.0, 1e4),
+    ParamSpec("detector_noise_density", 0.0, "m/sqrt(Hz)",
+              "white noise density added to the measured deflection only (never to the dynamics)", 0.0, 1e-9),
+    ParamSpec("noise_seed", 0, "1", "seed of the thermal and detector noise streams (same seed, same run)",
+              0, 2 ** 62, kind=int),
+)
+
 # Minimum integration steps per *resonance* period: RK4 on a damped oscillator is stable for
 # w0*dt < 2.78, but a tapping cantilever also stiffens in contact; 20 steps keeps w0*dt < 0.32.
 MIN_STEPS_PER_RESONANCE_PERIOD = 20.0
