@@ -642,11 +642,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
+    from . import thermal_tune  # the thermal tune validates its own flags (EXTERNAL below)
+    thermal_tune.add_parser(sub)
     return parser
 
 
+def _external(module_name: str):
+    """A subcommand implemented in its own module (``add_parser`` / ``run(args) -> int``)."""
+    def run(ns, out):
+        import importlib
+        return importlib.import_module(f"afm_ros.{module_name}").run(ns)
+    return run
+
+
+EXTERNAL = {"thermal": "thermal_tune"}
+
+
 COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep,
-            "trajectory": cmd_trajectory, "bench": cmd_bench}
+            "trajectory": cmd_trajectory, "bench": cmd_bench,
+            **{name: _external(module) for name, module in EXTERNAL.items()}}
 
 
 def main(argv=None) -> int:
@@ -658,6 +672,8 @@ def main(argv=None) -> int:
     for name in getattr(ns, "methods", []) or []:
         if name not in DEFAULT_CONVERGENCE_SPP:
             parser.error(f"methods: {name!r} is not known; allowed: {', '.join(DEFAULT_CONVERGENCE_SPP)}")
+    if ns.command in EXTERNAL:
+        return COMMANDS[ns.command](ns, None)
     out = Path(ns.out)
     try:
         if ns.command != "bench":

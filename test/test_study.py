@@ -159,3 +159,12 @@ def test_drive_force_flag_is_the_same_drive_as_free_amplitude():
     by_amplitude = study.physics_from_args(parser.parse_args(["sweep", "--free-amplitude", "3e-8"]))[1]
     assert by_force.force == pytest.approx(by_amplitude.force, rel=1e-12)
     assert by_force.frequency == by_amplitude.frequency
+
+
+def test_thermal_tune_is_an_afm_study_subcommand(tmp_path):
+    """`afm_study thermal` runs the thermal tune (its physics is tested in test_thermal_tune.py)."""
+    from afm_ros import study
+    assert study.main(["thermal", "--seconds", "0.2", "--out", str(tmp_path)]) == 0
+    for name in ("thermal_tune.csv", "thermal_tune.png", "thermal_tune.json"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert study.main(["thermal", "--temperature", "-1", "--out", str(tmp_path)]) == 2
