@@ -25,12 +25,14 @@ import numpy as np
 
 from .physics import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, NoForce, Simulation,
                       analyze, free_solution, make_force_model, steady_amplitude_phase, steady_state)
-from .physics.parameters import DRIVE_FORCE_SPEC
+from .physics.forces import FORCE_MODELS
+from .physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC
 from .physics.integrators import METHODS
 
 # --- parameters from flags ----------------------------------------------------------------
 # Every cantilever and sample spec gets a flag --name-with-dashes; z_base is per subcommand.
-PARAM_SPECS = {name: spec for name, spec in {**CANTILEVER_SPECS, **DMT_SPECS}.items() if name != "z_base"}
+PARAM_SPECS = {name: spec for name, spec in {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS}.items()
+               if name != "z_base"}
 
 
 def _int_at_least(minimum: int):
@@ -89,6 +91,7 @@ def physics_from_args(ns: argparse.Namespace):
     else:
         drive = Drive.from_free_amplitude(cantilever, values["free_amplitude"], values["drive_frequency"])
     sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
+    ns.dissipation = {"viscosity": values["sample_viscosity"], "hamaker_retract": values["hamaker_constant_retract"]}
     return cantilever, drive, sample, values["steps_per_period"]
 
 
@@ -299,7 +302,7 @@ def plot_convergence(rows, orders, path: Path, title="L1 error vs time step (fre
 def cmd_sweep(ns, out: Path) -> int:
     cantilever, drive, sample, spp = physics_from_args(ns)
     z_bases = parse_z_bases(ns.z_base)
-    model = make_force_model(ns.force_model, sample)
+    model = make_force_model(ns.force_model, sample, **ns.dissipation)
     rows = sweep(z_bases, cantilever, drive, model, spp, ns.method, ns.retract,
                  progress=None if not ns.no_progress else False)
     write_csv(out / "sweep.csv", SWEEP_COLUMNS, rows)
@@ -336,7 +339,7 @@ def plot_sweep(rows, path: Path):
 def cmd_trajectory(ns, out: Path) -> int:
     cantilever, drive, sample, spp = physics_from_args(ns)
     z_base = CANTILEVER_SPECS["z_base"].validate(_number(ns.z_base))
-    model = make_force_model(ns.force_model, sample)
+    model = make_force_model(ns.force_model, sample, **ns.dissipation)
     cols, analysis = trajectory(z_base, cantilever, drive, model, spp, ns.method, ns.periods,
                                 None if ns.from_rest is None else ns.from_rest)
     write_csv(out / "trajectory.csv", TRAJECTORY_COLUMNS, _columns_to_rows(cols))
@@ -626,7 +629,9 @@ def build_parser() -> argparse.ArgumentParser:
                        ("trajectory", "tip position, drive and tip-sample force vs time at one z_base")):
         p = add(name, text)
         p.add_argument("--method", default="rk4", help=f"integrator: {', '.join(METHODS)}")
-        p.add_argument("--force-model", default="dmt", help="tip-sample force model: dmt or none")
+        p.add_argument("--force-model", default="dmt", choices=FORCE_MODELS,
+                       help="tip-sample force model (default dmt; viscoelastic_dmt uses --sample-viscosity, "
+                            "hysteresis_dmt --hamaker-constant-retract)")
     sweep_p = sub.choices["sweep"]
     sweep_p.add_argument("--z-base", default="80e-9:5e-9:5e-9",
                          help="z_base values [m]: comma list or start:stop:step (default 80e-9:5e-9:5e-9)")
