@@ -154,6 +154,46 @@ def _startup_time() -> tuple[float, float]:
     return times[0], times[1]
 
 
+def _model_times(steps: int, fn) -> dict:
+    """ns per RK4 step for every force model and with the thermal force on, all timed alternately
+    (best of 3) beside the C baseline of plain DMT; goals of issue 9 as ratios."""
+    from .physics import Cantilever, Drive, Simulation
+    from .physics.forces import make_force_model
+    from .physics.parameters import DMTSample
+    cantilever = Cantilever()
+    drive = Drive.from_free_amplitude(cantilever, 60e-9)
+    sample = DMTSample()
+    cases = {"dmt": make_force_model("dmt", sample),
+             "viscoelastic_dmt": make_force_model("viscoelastic_dmt", sample, viscosity=200.0),
+             "hysteresis_dmt": make_force_model("hysteresis_dmt", sample, hamaker_retract=5 * 6.4e-20),
+             "dmt + thermal 300 K": make_force_model("dmt", sample)}
+    sims = {}
+    for name, model in cases.items():
+        sim = Simulation(cantilever, drive, model, Z_BASE, SPP)
+        if "thermal" in name:
+            sim.set_thermal(300.0, 1)
+        sim.advance(10 * SPP, record=False)
+        sims[name] = sim
+    times = {name: [] for name in sims}
+    c_times = []
+    for _ in range(3):
+        for name, sim in sims.items():
+            times[name].append(_time_numba_once(sim, steps))
+        if fn is not None:
+            c_times.append(_time_c_once(fn, seed_simulation(Z_BASE, SPP), steps))
+    ns = {name: min(t) * 1e9 for name, t in times.items()}
+    out = {"ns_per_step": ns, "steps": steps}
+    if c_times:
+        out["c_dmt_ns_per_step"] = min(c_times) * 1e9
+        out["dmt_vs_c"] = ns["dmt"] / out["c_dmt_ns_per_step"]
+    out["vs_dmt"] = {name: ns[name] / ns["dmt"] for name in ns if name != "dmt"}
+    out["goals"] = {"dmt_within_1.3x_of_c": out.get("dmt_vs_c", math.nan) <= 1.3,
+                    "models_within_1.5x_of_dmt": all(out["vs_dmt"][m] <= 1.5
+                                                     for m in ("viscoelastic_dmt", "hysteresis_dmt")),
+                    "thermal_adds_at_most_30_percent": out["vs_dmt"]["dmt + thermal 300 K"] <= 1.3}
+    return out
+
+
 def run_bench(steps: int = 10_000_000, solve_ivp_periods: int = 40, startup: bool = True) -> dict:
     """Run all measurements; return a JSON-ready dict (times in ns per step, s, ratios)."""
     steps = int(steps)
@@ -179,6 +219,7 @@ def run_bench(steps: int = 10_000_000, solve_ivp_periods: int = 40, startup: boo
             out["ratio_vs_c"] = ns_numba / ns_c
             out["c_bit_identical_to_numba"] = _c_matches(fn)
     out["rk4_ns_per_step"] = ns_numba * 1e9
+    out["models"] = _model_times(max(steps // 5, 200_000), fn)
     out["real_time_factor"] = sim.dt / ns_numba
     default_spp = CANTILEVER_SPECS["steps_per_period"].default
     out["default_steps_per_period"] = default_spp

@@ -52,11 +52,10 @@ def tip_sample_force(model: int, p: np.ndarray, gap: float, rate: float) -> floa
         return -p[3] + (contact if contact > 0.0 else 0.0)
     if model == MODEL_HYSTERESIS_DMT:
         # p = [a0, H R / 6, 4/3 E* sqrt(R), H R / (6 a0^2), H_r R / 6, H_r R / (6 a0^2)]
-        retract = rate >= 0.0
         if gap > p[0]:
-            return -(p[4] if retract else p[1]) / (gap * gap)
+            return -(p[4] if rate >= 0.0 else p[1]) / (gap * gap)
         delta = p[0] - gap
-        return -(p[5] if retract else p[3]) + p[2] * delta * math.sqrt(delta)
+        return -(p[5] if rate >= 0.0 else p[3]) + p[2] * delta * math.sqrt(delta)
     return 0.0
 
 

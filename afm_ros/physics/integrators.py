@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from .forces import tip_sample_force
-from .noise import THERMAL_STREAM, normal_at
+from .noise import THERMAL_STREAM, normal_pair
 
 EULER = 0
 VERLET_NOTEBOOK = 1
@@ -57,10 +57,20 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     hh = h * h
     dth = dt * h
     dt_sixth = dt * sixth
+    spare = 0.0  # the second number of the last Box-Muller pair (for the next, odd, step)
     for i in range(nsteps):
-        # thermal force: drawn once per step (a pure function of seed and absolute step index) and
-        # held through the stages; added last, so 0.0 leaves the deterministic sums bit-identical
-        fth = noise_sigma * normal_at(noise_seed, THERMAL_STREAM, noise_n0 + i) if noise_sigma > 0.0 else 0.0
+        # thermal force: drawn once per step (number noise_n0 + i of the seed's thermal stream, a pure
+        # function of the absolute step index) and held through the stages; added last, so 0.0
+        # leaves the deterministic sums bit-identical
+        fth = 0.0
+        if noise_sigma > 0.0:
+            index = noise_n0 + i
+            if index & 1 == 0 or i == 0:
+                first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
+                fth = noise_sigma * (first if index & 1 == 0 else second)
+                spare = second
+            else:
+                fth = noise_sigma * spare
         f1 = tip_sample_force(model, fp, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z

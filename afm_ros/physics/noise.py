@@ -39,14 +39,23 @@ def _splitmix(x):
 
 
 @njit(cache=True, inline="always")
-def normal_at(seed: int, stream: int, index: int) -> float:
-    """Standard normal number number ``index`` of ``stream`` for ``seed`` (Box-Muller)."""
+def normal_pair(seed: int, stream: int, pair: int):
+    """The two standard normal numbers 2 pair and 2 pair + 1 of ``stream`` for ``seed`` (one
+    Box-Muller transform gives both: half the logarithms and square roots per number)."""
     key = _splitmix(np.uint64(seed) ^ (np.uint64(stream) * _STREAM))
-    h1 = _splitmix(key ^ np.uint64(index))
+    h1 = _splitmix(key ^ np.uint64(pair))
     h2 = _splitmix(h1)
     u1 = (float(h1 >> np.uint64(11)) + 1.0) * _INV_2_53  # (0, 1]
-    u2 = float(h2 >> np.uint64(11)) * _INV_2_53  # [0, 1)
-    return math.sqrt(-2.0 * math.log(u1)) * math.cos(_TWO_PI * u2)
+    angle = _TWO_PI * float(h2 >> np.uint64(11)) * _INV_2_53
+    r = math.sqrt(-2.0 * math.log(u1))
+    return r * math.cos(angle), r * math.sin(angle)
+
+
+@njit(cache=True, inline="always")
+def normal_at(seed: int, stream: int, index: int) -> float:
+    """Standard normal number ``index`` of ``stream`` for ``seed``."""
+    c, s = normal_pair(seed, stream, index >> 1)
+    return c if index & 1 == 0 else s
 
 
 @njit(cache=True)
