@@ -647,8 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
-    from . import thermal_tune  # the thermal tune validates its own flags (EXTERNAL below)
+    from . import contrast, thermal_tune  # these validate their own flags (EXTERNAL below)
     thermal_tune.add_parser(sub)
+    contrast.add_parser(sub)
     return parser
 
 
@@ -660,7 +661,7 @@ def _external(module_name: str):
     return run
 
 
-EXTERNAL = {"thermal": "thermal_tune"}
+EXTERNAL = {"thermal": "thermal_tune", "contrast": "contrast"}
 
 
 COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep,

@@ -168,3 +168,11 @@ def test_thermal_tune_is_an_afm_study_subcommand(tmp_path):
     for name in ("thermal_tune.csv", "thermal_tune.png", "thermal_tune.json"):
         assert (tmp_path / name).stat().st_size > 0
     assert study.main(["thermal", "--temperature", "-1", "--out", str(tmp_path)]) == 2
+
+
+def test_contrast_is_an_afm_study_subcommand(tmp_path):
+    """`afm_study contrast` runs the phase-contrast study (physics tested in test_contrast.py)."""
+    from afm_ros import study
+    assert study.main(["contrast", "--ratios", "0.9:0.8:0.1", "--steps-per-period", "400",
+                       "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "contrast.csv").stat().st_size > 0 and (tmp_path / "contrast.png").stat().st_size > 0

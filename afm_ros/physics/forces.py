@@ -134,7 +134,7 @@ class ViscoelasticDMTForce(DMTForce):
     with d(delta)/dt = -dd/dt. The viscous force opposes the indentation rate (repulsive while the
     tip indents, attractive while it leaves); the repulsive contact part (Hertz + viscous) is
     clipped at zero so a fast retraction cannot glue the tip to the surface (Solares and
-    Lopez-Guerra, Beilstein J. Nanotechnol. 5, 1649 (2014)). ``viscosity`` eta [Pa s].
+    Lopez-Guerra, Beilstein J. Nanotechnol. 5 (2014), doi:10.3762/bjnano.5.224). ``viscosity`` eta [Pa s].
     """
 
     model_id = MODEL_VISCOELASTIC_DMT
