@@ -30,13 +30,14 @@ from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 
 from . import ros_params, topics
 from .topics import CONSUMER_QOS, HISTORY_QOS
-from .cantilever_params import CANTILEVER_NODE_SPECS, build, check_all
+from .cantilever_params import CANTILEVER_NODE_SPECS, build, check_all, material_values
 from .chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
 from .flow import ChunkStarts, ConsumerWindow, FeedbackGate
 from .node_main import run_node
@@ -113,6 +114,7 @@ class CantileverNode(Node):
     def __init__(self, **kwargs):
         super().__init__("cantilever", **kwargs)
         values = ros_params.declare(self, CANTILEVER_NODE_SPECS)  # ValueError on a bad start value
+        values = self._start_material(values)
         check_all(values)
         self._values = values
         self._setup = build(values)
@@ -138,6 +140,7 @@ class CantileverNode(Node):
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
             CANTILEVER_NODE_SPECS, self._requested_values, check_all, self._queue_changes))
+        self.add_post_set_parameters_callback(self._on_material_set)
 
         # pacing state: simulated time should be sim_ref + (wall - wall_ref) * real_time_factor
         self._wall_ref: float | None = None
@@ -174,6 +177,27 @@ class CantileverNode(Node):
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}-rk4", daemon=True)
         self._worker.start()
         self._ready_line()
+
+    def _start_material(self, values: dict) -> dict:
+        """A start ``material`` fills the sample parameters that were not given explicitly."""
+        chosen = material_values(values["material"])
+        given = set(getattr(self, "_parameter_overrides", {}) or {})
+        fill = {k: v for k, v in chosen.items() if k not in given}
+        if fill:
+            for name, value in fill.items():
+                self._parameters[name] = Parameter(name, value=value)  # what ros2 param get shows
+            values = {**values, **fill}
+        return values
+
+    def _on_material_set(self, params) -> None:
+        """A live ``material`` change sets its sample parameters (through their own validation)."""
+        for p in params:
+            if p.name == "material" and p.value:
+                values = material_values(p.value)
+                results = self.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+                refused = [r.reason for r in results if not r.successful]
+                if refused:
+                    self.get_logger().error(f"material {p.value!r}: " + "; ".join(refused))
 
     def _ready_line(self) -> None:
         v, s = self._values, self._setup

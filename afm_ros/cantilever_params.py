@@ -14,6 +14,7 @@ from typing import Any
 from .flow import FEEDBACK_SYNC_MODES
 from .physics.forces import make_force_model
 from .physics.forces import FORCE_MODELS
+from .physics.materials import MATERIALS
 from .physics.parameters import (CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS, DRIVE_FORCE_SPEC, NOISE_SPECS,
                                  Cantilever, DMTSample, Drive, ParamSpec, check_steps_per_resonance)
 
@@ -30,6 +31,10 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("force_model", "dmt", "", "tip-sample force model: dmt (conservative), viscoelastic_dmt "
               "(Kelvin-Voigt contact, sample_viscosity), hysteresis_dmt (hamaker_constant_retract on retraction), "
               "none (free cantilever)", kind=str, choices=FORCE_MODELS),
+    ParamSpec("material", "", "",
+              "named sample material (docs/materials.md): sets sample_youngs_modulus, sample_poisson_ratio, "
+              "hamaker_constant, hamaker_constant_retract and sample_viscosity (at start only those not given "
+              "explicitly); '' = use those parameters as they are", kind=str, choices=("",) + tuple(MATERIALS)),
     ParamSpec("feedback_sync", "auto", "",
               "how z_controller/z_command is applied: 'lockstep' = chunk k always uses the answer to chunk "
               "k - feedback_latency and waits for it (deterministic closed loop); 'auto' = lockstep once a z "
@@ -60,6 +65,20 @@ MAX_STEPS_PER_CHUNK = 10_000_000
 # Each chunk costs the executors of every consumer a few messages of ~20-50 us each: above this
 # rate no 2-core machine keeps up (the default, 2 ms chunks at real time, is 500/s).
 MAX_CHUNKS_PER_WALL_SECOND = 5000
+
+
+# cantilever node parameter <- field of afm_ros.physics.materials.Material
+MATERIAL_FIELDS = {"sample_youngs_modulus": "youngs_modulus", "sample_poisson_ratio": "poisson_ratio",
+                   "hamaker_constant": "hamaker_constant", "hamaker_constant_retract": "hamaker_constant_retract",
+                   "sample_viscosity": "viscosity"}
+
+
+def material_values(name: str) -> dict[str, float]:
+    """The sample parameters of the named material (``''``: none)."""
+    if not name:
+        return {}
+    m = MATERIALS[name]
+    return {param: float(getattr(m, field)) for param, field in MATERIAL_FIELDS.items()}
 
 
 def default_values() -> dict[str, Any]:

@@ -25,7 +25,9 @@ import numpy as np
 
 from .physics import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive, NoForce, Simulation,
                       analyze, free_solution, make_force_model, steady_amplitude_phase, steady_state)
+from .cantilever_params import MATERIAL_FIELDS, material_values
 from .physics.forces import FORCE_MODELS
+from .physics.materials import MATERIALS
 from .physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC
 from .physics.integrators import METHODS
 
@@ -69,8 +71,16 @@ def add_param_flags(parser: argparse.ArgumentParser) -> None:
                                help=f"{spec.description}{unit}; default: the resonance frequency, "
                                     f"range {spec.range_text()}")
             continue
+        if name in MATERIAL_FIELDS:  # None: the --material's value, else the spec default
+            group.add_argument(_flag(name), dest=name, type=_number, default=None, metavar="X",
+                               help=f"{spec.description}{unit}; default: the --material's value, else "
+                                    f"{spec.default:g}; range {spec.range_text()}")
+            continue
         group.add_argument(_flag(name), dest=name, type=_number, default=spec.default, metavar="X",
                            help=f"{spec.description}{unit}; default {spec.default:g}, range {spec.range_text()}")
+    group.add_argument("--material", default="", metavar="NAME",
+                       help="named sample material (docs/materials.md): " + ", ".join(MATERIALS)
+                            + "; explicit --sample-* / --hamaker-* values win")
     group.add_argument("--drive-force", dest="drive_force", type=_number, default=None, metavar="X",
                        help=f"{DRIVE_FORCE_SPEC.description} [N]; overrides --free-amplitude; "
                             f"range {DRIVE_FORCE_SPEC.range_text()}")
@@ -82,6 +92,13 @@ def physics_from_args(ns: argparse.Namespace):
     Raises ValueError naming the field and allowed range for a bad value.
     """
     raw = {name: getattr(ns, name) for name in PARAM_SPECS}
+    chosen = material_values(getattr(ns, "material", "") or "") if getattr(ns, "material", "") in ("", *MATERIALS) \
+        else None
+    if chosen is None:
+        raise ValueError(f"material={ns.material!r} is not known; allowed: {', '.join(MATERIALS)}")
+    for name in MATERIAL_FIELDS:
+        if raw[name] is None:
+            raw[name] = chosen.get(name, PARAM_SPECS[name].default)
     if raw["drive_frequency"] is None:
         raw["drive_frequency"] = raw["resonance_frequency"]
     values = {name: PARAM_SPECS[name].validate(value) for name, value in raw.items()}

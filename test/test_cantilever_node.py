@@ -332,3 +332,26 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
             executor.remove_node(n)
             n.destroy_node()
         executor.shutdown()
+
+
+def test_material_by_name_explicit_values_win_and_live_change(ros_context, ros_namespace):
+    """`material` fills the sample parameters at start (explicit ones win) and sets all five live."""
+    from afm_ros.physics.materials import MATERIALS
+    node = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
+        Parameter("material", value="polystyrene"), Parameter("sample_youngs_modulus", value=2e9)])
+    try:
+        ps, ldpe = MATERIALS["polystyrene"], MATERIALS["ldpe"]
+        get = lambda name: node.get_parameter(name).value  # noqa: E731
+        assert get("sample_youngs_modulus") == 2e9  # explicit
+        assert get("sample_poisson_ratio") == ps.poisson_ratio and get("hamaker_constant") == ps.hamaker_constant
+        assert get("sample_viscosity") == ps.viscosity
+        assert node.simulation.force_model.sample.sample_youngs_modulus == 2e9
+        assert node.set_parameters([Parameter("material", value="ldpe")])[0].successful
+        assert (get("sample_youngs_modulus"), get("sample_poisson_ratio"), get("hamaker_constant"),
+                get("hamaker_constant_retract"), get("sample_viscosity")) == (
+            ldpe.youngs_modulus, ldpe.poisson_ratio, ldpe.hamaker_constant, ldpe.hamaker_constant_retract,
+            ldpe.viscosity)
+        r = node.set_parameters([Parameter("material", value="unobtainium")])[0]
+        assert not r.successful and "material" in r.reason and "polystyrene" in r.reason
+    finally:
+        node.destroy_node()

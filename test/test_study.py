@@ -176,3 +176,18 @@ def test_contrast_is_an_afm_study_subcommand(tmp_path):
     assert study.main(["contrast", "--ratios", "0.9:0.8:0.1", "--steps-per-period", "400",
                        "--out", str(tmp_path)]) == 0
     assert (tmp_path / "contrast.csv").stat().st_size > 0 and (tmp_path / "contrast.png").stat().st_size > 0
+
+
+def test_material_flag_sets_the_sample_and_explicit_values_win():
+    from afm_ros import study
+    from afm_ros.physics.materials import MATERIALS
+    parser = study.build_parser()
+    ns = parser.parse_args(["sweep", "--material", "ldpe", "--sample-youngs-modulus", "1e9"])
+    _, _, sample, _ = study.physics_from_args(ns)
+    ldpe = MATERIALS["ldpe"]
+    assert sample.sample_youngs_modulus == 1e9  # explicit
+    assert sample.sample_poisson_ratio == ldpe.poisson_ratio and sample.hamaker_constant == ldpe.hamaker_constant
+    assert ns.dissipation == {"viscosity": ldpe.viscosity, "hamaker_retract": ldpe.hamaker_constant_retract}
+    ns = parser.parse_args(["sweep"])
+    _, _, sample, _ = study.physics_from_args(ns)
+    assert sample.sample_youngs_modulus == 70e6  # no material: the seed notebook's sample
