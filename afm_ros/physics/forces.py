@@ -52,10 +52,17 @@ def tip_sample_force(model: int, p: np.ndarray, gap: float, rate: float) -> floa
         return -p[3] + (contact if contact > 0.0 else 0.0)
     if model == MODEL_HYSTERESIS_DMT:
         # p = [a0, H R / 6, 4/3 E* sqrt(R), H R / (6 a0^2), H_r R / 6, H_r R / (6 a0^2)]
+        # both branches' forces first, then the choice: the direction (from the stage velocity,
+        # which waits for the previous stage) stays off the division's and the root's latency
         if gap > p[0]:
-            return -(p[4] if rate >= 0.0 else p[1]) / (gap * gap)
-        delta = p[0] - gap
-        return -(p[5] if rate >= 0.0 else p[3]) + p[2] * delta * math.sqrt(delta)
+            approach = -p[1] / (gap * gap)
+            retract = -p[4] / (gap * gap)
+        else:
+            delta = p[0] - gap
+            hertz = p[2] * delta * math.sqrt(delta)
+            approach = -p[3] + hertz
+            retract = -p[5] + hertz
+        return retract if rate >= 0.0 else approach
     return 0.0
 
 
