@@ -499,8 +499,7 @@ class Instrument:
         self.spin_until(lambda: self.monitor.answer_index >= 0, "waiting for the z controller's first command "
                         f"on {self._fqn('z_controller')}/z_command")
         if self.attached:
-            names = {(ns.rstrip("/") + "/" + n) if ns != "/" else "/" + n
-                     for n, ns in self.monitor.get_node_names_and_namespaces()}
+            names = {topics.fqn(ns, n) for n, ns in self.monitor.get_node_names_and_namespaces()}
             if self._fqn("recorder") in names:  # record from t = 0, and report it in the summary
                 self.wait_for_recorder(self._fqn("recorder"))
                 self.attached_recorder = self._fqn("recorder")

@@ -157,9 +157,9 @@ def check(values: dict[str, Any]) -> None:
 
 
 def check_all(values: dict[str, Any]) -> None:
-    """Everything a parameter change must pass before it is accepted: the cross-field checks and
-    building the physics objects (so a change that was accepted can never fail later)."""
-    check(values)
+    """Everything a parameter change must pass before it is accepted: building the physics objects
+    from the whole set (every field, :func:`check`, the derived objects), so a change that was
+    accepted can never fail later."""
     build(values)
 
 

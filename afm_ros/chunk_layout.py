@@ -144,7 +144,8 @@ class ChunkLayoutError(ValueError):
     """A well-formed Float64MultiArray that is not a sample chunk of this layout."""
 
 
-def _cdr_order(data) -> str:
+def cdr_byte_order(data) -> str:
+    """struct/numpy byte-order character of a CDR message from its encapsulation header."""
     if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
         raise ValueError("no CDR encapsulation header")
     return "<" if data[1] == 1 else ">"
@@ -158,7 +159,7 @@ def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
     chunk of this layout.
     """
     mv = memoryview(data)
-    order = _cdr_order(mv)
+    order = cdr_byte_order(mv)
     u32 = struct.Struct(order + "I")
 
     def take(p: int) -> tuple[int, int]:

@@ -369,7 +369,7 @@ class RecorderNode(Node):
     def _request_parameters(self) -> None:
         me = self.get_fully_qualified_name()
         for name, ns in self.get_node_names_and_namespaces():
-            fqn = (ns.rstrip("/") + "/" + name) if ns != "/" else "/" + name
+            fqn = topics.fqn(ns, name)
             if fqn == me or fqn in self._snapshotted or fqn in self._pending or _hidden(fqn) \
                     or not self._in_scope(fqn):
                 continue

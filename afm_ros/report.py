@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from .chunk_layout import PREAMBLE_LENGTH, ChunkHeader, ChunkLayoutError, cdr_chunk
-from .chunk_layout import _cdr_order as chunk_layout_cdr_order
+from .chunk_layout import cdr_byte_order
 from .mcap_io import SessionFileError, SessionScan, parameter_metadata, read_session
 
 PEAK_RSS_BOUND_MB = 300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
@@ -113,12 +113,11 @@ def _role_of(topic: str) -> str | None:
 # --- CDR parsing of the few message types the report reads (strict lengths, no rclpy) -----------
 
 
-_cdr_order = chunk_layout_cdr_order
 
 
 def _cdr_float64(data) -> float:
     """std_msgs/msg/Float64."""
-    order = _cdr_order(data)
+    order = cdr_byte_order(data)
     if len(data) < 12:
         raise ValueError(f"{len(data)} bytes, a Float64 needs 12")
     return struct.unpack_from(order + "d", data, 4)[0]
@@ -126,7 +125,7 @@ def _cdr_float64(data) -> float:
 
 def _cdr_clock(data) -> float:
     """rosgraph_msgs/msg/Clock -> simulated time [s]."""
-    order = _cdr_order(data)
+    order = cdr_byte_order(data)
     if len(data) < 12:
         raise ValueError(f"{len(data)} bytes, a Clock needs 12")
     sec, nanosec = struct.unpack_from(order + "iI", data, 4)
@@ -135,7 +134,7 @@ def _cdr_clock(data) -> float:
 
 def _cdr_vector3_stamped(data) -> tuple[float, float, float]:
     """geometry_msgs/msg/Vector3Stamped -> (stamp [s], x, y)."""
-    order = _cdr_order(data)
+    order = cdr_byte_order(data)
     if len(data) < 16:
         raise ValueError(f"{len(data)} bytes, too short for a Vector3Stamped")
     sec, nanosec, length = struct.unpack_from(order + "iII", data, 4)

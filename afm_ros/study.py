@@ -29,6 +29,7 @@ from .cantilever_params import MATERIAL_FIELDS, material_values
 from .physics.forces import FORCE_MODELS
 from .physics.materials import MATERIALS
 from .physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC
+from .physics.parameters import parse_number as _number
 from .physics.integrators import METHODS
 
 # --- parameters from flags ----------------------------------------------------------------
@@ -52,14 +53,6 @@ def _int_at_least(minimum: int):
 
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
-
-
-def _number(text: str):
-    """Parse a flag value as a number; leave anything else for the spec to reject by name."""
-    try:
-        return int(text) if text.strip().lstrip("+-").isdigit() else float(text)
-    except ValueError:
-        return text
 
 
 def add_param_flags(parser: argparse.ArgumentParser) -> None:

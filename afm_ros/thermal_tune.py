@@ -36,6 +36,7 @@ import numpy as np
 
 from .physics.noise import BOLTZMANN
 from .physics.parameters import CANTILEVER_SPECS, Cantilever
+from .physics.parameters import parse_number as _number
 
 DEFAULT_SECONDS = 1.0  # [s] of simulated record: ~0.5 s of CPU, f0 to ~0.03 %, Q and k to ~1.5 %
 SAMPLES_PER_PERIOD = 20  # output samples per resonance period: fs = 20 f0 (Nyquist 10 f0)
@@ -364,13 +365,6 @@ def write_outputs(result: TuneResult, out: Path) -> list[Path]:
 
 # --- command line ---------------------------------------------------------------------------------
 HELP = "thermal tune: PSD of the undriven cantilever's Brownian motion, SHO fit (f0, Q, k) and equipartition k"
-
-
-def _number(text: str):
-    try:
-        return int(text) if text.strip().lstrip("+-").isdigit() else float(text)
-    except ValueError:
-        return text
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:

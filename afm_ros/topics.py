@@ -75,8 +75,11 @@ class Acknowledger:
             except Exception:  # noqa: BLE001 - the context may already be gone at shutdown
                 pass
 
-    def destroy(self, node) -> None:
-        node.destroy_publisher(self._pub)
+
+
+def fqn(namespace: str, name: str) -> str:
+    """Fully qualified node name from a namespace and a node name (``/ns/name``, or ``/name``)."""
+    return (namespace.rstrip("/") + "/" + name) if namespace not in ("", "/") else "/" + name
 
 
 def publish_status(node, publisher, what: str, problem: str | None, values: dict, level: int | None = None) -> None:

@@ -72,6 +72,15 @@ class ParamSpec:
         return value
 
 
+def parse_number(text: str):
+    """A command-line value as int or float; anything else is returned as it is, for the spec to
+    reject by name (``ParamSpec.validate`` names the field and the range)."""
+    try:
+        return int(text) if text.strip().lstrip("+-").isdigit() else float(text)
+    except ValueError:
+        return text
+
+
 def _specs(*specs: ParamSpec) -> dict[str, ParamSpec]:
     return {s.name: s for s in specs}
 
