@@ -87,6 +87,7 @@ print(json.dumps({
 
 PROBE = r"""
 import os, sys
+import numpy, numba  # the user must be able to read the environment (a checkout under a 0700 dir is not)
 ro, home = sys.argv[1], sys.argv[2]
 try:
     open(os.path.join(ro, "probe"), "w").close()
