@@ -28,9 +28,10 @@ from .physics import (CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive,
 from .cantilever_params import MATERIAL_FIELDS, material_values
 from .physics.forces import FORCE_MODELS
 from .physics.materials import MATERIALS
-from .physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC
+from .physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC, NOISE_SPECS
 from .physics.parameters import parse_number as _number
 from .physics.integrators import METHODS
+from .physics.simulation import Samples
 
 # --- parameters from flags ----------------------------------------------------------------
 # Every cantilever and sample spec gets a flag --name-with-dashes; z_base is per subcommand.
@@ -175,10 +176,12 @@ def fit_order(rows: list[dict], method: str) -> float:
 SWEEP_COLUMNS = ["direction", "z_base_m", "amplitude_m", "phase_deg", "mean_deflection_m", "mean_force_N",
                  "max_force_N", "min_force_N", "min_gap_m", "indentation_m", "drive_work_J", "damping_loss_J",
                  "dissipated_energy_J", "virial_J", "harmonic2_m", "harmonic3_m", "periods_simulated",
-                 "converged"]
+                 "converged", "amplitude_sem_m", "phase_sem_deg"]
+DETECTOR_NOISE_SPEC = NOISE_SPECS["detector_noise_density"]
+NOISE_BLOCKS = 10  # sub-windows of a noisy average: their scatter gives the standard errors
 
 
-def _sweep_row(direction: str, z_base: float, result) -> dict:
+def _sweep_row(direction: str, z_base: float, result, sem=(0.0, 0.0)) -> dict:
     a = result.analysis
     return {"direction": direction, "z_base_m": z_base, "amplitude_m": a.amplitude, "phase_deg": a.phase_deg,
             "mean_deflection_m": a.mean_deflection, "mean_force_N": a.mean_force, "max_force_N": a.max_force,
@@ -186,19 +189,60 @@ def _sweep_row(direction: str, z_base: float, result) -> dict:
             "drive_work_J": a.drive_work, "damping_loss_J": a.damping_loss,
             "dissipated_energy_J": a.tip_sample_dissipation, "virial_J": a.virial,
             "harmonic2_m": float(a.harmonics[1]), "harmonic3_m": float(a.harmonics[2]),
-            "periods_simulated": result.periods_simulated, "converged": result.converged}
+            "periods_simulated": result.periods_simulated, "converged": result.converged,
+            "amplitude_sem_m": sem[0], "phase_sem_deg": sem[1]}
+
+
+def noisy_average(sim: Simulation, average_periods: int, detector_density: float = 0.0,
+                  settle_periods: int | None = None):
+    """Settle, then analyse ``average_periods`` drive periods of a noisy run.
+
+    Settling: ``settle_periods`` (default 10 amplitude decay times, 10 Q / pi periods) are run
+    unrecorded. Detector noise of ``detector_density`` [m/sqrt(Hz)] (one sample per step, the
+    seed's detector stream indexed by the absolute step) is added to the measured deflection only.
+    Returns (SteadyStateResult with converged=False, (amplitude_sem [m], phase_sem [deg])): the
+    standard errors come from the scatter of ``NOISE_BLOCKS`` equal sub-windows.
+    """
+    from .physics.analysis import SteadyStateResult
+    from .physics.noise import detector_noise
+
+    if settle_periods is None:
+        settle_periods = int(math.ceil(10.0 * sim.cantilever.quality_factor / math.pi))
+    sim.advance_periods(settle_periods) if settle_periods else None
+    first = sim.noise_index
+    samples = sim.advance_periods(average_periods)
+    measured = samples.z + detector_noise(sim.noise_seed, first, samples.z.size, detector_density, sim.dt)
+    result = analyze(samples, sim, measured_z=measured)
+    spp = sim.steps_per_period
+    blocks = max(1, min(NOISE_BLOCKS, average_periods))
+    bounds = np.linspace(0, average_periods, blocks + 1).astype(int) * spp
+    amps, phases = [], []
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        part = Samples(samples.first_step + lo, 1, samples.dt, samples.segment_start, samples.drive_phase0,
+                       samples.drive_frequency, samples.z_offset, samples.z[lo:hi], samples.v[lo:hi],
+                       samples.force[lo:hi])
+        block = analyze(part, sim, measured_z=measured[lo:hi])
+        amps.append(block.amplitude)
+        phases.append(block.phase_deg)
+    sem = (0.0, 0.0) if blocks < 2 else (float(np.std(amps, ddof=1) / math.sqrt(blocks)),
+                                         float(np.std(phases, ddof=1) / math.sqrt(blocks)))
+    return SteadyStateResult(result, samples, settle_periods + average_periods, False), sem
 
 
 def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = None, force_model=None,
           steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default, method: str = "rk4",
           retract: bool = False, progress: bool | None = None, amplitude_tol: float = 1e-14,
-          phase_tol_deg: float = 1e-5, max_periods: int = 20000) -> list[dict]:
+          phase_tol_deg: float = 1e-5, max_periods: int = 20000, temperature: float = 0.0,
+          detector_density: float = 0.0, noise_seed: int = 0, average_periods: int = 200) -> list[dict]:
     """Steady state at each z_base [m] in order (approach), then optionally back (retract).
 
     One simulation carries its state from point to point (``reconfigure(z_offset=...)``), so a
     retract continues from the approach's last steady state and hysteresis shows if the physics
-    has it. Steady state = amplitude and phase change between successive windows below
-    ``amplitude_tol`` [m] and ``phase_tol_deg`` [deg].
+    has it. Deterministic (temperature 0 [K] and detector_density 0 [m/sqrt(Hz)]): steady state =
+    amplitude and phase change between successive windows below ``amplitude_tol`` [m] and
+    ``phase_tol_deg`` [deg]. Noisy: a fixed settling time, then an average over
+    ``average_periods`` periods with standard errors (:func:`noisy_average`); ``converged`` is
+    then False because no convergence test applies.
     """
     from tqdm import tqdm
 
@@ -210,11 +254,21 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     if retract:
         plan += [("retract", z) for z in reversed(z_bases[:-1])]
     sim = Simulation(cantilever, drive, force_model, plan[0][1], steps_per_period, method)
+    noisy = temperature > 0.0 or detector_density > 0.0
+    sim.set_thermal(temperature, noise_seed)
+    if noisy:
+        DETECTOR_NOISE_SPEC.validate(detector_density)
+        if isinstance(average_periods, bool) or int(average_periods) != average_periods or average_periods < 1:
+            raise ValueError(f"average_periods={average_periods!r} must be an integer >= 1")
     rows = []
     bar = tqdm(plan, desc="sweep", unit="z_base", disable=(len(plan) < 8) if progress is None else not progress,
                file=sys.stderr)
     for direction, z_base in bar:
         sim.reconfigure(z_offset=z_base)
+        if noisy:
+            result, sem = noisy_average(sim, int(average_periods), detector_density)
+            rows.append(_sweep_row(direction, z_base, result, sem))
+            continue
         result = steady_state(sim, amplitude_tol=amplitude_tol, phase_tol_deg=phase_tol_deg,
                               max_periods=max_periods)
         rows.append(_sweep_row(direction, z_base, result))
@@ -312,12 +366,17 @@ def plot_convergence(rows, orders, path: Path, title="L1 error vs time step (fre
 def cmd_sweep(ns, out: Path) -> int:
     cantilever, drive, sample, spp = physics_from_args(ns)
     z_bases = parse_z_bases(ns.z_base)
+    ns.temperature = NOISE_SPECS["temperature"].validate(ns.temperature)
+    ns.detector_noise = DETECTOR_NOISE_SPEC.validate(ns.detector_noise)
+    ns.noise_seed = NOISE_SPECS["noise_seed"].validate(ns.noise_seed)
     model = make_force_model(ns.force_model, sample, **ns.dissipation)
     rows = sweep(z_bases, cantilever, drive, model, spp, ns.method, ns.retract,
-                 progress=None if not ns.no_progress else False)
+                 progress=None if not ns.no_progress else False, temperature=ns.temperature,
+                 detector_density=ns.detector_noise, noise_seed=ns.noise_seed, average_periods=ns.average_periods)
     write_csv(out / "sweep.csv", SWEEP_COLUMNS, rows)
     plot_sweep(rows, out / "sweep.png")
-    not_converged = [r["z_base_m"] for r in rows if not r["converged"]]
+    noisy = ns.temperature > 0 or ns.detector_noise > 0
+    not_converged = [] if noisy else [r["z_base_m"] for r in rows if not r["converged"]]
     if not_converged:
         print(f"warning: no steady state within max periods at z_base {not_converged}", file=sys.stderr)
     print(f"wrote {out / 'sweep.csv'} and {out / 'sweep.png'} ({len(rows)} points)")
@@ -647,6 +706,16 @@ def build_parser() -> argparse.ArgumentParser:
                          help="z_base values [m]: comma list or start:stop:step (default 80e-9:5e-9:5e-9)")
     sweep_p.add_argument("--retract", action="store_true", help="after the approach, retract back")
     sweep_p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    noise = sweep_p.add_argument_group("noise (default off: deterministic, as the seed notebook)")
+    for name, flag in (("temperature", "--temperature"), ("detector_noise_density", "--detector-noise"),
+                       ("noise_seed", "--noise-seed")):
+        spec = NOISE_SPECS[name]
+        unit = f" [{spec.unit}]" if spec.unit != "1" else ""
+        noise.add_argument(flag, dest=flag[2:].replace("-", "_"), type=_number, default=spec.default, metavar="X",
+                           help=f"{spec.description}{unit}; default {spec.default:g}, range {spec.range_text()}")
+    noise.add_argument("--average-periods", dest="average_periods", type=_int_at_least(1), default=200,
+                       help="with noise: drive periods averaged per z_base after 10 Q/pi settling periods "
+                            "(default 200)")
     traj_p = sub.choices["trajectory"]
     traj_p.add_argument("--z-base", default="40e-9", help="z_base [m] (default 40e-9)")
     traj_p.add_argument("--periods", type=_int_at_least(1), default=5, help="periods to record (default 5)")

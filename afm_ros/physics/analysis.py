@@ -41,8 +41,13 @@ class PeriodAnalysis:
 
 
 def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
-            contact_distance: float | None = None) -> PeriodAnalysis:
-    """Analyse per-step samples covering an integer number of drive periods."""
+            contact_distance: float | None = None, measured_z: np.ndarray | None = None) -> PeriodAnalysis:
+    """Analyse per-step samples covering an integer number of drive periods.
+
+    ``measured_z`` [m] (deflection plus detector noise) replaces the true deflection in the
+    amplitude, phase, harmonics and mean deflection (what a detector sees); energies and forces
+    always use the true motion.
+    """
     spp = sim.steps_per_period
     if samples.decimation != 1:
         raise ValueError("analyze needs every integration step (decimation=1)")
@@ -52,7 +57,8 @@ def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
     periods = n // spp
     theta = samples.drive_phase
     z, v, f = samples.z, samples.v, samples.force
-    spectrum = np.array([np.sum(z * np.exp(-1j * h * theta)) for h in range(1, n_harmonics + 1)]) * (2.0 / n)
+    seen = z if measured_z is None else measured_z
+    spectrum = np.array([np.sum(seen * np.exp(-1j * h * theta)) for h in range(1, n_harmonics + 1)]) * (2.0 / n)
     a1 = spectrum[0]
     # z ~ A cos(theta - phi) = Re(A e^{-i phi} e^{i theta}) -> conj coefficient gives A e^{i phi}
     amplitude = abs(a1)
@@ -69,7 +75,7 @@ def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
         amplitude=amplitude,
         phase_deg=math.degrees(phase),
         harmonics=np.abs(spectrum),
-        mean_deflection=float(z.mean()),
+        mean_deflection=float(seen.mean()),
         mean_force=float(f.mean()),
         max_force=float(f.max()),
         min_force=float(f.min()),
