@@ -1,0 +1,1 @@
+"""File formats of afm_ros (no ROS): Gwyddion ``.gwy`` images (:mod:`afm_ros.formats.gwy`)."""

@@ -1,0 +1,180 @@
+"""afm_ros.formats.gwy: files written by write_gwy, read by readers this project did not write
+(the gwyfile package directly, Gwyddion's own thumbnailer and converter), and bad-file errors."""
+import os
+import shutil
+import subprocess
+
+import gwyfile
+import numpy as np
+import pytest
+
+from afm_ros.formats.gwy import read_gwy, write_gwy
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def random_channels(rows=48, cols=64, seed=1):
+    rng = np.random.default_rng(seed)
+    return {"Height": (rng.normal(scale=5e-9, size=(rows, cols)), "m"),
+            "Phase": (rng.uniform(0, 180, size=(rows, cols)), "deg"),
+            "Amplitude": (rng.normal(scale=1e-3, size=(rows, cols)), "V"),
+            "E": (rng.normal(scale=1e-18, size=(rows, cols)), "J")}
+
+
+GEOMETRY = dict(xreal=6.4e-6, yreal=4.8e-6, xoff=1.5e-6, yoff=-2.25e-6)
+METADATA = {"Sample": "PS/LDPE blend", "Tip radius [m]": 2e-08, "Lines": 48, "Date": "2026-12-01 17:41:05"}
+
+
+@pytest.fixture
+def written(tmp_path):
+    path = tmp_path / "scan.gwy"
+    channels = random_channels()
+    write_gwy(path, channels, metadata=METADATA, **GEOMETRY)
+    return path, channels
+
+
+def expected_meta_text(value):
+    return value if isinstance(value, str) else repr(value) if isinstance(value, float) else str(value)
+
+
+def check_container(obj, channels):
+    """The Gwyddion container layout of docs/gwyddion.md, from gwyfile's own parse."""
+    titles = dict(gwyfile.util.find_datafields(obj))
+    assert [titles[n] for n in sorted(titles)] == list(channels)
+    for n, (title, (values, unit)) in enumerate(channels.items()):
+        field = obj[f"/{n}/data"]
+        assert (field["xres"], field["yres"]) == (values.shape[1], values.shape[0])
+        for key, value in GEOMETRY.items():
+            assert field[key] == value, key
+        assert field["si_unit_xy"]["unitstr"] == "m"
+        assert field["si_unit_z"]["unitstr"] == unit
+        assert field.data.dtype == np.float64
+        np.testing.assert_array_equal(field.data, values)  # exact float64 round trip, row 0 first
+        meta = obj[f"/{n}/meta"]
+        assert dict(meta) == {k: expected_meta_text(v) for k, v in METADATA.items()}
+
+
+def test_gwyfile_reads_what_write_gwy_wrote(written):
+    path, channels = written
+    check_container(gwyfile.load(str(path)), channels)
+
+
+def test_read_gwy_round_trip(written):
+    path, channels = written
+    image = read_gwy(path)
+    assert list(image.channels) == list(channels)
+    for title, (values, unit) in channels.items():
+        got, got_unit = image.channels[title]
+        assert got_unit == unit
+        np.testing.assert_array_equal(got, values)
+        got[0, 0] = 1.0  # a writable array of its own
+    assert (image.xreal, image.yreal, image.xoff, image.yoff) == tuple(GEOMETRY.values())
+    assert image.xy_unit == "m"
+    assert image.metadata == {k: expected_meta_text(v) for k, v in METADATA.items()}
+    # a float stored in the metadata reads back to the same number
+    assert float(image.metadata["Tip radius [m]"]) == METADATA["Tip radius [m]"]
+
+
+def test_the_write_is_atomic_and_leaves_no_temporary_file(tmp_path):
+    path = tmp_path / "scan.gwy"
+    write_gwy(path, random_channels(seed=2), 1e-6, 1e-6)
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="Phase"):  # a bad channel: the old file stays untouched
+        write_gwy(path, {"Height": (np.zeros((4, 4)), "m"), "Phase": (np.full((4, 4), np.nan), "deg")},
+                  1e-6, 1e-6)
+    assert path.read_bytes() == before
+    write_gwy(path, random_channels(seed=3), 1e-6, 1e-6)
+    assert sorted(os.listdir(tmp_path)) == ["scan.gwy"]
+    assert path.read_bytes() != before
+
+
+@pytest.mark.skipif(shutil.which("gwyddion-thumbnailer") is None,
+                    reason="gwyddion-thumbnailer not installed (Debian package gwyddion)")
+def test_gwyddion_thumbnailer_renders_every_channel(written, tmp_path):
+    path, channels = written
+    bad = tmp_path / "bad.gwy"
+    bad.write_bytes(b"GWYP not really")
+    for n in range(len(channels)):
+        png = tmp_path / f"thumb{n}.png"
+        run = subprocess.run(["gwyddion-thumbnailer", "-c", str(n), "gnome2", "128", str(path), str(png)],
+                             capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        data = png.read_bytes()
+        assert data.startswith(PNG_SIGNATURE) and len(data) > 100
+        width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        assert (width, height) == (64, 48)  # the channel's aspect, within the 128 px box
+    # the same call on a broken file fails: the exit status above means something
+    run = subprocess.run(["gwyddion-thumbnailer", "gnome2", "128", str(bad), str(tmp_path / "bad.png")],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode != 0
+
+
+@pytest.mark.skipif(shutil.which("gwyddion") is None, reason="gwyddion not installed (Debian package gwyddion)")
+def test_gwyddion_itself_reads_titles_units_and_metadata(written, tmp_path):
+    """Gwyddion loads the file with its own deserialiser and writes it again (--convert-to-gwy);
+    titles, units, geometry, values and the metadata survive."""
+    path, channels = written
+    out = tmp_path / "converted.gwy"
+    run = subprocess.run(["gwyddion", "--no-splash", "--convert-to-gwy=" + str(out), str(path)],
+                         capture_output=True, text=True, timeout=120, env={**os.environ, "DISPLAY": ""})
+    assert run.returncode == 0, run.stderr
+    check_container(gwyfile.load(str(out)), channels)
+
+
+# --- errors ----------------------------------------------------------------------------------
+def test_missing_file_is_an_oserror_naming_it(tmp_path):
+    path = tmp_path / "nowhere.gwy"
+    with pytest.raises(OSError, match="nowhere.gwy"):
+        read_gwy(path)
+
+
+def test_a_directory_is_an_oserror_naming_it(tmp_path):
+    with pytest.raises(OSError, match=str(tmp_path)):
+        read_gwy(tmp_path)
+
+
+@pytest.mark.parametrize("content, why", [
+    (b"", "GWYP"), (b"\x89PNG\r\n\x1a\nnot a gwy file", "GWYP"), (b"GWYO\0\0\0\0", "1.x"),
+    (b"GWYP", "truncated"), (b"GWYPGwyContainer\0\xff\0\0\0abc", "truncated")])
+def test_not_a_gwy_file_is_a_valueerror_naming_it(tmp_path, content, why):
+    path = tmp_path / "bad.gwy"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=why) as err:
+        read_gwy(path)
+    assert str(path) in str(err.value)
+
+
+def test_truncated_file_is_a_valueerror_naming_it(written):
+    path, _ = written
+    path.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(ValueError, match="truncated") as err:
+        read_gwy(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_container_without_channels_is_a_valueerror(tmp_path):
+    path = tmp_path / "empty.gwy"
+    gwyfile.objects.GwyContainer({"/filename": "x"}).tofile(str(path))
+    with pytest.raises(ValueError, match="no data channel") as err:
+        read_gwy(path)
+    assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(xreal=0.0), "xreal"), (dict(yreal=-1e-6), "yreal"), (dict(xoff=float("inf")), "xoff"),
+    (dict(metadata={"": 1}), "metadata key"), (dict(metadata={"a": [1]}), "metadata"),
+    (dict(channels={}), "channels"), (dict(channels={"H": np.zeros((2, 2))}), "'H'"),
+    (dict(channels={"H": (np.zeros(4), "m")}), "2D"), (dict(channels={"H": (np.zeros((2, 2)), 1)}), "unit"),
+    (dict(channels={"H": (np.zeros((2, 2)), "m"), "P": (np.zeros((3, 2)), "deg")}), "'P'")])
+def test_write_rejects_bad_arguments_by_name(tmp_path, kwargs, field):
+    args = dict(channels={"H": (np.zeros((2, 2)), "m")}, xreal=1e-6, yreal=1e-6)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=field):
+        write_gwy(tmp_path / "x.gwy", **args)
+    assert not os.listdir(tmp_path)
+
+
+def test_write_into_a_missing_directory_is_an_oserror_naming_the_file(tmp_path):
+    path = tmp_path / "no" / "such" / "dir" / "x.gwy"
+    with pytest.raises(OSError, match="x.gwy"):
+        write_gwy(path, {"H": (np.zeros((2, 2)), "m")}, 1e-6, 1e-6)
