@@ -8,7 +8,7 @@ has verified the combination (raises ValueError naming the field(s) and the reas
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from .flow import FEEDBACK_SYNC_MODES
@@ -56,8 +56,23 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               -1.0, 1e9),
 )}
 
-CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS, **NOISE_SPECS,
-                                               **NODE_SPECS}
+# The instrument is a real one in air at room temperature (22 degC) with the detector floor of a
+# typical optical-beam-deflection head (commercial heads: ~50-150 fm/sqrt(Hz)); the physics core
+# and afm_study stay deterministic by default (temperature 0, no detector noise), as the notebook.
+ROOM_TEMPERATURE = 295.0  # [K]
+TYPICAL_DETECTOR_NOISE_DENSITY = 100e-15  # [m/sqrt(Hz)]
+INSTRUMENT_NOISE_SPECS: dict[str, ParamSpec] = {
+    **NOISE_SPECS,
+    "temperature": replace(NOISE_SPECS["temperature"], default=ROOM_TEMPERATURE,
+                           description=NOISE_SPECS["temperature"].description
+                           + "; default: room temperature (set 0 for exact, noise-free physics)"),
+    "detector_noise_density": replace(NOISE_SPECS["detector_noise_density"], default=TYPICAL_DETECTOR_NOISE_DENSITY,
+                                      description=NOISE_SPECS["detector_noise_density"].description
+                                      + "; default: a typical optical-beam-deflection floor (0 = none)"),
+}
+
+CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS,
+                                               **INSTRUMENT_NOISE_SPECS, **NODE_SPECS}
 
 # A chunk is one message per topic; above this many integration steps per chunk a single
 # callback would block the executor for seconds and a message would exceed ~8 MB.

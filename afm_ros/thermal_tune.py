@@ -118,6 +118,98 @@ def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float,
     return ThermalRecord(z, fs, temperature, detector_density, cantilever)
 
 
+# --- recorded session ----------------------------------------------------------------------------
+DEFLECTION_SUFFIX = "cantilever/deflection"
+
+
+def _session_value(params: dict, name: str, path) -> float:
+    import yaml
+
+    if name not in params:
+        raise ValueError(f"{path}: the session's cantilever parameters lack {name!r} "
+                         f"(recorded by an afm_ros recorder? it stores them as metadata)")
+    value = yaml.safe_load(params[name])
+    if isinstance(value, str):
+        value = float(value)
+    return float(value)
+
+
+def record_from_session(path, namespace: str | None = None) -> ThermalRecord:
+    """The undriven cantilever's deflection record from a recorded session (``.mcap``).
+
+    Uses the ``<namespace>/cantilever/deflection`` chunks (the longest run of consecutive sample
+    indices) and the cantilever's recorded parameters: the drive must be off (free_amplitude 0),
+    the temperature > 0; the first ``SETTLE_TAU`` decay times after the start are dropped.
+    Raises ValueError naming the file and what is wrong.
+    """
+    from .chunk_layout import ChunkLayoutError, cdr_chunk
+    from .mcap_io import SessionFileError, SessionScan, check_mcap_file, parameter_metadata, read_session
+
+    try:
+        p = check_mcap_file(path)
+    except SessionFileError as exc:
+        raise ValueError(str(exc)) from None
+    scan = SessionScan(p)
+    chunks: dict[str, list] = {}
+    for m in read_session(p, scan):
+        if not m.topic.endswith(DEFLECTION_SUFFIX):
+            continue
+        try:
+            header, samples = cdr_chunk(m.data)
+        except ChunkLayoutError:
+            continue
+        chunks.setdefault(m.topic[:-len(DEFLECTION_SUFFIX)].rstrip("/"), []).append((header, samples))
+    if not chunks:
+        raise ValueError(f"{p}: no {DEFLECTION_SUFFIX} chunks recorded")
+    if namespace is None:
+        if len(chunks) > 1:
+            raise ValueError(f"{p}: deflection of several namespaces ({', '.join(sorted(chunks))}); "
+                             f"choose one with --namespace")
+        namespace = next(iter(chunks))
+    namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if namespace not in chunks:
+        raise ValueError(f"{p}: no deflection under namespace {namespace or '/'!r}; "
+                         f"recorded: {', '.join(sorted(n or '/' for n in chunks))}")
+    params = parameter_metadata(scan).get(f"{namespace}/cantilever")
+    if params is None:
+        raise ValueError(f"{p}: no recorded parameters of {namespace}/cantilever")
+    drive = _session_value(params, "free_amplitude", p)
+    if drive != 0.0:
+        raise ValueError(f"{p}: the drive was on (free_amplitude={drive:g} m); a thermal tune needs the "
+                         f"undriven cantilever: record with free_amplitude 0")
+    temperature = _session_value(params, "temperature", p)
+    if temperature <= 0.0:
+        raise ValueError(f"{p}: temperature={temperature:g} K: no thermal motion to tune on (needs > 0)")
+    cantilever = Cantilever(_session_value(params, "spring_constant", p),
+                            _session_value(params, "resonance_frequency", p),
+                            _session_value(params, "quality_factor", p))
+    parts = sorted(chunks[namespace], key=lambda hs: hs[0].first_sample_index)
+    interval = parts[0][0].sample_interval
+    runs, current, next_index = [], [], None
+    for header, samples in parts:
+        if header.sample_interval != interval:
+            raise ValueError(f"{p}: the sample interval changed during the session "
+                             f"({interval:g} s, then {header.sample_interval:g} s)")
+        if next_index is not None and header.first_sample_index != next_index:
+            runs.append(current)
+            current = []
+        current.append((header, samples))
+        next_index = header.first_sample_index + samples.shape[0]
+    runs.append(current)
+    run = max(runs, key=lambda r: sum(s.shape[0] for _, s in r))
+    t0 = run[0][0].t_start
+    z = np.concatenate([s for _, s in run])
+    tau = 2.0 * cantilever.quality_factor / cantilever.omega0
+    skip = max(0, int(math.ceil((SETTLE_TAU * tau - t0) / interval)))
+    needed = default_nperseg(cantilever, 1.0 / interval) * (MIN_SEGMENTS + 1) // 2  # MIN_SEGMENTS at 50 % overlap
+    if z.size - skip < needed:
+        raise ValueError(f"{p}: {(z.size - skip) * interval:.3g} s of contiguous deflection after settling "
+                         f"is too short for a thermal tune; record at least "
+                         f"{(needed * interval + max(0.0, SETTLE_TAU * tau - t0)):.2g} s")
+    return ThermalRecord(z[skip:].copy(), 1.0 / interval, temperature,
+                         _session_value(params, "detector_noise_density", p), cantilever)
+
+
 # --- spectrum -------------------------------------------------------------------------------------
 @dataclass
 class Spectrum:
@@ -302,7 +394,12 @@ class TuneResult:
 def thermal_tune(cantilever: Cantilever, temperature: float = 300.0, seconds: float = DEFAULT_SECONDS,
                  seed: int = 0, detector_density: float = 0.0, nperseg: int | None = None) -> TuneResult:
     """Simulate, estimate the PSD, fit it and compute the equipartition estimate."""
-    record = simulate_thermal(cantilever, temperature, seconds, seed, detector_density)
+    return tune_record(simulate_thermal(cantilever, temperature, seconds, seed, detector_density), nperseg)
+
+
+def tune_record(record: ThermalRecord, nperseg: int | None = None) -> TuneResult:
+    """PSD, fit and equipartition estimate of a deflection record (simulated or recorded)."""
+    cantilever, temperature = record.cantilever, record.temperature
     spectrum = welch_psd(record.z, record.sample_rate,
                          nperseg or default_nperseg(cantilever, record.sample_rate))
     fit = fit_thermal_tune(spectrum, temperature)
@@ -374,6 +471,11 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=_number, default=DEFAULT_SECONDS, metavar="S",
                    help=f"simulated record length [s], > 0 (default {DEFAULT_SECONDS:g})")
     p.add_argument("--seed", type=_number, default=0, help="noise seed, integer in [0, 2^63) (default 0)")
+    p.add_argument("--session", default=None, metavar="FILE.mcap",
+                   help="tune on a recorded session instead of a simulation: its cantilever/deflection, "
+                        "recorded with free_amplitude 0 and temperature > 0 (temperature and cantilever from "
+                        "its recorded parameters; the simulation flags are then ignored)")
+    p.add_argument("--namespace", default=None, help="with --session: the namespace whose cantilever to use")
     p.add_argument("--detector-noise", dest="detector_noise", type=_number, default=0.0, metavar="D",
                    help="white detector noise density [m/sqrt(Hz)] added to the samples, >= 0 (default 0)")
     group = p.add_argument_group("cantilever parameters (SI units)")
@@ -403,7 +505,10 @@ def run(args, prog: str = "afm_study thermal") -> int:
                             ("--detector-noise", args.detector_noise)):
             if isinstance(value, str):
                 raise ValueError(f"{flag}={value!r} is not a number")
-        result = thermal_tune(cantilever, args.temperature, args.seconds, seed, args.detector_noise)
+        if args.session:
+            result = tune_record(record_from_session(args.session, args.namespace))
+        else:
+            result = thermal_tune(cantilever, args.temperature, args.seconds, seed, args.detector_noise)
         paths = write_outputs(result, Path(args.out))
     except ValueError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)

@@ -23,6 +23,10 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
 
 _counter = itertools.count()
 
+# The cantilever node's defaults are a real instrument (room temperature, a detector floor); tests
+# that hold its output against the physics core or against exact expectations switch noise off.
+EXACT_PHYSICS = {"temperature": 0.0, "detector_noise_density": 0.0}
+
 
 @pytest.fixture
 def ros_context():

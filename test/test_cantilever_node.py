@@ -16,6 +16,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64, Float64MultiArray
 
+from conftest import EXACT_PHYSICS
 from afm_ros.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
 from afm_ros.topics import CONSUMER_QOS, Acknowledger
 from afm_ros.cantilever_params import build, default_values
@@ -67,7 +68,7 @@ def spin_until(executor, condition, timeout=20.0):
 
 
 def start(ctx, executor, ns, **params):
-    overrides = [Parameter(k, value=v) for k, v in {"real_time_factor": 0.0, **params}.items()]
+    overrides = [Parameter(k, value=v) for k, v in {"real_time_factor": 0.0, **EXACT_PHYSICS, **params}.items()]
     node = CantileverNode(context=ctx, namespace=ns, parameter_overrides=overrides)
     collector = Collector(ctx, ns)
     executor.add_node(node)
@@ -301,7 +302,8 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
     executor = EventsExecutor(context=ros_context)
     node = CantileverNode(context=ros_context, namespace=ros_namespace,
                           parameter_overrides=[Parameter("real_time_factor", value=0.0),
-                                               Parameter("z_base", value=z_base)])
+                                               Parameter("z_base", value=z_base)]
+                          + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()])
     lockin = LockInNode(context=ros_context, namespace=ros_namespace)
     listener = Node("xy_listener", context=ros_context, namespace=ros_namespace)
     xy = []

@@ -17,6 +17,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 
 from afm_ros.cantilever_node import CantileverNode
+from conftest import EXACT_PHYSICS
 from afm_ros.chunk_layout import unpack
 from afm_ros.topics import CONSUMER_QOS, Acknowledger
 
@@ -56,7 +57,7 @@ def spin_until(executor, condition, timeout=30.0):
 
 def start(ctx, executor, ns, **params):
     node = CantileverNode(context=ctx, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {"real_time_factor": 0.0, **params}.items()])
+        Parameter(k, value=v) for k, v in {"real_time_factor": 0.0, **EXACT_PHYSICS, **params}.items()])
     watcher = Watcher(ctx, ns)
     client_node = Node("client", context=ctx, namespace=ns)
     for n in (node, watcher, client_node):
@@ -271,7 +272,9 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
     result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--ros-args",
-                             "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25"],
+                             "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25",
+                             # noise-free: noise does not compress, and the byte budget above assumes it does
+                             "-p", "cantilever:temperature:=0.0", "-p", "cantilever:detector_noise_density:=0.0"],
                             env=env, capture_output=True, text=True, timeout=300, cwd=small_disk)
     assert result.returncode == 1
     assert "Traceback" not in result.stderr

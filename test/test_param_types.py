@@ -194,7 +194,7 @@ def test_values_typed_as_on_the_command_line_are_accepted_and_keep_the_declared_
     ("cantilever", "z_base", "[1.0, 2.0]"),                    # an array neither
     ("cantilever", "quality_factor", "0.2"),                   # the README's refused example
     ("cantilever", "quality_factor", "0.5"),                   # the open bound itself
-    ("cantilever", "free_amplitude", "0"),                     # open bound, given as an integer
+    ("cantilever", "free_amplitude", "-1"),                    # below the range, given as an integer
     ("cantilever", "z_base", "1e-3"),                          # above the range, as a string
     ("cantilever", "steps_per_period", "2.55e1"),              # 25.5: not an integer
     ("cantilever", "steps_per_period", "10"),                  # below the range

@@ -12,6 +12,7 @@ from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from conftest import EXACT_PHYSICS
 from afm_ros import report
 from afm_ros.cantilever_node import CantileverNode
 from afm_ros.cantilever_params import build, default_values
@@ -35,7 +36,7 @@ def sessions(tmp_path_factory):
     ex = SingleThreadedExecutor(context=ctx)
     ns = "/rep"
     cantilever = CantileverNode(context=ctx, namespace=ns, parameter_overrides=[
-        Parameter("output_sample_rate", value=OUTPUT_RATE)])
+        Parameter("output_sample_rate", value=OUTPUT_RATE)] + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()])
     nodes = [cantilever, LockInNode(context=ctx, namespace=ns), ZControllerNode(context=ctx, namespace=ns)]
     recorders = [RecorderNode(context=ctx, namespace=ns, parameter_overrides=[Parameter("output", value=str(full))]),
                  RecorderNode(context=ctx, namespace=ns, parameter_overrides=[

@@ -92,7 +92,8 @@ CANTILEVER_SPECS = _specs(
     ParamSpec("quality_factor", 25.0, "1", "quality factor Q (damping m*w0/Q)", 0.5, 1e6, low_open=True),
     ParamSpec("drive_frequency", 45e3, "Hz", "drive (excitation) frequency f", 10.0, 1e8),
     ParamSpec("free_amplitude", 60e-9, "m",
-              "free amplitude at resonance A0; the drive force is F0 = k*A0/Q", 0.0, 1e-6, low_open=True),
+              "free amplitude at resonance A0; the drive force is F0 = k*A0/Q (0 = drive off, e.g. for a "
+              "thermal tune)", 0.0, 1e-6),
     ParamSpec("z_base", 40e-9, "m",
               "rest position of the cantilever base above the sample surface (gap at zero deflection "
               "and zero piezo)", -1e-6, 1e-4),
