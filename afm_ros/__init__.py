@@ -3,6 +3,6 @@ __version__ = "0.1.0"
 
 # Before any afm_ros module imports numba: a writable place for the compiled kernels, also when
 # the package itself is installed read-only (see afm_ros/numba_cache.py).
-from . import numba_cache as _numba_cache
+from afm_ros import numba_cache as _numba_cache
 
 _numba_cache.configure()

@@ -1,7 +1,7 @@
 """Where numba keeps the compiled kernels of afm_ros (``cache=True``), decided before numba loads.
 
 Numba writes its cache next to the sources (``afm_ros/__pycache__``,
-``afm_ros/physics/__pycache__``) when it can. In a read-only install (``/opt/ros/...``, a
+``afm_ros/core/physics/__pycache__``) when it can. In a read-only install (``/opt/ros/...``, a
 root-owned site-packages used by another user, a read-only image) it cannot, and every start
 would compile the kernels again. :func:`configure` runs from ``afm_ros/__init__.py``, so before
 any afm_ros module imports numba, and picks in this order:

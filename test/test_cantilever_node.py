@@ -17,11 +17,11 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64, Float64MultiArray
 
 from conftest import EXACT_PHYSICS
-from afm_ros.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
-from afm_ros.topics import CONSUMER_QOS, Acknowledger
-from afm_ros.cantilever_params import build, default_values
-from afm_ros.chunk_layout import unpack
-from afm_ros.physics import Simulation, free_solution, steady_state
+from afm_ros.nodes.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
+from afm_ros.nodes.topics import CONSUMER_QOS, Acknowledger
+from afm_ros.core.cantilever_params import build, default_values
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.core.physics import Simulation, free_solution, steady_state
 
 A0 = 60e-9  # default free amplitude [m]
 
@@ -297,7 +297,7 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
     physics core's steady state (events executor: serves every lock-in output message)."""
     from geometry_msgs.msg import Vector3Stamped
     from rclpy.experimental import EventsExecutor
-    from afm_ros.lockin_node import LockInNode
+    from afm_ros.nodes.lockin_node import LockInNode
     z_base = 35e-9
     executor = EventsExecutor(context=ros_context)
     node = CantileverNode(context=ros_context, namespace=ros_namespace,
@@ -338,7 +338,7 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
 
 def test_material_by_name_explicit_values_win_and_live_change(ros_context, ros_namespace):
     """`material` fills the sample parameters at start (explicit ones win) and sets all five live."""
-    from afm_ros.physics.materials import MATERIALS
+    from afm_ros.core.physics.materials import MATERIALS
     node = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
         Parameter("material", value="polystyrene"), Parameter("sample_youngs_modulus", value=2e9)])
     try:

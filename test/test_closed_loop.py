@@ -9,8 +9,8 @@ import math
 
 import pytest
 
-from afm_ros.afm_instrument import Instrument
-from afm_ros.physics import Cantilever, Drive, seed_simulation, steady_amplitude_phase, steady_state
+from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.core.physics import Cantilever, Drive, seed_simulation, steady_amplitude_phase, steady_state
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from afm_ros.config_gen import node_key, node_specs, table_text, yaml_text
+from afm_ros.tools.config_gen import node_key, node_specs, table_text, yaml_text
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -20,7 +20,7 @@ def test_every_node_has_specs():
 
 
 def test_yaml_file_is_the_generator_output():
-    # regenerate with: python -m afm_ros.config_gen yaml > config/afm.yaml
+    # regenerate with: python -m afm_ros.tools.config_gen yaml > config/afm.yaml
     assert (ROOT / "config" / "afm.yaml").read_text() == yaml_text()
 
 
@@ -51,10 +51,10 @@ def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_e
     from rclpy.parameter import Parameter, parameter_value_to_python
     from rclpy.parameter_client import AsyncParameterClient
 
-    from afm_ros.cantilever_node import CantileverNode
-    from afm_ros.lockin_node import LockInNode
-    from afm_ros.recorder_node import RecorderNode
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.cantilever_node import CantileverNode
+    from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
 
     kw = {"context": ros_context, "namespace": ros_namespace}
     nodes = {"cantilever": CantileverNode(**kw), "lockin": LockInNode(**kw), "z_controller": ZControllerNode(**kw),
@@ -89,7 +89,7 @@ def test_shipped_file_applies_under_a_namespace(ros_context, ros_namespace, tmp_
     """The /**/<node> keys match the node in any namespace (here the test's /t_... namespace): a
     temp copy of config/afm.yaml with one changed value gives the node that value (and the
     unchanged file gives the defaults)."""
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
 
     shipped = (ROOT / "config" / "afm.yaml").read_text()
     assert "\n    setpoint: 4.8e-08\n" in shipped and "\n    p_gain: 0.1\n" in shipped

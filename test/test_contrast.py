@@ -12,9 +12,9 @@ import math
 
 import pytest
 
-from afm_ros import contrast
-from afm_ros.physics.analysis import analyze, cleveland_sin_phase
-from afm_ros.physics.materials import MATERIALS
+from afm_ros.tools import contrast
+from afm_ros.core.physics.analysis import analyze, cleveland_sin_phase
+from afm_ros.core.physics.materials import MATERIALS
 
 FINE = 6400
 TOL_SIN = 4e-5  # two runs, 2e-5 each (measured per-run error <= 7.1e-6 in test_physics_dissipation)

@@ -29,9 +29,9 @@ import rclpy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
-from afm_ros import report
-from afm_ros.afm_instrument import Instrument
-from afm_ros.mcap_io import read_session
+from afm_ros.tools import report
+from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.formats.mcap_io import read_session
 
 HOLD = 0.3  # simulated seconds after engaging
 FREE = 0.03

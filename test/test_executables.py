@@ -21,8 +21,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
-from afm_ros.cantilever_node import CHUNK_QOS
-from afm_ros.chunk_layout import unpack
+from afm_ros.nodes.cantilever_node import CHUNK_QOS
+from afm_ros.formats.chunk_layout import unpack
 
 ROOT = Path(__file__).resolve().parents[1]
 VENV = Path(sys.prefix)
@@ -115,7 +115,7 @@ def test_bad_params_file_fails_with_a_clear_error(install, tmp_path):
 
 
 def test_afm_instrument_runs_the_main_job_and_prints_the_summary(tmp_path):
-    from afm_ros.config_gen import yaml_text  # the text of config/afm.yaml, from the same specs
+    from afm_ros.tools.config_gen import yaml_text  # the text of config/afm.yaml, from the same specs
     params = tmp_path / "afm.yaml"
     params.write_text(yaml_text())
     result = subprocess.run(

@@ -16,10 +16,10 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 
-from afm_ros.cantilever_node import CantileverNode
+from afm_ros.nodes.cantilever_node import CantileverNode
 from conftest import EXACT_PHYSICS
-from afm_ros.chunk_layout import unpack
-from afm_ros.topics import CONSUMER_QOS, Acknowledger
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.nodes.topics import CONSUMER_QOS, Acknowledger
 
 BIN = Path(sys.executable).parent
 # the issue's sequence: each value alone is in range, the third makes F0 = k A0 / Q = 2 mN (> 1 mN)
@@ -156,9 +156,9 @@ def _session_with_chunks(path: Path, n: int = 3000) -> dict[str, int]:
     MCAP chunks so the file has dozens of them; returns the message count per topic."""
     from rosgraph_msgs.msg import Clock
     from rclpy.serialization import serialize_message
-    from afm_ros.cantilever_node import chunk_message
-    from afm_ros.chunk_layout import ChunkHeader
-    from afm_ros.mcap_io import SessionWriter
+    from afm_ros.nodes.cantilever_node import chunk_message
+    from afm_ros.formats.chunk_layout import ChunkHeader
+    from afm_ros.formats.mcap_io import SessionWriter
     w = SessionWriter(path, compression="zstd", chunk_size=64 * 1024)
     defl = w.add_channel("/cantilever/deflection", "std_msgs/msg/Float64MultiArray")
     clock = w.add_channel("/clock", "rosgraph_msgs/msg/Clock")
@@ -188,7 +188,7 @@ def _flip(path: Path, offset: int, mask: int = 0x10) -> None:
 
 @pytest.mark.parametrize("where", ["payload", "length"])
 def test_damaged_middle_chunk_is_skipped_and_every_intact_chunk_kept(tmp_path, where):
-    from afm_ros.mcap_io import SessionScan, read_session, recover, scan_session
+    from afm_ros.formats.mcap_io import SessionScan, read_session, recover, scan_session
     path = tmp_path / "session.mcap"
     counts = _session_with_chunks(path)
     chunks = _chunks(path)
@@ -220,20 +220,20 @@ def test_damaged_middle_chunk_is_skipped_and_every_intact_chunk_kept(tmp_path, w
 
 
 def test_fifo_is_refused_by_every_reader(tmp_path):
-    from afm_ros.mcap_io import SessionFileError, read_session
+    from afm_ros.formats.mcap_io import SessionFileError, read_session
     fifo = tmp_path / "session.mcap"
     os.mkfifo(fifo)
     with pytest.raises(SessionFileError, match="FIFO"):
         next(read_session(fifo))
-    for cmd in (["afm_report", str(fifo)], ["python", "-m", "afm_ros.mcap_io", "info", str(fifo)]):
+    for cmd in (["afm_report", str(fifo)], ["python", "-m", "afm_ros.formats.mcap_io", "info", str(fifo)]):
         exe = [str(BIN / cmd[0])] + cmd[1:] if cmd[0] != "python" else [sys.executable] + cmd[1:]
         result = subprocess.run(exe, capture_output=True, text=True, timeout=60)
         assert result.returncode != 0 and "FIFO" in result.stderr and "Traceback" not in result.stderr
 
 
 def test_replay_and_report_warn_about_damage_and_say_what_they_read(ros_context, ros_executor, tmp_path, capsys):
-    from afm_ros import report
-    from afm_ros.replay_node import ReplayNode
+    from afm_ros.tools import report
+    from afm_ros.nodes.replay_node import ReplayNode
     path = tmp_path / "session.mcap"
     counts = _session_with_chunks(path)
     bad = _chunks(path)[len(_chunks(path)) // 2]
@@ -268,7 +268,7 @@ def small_disk(tmp_path):
 
 
 def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file_readable(small_disk):
-    from afm_ros.mcap_io import SessionScan, read_session
+    from afm_ros.formats.mcap_io import SessionScan, read_session
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
     result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--ros-args",

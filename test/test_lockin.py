@@ -23,11 +23,11 @@ from scipy.stats import nbinom
 from geometry_msgs.msg import Vector3Stamped
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
-from afm_ros import chunk_layout
-from afm_ros.chunk_layout import ChunkHeader
-from afm_ros.lockin import LockIn, LockInOutput, lowpass
-from afm_ros.lockin_node import CHUNK_QOS, LockInNode
-from afm_ros.physics import (Cantilever, DMTForce, Drive, NoForce, Simulation, steady_amplitude_phase,
+from afm_ros.formats import chunk_layout
+from afm_ros.formats.chunk_layout import ChunkHeader
+from afm_ros.core.lockin import LockIn, LockInOutput, lowpass
+from afm_ros.nodes.lockin_node import CHUNK_QOS, LockInNode
+from afm_ros.core.physics import (Cantilever, DMTForce, Drive, NoForce, Simulation, steady_amplitude_phase,
                              steady_state)
 
 FS = 900e3  # input sample rate [S/s] (the cantilever's default output rate)
@@ -260,7 +260,7 @@ def test_gaps_duplicates_and_interval_change():
 def test_periodic_reanchoring_is_seamless(monkeypatch, source):
     """Long runs re-anchor the reference every 2**24 samples (to keep n * cycles_per_sample
     small); forcing it every 1000 samples changes the outputs only by phase rounding."""
-    import afm_ros.lockin as lockin_module
+    import afm_ros.core.lockin as lockin_module
     z = synthetic(30000, 40e-9, 0.5, 2e-9, [(3, 4e-9, 1.0)])
     params = dict(reference_source=source, reference_frequency=F_DRIVE, output_rate=20e3)
     normal = run(LockIn(**params), stream(z, sizes=(900,)))

@@ -5,9 +5,9 @@ import math
 
 import pytest
 
-from afm_ros.physics.forces import make_force_model
-from afm_ros.physics.materials import MATERIALS, SOURCES, Material, material, sample_for
-from afm_ros.physics.parameters import DMT_SPECS, DMTSample
+from afm_ros.core.physics.forces import make_force_model
+from afm_ros.core.physics.materials import MATERIALS, SOURCES, Material, material, sample_for
+from afm_ros.core.physics.parameters import DMT_SPECS, DMTSample
 
 
 def test_table_has_the_required_materials():

@@ -15,7 +15,7 @@ import yaml
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType
 
-from afm_ros.config_gen import node_specs
+from afm_ros.tools.config_gen import node_specs
 
 TIMEOUT = 30.0
 TYPE_OF_KIND = {float: ParameterType.PARAMETER_DOUBLE, int: ParameterType.PARAMETER_INTEGER,
@@ -114,7 +114,7 @@ def _replay_file(path):
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Float64
 
-    from afm_ros.mcap_io import SessionWriter
+    from afm_ros.formats.mcap_io import SessionWriter
     writer = SessionWriter(path)
     channel = writer.add_channel("/x", "std_msgs/msg/Float64")
     writer.write(channel, serialize_message(Float64(data=1.0)), 1_000_000_000)
@@ -130,11 +130,11 @@ def afm_nodes(ros_context, ros_executor, ros_namespace, tmp_path):
     import rclpy
     from rclpy.parameter import Parameter
 
-    from afm_ros.cantilever_node import CantileverNode
-    from afm_ros.lockin_node import LockInNode
-    from afm_ros.recorder_node import RecorderNode
-    from afm_ros.replay_node import ReplayNode
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.cantilever_node import CantileverNode
+    from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.nodes.replay_node import ReplayNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
 
     kw = {"context": ros_context, "namespace": ros_namespace}
     nodes = {
@@ -298,7 +298,7 @@ def test_dump_then_load_round_trips_every_parameter_of_every_node(afm_nodes, tmp
 def test_start_values_are_converted_and_validated_like_live_values(ros_context):
     from rclpy.parameter import Parameter
 
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
     node = ZControllerNode(context=ros_context, parameter_overrides=[
         Parameter("setpoint", value="40e-9"), Parameter("p_gain", value=1), Parameter("enabled", value="off")])
     try:
@@ -323,7 +323,7 @@ def test_ros_args_p_and_params_file_values_are_typed(ros_context, ros_namespace,
     an unknown key for the node is a warning naming key and node."""
     from rclpy.parameter import Parameter
 
-    from afm_ros.cantilever_node import CantileverNode
+    from afm_ros.nodes.cantilever_node import CantileverNode
     params = tmp_path / "p.yaml"
     params.write_text("/**/cantilever:\n  ros__parameters:\n    quality_factor: 30\n    quality_factr: 31\n"
                       "    steps_per_period: 240.0\n")
@@ -350,8 +350,8 @@ def test_ros_args_p_and_params_file_values_are_typed(ros_context, ros_namespace,
 
 def test_coerce_table():
     """The conversion rules on their own (no ROS)."""
-    from afm_ros.physics.parameters import ParamSpec
-    from afm_ros.ros_params import coerce
+    from afm_ros.core.physics.parameters import ParamSpec
+    from afm_ros.nodes.ros_params import coerce
     d = ParamSpec("d", 1.0, "m", "", -10.0, 1e3)
     i = ParamSpec("i", 1, "1", "", 0, 1000, kind=int)
     b = ParamSpec("b", True, "", "", kind=bool)

@@ -4,7 +4,7 @@ import zlib
 import numpy as np
 import pytest
 
-from afm_ros.physics import METHODS, seed_simulation
+from afm_ros.core.physics import METHODS, seed_simulation
 
 
 def _chunks(rng, total):

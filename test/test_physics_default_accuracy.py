@@ -17,7 +17,7 @@ z_base 46.6 nm) and that 220 meets both (worst 0.0167 nm at 45.7 nm, 0.0425 deg 
 the default is 220. Besides every 5 nm, the z_base list holds the worst points of that scan.
 """
 
-from afm_ros.physics import CANTILEVER_SPECS, seed_simulation, steady_state
+from afm_ros.core.physics import CANTILEVER_SPECS, seed_simulation, steady_state
 
 DEFAULT = CANTILEVER_SPECS["steps_per_period"].default
 AMPLITUDE_TARGET = 0.02e-9  # m

@@ -10,9 +10,9 @@ import math
 import numpy as np
 import pytest
 
-from afm_ros.physics import Cantilever, DMTForce, DMTSample, Drive, cleveland_sin_phase, steady_state
-from afm_ros.physics.forces import HysteresisDMTForce, ViscoelasticDMTForce, make_force_model
-from afm_ros.physics.simulation import Simulation
+from afm_ros.core.physics import Cantilever, DMTForce, DMTSample, Drive, cleveland_sin_phase, steady_state
+from afm_ros.core.physics.forces import HysteresisDMTForce, ViscoelasticDMTForce, make_force_model
+from afm_ros.core.physics.simulation import Simulation
 
 FINE = 6400
 SAMPLE = DMTSample()
@@ -119,7 +119,7 @@ def test_default_step_count_is_accurate_for_the_dissipative_models():
     for polystyrene and LDPE from the materials table: at the default 220 steps per period, except
     hysteresis_dmt on LDPE, which needs 300 (its force jumps when the tip turns, where RK4 is only
     first order; measured on a 5 nm grid: 220 -> 0.060 deg at 50 nm, 300 -> 0.018 deg; docs/study.md)."""
-    from afm_ros.physics.materials import sample_for
+    from afm_ros.core.physics.materials import sample_for
     steady_tols = dict(amplitude_tol=1e-15, phase_tol_deg=1e-6)
 
     def amp_phase(model, zb, spp):

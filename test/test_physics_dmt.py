@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from afm_ros.physics import (Cantilever, DMTForce, DMTSample, cleveland_sin_phase, seed_simulation,
+from afm_ros.core.physics import (Cantilever, DMTForce, DMTSample, cleveland_sin_phase, seed_simulation,
                              steady_state)
 
 FINE = 6400

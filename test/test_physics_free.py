@@ -19,9 +19,9 @@ import math
 import numpy as np
 import pytest
 
-from afm_ros.physics import (Cantilever, Drive, NoForce, Simulation, analyze, free_solution,
+from afm_ros.core.physics import (Cantilever, Drive, NoForce, Simulation, analyze, free_solution,
                              steady_amplitude_phase)
-from afm_ros.study import DEFAULT_CONVERGENCE_SPP, convergence_study, fit_order
+from afm_ros.tools.study import DEFAULT_CONVERGENCE_SPP, convergence_study, fit_order
 
 CANTILEVER = Cantilever()  # seed notebook: k = 10 N/m, f0 = 45 kHz, Q = 25
 A0 = 60e-9

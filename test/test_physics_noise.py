@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from afm_ros.physics import Cantilever, Drive
-from afm_ros.physics.forces import NoForce
-from afm_ros.physics.noise import BOLTZMANN, detector_noise, normals, thermal_force_sigma
-from afm_ros.physics.simulation import Simulation
+from afm_ros.core.physics import Cantilever, Drive
+from afm_ros.core.physics.forces import NoForce
+from afm_ros.core.physics.noise import BOLTZMANN, detector_noise, normals, thermal_force_sigma
+from afm_ros.core.physics.simulation import Simulation
 
 CANTILEVER = Cantilever()  # k = 10 N/m, f0 = 45 kHz, Q = 25
 T = 300.0  # [K]

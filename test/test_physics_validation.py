@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from afm_ros.physics import (ALL_PHYSICS_SPECS, CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive,
+from afm_ros.core.physics import (ALL_PHYSICS_SPECS, CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive,
                              Simulation, make_force_model)
 
 

@@ -20,9 +20,9 @@ import rclpy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
-from afm_ros.afm_instrument import Instrument
-from afm_ros.chunk_layout import cdr_chunk_index
-from afm_ros.mcap_io import read_session
+from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.formats.chunk_layout import cdr_chunk_index
+from afm_ros.formats.mcap_io import read_session
 
 BIN = Path(sys.executable).parent
 

@@ -25,11 +25,11 @@ from mcap_ros2.decoder import DecoderFactory
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
-from afm_ros import mcap_io
-from afm_ros.cantilever_node import CantileverNode
-from afm_ros.chunk_layout import unpack
-from afm_ros.mcap_io import RecordingError, read_session, recover, scan_session
-from afm_ros.recorder_node import RecorderNode
+from afm_ros.formats import mcap_io
+from afm_ros.nodes.cantilever_node import CantileverNode
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.formats.mcap_io import RecordingError, read_session, recover, scan_session
+from afm_ros.nodes.recorder_node import RecorderNode
 
 VENV_BIN = Path(sys.executable).parent
 DOMAIN_ID = "51"

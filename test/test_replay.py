@@ -14,12 +14,12 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from afm_ros import mcap_io
-from afm_ros.cantilever_node import CantileverNode
-from afm_ros.chunk_layout import unpack
-from afm_ros.mcap_io import SessionFileError, read_session, scan_session
-from afm_ros.recorder_node import RecorderNode
-from afm_ros.replay_node import ReplayNode
+from afm_ros.formats import mcap_io
+from afm_ros.nodes.cantilever_node import CantileverNode
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.formats.mcap_io import SessionFileError, read_session, scan_session
+from afm_ros.nodes.recorder_node import RecorderNode
+from afm_ros.nodes.replay_node import ReplayNode
 
 OUTPUT_RATE = 450e3  # [S/s] 10 samples per drive period for the lock-in
 RECORD_S = 1.5  # [s] wall
@@ -38,8 +38,8 @@ def spin(ex, seconds=None, until=None, timeout=30.0):
 def loop_session(tmp_path_factory):
     """A closed-loop session (cantilever, lock-in, z-controller) recorded in namespace /a."""
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
-    from afm_ros.lockin_node import LockInNode
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
     path = tmp_path_factory.mktemp("replay") / "loop.mcap"
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -83,8 +83,8 @@ def _stamp(m):
 
 
 def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_session, ros_context, ros_executor):
-    from afm_ros.lockin_node import LockInNode
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
     # recorded outputs by simulated time stamp (xy is stamped; amplitude/phase come in the same order)
     rec = {"xy": [], "amp": [], "phase": []}
     for m in read_session(loop_session):

@@ -13,10 +13,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from conftest import EXACT_PHYSICS
-from afm_ros import report
-from afm_ros.cantilever_node import CantileverNode
-from afm_ros.cantilever_params import build, default_values
-from afm_ros.recorder_node import RecorderNode
+from afm_ros.tools import report
+from afm_ros.nodes.cantilever_node import CantileverNode
+from afm_ros.core.cantilever_params import build, default_values
+from afm_ros.nodes.recorder_node import RecorderNode
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 OUTPUT_RATE = 450e3  # [S/s] 10 samples per drive period: enough for the lock-in, light for 2 cores
@@ -27,8 +27,8 @@ SESSION_S = 2.0  # [s] wall
 def sessions(tmp_path_factory):
     """(full, subset) session files recorded at the same time from one running instrument."""
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
-    from afm_ros.lockin_node import LockInNode
-    from afm_ros.z_controller_node import ZControllerNode
+    from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.z_controller_node import ZControllerNode
     d = tmp_path_factory.mktemp("report")
     full, subset = d / "full.mcap", d / "subset.mcap"
     ctx = rclpy.Context()
@@ -102,7 +102,7 @@ def test_full_session_report(sessions, tmp_path):
     assert rep.numbers["min_gap_m"] <= gap.min() and rep.numbers["max_force_n"] >= force.max()
     assert rep.numbers["min_force_n"] <= force.min()
     # the setpoint is read from the recorded z_controller parameters
-    from afm_ros.zcontrol import Z_CONTROLLER_SPECS
+    from afm_ros.core.controller import Z_CONTROLLER_SPECS
     assert rep.numbers["setpoint_m"] == pytest.approx(Z_CONTROLLER_SPECS["setpoint"].default)
     # error = setpoint - amplitude: the setpoint rebuilt from the recorded error and amplitude
     # agrees with the parameter to within the lock-in's output jitter between the two topics
@@ -151,7 +151,7 @@ def test_report_on_bad_file(tmp_path, capsys):
 def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespace, tmp_path):
     """The afm_instrument job (withdraw, free measurement, engage at 80 %, hold), recorded; the
     report computed from the file must agree with the summary the instrument computed live."""
-    from afm_ros.afm_instrument import Instrument
+    from afm_ros.tools.afm_instrument import Instrument
     from rclpy.parameter import Parameter as P
     path = tmp_path / "job.mcap"
     import inspect

@@ -1,7 +1,7 @@
 """afm_report in bounded memory on a long session, exact numbers from streamed data, non-finite
 samples, and one-line errors for files from other tools (issue 8).
 
-The sessions are synthetic (afm_ros.bench_report.write_synthetic_session): the instrument's message
+The sessions are synthetic (afm_ros.tools.bench_report.write_synthetic_session): the instrument's message
 pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an engage on
 /parameter_events) with known contents, so every number the report makes has an exact expectation.
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afm_ros import report
-from afm_ros.bench_report import run_measured, write_synthetic_session
-from afm_ros.mcap_io import SessionWriter
+from afm_ros.tools import report
+from afm_ros.tools.bench_report import run_measured, write_synthetic_session
+from afm_ros.formats.mcap_io import SessionWriter
 
 BIN = Path(sys.executable).parent
 
@@ -29,7 +29,7 @@ def _run_measured(*args) -> tuple[int, str, str, float]:
     small intermediate process (see bench_report.run_measured: measured from pytest directly, a
     child's ru_maxrss would start at pytest's own size). No sampling, so no timing luck.
     """
-    exe = [str(BIN / "afm_report")] if (BIN / "afm_report").exists() else [sys.executable, "-m", "afm_ros.report"]
+    exe = [str(BIN / "afm_report")] if (BIN / "afm_report").exists() else [sys.executable, "-m", "afm_ros.tools.report"]
     r = run_measured(exe + [str(a) for a in args], timeout=600)
     return r["status"], r["stdout"], r["stderr"], r["peak_rss_mb"]
 
@@ -82,7 +82,7 @@ def test_kept_force_distance_pairs_are_exact_and_evenly_spaced(tmp_path):
     spaced in the sample index, and each one lies on the DMT curve the generator used (gap and force
     of the same sample: exact, 0 relative error; a pairing off by one sample would miss by up to
     the force's full range)."""
-    from afm_ros.physics.forces import DMTForce
+    from afm_ros.core.physics.forces import DMTForce
     path = tmp_path / "s.mcap"
     info = write_synthetic_session(path, 60.0)
     data = report.load_session(path)

@@ -1,4 +1,4 @@
-"""afm_ros.samples: the documented properties of each generator, tip dilation, surface_at,
+"""afm_ros.core.samples: the documented properties of each generator, tip dilation, surface_at,
 file loaders and sample descriptions (docs/samples.md)."""
 import hashlib
 import inspect
@@ -14,8 +14,8 @@ from PIL import Image
 from scipy import ndimage
 
 from afm_ros.formats.gwy import write_gwy
-from afm_ros.samples.generators import check
-from afm_ros.samples import (GENERATORS, SPECS, Sample, blend, describe, dilate, from_file, grating,
+from afm_ros.core.samples.generators import check
+from afm_ros.core.samples import (GENERATORS, SPECS, Sample, blend, describe, dilate, from_file, grating,
                              load_sample_file, rough, sample_from_description, surface_at, terraces)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,5 +1,5 @@
 """Start-up: numba cache location (read-only installs), one compiled specialisation per kernel,
-no heavy imports on the node paths. Timing itself is measured by ``python -m afm_ros.bench_startup``,
+no heavy imports on the node paths. Timing itself is measured by ``python -m afm_ros.tools.bench_startup``,
 not here.
 """
 from __future__ import annotations
@@ -73,8 +73,8 @@ import json, os, sys
 import afm_ros
 from afm_ros import numba_cache
 before_numba = "numba" not in sys.modules
-from afm_ros.physics import integrators, simulation
-from afm_ros import lockin
+from afm_ros.core.physics import integrators, simulation
+from afm_ros.core import lockin
 simulation.Simulation().advance(100, 4)
 lockin.LockIn().warm_up()
 print(json.dumps({
@@ -178,7 +178,7 @@ def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_inst
 
 # --- compiled specialisations and imports ------------------------------------------------------
 def test_rk4_kernel_has_one_specialisation_for_any_argument_types():
-    from afm_ros.physics import integrators, seed_simulation
+    from afm_ros.core.physics import integrators, seed_simulation
     sim = seed_simulation(z_base=40e-9)
     sim.advance(10)
     sim.z_offset = 0  # an int, as a caller might pass
@@ -189,16 +189,16 @@ def test_rk4_kernel_has_one_specialisation_for_any_argument_types():
 
 
 def test_lockin_filter_stage_is_inlined_not_compiled_per_column():
-    from afm_ros import lockin
+    from afm_ros.core import lockin
     lockin.LockIn().warm_up()
     assert len(lockin._demodulate.signatures) == 1
     assert lockin._cascade.signatures == []  # inlined into _demodulate: no own compilation
 
 
 @pytest.mark.parametrize("module,forbidden", [
-    ("afm_ros.cantilever_node", ("matplotlib", "tqdm", "scipy.integrate", "afm_ros.physics.analysis")),
-    ("afm_ros.lockin_node", ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal", "scipy.special")),
-    ("afm_ros.z_controller_node", ("matplotlib", "tqdm", "numba", "scipy")),
+    ("afm_ros.nodes.cantilever_node", ("matplotlib", "tqdm", "scipy.integrate", "afm_ros.core.physics.analysis")),
+    ("afm_ros.nodes.lockin_node", ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal", "scipy.special")),
+    ("afm_ros.nodes.z_controller_node", ("matplotlib", "tqdm", "numba", "scipy")),
 ])
 def test_node_imports_stay_light(module, forbidden):
     code = (f"import sys, {module}; "

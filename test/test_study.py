@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from afm_ros import study
-from afm_ros.physics import Cantilever, Drive, steady_amplitude_phase
+from afm_ros.tools import study
+from afm_ros.core.physics import Cantilever, Drive, steady_amplitude_phase
 
 UNITS = ("_m", "_s", "_N", "_J", "_deg", "_Hz")
 
@@ -147,11 +147,11 @@ def test_bad_flag_exit_code_2_names_field(tmp_path, capsys, flag, value, field):
 
 
 def test_bad_value_in_subprocess_no_traceback(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "afm_ros.study", "trajectory", "--out", str(tmp_path),
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.tools.study", "trajectory", "--out", str(tmp_path),
                            "--z-base", "1.0"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "z_base=1.0 m is out of range" in proc.stderr and "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "afm_ros.study", "sweep", "--method", "rk5"],
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.tools.study", "sweep", "--method", "rk5"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "method='rk5'" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -167,7 +167,7 @@ def test_drive_force_flag_is_the_same_drive_as_free_amplitude():
 
 def test_thermal_tune_is_an_afm_study_subcommand(tmp_path):
     """`afm_study thermal` runs the thermal tune (its physics is tested in test_thermal_tune.py)."""
-    from afm_ros import study
+    from afm_ros.tools import study
     assert study.main(["thermal", "--seconds", "0.2", "--out", str(tmp_path)]) == 0
     for name in ("thermal_tune.csv", "thermal_tune.png", "thermal_tune.json"):
         assert (tmp_path / name).stat().st_size > 0
@@ -176,15 +176,15 @@ def test_thermal_tune_is_an_afm_study_subcommand(tmp_path):
 
 def test_contrast_is_an_afm_study_subcommand(tmp_path):
     """`afm_study contrast` runs the phase-contrast study (physics tested in test_contrast.py)."""
-    from afm_ros import study
+    from afm_ros.tools import study
     assert study.main(["contrast", "--ratios", "0.9:0.8:0.1", "--steps-per-period", "400",
                        "--out", str(tmp_path)]) == 0
     assert (tmp_path / "contrast.csv").stat().st_size > 0 and (tmp_path / "contrast.png").stat().st_size > 0
 
 
 def test_material_flag_sets_the_sample_and_explicit_values_win():
-    from afm_ros import study
-    from afm_ros.physics.materials import MATERIALS
+    from afm_ros.tools import study
+    from afm_ros.core.physics.materials import MATERIALS
     parser = study.build_parser()
     ns = parser.parse_args(["sweep", "--material", "ldpe", "--sample-youngs-modulus", "1e9"])
     _, _, sample, _ = study.physics_from_args(ns)

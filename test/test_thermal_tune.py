@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from afm_ros.physics import Cantilever
-from afm_ros.physics.noise import BOLTZMANN
-from afm_ros.thermal_tune import add_parser, main, run, sho_thermal_psd, thermal_tune
+from afm_ros.core.physics import Cantilever
+from afm_ros.core.physics.noise import BOLTZMANN
+from afm_ros.tools.thermal_tune import add_parser, main, run, sho_thermal_psd, thermal_tune
 
 CANTILEVER = Cantilever()  # k = 10 N/m, f0 = 45 kHz, Q = 25
 T = 300.0  # [K]
@@ -152,7 +152,7 @@ def test_subcommand_parser_for_afm_study(tmp_path, capsys):
 
 
 def test_module_runs_as_a_script_and_fails_cleanly(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "afm_ros.thermal_tune", "--out", str(tmp_path),
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.tools.thermal_tune", "--out", str(tmp_path),
                            "--temperature", "-5"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "--temperature=-5" in proc.stderr and "Traceback" not in proc.stderr

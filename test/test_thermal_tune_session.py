@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
-from afm_ros import thermal_tune
-from afm_ros.cantilever_node import CantileverNode
-from afm_ros.physics import Cantilever, Drive, NoForce, Simulation
-from afm_ros.physics.noise import detector_noise
-from afm_ros.recorder_node import RecorderNode
+from afm_ros.tools import thermal_tune
+from afm_ros.nodes.cantilever_node import CantileverNode
+from afm_ros.core.physics import Cantilever, Drive, NoForce, Simulation
+from afm_ros.core.physics.noise import detector_noise
+from afm_ros.nodes.recorder_node import RecorderNode
 
 SECONDS = 1.2  # [s] simulated; the first 20 decay times (~3.5 ms) are dropped by the tune
 TEMPERATURE = 300.0  # [K]
@@ -86,7 +86,7 @@ def test_recorded_thermal_motion_is_the_seeded_simulation(session):
 
 
 def test_thermal_tune_of_a_recorded_session_recovers_the_cantilever(session, tmp_path, capsys):
-    from afm_ros import study
+    from afm_ros.tools import study
 
     code = study.main(["thermal", "--session", str(session), "--out", str(tmp_path)])
     assert code == 0, capsys.readouterr().err

@@ -17,10 +17,10 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray
 
-from afm_ros import topics
-from afm_ros.chunk_layout import OutputBatch, pack_outputs, unpack_z_command
-from afm_ros.z_controller_node import Z_QOS, ZControllerNode
-from afm_ros.zcontrol import Z_CONTROLLER_SPECS, ZController
+from afm_ros.nodes import topics
+from afm_ros.formats.chunk_layout import OutputBatch, pack_outputs, unpack_z_command
+from afm_ros.nodes.z_controller_node import Z_QOS, ZControllerNode
+from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController
 
 A_FREE = 60e-9  # [m]
 SETPOINT = Z_CONTROLLER_SPECS["setpoint"].default

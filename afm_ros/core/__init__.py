@@ -1,0 +1,1 @@
+"""ROS-free cores (numpy + numba): physics, samples, lock-in, z controller, scanner, imaging."""

@@ -1,0 +1,102 @@
+"""What a frame says about its sample (no ROS): true maps under the pixels, heights by level,
+phase by material, trace-retrace difference. Used by the scan summaries and the imaging tests.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afm_ros.core.imaging import Frame
+from afm_ros.core.scanner import ScanPlan
+
+
+def pixel_centres(plan: ScanPlan) -> tuple[np.ndarray, np.ndarray]:
+    """x [cols] and y [rows] of the pixel centres [m] (row 0 = lowest y)."""
+    x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
+    y = plan.y_low + (np.arange(plan.lines) + 0.5) * plan.line_pitch
+    return x, y
+
+
+def sample_under_pixels(sample, plan: ScanPlan, oversample: int = 1):
+    """(height [m], material index) of ``sample`` (periodic) at the pixel centres, rows x cols."""
+    x, y = pixel_centres(plan)
+    cols = np.floor(np.mod(x, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]
+    rows = np.floor(np.mod(y, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
+    return sample.height[np.ix_(rows, cols)], sample.material_index[np.ix_(rows, cols)]
+
+
+def edge_mask(labels: np.ndarray, plan: ScanPlan, distance: float) -> np.ndarray:
+    """True for pixels farther than ``distance`` [m] (along x and y) from any pixel of another label."""
+    keep = np.ones(labels.shape, dtype=bool)
+    nx = int(math.ceil(distance / plan.pixel_size))
+    ny = int(math.ceil(distance / plan.line_pitch))
+    rows, cols = labels.shape
+    for dx in range(-nx, nx + 1):
+        lo, hi = max(0, -dx), min(cols, cols - dx)
+        if lo >= hi:
+            continue
+        same = np.ones(labels.shape, dtype=bool)
+        same[:, lo:hi] = labels[:, lo:hi] == labels[:, lo + dx:hi + dx]
+        same[:, :lo] = False
+        same[:, hi:] = False
+        keep &= same
+    for dy in range(-ny, ny + 1):
+        lo, hi = max(0, -dy), min(rows, rows - dy)
+        if lo >= hi:
+            continue
+        same = np.ones(labels.shape, dtype=bool)
+        same[lo:hi, :] = labels[lo:hi, :] == labels[lo + dy:hi + dy, :]
+        same[:lo, :] = False
+        same[hi:, :] = False
+        keep &= same
+    return keep
+
+
+@dataclass
+class LevelStep:
+    levels: np.ndarray  # true heights of the two levels [m]
+    measured: np.ndarray  # median image value on each level (pixels away from edges) [m]
+    pixels: np.ndarray  # pixels used per level
+
+    @property
+    def true_step(self) -> float:
+        return float(self.levels[1] - self.levels[0])
+
+    @property
+    def measured_step(self) -> float:
+        return float(self.measured[1] - self.measured[0])
+
+
+def level_step(image: np.ndarray, true_height: np.ndarray, keep: np.ndarray) -> LevelStep:
+    """Step between the two most common true height levels, from the image's medians on each."""
+    levels, counts = np.unique(np.round(true_height, 15), return_counts=True)
+    if levels.size < 2:
+        raise ValueError("the scanned area has a single height level: no step to measure")
+    top2 = np.sort(levels[np.argsort(counts)[-2:]])
+    measured, used = [], []
+    for level in top2:
+        sel = keep & (np.abs(true_height - level) < 1e-15) & np.isfinite(image)
+        if not sel.any():
+            raise ValueError(f"no pixel of level {level:g} m away from the edges")
+        measured.append(float(np.median(image[sel])))
+        used.append(int(sel.sum()))
+    return LevelStep(top2, np.array(measured), np.array(used))
+
+
+def material_medians(image: np.ndarray, material_index: np.ndarray, keep: np.ndarray, names) -> dict:
+    """Median image value per material name over the kept pixels (materials absent: left out)."""
+    out = {}
+    for i, name in enumerate(names):
+        sel = keep & (material_index == i) & np.isfinite(image)
+        if sel.any():
+            out[name] = float(np.median(image[sel]))
+    return out
+
+
+def trace_retrace_rms(frame: Frame, channel: str = "height") -> float:
+    """rms of trace - retrace over the frame (same units as the channel)."""
+    d = frame.images["trace"][channel].astype(float) - frame.images["retrace"][channel].astype(float)
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d * d))) if d.size else math.nan

@@ -1,0 +1,156 @@
+"""Image acquisition (no ROS): lock-in and z-controller outputs binned into pixels, line by line.
+
+Each frame has, per direction (trace, retrace), the channels of :data:`CHANNELS`, every one a
+``lines x pixels`` float32 array whose row 0 is the lowest y (``ScanPlan.row_of_line``). A pixel
+is the mean of the outputs whose time stamp falls in its time slot (``ScanPlan.slots``); the lock-in
+delay is not compensated (a real controller does not either). Channels and units:
+
+- ``height`` [m]: the z controller's z piezo output. The gap is z_base + z_piezo + deflection -
+  surface, so the feedback raises z_piezo over a bump: the image shows a bump as a bump.
+- ``amplitude`` [m], ``phase`` [deg] (lag of the tip behind the drive, 90 deg free at resonance).
+- ``amplitude_error`` [m]: amplitude - setpoint (the z controller's error with the sign of the
+  amplitude; positive: amplitude above the setpoint, e.g. at a down-step).
+- ``dissipation`` [J]: energy dissipated per cycle estimated from amplitude and phase, what real
+  instruments compute (Cleveland et al. 1998, Anczykowski et al. 1999):
+  ``E = (pi k A^2 / Q) ((A0 / A) sin(phi) - f / f0)`` with A0 the free amplitude at resonance
+  (drive force F0 = k A0 / Q); exact for a harmonic tip motion, 0 for a free cantilever at resonance.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_ros.core.scanner import ScanPlan
+
+CHANNELS = ("height", "amplitude", "phase", "amplitude_error", "dissipation")
+UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J"}
+DIRECTIONS = ("trace", "retrace")
+_LOCKIN_CHANNELS = ("amplitude", "phase", "amplitude_error", "dissipation")
+
+
+def dissipated_energy(amplitude, phase_deg, spring_constant: float, quality_factor: float, free_amplitude: float,
+                      frequency_ratio: float = 1.0):
+    """Energy dissipated per cycle [J] from amplitude [m] and phase lag [deg] (see module doc)."""
+    a = np.asarray(amplitude, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = (math.pi * spring_constant * a * a / quality_factor) * (
+            free_amplitude / a * np.sin(np.radians(phase_deg)) - frequency_ratio)
+    return e
+
+
+@dataclass
+class Frame:
+    """One frame's images: ``images[direction][channel]`` (lines x pixels, float32, NaN = not acquired)."""
+
+    plan: ScanPlan
+    index: int
+    images: dict = field(default_factory=dict)
+    lines_done: int = 0
+
+    @classmethod
+    def empty(cls, plan: ScanPlan, index: int) -> "Frame":
+        images = {d: {c: np.full((plan.lines, plan.pixels), np.nan, dtype=np.float32) for c in CHANNELS}
+                  for d in DIRECTIONS}
+        return cls(plan, index, images)
+
+    @property
+    def complete(self) -> bool:
+        return self.lines_done == self.plan.lines
+
+
+class ImageAccumulator:
+    """Bins lock-in outputs (t, amplitude, phase) and z outputs (t, z) into the pixels of a plan's
+    frames; :meth:`finish_until` closes every line whose retrace ended and returns them.
+
+    ``cantilever``: (spring_constant [N/m], quality_factor, free_amplitude [m], drive/resonance
+    frequency ratio) for the dissipation channel; ``setpoint`` [m] for the amplitude error
+    (change it with :attr:`setpoint` between outputs).
+    """
+
+    def __init__(self, plan: ScanPlan, setpoint: float, spring_constant: float, quality_factor: float,
+                 free_amplitude: float, frequency_ratio: float = 1.0):
+        self.plan = plan
+        self.setpoint = float(setpoint)
+        self.constants = (float(spring_constant), float(quality_factor), float(free_amplitude),
+                          float(frequency_ratio))
+        n = plan.lines * plan.pixels * 2
+        self._sums = {c: np.zeros(n) for c in CHANNELS}
+        self._counts = {"lockin": np.zeros(n, dtype=np.int64), "z": np.zeros(n, dtype=np.int64)}
+        self._frame_index = 0
+        self.frame = Frame.empty(plan, 0)
+        self._next_line = 0  # acquisition line (within the current frame) to close next
+        self.frames_done: list[Frame] = []
+
+    def _bins(self, t):
+        frame, line, direction, pixel = self.plan.slots(t)
+        ok = frame == self._frame_index
+        flat = (line * 2 + direction) * self.plan.pixels + pixel
+        return ok, flat
+
+    def add_lockin(self, t, amplitude, phase_deg) -> None:
+        """Lock-in outputs at simulated times t [s]: amplitude [m], phase lag [deg]."""
+        t = np.asarray(t, dtype=float)
+        ok, flat = self._bins(t)
+        if not ok.any():
+            return
+        flat = flat[ok]
+        a = np.asarray(amplitude, dtype=float)[ok]
+        p = np.asarray(phase_deg, dtype=float)[ok]
+        k, q, a0, ratio = self.constants
+        values = {"amplitude": a, "phase": p, "amplitude_error": a - self.setpoint,
+                  "dissipation": dissipated_energy(a, p, k, q, a0, ratio)}
+        for c in _LOCKIN_CHANNELS:
+            np.add.at(self._sums[c], flat, values[c])
+        np.add.at(self._counts["lockin"], flat, 1)
+
+    def add_z(self, t, z) -> None:
+        """z controller outputs (z piezo [m]) at simulated times t [s]."""
+        ok, flat = self._bins(np.asarray(t, dtype=float))
+        if not ok.any():
+            return
+        np.add.at(self._sums["height"], flat[ok], np.asarray(z, dtype=float)[ok])
+        np.add.at(self._counts["z"], flat[ok], 1)
+
+    def finish_until(self, t: float) -> list[tuple[Frame, int]]:
+        """Close every line whose retrace ended at or before t [s] (all its outputs are in);
+        return (frame, acquisition line) of each, in order. A finished frame moves to
+        :attr:`frames_done` and, for a continuous plan, the next one starts."""
+        done = []
+        plan = self.plan
+        while True:
+            if not plan.continuous and self._frame_index >= 1:
+                return done
+            end = plan.line_end_time(self._frame_index, self._next_line)
+            if t < end:
+                return done
+            self._close_line(self._next_line)
+            done.append((self.frame, self._next_line))
+            self._next_line += 1
+            if self._next_line == plan.lines:
+                self.frames_done.append(self.frame)
+                self._frame_index += 1
+                self._next_line = 0
+                self.frame = Frame.empty(plan, self._frame_index)
+                for arr in self._sums.values():
+                    arr[:] = 0.0
+                for arr in self._counts.values():
+                    arr[:] = 0
+
+    def _close_line(self, line: int) -> None:
+        plan = self.plan
+        row = plan.row_of_line(line)
+        for d, direction in enumerate(DIRECTIONS):
+            lo = (line * 2 + d) * plan.pixels
+            sl = slice(lo, lo + plan.pixels)
+            for c in CHANNELS:
+                n = self._counts["z" if c == "height" else "lockin"][sl]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    self.frame.images[direction][c][row] = np.where(n > 0, self._sums[c][sl] / n, np.nan)
+        self.frame.lines_done = line + 1
+
+    @property
+    def done(self) -> bool:
+        """A single-frame plan whose frame is complete."""
+        return not self.plan.continuous and self._frame_index >= 1

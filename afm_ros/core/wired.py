@@ -1,0 +1,152 @@
+"""The instrument's blocks wired directly (no ROS): cantilever, lock-in, z controller, scanner, imaging.
+
+The same cores the nodes run, called in the order the ROS loop runs them in lockstep
+(``feedback_sync`` lockstep, see docs/lockin_zcontroller.md): chunk k of the cantilever is
+integrated with the z piezo position the z controller computed from the lock-in outputs of chunk
+k - feedback_latency (before that, the controller's initial position); the lock-in demodulates
+every published chunk (deflection plus detector noise); the z controller takes every lock-in output;
+the image accumulator bins the lock-in and z outputs. With the same parameters the ROS
+instrument's frame therefore equals this one (test/test_scan_ros.py).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_ros.core.cantilever_params import build
+from afm_ros.core.controller import ZController
+from afm_ros.core.imaging import ImageAccumulator
+from afm_ros.core.lockin import LockIn
+from afm_ros.core.physics.integrators import phase_at_step
+from afm_ros.core.physics.noise import detector_noise
+from afm_ros.core.physics.parameters import DMTSample
+from afm_ros.core.physics.simulation import Simulation, surface_map
+from afm_ros.core.scanner import ScanPlan, parked_plan
+from afm_ros.formats.chunk_layout import ChunkHeader
+
+
+@dataclass
+class ChunkRecord:
+    """What one chunk produced (for studies and tests)."""
+
+    index: int
+    t_end: float  # [s]
+    z_piezo_applied: float  # [m]
+    lockin_t: np.ndarray
+    amplitude: np.ndarray
+    phase_deg: np.ndarray
+    z_out: np.ndarray  # z controller output after each lock-in output [m]
+
+
+@dataclass
+class WiredInstrument:
+    """Cantilever + lock-in + z controller (+ sample map and scanner) advanced chunk by chunk.
+
+    ``cantilever``, ``lockin``, ``z_controller``: parameter values of the three nodes (missing
+    names take their defaults); ``sample``: an ``afm_ros.core.samples.Sample`` under the tip (None:
+    the flat sample of the cantilever parameters); ``feedback_latency`` from the cantilever values.
+    """
+
+    cantilever: dict = field(default_factory=dict)
+    lockin: dict = field(default_factory=dict)
+    z_controller: dict = field(default_factory=dict)
+    sample: object = None
+    keep_records: bool = False
+
+    def __post_init__(self):
+        from afm_ros.core.cantilever_params import default_values
+
+        values = {**default_values(), **self.cantilever}
+        self.values = values
+        self.setup = s = build(values)
+        self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
+        self.sim.set_thermal(values["temperature"], values["noise_seed"])
+        if self.sample is not None:
+            tip = DMTSample(**{name: values[name] for name in ("tip_radius", "intermolecular_distance",
+                                                                  "tip_youngs_modulus", "tip_poisson_ratio")})
+            self.surface = surface_map(self.sample, values["force_model"], tip)
+            self.sim.set_surface(self.surface)
+            self.sim.set_scan(parked_plan(0.5 * self.sample.size_x, 0.5 * self.sample.size_y))
+        self.lock_in = LockIn(**self.lockin)
+        self.controller = ZController(**self.z_controller)
+        self.latency = int(values["feedback_latency"])
+        self.answers: list[float] = []  # z after chunk k's outputs
+        self.z_initial = self.controller.z
+        self.next_index = 0  # next published sample index
+        self.chunks = 0
+        self.images: ImageAccumulator | None = None
+        self.records: list[ChunkRecord] = []
+
+    @property
+    def t(self) -> float:
+        return self.sim.t
+
+    def park(self, x: float, y: float) -> None:
+        """Hold the tip at (x, y) [m] of the sample."""
+        self.sim.set_scan(parked_plan(x, y))
+
+    def start_scan(self, plan_values: dict) -> ScanPlan:
+        """Start a scan at the current simulated time (the next chunk boundary); returns the plan."""
+        if self.sample is None:
+            raise ValueError("start_scan: no sample map (a flat sample has nothing to image)")
+        plan = ScanPlan.from_values(plan_values, start_time=self.sim.t)
+        self.sim.set_scan(plan.packed())
+        k, q = self.setup.cantilever.spring_constant, self.setup.cantilever.quality_factor
+        ratio = self.setup.drive.frequency / self.setup.cantilever.resonance_frequency
+        self.images = ImageAccumulator(plan, self.controller.params["setpoint"], k, q,
+                                       self.values["free_amplitude"], ratio)
+        return plan
+
+    def step(self) -> ChunkRecord:
+        """Integrate, demodulate and feed back one chunk (lockstep semantics)."""
+        s, sim = self.setup, self.sim
+        k = self.chunks
+        z_piezo = self.answers[k - self.latency] if k >= self.latency else self.z_initial
+        sim.z_offset = s.z_base + z_piezo
+        samples = sim.advance(s.chunk_steps, s.decimation)
+        first = self.next_index
+        count = samples.z.shape[0]
+        header = ChunkHeader(first, samples.segment_start + samples.first_step * samples.dt, s.sample_interval,
+                             phase_at_step(sim.segment_phase, samples.first_step, sim.steps_per_period),
+                             sim.drive.frequency, sim.z_offset)
+        measured = samples.z
+        density = self.values["detector_noise_density"]
+        if density > 0.0:
+            measured = samples.z + detector_noise(self.values["noise_seed"], first, count, density,
+                                                  s.sample_interval)
+        out = self.lock_in.process(header, measured)
+        z_out = np.empty(len(out))
+        amplitude = np.hypot(out.x, out.y)
+        for i, (t, a) in enumerate(zip(out.t.tolist(), [math.hypot(x, y) for x, y in
+                                                         zip(out.x.tolist(), out.y.tolist())])):
+            z_out[i] = self.controller.update(a, t)
+        self.answers.append(self.controller.z)
+        self.next_index = first + count
+        self.chunks += 1
+        phase = np.degrees(np.arctan2(-out.y, out.x))
+        if self.images is not None:
+            self.images.setpoint = self.controller.params["setpoint"]
+            self.images.add_lockin(out.t, amplitude, phase)
+            self.images.add_z(out.t, z_out)
+            self.images.finish_until(sim.t)
+        record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out)
+        if self.keep_records:
+            self.records.append(record)
+        return record
+
+    def run_until(self, t_end: float) -> None:
+        """Step chunks until the simulated time reaches t_end [s]."""
+        while self.sim.t < t_end - 1e-12:
+            self.step()
+
+    def scan_frame(self, plan_values: dict, progress=None):
+        """Scan one frame from now; returns the finished :class:`afm_ros.core.imaging.Frame`."""
+        plan_values = {**plan_values, "continuous": False}
+        self.start_scan(plan_values)
+        while not self.images.done:
+            self.step()
+            if progress is not None:
+                progress(self.images)
+        return self.images.frames_done[0]

@@ -1,0 +1,158 @@
+"""ROS 2 node ``lockin``: demodulates the cantilever deflection chunks (see :mod:`afm_ros.core.lockin`).
+
+Subscribes ``cantilever/deflection`` (std_msgs/Float64MultiArray, :mod:`afm_ros.formats.chunk_layout`).
+For every input chunk it publishes ``lockin/outputs`` (std_msgs/Float64MultiArray, the output
+batch layout of :mod:`afm_ros.formats.chunk_layout`: input index range, then t [s], X [m], Y [m] of every
+output sample in the chunk; the z controller's input) and acknowledges the chunk on
+``cantilever/ack``. For every output sample (``output_rate`` [Hz] of simulated time), in order, it
+also publishes ``lockin/amplitude`` (std_msgs/Float64, peak amplitude [m]), ``lockin/phase``
+(std_msgs/Float64, lag behind the reference [deg], 90 free at resonance) and ``lockin/xy``
+(geometry_msgs/Vector3Stamped: x = X [m], y = Y [m], z = 0, header.stamp = simulated time of the
+input sample the output was taken at). Stream irregularities (index gaps = lost samples,
+duplicates, restarts) are counted and reported on ``/diagnostics`` (1 Hz) and in throttled warnings.
+"""
+from __future__ import annotations
+
+import array
+import math
+import sys
+import threading
+import time
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+
+from afm_ros.formats import chunk_layout
+
+from afm_ros.nodes import topics
+from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
+from afm_ros.nodes.node_main import run_node
+from afm_ros.nodes.ros_params import declare, make_set_callback
+
+# Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
+CHUNK_QOS = topics.CONSUMER_QOS
+# Per-sample outputs: reliable, with a history of 200 samples for a subscriber that matches late
+# (e.g. a recorder that discovers the topic after the first outputs).
+OUTPUT_QOS = topics.HISTORY_QOS
+BATCH_QOS = topics.HISTORY_QOS
+DIAGNOSTICS_PERIOD_S = 1.0
+WARNING_PERIOD_S = 5.0
+
+
+def sim_time_msg(t: float) -> Time:
+    """builtin_interfaces/Time for a simulated time t [s] (>= 0), rounded to the nanosecond."""
+    total = int(round(t * 1e9))
+    return Time(sec=total // 1_000_000_000, nanosec=total % 1_000_000_000)
+
+
+class LockInNode(Node):
+    """Lock-in amplifier node; parameters from :data:`afm_ros.core.lockin.LOCKIN_SPECS` (all live)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("lockin", **kwargs)
+        values = declare(self, LOCKIN_SPECS)
+        self.lockin = LockIn(**values)
+        self.lockin.warm_up()  # so the first chunk does not stall the executor for the numba load
+        self._lock = threading.Lock()
+        self.add_on_set_parameters_callback(
+            make_set_callback(LOCKIN_SPECS, lambda: dict(self.lockin.params), None, self._apply))
+        self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
+        self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
+        self.pub_xy = self.create_publisher(Vector3Stamped, "lockin/xy", OUTPUT_QOS)
+        self.pub_batch = self.create_publisher(Float64MultiArray, topics.LOCKIN_OUTPUTS, BATCH_QOS)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.bad_chunks = 0
+        self._event_count = 0
+        self._events_logged_until = -math.inf
+        self._events_suppressed = 0
+        self._ack = topics.Acknowledger(self)
+        self.create_subscription(Float64MultiArray, topics.DEFLECTION, self._on_chunk, CHUNK_QOS)
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
+        self.get_logger().info(
+            "ready: reference %s, harmonic %d, tau %.3g s, order %d, output %.6g Hz" % (
+                values["reference_source"], values["harmonic"], values["time_constant"],
+                values["filter_order"], values["output_rate"]))
+
+    def _apply(self, changed: dict) -> None:
+        with self._lock:
+            self.lockin.configure(**changed)
+        self.get_logger().info("lock-in parameters changed: %s" % changed)
+
+    def _report_events(self, events: list[str]) -> None:
+        """Stream events (gaps, duplicates, ...) are counted always, logged at most once per 5 s."""
+        self._event_count += len(events)
+        now = time.monotonic()
+        if now < self._events_logged_until:
+            self._events_suppressed += len(events)
+            return
+        stats = self.lockin.stats
+        more = f" ({self._events_suppressed} similar events not logged)" if self._events_suppressed else ""
+        self.get_logger().warning(
+            f"{events[-1]}{more}; so far {stats.missing_samples} samples lost in {stats.gap_events} gaps, "
+            f"{stats.duplicate_samples} duplicates, {stats.restarts} restarts")
+        self._events_suppressed = len(events) - 1
+        self._events_logged_until = now + WARNING_PERIOD_S
+
+    def _on_chunk(self, msg: Float64MultiArray) -> None:
+        try:
+            if msg.layout.data_offset != chunk_layout.PREAMBLE_LENGTH:
+                raise ValueError(f"layout.data_offset={msg.layout.data_offset}, expected "
+                                 f"{chunk_layout.PREAMBLE_LENGTH} (afm_ros chunk layout)")
+            header, samples = chunk_layout.unpack(msg.data)
+            with self._lock:
+                out = self.lockin.process(header, samples)
+                events = self.lockin.stats.drain()
+        except ValueError as exc:
+            self.bad_chunks += 1
+            self.get_logger().error(f"malformed deflection chunk ignored: {exc}", throttle_duration_sec=1.0)
+            return
+        if events:
+            self._report_events(events)
+        end = header.first_sample_index + samples.shape[0]
+        batch = Float64MultiArray()
+        n = len(out)
+        batch.layout.dim = [MultiArrayDimension(label=chunk_layout.OUTPUTS_LABEL, size=n, stride=3 * n)]
+        batch.layout.data_offset = chunk_layout.OUTPUTS_PREAMBLE_LENGTH
+        batch.data = array.array("d", chunk_layout.pack_outputs(chunk_layout.OutputBatch(
+            header.first_sample_index, end, header.t_start + samples.shape[0] * header.sample_interval,
+            out.t, out.x, out.y)).tobytes())
+        self.pub_batch.publish(batch)
+        amp = Float64()
+        phase = Float64()
+        xy = Vector3Stamped()
+        for t, x, y in zip(out.t.tolist(), out.x.tolist(), out.y.tolist()):
+            amp.data = math.hypot(x, y)
+            phase.data = math.degrees(math.atan2(-y, x))
+            xy.header.stamp = sim_time_msg(t)
+            xy.vector.x = x
+            xy.vector.y = y
+            self.pub_amplitude.publish(amp)
+            self.pub_phase.publish(phase)
+            self.pub_xy.publish(xy)
+        self._ack.send(end)
+
+    def _publish_diagnostics(self) -> None:
+        s = self.lockin.stats
+        topics.publish_status(
+            self, self._pub_diag, "input stream",
+            f"{s.missing_samples} samples lost in {s.gap_events} gaps" if s.missing_samples else None,
+            {"chunks": s.chunks, "samples": s.samples, "gap_events": s.gap_events,
+             "missing_samples": s.missing_samples, "duplicate_samples": s.duplicate_samples,
+             "restarts": s.restarts, "malformed_chunks": self.bad_chunks, "next_index": self._ack.next_index})
+
+    def destroy_node(self):
+        self._ack.leave()  # a cantilever that keeps running must not wait for this lock-in
+        return super().destroy_node()
+
+
+def main(args=None):
+    return run_node(LockInNode, "lockin_node", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

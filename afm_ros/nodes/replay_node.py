@@ -1,0 +1,244 @@
+"""ROS 2 node ``replay``: republishes a recorded session (.mcap) into a live graph.
+
+Messages are published as their recorded CDR bytes with the recorded relative timing
+(``log_time`` differences) divided by ``rate``; optional loop, topic selection (``topics`` /
+``exclude``), a ``topic_prefix`` and ordinary ROS remapping of the publishers. ``/clock`` is the
+recorded simulated time: the recorded ``/clock`` messages, or, if the file has none, the end
+time of every replayed deflection chunk (from its preamble). So a lock-in or z-controller can be
+run again on recorded deflection data.
+
+Files: a missing, empty or non-MCAP file and an unknown schema raise
+:class:`~afm_ros.formats.mcap_io.SessionFileError` naming the file and the problem. A truncated file
+(killed recorder, no footer) is played as far as it is intact, with a warning saying so.
+"""
+from __future__ import annotations
+
+import re
+import sys
+import threading
+import time
+
+import rclpy
+from builtin_interfaces.msg import Time as TimeMsg
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Float64MultiArray
+
+from afm_ros.nodes import ros_params
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.formats.mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan, check_mcap_file, message_class,
+                      read_session)
+from afm_ros.nodes.recorder_node import matches, split_patterns
+from afm_ros.nodes import node_main
+
+CLOCK = "/clock"
+
+
+def is_clock(topic: str) -> bool:
+    """The simulated clock: ``/clock``, or ``/<ns>/clock`` of an instrument in a namespace."""
+    return topic == CLOCK or topic.endswith(CLOCK)
+CHUNK_TYPE = "std_msgs/msg/Float64MultiArray"
+
+
+def _qos_from_metadata(text: str) -> QoSProfile:
+    """Publisher QoS from a recorded ``offered_qos_profiles`` (first profile; reliable/volatile if none)."""
+    rel = re.search(r"reliability:\s*(\w+)", text or "")
+    dur = re.search(r"durability:\s*(\w+)", text or "")
+    depth = re.search(r"depth:\s*(\d+)", text or "")
+    best_effort = rel is not None and rel.group(1) in ("best_effort", "2")
+    transient = dur is not None and dur.group(1) in ("transient_local", "1")
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(int(depth.group(1)) if depth else 10, 100),
+                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+
+
+def _time_msg(t: float) -> TimeMsg:
+    sec = int(t // 1)
+    return TimeMsg(sec=sec, nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+
+
+def session_channels(path) -> SessionScan:
+    """Channels and schemas of a session: from the summary if complete, else by reading it once."""
+    p = check_mcap_file(path)
+    from mcap.reader import make_reader
+    try:
+        with open(p, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # no/damaged footer: fall back to a full tolerant read
+        summary = None
+    scan = SessionScan(p)
+    if summary is not None:
+        scan.channels = dict(summary.channels)
+        scan.schemas = dict(summary.schemas)
+        scan.complete = True
+        if summary.statistics is not None:
+            counts = summary.statistics.channel_message_counts
+            scan.message_counts = {c.topic: counts.get(cid, 0) for cid, c in summary.channels.items()}
+        return scan
+    for _ in read_session(p, scan):
+        pass
+    return scan
+
+
+class ReplayNode(Node):
+    """Plays ``file`` into the graph (see module docstring); ``done`` is set when playback ends."""
+
+    def __init__(self, **kwargs):
+        super().__init__("replay", **kwargs)
+        self._values = ros_params.declare(self, REPLAY_SPECS)
+        v = self._values
+        if not v["file"]:
+            raise SessionFileError("parameter 'file' is empty: give the .mcap session to replay "
+                                   "(--ros-args -p file:=SESSION.mcap)")
+        self.path = v["file"]
+        scan = session_channels(self.path)
+        self.complete = scan.complete
+        if not scan.complete and not sum(scan.message_counts.values()):
+            raise SessionFileError(f"{scan.path} is incomplete and holds no intact message "
+                                   f"({scan.truncated_reason}): nothing to replay")
+        if not scan.complete:
+            self.get_logger().warn(f"{scan.path} is incomplete ({scan.truncated_reason}); replaying the "
+                                   f"{sum(scan.message_counts.values())} intact messages")
+        include = split_patterns(v["topics"], "/")
+        exclude = split_patterns(v["exclude"], "/")
+        if not v["publish_clock"]:
+            exclude += [CLOCK, "*" + CLOCK]
+        self._replay_pubs: dict[str, object] = {}
+        self._types: dict[str, str] = {}
+        unknown = []
+        for ch in scan.channels.values():
+            topic = ch.topic
+            if (include and not matches(topic, include)) or matches(topic, exclude) or topic in self._replay_pubs:
+                continue
+            schema = scan.schemas.get(ch.schema_id)
+            type_name = schema.name if schema is not None else ""
+            if ch.message_encoding != "cdr" or schema is None or schema.encoding not in ("ros2msg", "ros2idl"):
+                unknown.append(f"{topic} (schema {type_name or '?'} encoding "
+                               f"{schema.encoding if schema else '?'}, messages {ch.message_encoding})")
+                continue
+            try:
+                cls = message_class(type_name)
+            except ValueError:
+                unknown.append(f"{topic} (type {type_name} is not installed)")
+                continue
+            name = topic if is_clock(topic) or not v["topic_prefix"] else \
+                "/" + v["topic_prefix"].strip("/") + topic
+            self._replay_pubs[topic] = self.create_publisher(
+                cls, name, _qos_from_metadata(ch.metadata.get("offered_qos_profiles", "")))
+            self._types[topic] = type_name
+        if unknown:
+            raise SessionFileError(f"{scan.path}: cannot replay {', '.join(unknown)}; exclude these topics "
+                                   "(parameter 'exclude') or install their message packages")
+        self._derive_clock = v["publish_clock"] and not any(is_clock(t) for t in self._replay_pubs)
+        # derived clock: relative, like the cantilever's (/clock in the root namespace)
+        self._clock_pub = self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
+        self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
+        self.damage = ""  # what damage playback met (empty: none)
+        self.done = threading.Event()
+        self.error: Exception | None = None
+        self._stop = threading.Event()
+        self._rate = v["rate"]
+        self._rate_lock = threading.Lock()
+        self._anchor = (time.monotonic(), 0.0)  # (wall, recording seconds) at the last rate change
+        self.add_on_set_parameters_callback(ros_params.make_set_callback(
+            REPLAY_SPECS, lambda: dict(self._values), None, self._apply))
+        self.get_logger().info(f"ready: replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
+                               f"at rate {self._rate:g}")
+        self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
+        self._thread.start()
+
+    def _apply(self, changed: dict) -> None:
+        if "rate" in changed:
+            with self._rate_lock:
+                self._anchor = (time.monotonic(), self._position())
+                self._rate = changed["rate"]
+        self._values.update(changed)
+
+    def _position(self) -> float:
+        """Recording time [s since the first message] reached by playback now."""
+        wall, pos = self._anchor
+        return pos + (time.monotonic() - wall) * self._rate
+
+    def _wait_until(self, due: float) -> bool:
+        while not self._stop.is_set():
+            with self._rate_lock:
+                remaining = (due - self._position()) / self._rate
+            if remaining <= 0:
+                return True
+            time.sleep(min(remaining, 0.05))
+        return False
+
+    def _run(self) -> None:
+        try:
+            if self._stop.wait(self._values["start_delay"]):
+                return
+            while not self._stop.is_set():
+                self._play_once()
+                if not self._values["loop"]:
+                    break
+            self.get_logger().info(f"replay of {self.path} finished: {sum(self.published.values())} messages"
+                                   + (f" ({self.damage})" if self.damage else ""))
+        except Exception as exc:  # reported to main; the node stays inspectable
+            self.error = exc
+            self.get_logger().error(f"replay of {self.path} failed: {exc}")
+        finally:
+            self.done.set()
+
+    def _play_once(self) -> None:
+        with self._rate_lock:
+            self._anchor = (time.monotonic(), 0.0)
+        first = None
+        scan = SessionScan(self.path)
+        damaged = 0
+        for m in read_session(self.path, scan, topics=set(self._replay_pubs)):
+            if len(scan.damaged) > damaged:  # met damage on the way: say so now, and what is skipped
+                damaged = len(scan.damaged)
+                self.damage = scan.damage_text
+                self.get_logger().warning(f"{self.path} is damaged: {scan.damage_text}; replaying on")
+            if first is None:
+                first = m.log_time
+            if not self._wait_until((m.log_time - first) * 1e-9):
+                return
+            self._replay_pubs[m.topic].publish(m.data)
+            self.published[m.topic] += 1
+            if self._derive_clock and m.type_name == CHUNK_TYPE and m.topic.endswith("deflection"):
+                header, samples = unpack(deserialize_message(m.data, Float64MultiArray).data)
+                end = header.t_start + samples.shape[0] * header.sample_interval
+                self._clock_pub.publish(ClockMsg(clock=_time_msg(end)))
+
+    def destroy_node(self):
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        return super().destroy_node()
+
+
+def main(args=None):
+    failed = node_main.exit_on_startup_error("replay", args)
+    if failed is not None:
+        return failed
+    node = None
+    code = 0
+    try:
+        node = ReplayNode()
+        while node_main.running() and not node.done.is_set():
+            rclpy.spin_once(node, timeout_sec=0.1)
+        if node.error is not None:
+            code = 1
+    except (SessionFileError, ValueError) as exc:
+        print(f"replay: error: {exc}", file=sys.stderr, flush=True)
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

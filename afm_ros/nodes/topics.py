@@ -1,0 +1,94 @@
+"""Topic names and QoS of the instrument's data path, shared by the nodes (ROS import, no node).
+
+The data path is lossless by construction: publishers keep a transient-local history (a consumer
+that matches late still gets the recent messages), consumers subscribe KEEP_ALL (the middleware
+never drops a message the Python side has not taken yet) and acknowledge what they handled on
+``cantilever/ack``, and the cantilever keeps every consumer within ``flow_window`` chunks
+(:mod:`afm_ros.core.flow`), which also bounds the memory those queues can take.
+"""
+from __future__ import annotations
+
+import threading
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Int64MultiArray, MultiArrayDimension
+
+from afm_ros.formats.chunk_layout import ACK_LEAVING, ACK_READY
+
+DEFLECTION = "cantilever/deflection"
+FORCE = "cantilever/tip_sample_force"
+ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by ros2 topic list nor recorded
+LOCKIN_OUTPUTS = "lockin/outputs"
+Z_COMMAND = "z_controller/z_command"
+
+# every topic an instrument publishes (relative to its namespace); a recorder must have them all
+# before a scripted session starts, or its first samples would be missing
+INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
+                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND)
+
+# publishers of the data path: reliable, history of 200 messages kept for late joiners
+HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# consumers of the data path: take everything, including the publisher's history
+CONSUMER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# one consumer's acknowledgement: only the latest matters
+ACK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class Acknowledger:
+    """Publishes a consumer's progress on ``cantilever/_ack`` (std_msgs/Int64MultiArray).
+
+    Thread-safe (the recorder acknowledges from its writer thread); after :meth:`leave` nothing
+    more is sent, so a consumer that left cannot sign up again by a late acknowledgement.
+    """
+
+    def __init__(self, node, topic: str = ACK):
+        self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
+        self._msg = Int64MultiArray()
+        self._msg.layout.dim = [MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)]
+        self._lock = threading.Lock()
+        self.left = False
+        self.next_index = ACK_READY
+        self.send(ACK_READY)
+
+    def send(self, next_index: int) -> None:
+        """Every deflection sample before ``next_index`` has been handled (ACK_READY: none yet)."""
+        with self._lock:
+            if self.left:
+                return
+            self.next_index = int(next_index)
+            self._msg.data = [self.next_index]
+            self._pub.publish(self._msg)
+
+    def leave(self) -> None:
+        """Stop being waited for (closing, or the consumer's output failed); final."""
+        with self._lock:
+            if self.left:
+                return
+            self.left = True
+            self._msg.data = [ACK_LEAVING]
+            try:
+                self._pub.publish(self._msg)
+            except Exception:  # noqa: BLE001 - the context may already be gone at shutdown
+                pass
+
+
+
+def fqn(namespace: str, name: str) -> str:
+    """Fully qualified node name from a namespace and a node name (``/ns/name``, or ``/name``)."""
+    return (namespace.rstrip("/") + "/" + name) if namespace not in ("", "/") else "/" + name
+
+
+def publish_status(node, publisher, what: str, problem: str | None, values: dict, level: int | None = None) -> None:
+    """One DiagnosticStatus named ``<node fqn>: <what>`` on ``/diagnostics``: OK with message "ok"
+    unless ``problem`` (then WARN, or ``level``); every value as text."""
+    status = DiagnosticStatus(
+        level=(level if level is not None else DiagnosticStatus.WARN if problem else DiagnosticStatus.OK),
+        name=f"{node.get_fully_qualified_name()}: {what}", hardware_id="afm_ros", message=problem or "ok",
+        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)

@@ -1,0 +1,130 @@
+"""ROS 2 node ``z_controller``: PI amplitude feedback (see :mod:`afm_ros.core.controller`).
+
+Subscribes ``lockin/outputs`` (std_msgs/Float64MultiArray, the lock-in's output batch of one
+deflection chunk, :mod:`afm_ros.formats.chunk_layout`): every output sample, in order, is one controller
+step (amplitude ``hypot(X, Y)``, its simulated time sets the integration step). Per output sample
+it publishes ``z_controller/z_piezo`` (std_msgs/Float64 [m], the topography; positive retracts the
+tip: gap = z_base + z_piezo + deflection) and ``z_controller/error`` (std_msgs/Float64 [m],
+setpoint - amplitude: negative while the amplitude is above the setpoint). Per batch it publishes
+``z_controller/z_command`` (std_msgs/Float64MultiArray ``[answered_end_index, answered_end_time_s,
+z_piezo_m]``): the answer to that chunk, which the cantilever applies ``feedback_latency`` chunks
+later (lockstep, :mod:`afm_ros.core.flow`). Its first command (answered index 0) is the start position.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+
+from afm_ros.formats import chunk_layout
+
+from afm_ros.nodes import topics
+from afm_ros.nodes.node_main import run_node
+from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
+
+INPUT_QOS = topics.CONSUMER_QOS
+# z_piezo and error: transient local with a history of 200 samples, so a late subscriber gets the
+# current position at once and a recorder that matches late the recent samples.
+Z_QOS = topics.HISTORY_QOS
+ERROR_QOS = topics.HISTORY_QOS
+COMMAND_QOS = topics.HISTORY_QOS
+DIAGNOSTICS_PERIOD_S = 1.0
+
+
+class ZControllerNode(Node):
+    """Z feedback node; parameters from :data:`afm_ros.core.controller.Z_CONTROLLER_SPECS` (all live)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("z_controller", **kwargs)
+        values = declare(self, Z_CONTROLLER_SPECS)
+        check_limits(values)
+        self.controller = ZController(**values)
+        self._lock = threading.Lock()
+        self.add_on_set_parameters_callback(
+            make_set_callback(Z_CONTROLLER_SPECS, lambda: dict(self.controller.params), check_limits, self._apply))
+        self.pub_z = self.create_publisher(Float64, "z_controller/z_piezo", Z_QOS)
+        self.pub_error = self.create_publisher(Float64, "z_controller/error", ERROR_QOS)
+        self.pub_command = self.create_publisher(Float64MultiArray, topics.Z_COMMAND, COMMAND_QOS)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._command = Float64MultiArray()
+        self._command.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_COMMAND_LABEL, size=3, stride=3)]
+        self.answered_end_index = 0  # end index of the last deflection chunk answered
+        self.lost_batches = 0  # input chunks whose outputs never arrived (index gaps)
+        self.lost_samples = 0
+        self.stale_batches = 0  # batches of chunks already answered (e.g. a restarted lock-in's history)
+        self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS)
+        self._publish_z()
+        self._send_command(0, 0.0)  # the start position: what the cantilever applies to its first chunks
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
+        self.get_logger().info(
+            "ready: setpoint %.4g m, P %.4g, I %.4g 1/s, z in [%.4g, %.4g] m, %s" % (
+                values["setpoint"], values["p_gain"], values["i_gain"], values["z_min"], values["z_max"],
+                "enabled" if values["enabled"] else "disabled (%s)" % values["disabled_action"]))
+
+    def _publish_z(self) -> None:
+        self.pub_z.publish(Float64(data=self.controller.z))
+
+    def _send_command(self, answered_end_index: int, answered_end_time: float) -> None:
+        self._command.data = [float(answered_end_index), float(answered_end_time), float(self.controller.z)]
+        self.pub_command.publish(self._command)
+
+    def _apply(self, changed: dict) -> None:
+        with self._lock:
+            z_before = self.controller.z
+            self.controller.configure(**changed)
+            moved = self.controller.z != z_before
+        self.get_logger().info("z controller parameters changed: %s" % changed)
+        if moved:  # e.g. withdraw or new limits: show it at once, not only at the next sample
+            self._publish_z()
+            # an unsynchronised command (index -1): a free-running cantilever applies it at its next
+            # chunk; one in lockstep ignores it and takes the position from the next answer
+            self._send_command(-1, 0.0 if self.controller.t_last is None else self.controller.t_last)
+
+    def _on_batch(self, msg: Float64MultiArray) -> None:
+        try:
+            batch = chunk_layout.unpack_outputs(msg.data)
+        except ValueError as exc:
+            self.get_logger().error(f"malformed lock-in output batch ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        if batch.input_end_index <= self.answered_end_index and batch.input_first_index != 0:
+            self.stale_batches += 1
+            return
+        if batch.input_first_index > self.answered_end_index and self.answered_end_index > 0:
+            self.lost_batches += 1
+            self.lost_samples += batch.input_first_index - self.answered_end_index
+            self.get_logger().warning(
+                f"lock-in outputs of samples {self.answered_end_index}..{batch.input_first_index} never arrived "
+                f"({self.lost_samples} samples in {self.lost_batches} gaps so far)", throttle_duration_sec=5.0)
+        z_msg, e_msg = Float64(), Float64()
+        with self._lock:
+            for t, x, y in zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist()):
+                z_msg.data = self.controller.update(math.hypot(x, y), t)
+                e_msg.data = self.controller.error
+                self.pub_z.publish(z_msg)
+                self.pub_error.publish(e_msg)
+            self.answered_end_index = batch.input_end_index
+            self._send_command(batch.input_end_index, batch.input_end_time)
+
+    def _publish_diagnostics(self) -> None:
+        c = self.controller
+        topics.publish_status(
+            self, self._pub_diag, "feedback",
+            f"{self.lost_samples} input samples never answered" if self.lost_samples else None,
+            {"answered_end_index": self.answered_end_index, "z_piezo_m": c.z, "error_m": c.error,
+             "enabled": c.params["enabled"], "lost_batches": self.lost_batches, "lost_samples": self.lost_samples,
+             "stale_batches": self.stale_batches, "rejected_samples": c.rejected_samples})
+
+
+def main(args=None):
+    return run_node(ZControllerNode, "z_controller_node", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

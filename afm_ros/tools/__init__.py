@@ -1,0 +1,1 @@
+"""Command-line tools on top of the cores and nodes: the instrument job, study, report, benchmarks."""
