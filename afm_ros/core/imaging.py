@@ -8,8 +8,9 @@ delay is not compensated (a real controller does not either). Channels and units
 - ``height`` [m]: the z controller's z piezo output. The gap is z_base + z_piezo + deflection -
   surface, so the feedback raises z_piezo over a bump: the image shows a bump as a bump.
 - ``amplitude`` [m], ``phase`` [deg] (lag of the tip behind the drive, 90 deg free at resonance).
-- ``amplitude_error`` [m]: amplitude - setpoint (the z controller's error with the sign of the
-  amplitude; positive: amplitude above the setpoint, e.g. at a down-step).
+- ``amplitude_error`` [m]: amplitude - setpoint, from the z controller's own error output
+  (setpoint - amplitude, sign flipped: positive when the amplitude is above the setpoint, e.g. at a
+  down-step), so it follows live setpoint changes.
 - ``dissipation`` [J]: energy dissipated per cycle estimated from amplitude and phase, what real
   instruments compute (Cleveland et al. 1998, Anczykowski et al. 1999):
   ``E = (pi k A^2 / Q) ((A0 / A) sin(phi) - f / f0)`` with A0 the free amplitude at resonance
@@ -27,7 +28,8 @@ from afm_ros.core.scanner import ScanPlan
 CHANNELS = ("height", "amplitude", "phase", "amplitude_error", "dissipation")
 UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J"}
 DIRECTIONS = ("trace", "retrace")
-_LOCKIN_CHANNELS = ("amplitude", "phase", "amplitude_error", "dissipation")
+_LOCKIN_CHANNELS = ("amplitude", "phase", "dissipation")
+_Z_CHANNELS = ("height", "amplitude_error")
 
 
 def dissipated_energy(amplitude, phase_deg, spring_constant: float, quality_factor: float, free_amplitude: float,
@@ -64,15 +66,13 @@ class ImageAccumulator:
     """Bins lock-in outputs (t, amplitude, phase) and z outputs (t, z) into the pixels of a plan's
     frames; :meth:`finish_until` closes every line whose retrace ended and returns them.
 
-    ``cantilever``: (spring_constant [N/m], quality_factor, free_amplitude [m], drive/resonance
-    frequency ratio) for the dissipation channel; ``setpoint`` [m] for the amplitude error
-    (change it with :attr:`setpoint` between outputs).
+    The cantilever's spring_constant [N/m], quality_factor, free_amplitude [m] and drive/resonance
+    frequency ratio give the dissipation channel.
     """
 
-    def __init__(self, plan: ScanPlan, setpoint: float, spring_constant: float, quality_factor: float,
+    def __init__(self, plan: ScanPlan, spring_constant: float, quality_factor: float,
                  free_amplitude: float, frequency_ratio: float = 1.0):
         self.plan = plan
-        self.setpoint = float(setpoint)
         self.constants = (float(spring_constant), float(quality_factor), float(free_amplitude),
                           float(frequency_ratio))
         n = plan.lines * plan.pixels * 2
@@ -99,18 +99,18 @@ class ImageAccumulator:
         a = np.asarray(amplitude, dtype=float)[ok]
         p = np.asarray(phase_deg, dtype=float)[ok]
         k, q, a0, ratio = self.constants
-        values = {"amplitude": a, "phase": p, "amplitude_error": a - self.setpoint,
-                  "dissipation": dissipated_energy(a, p, k, q, a0, ratio)}
+        values = {"amplitude": a, "phase": p, "dissipation": dissipated_energy(a, p, k, q, a0, ratio)}
         for c in _LOCKIN_CHANNELS:
             np.add.at(self._sums[c], flat, values[c])
         np.add.at(self._counts["lockin"], flat, 1)
 
-    def add_z(self, t, z) -> None:
-        """z controller outputs (z piezo [m]) at simulated times t [s]."""
+    def add_z(self, t, z, error) -> None:
+        """z controller outputs at simulated times t [s]: z piezo [m] and error setpoint - amplitude [m]."""
         ok, flat = self._bins(np.asarray(t, dtype=float))
         if not ok.any():
             return
         np.add.at(self._sums["height"], flat[ok], np.asarray(z, dtype=float)[ok])
+        np.add.at(self._sums["amplitude_error"], flat[ok], -np.asarray(error, dtype=float)[ok])
         np.add.at(self._counts["z"], flat[ok], 1)
 
     def finish_until(self, t: float) -> list[tuple[Frame, int]]:
@@ -145,7 +145,7 @@ class ImageAccumulator:
             lo = (line * 2 + d) * plan.pixels
             sl = slice(lo, lo + plan.pixels)
             for c in CHANNELS:
-                n = self._counts["z" if c == "height" else "lockin"][sl]
+                n = self._counts["z" if c in _Z_CHANNELS else "lockin"][sl]
                 with np.errstate(invalid="ignore", divide="ignore"):
                     self.frame.images[direction][c][row] = np.where(n > 0, self._sums[c][sl] / n, np.nan)
         self.frame.lines_done = line + 1

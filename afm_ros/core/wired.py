@@ -38,6 +38,7 @@ class ChunkRecord:
     amplitude: np.ndarray
     phase_deg: np.ndarray
     z_out: np.ndarray  # z controller output after each lock-in output [m]
+    error: np.ndarray  # z controller error setpoint - amplitude after each output [m]
 
 
 @dataclass
@@ -95,8 +96,7 @@ class WiredInstrument:
         self.sim.set_scan(plan.packed())
         k, q = self.setup.cantilever.spring_constant, self.setup.cantilever.quality_factor
         ratio = self.setup.drive.frequency / self.setup.cantilever.resonance_frequency
-        self.images = ImageAccumulator(plan, self.controller.params["setpoint"], k, q,
-                                       self.values["free_amplitude"], ratio)
+        self.images = ImageAccumulator(plan, k, q, self.values["free_amplitude"], ratio)
         return plan
 
     def step(self) -> ChunkRecord:
@@ -117,21 +117,20 @@ class WiredInstrument:
             measured = samples.z + detector_noise(self.values["noise_seed"], first, count, density,
                                                   s.sample_interval)
         out = self.lock_in.process(header, measured)
-        z_out = np.empty(len(out))
+        z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
-        for i, (t, a) in enumerate(zip(out.t.tolist(), [math.hypot(x, y) for x, y in
-                                                         zip(out.x.tolist(), out.y.tolist())])):
-            z_out[i] = self.controller.update(a, t)
+        for i, (t, x, y) in enumerate(zip(out.t.tolist(), out.x.tolist(), out.y.tolist())):
+            z_out[i] = self.controller.update(math.hypot(x, y), t)  # as the z controller node does
+            errors[i] = self.controller.error
         self.answers.append(self.controller.z)
         self.next_index = first + count
         self.chunks += 1
         phase = np.degrees(np.arctan2(-out.y, out.x))
         if self.images is not None:
-            self.images.setpoint = self.controller.params["setpoint"]
             self.images.add_lockin(out.t, amplitude, phase)
-            self.images.add_z(out.t, z_out)
+            self.images.add_z(out.t, z_out, errors)
             self.images.finish_until(sim.t)
-        record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out)
+        record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors)
         if self.keep_records:
             self.records.append(record)
         return record
