@@ -30,6 +30,7 @@ setup(
             "afm_instrument = afm_ros.tools.afm_instrument:main",
             "recorder_node = afm_ros.nodes.recorder_node:main",
             "replay_node = afm_ros.nodes.replay_node:main",
+            "scanner_node = afm_ros.nodes.scanner_node:main",
             "afm_study = afm_ros.tools.study:main",
             "afm_report = afm_ros.tools.report:main",
         ],

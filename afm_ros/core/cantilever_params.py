@@ -35,6 +35,12 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "named sample material (docs/materials.md): sets sample_youngs_modulus, sample_poisson_ratio, "
               "hamaker_constant, hamaker_constant_retract and sample_viscosity (at start only those not given "
               "explicitly); '' = use those parameters as they are", kind=str, choices=("",) + tuple(MATERIALS)),
+    ParamSpec("sample", "", "",
+              "sample under the tip: '' or 'flat' = a flat sample of the force parameters above; a built-in "
+              "sample map (ps_ldpe_blend, tgz_grating, terraces; docs/samples.md) or a sample description file "
+              "(.yaml/.json). With a map, each material's force constants come from the materials table (the "
+              "tip_* parameters, intermolecular_distance and force_model from here) and the tip follows the "
+              "scanner's path over the tip-dilated surface", kind=str),
     ParamSpec("feedback_sync", "auto", "",
               "how z_controller/z_command is applied: 'lockstep' = chunk k always uses the answer to chunk "
               "k - feedback_latency and waits for it (deterministic closed loop); 'auto' = lockstep once a z "

@@ -64,7 +64,7 @@ class Frame:
 
 class ImageAccumulator:
     """Bins lock-in outputs (t, amplitude, phase) and z outputs (t, z) into the pixels of a plan's
-    frames; :meth:`finish_until` closes every line whose retrace ended and returns them.
+    frames; :meth:`finish_ready` closes every line both streams have moved past and returns them.
 
     The cantilever's spring_constant [N/m], quality_factor, free_amplitude [m] and drive/resonance
     frequency ratio give the dissipation channel.
@@ -82,6 +82,15 @@ class ImageAccumulator:
         self.frame = Frame.empty(plan, 0)
         self._next_line = 0  # acquisition line (within the current frame) to close next
         self.frames_done: list[Frame] = []
+        # per stream, the line count (lines since the start) of its latest output: outputs arrive in
+        # time order within a stream, so a line is complete once both streams have moved past it,
+        # however the two streams' messages interleave
+        self._passed = {"lockin": -1, "z": -1}
+
+    def _note_progress(self, stream: str, t: np.ndarray) -> None:
+        if t.shape[0]:
+            count = int(math.floor((float(t[-1]) - self.plan.start_time) * self.plan.line_rate))
+            self._passed[stream] = max(self._passed[stream], count)
 
     def _bins(self, t):
         frame, line, direction, pixel = self.plan.slots(t)
@@ -92,6 +101,7 @@ class ImageAccumulator:
     def add_lockin(self, t, amplitude, phase_deg) -> None:
         """Lock-in outputs at simulated times t [s]: amplitude [m], phase lag [deg]."""
         t = np.asarray(t, dtype=float)
+        self._note_progress("lockin", t)
         ok, flat = self._bins(t)
         if not ok.any():
             return
@@ -106,24 +116,26 @@ class ImageAccumulator:
 
     def add_z(self, t, z, error) -> None:
         """z controller outputs at simulated times t [s]: z piezo [m] and error setpoint - amplitude [m]."""
-        ok, flat = self._bins(np.asarray(t, dtype=float))
+        t = np.asarray(t, dtype=float)
+        self._note_progress("z", t)
+        ok, flat = self._bins(t)
         if not ok.any():
             return
         np.add.at(self._sums["height"], flat[ok], np.asarray(z, dtype=float)[ok])
         np.add.at(self._sums["amplitude_error"], flat[ok], -np.asarray(error, dtype=float)[ok])
         np.add.at(self._counts["z"], flat[ok], 1)
 
-    def finish_until(self, t: float) -> list[tuple[Frame, int]]:
-        """Close every line whose retrace ended at or before t [s] (all its outputs are in);
+    def finish_ready(self) -> list[tuple[Frame, int]]:
+        """Close every line both streams (lock-in, z) have moved past (all its outputs are in);
         return (frame, acquisition line) of each, in order. A finished frame moves to
         :attr:`frames_done` and, for a continuous plan, the next one starts."""
         done = []
         plan = self.plan
+        passed = min(self._passed.values())
         while True:
             if not plan.continuous and self._frame_index >= 1:
                 return done
-            end = plan.line_end_time(self._frame_index, self._next_line)
-            if t < end:
+            if self._frame_index * plan.lines + self._next_line >= passed:
                 return done
             self._close_line(self._next_line)
             done.append((self.frame, self._next_line))

@@ -188,3 +188,13 @@ def parked_plan(x: float, y: float) -> np.ndarray:
     out = np.zeros(PLAN_LENGTH)
     out[PLAN_PARK_X], out[PLAN_PARK_Y] = x, y
     return out
+
+
+# the scanner node's parameters: the scan settings above plus where frames go
+SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **{s.name: s for s in (
+    ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
+              "directory)", kind=str),
+    ParamSpec("file_prefix", "afm_frame", "", "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
+              kind=str),
+    ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
+)}}

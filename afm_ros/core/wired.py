@@ -129,7 +129,7 @@ class WiredInstrument:
         if self.images is not None:
             self.images.add_lockin(out.t, amplitude, phase)
             self.images.add_z(out.t, z_out, errors)
-            self.images.finish_until(sim.t)
+            self.images.finish_ready()
         record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors)
         if self.keep_records:
             self.records.append(record)

@@ -131,6 +131,47 @@ def unpack_z_command(data) -> ZCommand:
     return ZCommand(int(arr[0]), float(arr[1]), float(arr[2]))
 
 
+# --- z controller trace (topic ``z_controller/trace``) ---------------------------------------------
+# One message per answered lock-in batch: ``data[0:2] = [input_end_index, input_end_time_s]`` (as in
+# the z command), then the controller's n outputs, one per lock-in output, as three blocks
+# ``t[0:n]`` [s], ``z[0:n]`` [m] (z piezo after that output) and ``error[0:n]`` [m] (setpoint -
+# amplitude). ``layout.data_offset = 2``; ``layout.dim[0] = ("z_trace", n, 3 n)``.
+Z_TRACE_PREAMBLE_FIELDS = ("input_end_index", "input_end_time_s")
+Z_TRACE_PREAMBLE_LENGTH = len(Z_TRACE_PREAMBLE_FIELDS)
+Z_TRACE_LABEL = "z_trace"
+
+
+@dataclass
+class ZTrace:
+    """The z controller's outputs for one lock-in batch: times t [s], z piezo [m], error [m]."""
+
+    input_end_index: int
+    input_end_time: float  # [s]
+    t: np.ndarray
+    z: np.ndarray
+    error: np.ndarray
+
+
+def pack_z_trace(trace: ZTrace) -> np.ndarray:
+    n = trace.t.shape[0]
+    out = np.empty(Z_TRACE_PREAMBLE_LENGTH + 3 * n)
+    out[0], out[1] = float(trace.input_end_index), trace.input_end_time
+    p = Z_TRACE_PREAMBLE_LENGTH
+    out[p:p + n], out[p + n:p + 2 * n], out[p + 2 * n:] = trace.t, trace.z, trace.error
+    return out
+
+
+def unpack_z_trace(data) -> ZTrace:
+    """Inverse of :func:`pack_z_trace`; ValueError for a malformed message."""
+    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
+    body = arr.shape[0] - Z_TRACE_PREAMBLE_LENGTH
+    if body < 0 or body % 3:
+        raise ValueError(f"z trace has {arr.shape[0]} values; expected {Z_TRACE_PREAMBLE_LENGTH} + 3 n")
+    n = body // 3
+    p = Z_TRACE_PREAMBLE_LENGTH
+    return ZTrace(int(arr[0]), float(arr[1]), arr[p:p + n], arr[p + n:p + 2 * n], arr[p + 2 * n:])
+
+
 # --- consumer acknowledgement (topic ``cantilever/ack``, std_msgs/Int64MultiArray) ----------------
 # ``layout.dim[0].label`` = the consumer's fully qualified node name, ``data = [next_index]``: every
 # deflection sample before ``next_index`` has been received and handled. ``READY`` (-1): subscribed

@@ -19,6 +19,7 @@ down instead of losing samples). ``run_until`` pauses the integration at a chunk
 from __future__ import annotations
 
 import array
+import json
 import math
 import queue
 import sys
@@ -33,10 +34,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String
 
 from afm_ros.nodes import ros_params, topics
-from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS
+from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, build, check_all, material_values
 from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
 from afm_ros.core.flow import ChunkStarts, ConsumerWindow, FeedbackGate
@@ -44,7 +45,10 @@ from afm_ros.nodes.node_main import run_node
 from afm_ros.core.physics.integrators import phase_at_step, samples_in_range
 from afm_ros.core.physics.noise import detector_noise
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS
-from afm_ros.core.physics.simulation import Simulation
+from afm_ros.core.physics.simulation import Simulation, surface_map
+from afm_ros.core.physics.parameters import DMTSample
+from afm_ros.core.samples import describe, resolve_sample
+from afm_ros.core.scanner import ScanPlan, parked_plan
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
 # default chunk length), so a consumer that matches late (start-up, a restarted lock-in) still gets
@@ -112,6 +116,8 @@ class CantileverNode(Node):
         values = ros_params.declare(self, CANTILEVER_NODE_SPECS)  # ValueError on a bad start value
         values = self._start_material(values)
         check_all(values)
+        self._samples: dict = {}  # sample parameter -> loaded Sample (None: flat)
+        self._check_sample(values)
         self._values = values
         self._setup = build(values)
         self._lock = threading.Lock()
@@ -120,6 +126,11 @@ class CantileverNode(Node):
         self._sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
         self._sim.set_thermal(values["temperature"], values["noise_seed"])
         self._sim.advance(0)  # load/compile the numba kernel now, not inside the first paced chunk
+        self._plan_lock = threading.Lock()
+        self._pending_plan: dict | None = None  # the scanner's latest request, applied at the next chunk
+        self.scan_plan: ScanPlan | None = None  # the scan being run (None: parked)
+        self._plan_id = 0
+        self._apply_sample(values)
         self._gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
         self._window = ConsumerWindow(values["flow_window"])
         self._starts = ChunkStarts(0, keep=max(values["feedback_latency"], values["flow_window"]) + 2)
@@ -134,8 +145,10 @@ class CantileverNode(Node):
         self._z_sub = self.create_subscription(Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command,
                                                Z_COMMAND_QOS)
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
+        self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
+        self._plan_sub = self.create_subscription(String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS)
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
-            CANTILEVER_NODE_SPECS, self._requested_values, check_all, self._queue_changes))
+            CANTILEVER_NODE_SPECS, self._requested_values, self._check_values, self._queue_changes))
         self.add_post_set_parameters_callback(self._on_material_set)
 
         # pacing state: simulated time should be sim_ref + (wall - wall_ref) * real_time_factor
@@ -195,6 +208,89 @@ class CantileverNode(Node):
                 if refused:
                     self.get_logger().error(f"material {p.value!r}: " + "; ".join(refused))
 
+    # --- sample map and scan -------------------------------------------------------------------
+    def _check_values(self, values: dict) -> None:
+        check_all(values)
+        self._check_sample(values)
+
+    def _check_sample(self, values: dict) -> None:
+        """Load (and keep) the ``sample`` now, so a bad name or file is refused at set time."""
+        spec = values["sample"]
+        if spec not in self._samples:
+            try:
+                self._samples[spec] = resolve_sample(spec)
+            except (ValueError, OSError) as exc:
+                raise ValueError(f"sample={spec!r}: {exc}") from None
+
+    def _apply_sample(self, values: dict) -> None:
+        """Put the sample map (tip-dilated, per-material force constants) under the tip, or none."""
+        sample = self._samples.get(values["sample"])
+        if sample is None:
+            self._sim.set_surface(None)
+            self._surface_info = {"sample": values["sample"] or "flat"}
+            return
+        tip = DMTSample(**{name: values[name] for name in DMT_SPECS})
+        self._sim.set_surface(surface_map(sample, values["force_model"], tip))
+        if self.scan_plan is None:
+            self._sim.set_scan(parked_plan(0.5 * sample.size_x, 0.5 * sample.size_y))
+        self._surface_info = {"sample": values["sample"], "description": describe(sample),
+                              "materials": list(sample.materials), "size_x_m": sample.size_x,
+                              "size_y_m": sample.size_y}
+
+    def _on_plan(self, msg: String) -> None:
+        """The scanner's request: {"plan": ScanPlan fields} (start_time: the earliest start [s]) or
+        {"park": [x, y]}; applied at the next chunk boundary."""
+        try:
+            request = json.loads(msg.data)
+            if "plan" in request:
+                fields = dict(request["plan"])
+                ScanPlan(**fields)
+            elif "park" in request:
+                x, y = (float(v) for v in request["park"])
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    raise ValueError(f"park position {request['park']!r} is not finite")
+            else:
+                raise ValueError("neither 'plan' nor 'park'")
+        except (ValueError, TypeError, KeyError) as exc:
+            self.get_logger().error(f"ignoring malformed scan request on {topics.SCAN_PLAN}: {exc}")
+            return
+        with self._plan_lock:
+            self._pending_plan = request
+        self._try_step(MAX_BURST)
+
+    @property
+    def plan_pending(self) -> bool:
+        return self._pending_plan is not None
+
+    def _apply_plan(self) -> None:
+        with self._plan_lock:
+            request, self._pending_plan = self._pending_plan, None
+        if request is None:
+            return
+        t0 = self._sim.t  # the boundary of the chunk being booked
+        self._plan_id += 1
+        if "plan" in request:
+            fields = dict(request["plan"])
+            fields["start_time"] = max(float(fields.get("start_time", 0.0)), t0)
+            self.scan_plan = ScanPlan(**fields)
+            self._sim.set_scan(self.scan_plan.packed())
+            applied = {"plan": self.scan_plan.as_dict()}
+        else:
+            x, y = (float(v) for v in request["park"])
+            self.scan_plan = None
+            self._sim.set_scan(parked_plan(x, y))
+            applied = {"park": [x, y], "time": t0}
+        v, s = self._values, self._setup
+        applied.update({
+            "id": self._plan_id, "request_id": request.get("id"),
+            "spring_constant_N_per_m": v["spring_constant"], "quality_factor": v["quality_factor"],
+            "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
+            "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
+            "force_model": v["force_model"], "z_base_m": v["z_base"], **self._surface_info})
+        self._pub_scan.publish(String(data=json.dumps(applied)))
+        self.get_logger().info(f"scan request {request.get('id')} applied at t={t0:.6g} s: "
+                               + ("scanning" if "plan" in request else f"parked at {applied['park']}"))
+
     def _ready_line(self) -> None:
         v, s = self._values, self._setup
         self.get_logger().info(
@@ -220,6 +316,10 @@ class CantileverNode(Node):
             self._timer.reset()
 
     def _apply_pending(self) -> None:
+        self._apply_changes()
+        self._apply_plan()
+
+    def _apply_changes(self) -> None:
         with self._lock:
             if not self._pending:
                 return
@@ -234,6 +334,8 @@ class CantileverNode(Node):
                                   steps_per_period=new.steps_per_period)
         if "temperature" in changed or "noise_seed" in changed:
             self._sim.set_thermal(v["temperature"], v["noise_seed"])
+        if "sample" in changed or (v["sample"] and set(changed) & (set(DMT_SPECS) | {"force_model"})):
+            self._apply_sample(v)
         if "feedback_sync" in changed or "feedback_latency" in changed:
             self._gate.mode = v["feedback_sync"]
             self._gate.latency = v["feedback_latency"]

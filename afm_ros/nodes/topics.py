@@ -21,11 +21,14 @@ FORCE = "cantilever/tip_sample_force"
 ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by ros2 topic list nor recorded
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
+Z_TRACE = "z_controller/trace"
+SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
+SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing
 INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
-                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND)
+                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND, Z_TRACE, SCAN_PLAN, SCAN_APPLIED)
 
 # publishers of the data path: reliable, history of 200 messages kept for late joiners
 HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
@@ -34,6 +37,9 @@ HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability
 CONSUMER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # one consumer's acknowledgement: only the latest matters
+# state messages (scan plan, geometry, images): the last one is kept for late joiners
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 ACK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 

@@ -12,10 +12,12 @@ later (lockstep, :mod:`afm_ros.core.flow`). Its first command (answered index 0)
 """
 from __future__ import annotations
 
+import array
 import math
 import sys
 import threading
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -51,6 +53,7 @@ class ZControllerNode(Node):
         self.pub_z = self.create_publisher(Float64, "z_controller/z_piezo", Z_QOS)
         self.pub_error = self.create_publisher(Float64, "z_controller/error", ERROR_QOS)
         self.pub_command = self.create_publisher(Float64MultiArray, topics.Z_COMMAND, COMMAND_QOS)
+        self.pub_trace = self.create_publisher(Float64MultiArray, topics.Z_TRACE, topics.HISTORY_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._command = Float64MultiArray()
         self._command.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_COMMAND_LABEL, size=3, stride=3)]
@@ -103,14 +106,22 @@ class ZControllerNode(Node):
                 f"lock-in outputs of samples {self.answered_end_index}..{batch.input_first_index} never arrived "
                 f"({self.lost_samples} samples in {self.lost_batches} gaps so far)", throttle_duration_sec=5.0)
         z_msg, e_msg = Float64(), Float64()
+        n = batch.t.shape[0]
+        zs, errors = np.empty(n), np.empty(n)
         with self._lock:
-            for t, x, y in zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist()):
-                z_msg.data = self.controller.update(math.hypot(x, y), t)
-                e_msg.data = self.controller.error
+            for i, (t, x, y) in enumerate(zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist())):
+                z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
+                e_msg.data = errors[i] = self.controller.error
                 self.pub_z.publish(z_msg)
                 self.pub_error.publish(e_msg)
             self.answered_end_index = batch.input_end_index
             self._send_command(batch.input_end_index, batch.input_end_time)
+        trace = Float64MultiArray()
+        trace.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_TRACE_LABEL, size=n, stride=3 * n)]
+        trace.layout.data_offset = chunk_layout.Z_TRACE_PREAMBLE_LENGTH
+        trace.data = array.array("d", chunk_layout.pack_z_trace(chunk_layout.ZTrace(
+            batch.input_end_index, batch.input_end_time, batch.t, zs, errors)).tobytes())
+        self.pub_trace.publish(trace)
 
     def _publish_diagnostics(self) -> None:
         c = self.controller

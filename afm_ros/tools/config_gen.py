@@ -16,6 +16,7 @@ NODE_SPECS = {
     "z_controller": ("afm_ros.core.controller", "Z_CONTROLLER_SPECS"),
     "recorder": ("afm_ros.formats.mcap_io", "RECORDER_SPECS"),
     "replay": ("afm_ros.formats.mcap_io", "REPLAY_SPECS"),
+    "scanner": ("afm_ros.core.scanner", "SCANNER_NODE_SPECS"),
 }
 
 

@@ -1,0 +1,314 @@
+"""ROS 2 node ``scanner``: the scan generator and image acquisition of the instrument's controller.
+
+Services (std_srvs/Trigger): ``scanner/start`` (scan with the current settings; frame after frame
+if ``continuous``), ``scanner/scan_frame`` (one frame), ``scanner/stop`` (stop and park the tip
+where the scan started). A start while a scan runs is refused with the reason.
+
+The scan is a :class:`afm_ros.core.scanner.ScanPlan` published on ``scanner/plan`` (std_msgs/String,
+JSON, latched); the cantilever starts it at its next chunk boundary and answers on
+``cantilever/scan`` with the plan it runs (its start time) and its constants. The node bins
+``lockin/outputs`` and ``z_controller/trace`` (flow-controlled consumer, acknowledged on
+``cantilever/_ack``) into trace and retrace pixels (:mod:`afm_ros.core.imaging`) and after every
+line publishes ``scanner/image/<channel>/<direction>`` (sensor_msgs/Image, 32FC1, SI units:
+height/amplitude/amplitude_error [m], phase [deg], dissipation [J]; row 0 = lowest y, stamped with
+the simulated time of the line's end; latched) and ``scanner/progress`` (std_msgs/String, JSON:
+frame, line, lines, time left [s]). ``scanner/geometry`` (latched JSON) describes the scan. A
+finished frame is written as one .gwy file with every channel and PNG previews
+(:mod:`afm_ros.formats.frames`), in a background thread.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import Trigger
+
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
+from afm_ros.core.scanner import SCAN_SPECS, SCANNER_NODE_SPECS, ScanPlan
+from afm_ros.formats import chunk_layout
+from afm_ros.nodes import topics
+from afm_ros.nodes.lockin_node import sim_time_msg
+from afm_ros.nodes.node_main import run_node
+from afm_ros.nodes.ros_params import declare, make_set_callback
+
+MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
+DIAGNOSTICS_PERIOD_S = 1.0
+
+
+def image_message(array: np.ndarray, stamp_s: float, frame_id: str = "afm_scan") -> Image:
+    """sensor_msgs/Image 32FC1 of a rows x cols float array (little-endian, row 0 first)."""
+    data = np.ascontiguousarray(array, dtype="<f4")
+    msg = Image()
+    msg.header.stamp = sim_time_msg(max(stamp_s, 0.0))
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = data.shape
+    msg.encoding = "32FC1"
+    msg.is_bigendian = 0
+    msg.step = 4 * data.shape[1]
+    msg.data = data.tobytes()
+    return msg
+
+
+def image_topic(channel: str, direction: str) -> str:
+    return f"scanner/image/{channel}/{direction}"
+
+
+class ScannerNode(Node):
+    """Scan generator + image acquisition; parameters :data:`afm_ros.core.scanner.SCANNER_NODE_SPECS`."""
+
+    def __init__(self, **kwargs):
+        super().__init__("scanner", **kwargs)
+        self._values = declare(self, SCANNER_NODE_SPECS)
+        ScanPlan.from_values(self._values)
+        self.add_on_set_parameters_callback(make_set_callback(
+            SCANNER_NODE_SPECS, lambda: dict(self._values), lambda v: ScanPlan.from_values(v), self._apply))
+        self._lock = threading.RLock()
+        self._pub_plan = self.create_publisher(String, topics.SCAN_PLAN, topics.LATCHED_QOS)
+        self._pub_progress = self.create_publisher(String, "scanner/progress", topics.LATCHED_QOS)
+        self._pub_geometry = self.create_publisher(String, "scanner/geometry", topics.LATCHED_QOS)
+        self._pub_images = {(c, d): self.create_publisher(Image, image_topic(c, d), topics.LATCHED_QOS)
+                            for c in CHANNELS for d in DIRECTIONS}
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._ack = topics.Acknowledger(self)
+        self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS)
+        self.create_subscription(Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
+        self.create_subscription(String, topics.SCAN_APPLIED, self._on_applied, topics.LATCHED_QOS)
+        self.create_service(Trigger, "scanner/start", lambda req, res: self._start(res, single=False))
+        self.create_service(Trigger, "scanner/scan_frame", lambda req, res: self._start(res, single=True))
+        self.create_service(Trigger, "scanner/stop", self._stop)
+        self.state = "idle"  # idle, requested (waiting for the cantilever), scanning
+        self._request_id = 0
+        self._plan_request: dict | None = None
+        self.accumulator: ImageAccumulator | None = None
+        self.plan: ScanPlan | None = None
+        self._buffer: list = []  # (kind, message data) while a request waits for its confirmation
+        self._lockin_end = (0, -math.inf)  # (input end index, end time) of the last lock-in batch handled
+        self._trace_end = (0, -math.inf)
+        self.frames_written: list[Path] = []
+        self.frames_done = 0
+        self.lines_done = 0
+        self.last_error = ""
+        self._writers: list[threading.Thread] = []
+        self._applied: dict | None = None
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
+        self.get_logger().info("ready: %g x %g m, %d x %d pixels, %g lines/s; services scanner/start, "
+                               "scanner/scan_frame, scanner/stop" % (
+                                   self._values["scan_size_x"], self._values["scan_size_y"],
+                                   self._values["pixels_per_line"], self._values["lines"], self._values["line_rate"]))
+
+    # --- parameters and services -------------------------------------------------------------
+    def _apply(self, changed: dict) -> None:
+        with self._lock:
+            self._values.update(changed)
+        note = " (the running scan keeps its settings; they apply to the next one)" if self.state != "idle" else ""
+        self.get_logger().info(f"scanner parameters changed: {changed}{note}")
+
+    def _start(self, response, single: bool):
+        with self._lock:
+            if self.state != "idle":
+                plan = self.plan
+                where = (f"frame {self.frames_done}, line {self.lines_done % plan.lines} of {plan.lines}"
+                         if plan is not None else "waiting for the cantilever to start it")
+                response.success = False
+                response.message = f"a scan is already running ({where}); call scanner/stop first"
+                return response
+            values = dict(self._values)
+            if single:
+                values["continuous"] = False
+            plan = ScanPlan.from_values(values, start_time=0.0)
+            self._request_id += 1
+            request = {"id": self._request_id, "plan": plan.as_dict()}
+            self._plan_request = request
+            self.state = "requested"
+            self._buffer = []
+        self._pub_plan.publish(String(data=json.dumps(request)))
+        response.success = True
+        response.message = (f"scan {self._request_id} requested: {plan.pixels} x {plan.lines} pixels, "
+                            f"{plan.frame_time:g} s per frame" + (" (one frame)" if not plan.continuous else ""))
+        return response
+
+    def _stop(self, request, response):
+        with self._lock:
+            if self.state == "idle":
+                response.success = False
+                response.message = "no scan is running"
+                return response
+            plan = self.plan or ScanPlan.from_values(self._values)
+            self._request_id += 1
+            park = {"id": self._request_id, "park": [plan.x_left, plan.line_y(0)]}
+            self.state = "idle"
+            self.accumulator = None
+            self._plan_request = None
+        self._pub_plan.publish(String(data=json.dumps(park)))
+        response.success = True
+        response.message = f"scan stopped; the tip parks at the scan start ({park['park'][0]:g}, {park['park'][1]:g}) m"
+        self._publish_progress()
+        return response
+
+    # --- the cantilever's confirmation ---------------------------------------------------------
+    def _on_applied(self, msg: String) -> None:
+        try:
+            applied = json.loads(msg.data)
+        except ValueError:
+            self.get_logger().error("malformed cantilever/scan message ignored")
+            return
+        self._applied = applied
+        with self._lock:
+            request = self._plan_request
+            if request is None or applied.get("request_id") != request["id"] or "plan" not in applied:
+                return
+            self.plan = ScanPlan(**applied["plan"])
+            ratio = applied["drive_frequency_Hz"] / applied["resonance_frequency_Hz"]
+            self.accumulator = ImageAccumulator(self.plan, applied["spring_constant_N_per_m"],
+                                                applied["quality_factor"], applied["free_amplitude_m"], ratio)
+            self._plan_request = None
+            self.state = "scanning"
+            self.frames_done = 0
+            self.lines_done = 0
+            self._frame_started = _dt.datetime.now()
+            buffered, self._buffer = self._buffer, []
+        self._publish_geometry(applied)
+        for kind, data in buffered:
+            (self._add_outputs if kind == "outputs" else self._add_trace)(data)
+        self._finish_lines()
+
+    def _publish_geometry(self, applied: dict) -> None:
+        p = self.plan
+        geometry = {"frame_id": "afm_scan", "x_offset_m": p.x_left, "y_offset_m": p.y_low, "size_x_m": p.size_x,
+                    "size_y_m": p.size_y, "pixels": p.pixels, "lines": p.lines, "line_rate_Hz": p.line_rate,
+                    "slow_scan_direction": p.slow_scan_direction, "continuous": p.continuous,
+                    "start_time_s": p.start_time, "row_0": "lowest y", "channels": {c: UNITS[c] for c in CHANNELS},
+                    "sample": applied.get("sample")}
+        self._pub_geometry.publish(String(data=json.dumps(geometry)))
+
+    # --- data ------------------------------------------------------------------------------------
+    def _on_outputs(self, msg: Float64MultiArray) -> None:
+        self._consume("outputs", msg.data)
+
+    def _on_trace(self, msg: Float64MultiArray) -> None:
+        self._consume("trace", msg.data)
+
+    def _consume(self, kind: str, data) -> None:
+        with self._lock:
+            if self.state == "requested":
+                if len(self._buffer) < MAX_BUFFERED_BATCHES:
+                    self._buffer.append((kind, np.array(data, dtype=np.float64)))
+                else:
+                    self.last_error = "buffer full while waiting for the cantilever to start the scan"
+            (self._add_outputs if kind == "outputs" else self._add_trace)(data, record_only=self.state != "scanning")
+        self._finish_lines()
+
+    def _add_outputs(self, data, record_only: bool = False) -> None:
+        try:
+            b = chunk_layout.unpack_outputs(data)
+        except ValueError as exc:
+            self.get_logger().error(f"malformed lock-in output batch ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        self._lockin_end = (b.input_end_index, b.input_end_time)
+        if not record_only and self.accumulator is not None and b.t.shape[0]:
+            self.accumulator.add_lockin(b.t, np.hypot(b.x, b.y), np.degrees(np.arctan2(-b.y, b.x)))
+
+    def _add_trace(self, data, record_only: bool = False) -> None:
+        try:
+            tr = chunk_layout.unpack_z_trace(data)
+        except ValueError as exc:
+            self.get_logger().error(f"malformed z trace ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        self._trace_end = (tr.input_end_index, tr.input_end_time)
+        if not record_only and self.accumulator is not None and tr.t.shape[0]:
+            self.accumulator.add_z(tr.t, tr.z, tr.error)
+
+    def _finish_lines(self) -> None:
+        finished = []
+        with self._lock:
+            handled = min(self._lockin_end[0], self._trace_end[0])
+            if self.state == "scanning" and self.accumulator is not None:
+                for frame, line in self.accumulator.finish_ready():
+                    finished.append((frame, line))
+                self.lines_done += len(finished)
+        if handled > 0:
+            self._ack.send(handled)
+        for frame, line in finished:
+            self._publish_line(frame, line)
+            if line == frame.plan.lines - 1:
+                self._frame_finished(frame)
+
+    def _publish_line(self, frame, line: int) -> None:
+        stamp = frame.plan.line_end_time(frame.index, line)
+        for (c, d), pub in self._pub_images.items():
+            pub.publish(image_message(frame.images[d][c], stamp))
+        self._publish_progress()
+
+    def _publish_progress(self) -> None:
+        p = self.plan
+        if p is None or self.state == "idle":
+            progress = {"state": self.state, "frame": self.frames_done, "lines_done": self.lines_done}
+        else:
+            line = self.lines_done % p.lines
+            progress = {"state": self.state, "frame": self.frames_done, "line": line, "lines": p.lines,
+                        "lines_done": self.lines_done, "time_left_s": (p.lines - line) / p.line_rate}
+        self._pub_progress.publish(String(data=json.dumps(progress)))
+
+    def _frame_finished(self, frame) -> None:
+        with self._lock:
+            self.frames_done += 1
+            single = not frame.plan.continuous
+            if single:
+                self.state = "idle"
+            values, applied = dict(self._values), dict(self._applied or {})
+        if values["write_files"]:
+            stamp = _dt.datetime.now().strftime("%Y%m%d_%H%M%S")
+            folder = Path(values["output_directory"] or ".")
+            stem = folder / f"{values['file_prefix']}_{stamp}_{frame.index:03d}"
+            metadata = {**{f"scan.{k}": v for k, v in frame.plan.as_dict().items()},
+                        **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")}}
+            writer = threading.Thread(target=self._write, args=(frame, stem, metadata), daemon=True,
+                                      name="frame-writer")
+            writer.start()
+            self._writers.append(writer)
+        self.get_logger().info(f"frame {frame.index} finished" + (" (single frame: idle)" if single else ""))
+        self._publish_progress()
+
+    def _write(self, frame, stem: Path, metadata: dict) -> None:
+        from afm_ros.formats.frames import write_frame
+        try:
+            paths = write_frame(frame, stem, metadata)
+            self.frames_written.append(paths[0])
+            self.get_logger().info(f"wrote {paths[0]} and {len(paths) - 1} previews")
+        except (OSError, ValueError) as exc:
+            self.last_error = f"cannot write frame {frame.index} to {stem}: {exc}"
+            self.get_logger().error(self.last_error)
+
+    def wait_for_writers(self, timeout: float = 60.0) -> None:
+        """Wait until every frame file being written is finished (for scripted jobs and tests)."""
+        end = time.monotonic() + timeout
+        for w in list(self._writers):
+            w.join(max(0.0, end - time.monotonic()))
+
+    def _publish_diagnostics(self) -> None:
+        p = self.plan
+        topics.publish_status(self, self._pub_diag, "scan", self.last_error or None, {
+            "state": self.state, "frames_done": self.frames_done, "lines_done": self.lines_done,
+            "line": (self.lines_done % p.lines) if p else 0, "lines": p.lines if p else self._values["lines"],
+            "time_left_s": ((p.lines - self.lines_done % p.lines) / p.line_rate) if p and self.state != "idle" else 0.0,
+            "frames_written": len(self.frames_written)})
+
+    def destroy_node(self):
+        self.wait_for_writers(30.0)
+        self._ack.leave()
+        return super().destroy_node()
+
+
+def main(args=None):
+    return run_node(ScannerNode, "scanner_node", args)
