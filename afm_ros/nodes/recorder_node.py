@@ -32,6 +32,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
                        qos_profile_parameter_events)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import Float64MultiArray
 
 from afm_ros.nodes import ros_params, topics
 from afm_ros.formats.chunk_layout import cdr_chunk_index
@@ -94,6 +95,12 @@ def split_patterns(text: str, namespace: str) -> list[str]:
     return out
 
 
+def outputs_end_index(data: bytes) -> int:
+    """input_end_index of a serialized lockin/outputs batch (see afm_ros.formats.chunk_layout)."""
+    from rclpy.serialization import deserialize_message
+    return int(deserialize_message(data, Float64MultiArray).data[1])
+
+
 def matches(topic: str, patterns: list[str]) -> bool:
     return any(topic == p or fnmatch.fnmatchcase(topic, p) for p in patterns)
 
@@ -133,6 +140,11 @@ class RecorderNode(Node):
         self._thread_error: RecordingError | None = None
         self._writer_thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
         self._own_deflection = self.resolve_topic_name(topics.DEFLECTION)
+        # flow control: acknowledge by the deflection chunks written, or, when they are not recorded
+        # (e.g. afm_instrument --image excludes the raw streams), by the lock-in batches written
+        # (each names the deflection samples it came from)
+        self._own_outputs = self.resolve_topic_name(topics.LOCKIN_OUTPUTS)
+        self._ack_by_outputs = not self._wanted(self._own_deflection) and self._wanted(self._own_outputs)
         self.streams: dict[str, StreamCheck] = {}
         self._ack = topics.Acknowledger(self)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -298,6 +310,8 @@ class RecorderNode(Node):
                         end = check.add(data)
                         if end is not None and topic == self._own_deflection:
                             acks = end
+                    elif self._ack_by_outputs and topic == self._own_outputs:
+                        acks = outputs_end_index(data)
             if acks is not None and self._thread_error is None:
                 self._ack.send(acks)
 

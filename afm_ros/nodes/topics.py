@@ -28,7 +28,7 @@ SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilev
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing
 INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
-                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND, Z_TRACE, SCAN_PLAN, SCAN_APPLIED)
+                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND, Z_TRACE, SCAN_APPLIED)
 
 # publishers of the data path: reliable, history of 200 messages kept for late joiners
 HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,

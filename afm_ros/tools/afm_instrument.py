@@ -50,6 +50,7 @@ from afm_ros.nodes.node_main import make_executor
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
 WAIT_POLL_S = 0.25  # while waiting, look at conditions the monitor cannot see (recorder, blow-up, Ctrl-C)
+IMAGE_SAMPLE = "ps_ldpe_blend"  # --image default: topography (islands) and phase contrast (PS vs LDPE)
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
 
 
@@ -58,7 +59,8 @@ class BlowUpError(RuntimeError):
 
 
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
-                record: bool = True, cantilever_overrides: dict | None = None) -> dict[str, Node]:
+                record: bool = True, cantilever_overrides: dict | None = None, scanner: bool = False,
+                recorder_overrides: dict | None = None) -> dict[str, Node]:
     """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers)."""
     from afm_ros.nodes.lockin_node import LockInNode
     kw = {"context": context}
@@ -70,9 +72,13 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     if with_controller:
         from afm_ros.nodes.z_controller_node import ZControllerNode
         nodes["z_controller"] = ZControllerNode(**kw)
+    if scanner:
+        from afm_ros.nodes.scanner_node import ScannerNode
+        nodes["scanner"] = ScannerNode(**kw)
     if record:
         from afm_ros.nodes.recorder_node import RecorderNode
-        nodes["recorder"] = RecorderNode(**kw)
+        nodes["recorder"] = RecorderNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in (recorder_overrides or {}).items()], **kw)
     return nodes
 
 
@@ -332,12 +338,14 @@ class Summary:
     hold_window: str = "the last quarter of the hold"
     wall_time_s: float = 0.0
     real_time_factor: float = 0.0
+    image: dict = field(default_factory=dict)  # --image: the frame's numbers and files
 
     def deterministic_part(self) -> dict:
         """Everything that must repeat exactly between runs (not wall time, not the file name)."""
         d = asdict(self)
         for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
             d.pop(k)
+        d.get("image", {}).pop("files", None)
         return d
 
     def text(self) -> str:
@@ -365,6 +373,15 @@ class Summary:
             lines.append(f"  recording           {'complete' if r.get('complete') else 'INCOMPLETE'}: "
                          f"{r.get('file')} ({r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
+        if self.image:
+            from afm_ros.tools.frame_report import report_text
+            im = self.image
+            lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
+                         f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s)")
+            if "report" in im:
+                lines.append(report_text(im["report"]))
+            for f in im.get("files", [])[:1]:
+                lines.append(f"  frame file          {f} (+ PNG previews beside it)")
         lines.append(f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
                      f"(real-time factor {self.real_time_factor:.2f})")
         return "\n".join(lines)
@@ -378,7 +395,8 @@ class Instrument:
     """
 
     def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True,
-                 attach: bool = False, keep_history: bool = False):
+                 attach: bool = False, keep_history: bool = False, scanner: bool = False,
+                 cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None):
         self.context = context
         self.attached = attach
         self.namespace = (namespace or "").rstrip("/")
@@ -388,7 +406,8 @@ class Instrument:
         # the cantilever waits at t = 0, in lockstep with the z controller, until the job starts it
         self.nodes = {} if attach else build_nodes(
             context, namespace, record=record,
-            cantilever_overrides={"run_until": 0.0, "feedback_sync": "lockstep"})
+            cantilever_overrides={**(cantilever_overrides or {}), "run_until": 0.0, "feedback_sync": "lockstep"},
+            scanner=scanner, recorder_overrides=recorder_overrides)
         self.monitor = Monitor(keep_history=keep_history, **kw)
         self.namespace = self.monitor.get_namespace().rstrip("/")  # includes a -r __ns:= remapping
         self.executor = make_executor(executor, context)
@@ -506,7 +525,8 @@ class Instrument:
                 self.wait_for_recorder(self._fqn("recorder"))
                 self.attached_recorder = self._fqn("recorder")
         if not self.attached:
-            wanted = {n.get_fully_qualified_name() for r, n in self.nodes.items() if r in ("lockin", "recorder")}
+            wanted = {n.get_fully_qualified_name() for r, n in self.nodes.items()
+                      if r in ("lockin", "recorder", "scanner")}
             wanted.add(self.monitor.get_fully_qualified_name())
             self.spin_until(lambda: wanted <= set(self.cantilever.consumers),
                             f"waiting for the consumers {sorted(wanted)} to acknowledge")
@@ -522,6 +542,11 @@ class Instrument:
         self.wait_for_consumer(name)
         wanted = self.instrument_topics()
         rec = self.nodes.get("recorder")
+        if rec is not None:
+            from afm_ros.nodes.recorder_node import matches
+            wanted = {t for t in wanted if not matches(t, rec._exclude)}
+            if "scanner" not in self.nodes:
+                wanted.discard(self.monitor.resolve_topic_name(topics.SCAN_PLAN))
         if rec is not None and rec.get_fully_qualified_name() == name:
             self.spin_until(lambda: wanted <= set(rec.topics), f"waiting for {name} to subscribe to {sorted(wanted)}")
             return
@@ -559,8 +584,13 @@ class Instrument:
             return
         topic = rec.resolve_topic_name(topics.DEFLECTION)
         end = self.cantilever.samples_submitted
-        self.spin_until(lambda: rec.error is not None or (topic in rec.streams and rec.streams[topic].next_index == end),
-                        "waiting for the recorder to write the last chunks")
+        if rec._ack_by_outputs:  # the raw streams are not recorded: the lock-in batches of every chunk are
+            self.spin_until(lambda: rec.error is not None or rec._ack.next_index >= end,
+                            "waiting for the recorder to write the last lock-in batches")
+        else:
+            self.spin_until(lambda: rec.error is not None or (topic in rec.streams
+                                                               and rec.streams[topic].next_index == end),
+                            "waiting for the recorder to write the last chunks")
         rec.drain(self.executor)
 
     def recording_status(self) -> dict:
@@ -635,6 +665,48 @@ class Instrument:
             hold_window=("the last second before Ctrl-C" if interactive else "the last quarter of the hold"),
             wall_time_s=wall, real_time_factor=(t_end - t_start) / wall if wall > 0 else math.inf)
 
+    def run_image_job(self, engage_time: float, free_time: float, setpoint_ratio: float | None,
+                      band_fraction: float = 0.01, predict: bool = True) -> Summary:
+        """Withdraw, measure free, engage and hold ``engage_time``, then scan one frame with the
+        scanner's settings; the summary gets the frame's numbers (tools/frame_report.py) and files."""
+        from std_srvs.srv import Trigger
+
+        from afm_ros.tools.frame_report import frame_report
+
+        if self.attached or "scanner" not in self.nodes:
+            raise RuntimeError("the image job runs the scanner in this process (no --attach)")
+        wall0 = time.monotonic()
+        summary = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)
+        scanner, cantilever = self.nodes["scanner"], self.cantilever
+        response = scanner._start(Trigger.Response(), single=True)
+        if not response.success:
+            raise RuntimeError(f"scanner: {response.message}")
+        # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
+        self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
+        plan = scanner.plan
+        chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
+        self.advance_to(plan.start_time + plan.frame_time + 2 * chunk)  # outputs past the last line
+        self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
+        scanner.wait_for_writers()
+        self.wait_recorded()
+        frame = scanner.accumulator.frames_done[0]
+        sample = cantilever._samples.get(cantilever._values["sample"])
+        image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
+                 "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
+                 "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat"}
+        if sample is not None:
+            setup = cantilever._setup
+            image["report"] = frame_report(frame, sample, summary.setpoint_m / summary.free_amplitude_m,
+                                           cantilever._values["force_model"], setup.cantilever, setup.drive,
+                                           setup.steps_per_period, predict=predict)
+        summary.image = image
+        summary.recording = self.recording_status()
+        summary.simulated_time_s = self.t_paused
+        summary.wall_time_s = time.monotonic() - wall0
+        summary.real_time_factor = summary.simulated_time_s / summary.wall_time_s
+        self.frame = frame
+        return summary
+
     def _run_until_interrupted(self) -> None:
         """Interactive: run without a pause until Ctrl-C, with a status line every 5 s of wall time."""
         self.set("cantilever", run_until=-1.0)
@@ -684,6 +756,14 @@ def parse_args(argv):
     parser.add_argument("--interactive", action="store_true",
                         help="after engaging, keep running until Ctrl-C (tune with ros2 param set), then "
                              "print the summary")
+    parser.add_argument("--image", action="store_true",
+                        help="the imaging job: engage for --duration, then scan one frame with the scanner's "
+                             "parameters (-p scanner:...) over the cantilever's sample (default ps_ldpe_blend), "
+                             "write .gwy + PNG previews, record the session (without the raw deflection and "
+                             "force streams unless --record-raw) and print the frame's numbers")
+    parser.add_argument("--record-raw", action="store_true",
+                        help="--image: also record cantilever/deflection and cantilever/tip_sample_force "
+                             "(~7 MB per simulated second each)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
@@ -711,12 +791,26 @@ def main(args=None):
     instrument = None
     status = 0
     try:
+        cantilever_overrides, recorder_overrides = {}, {}
+        if options.image:
+            ros_args = " ".join(argv)
+            if "sample:=" not in ros_args:
+                cantilever_overrides["sample"] = IMAGE_SAMPLE
+            if "force_model:=" not in ros_args:
+                cantilever_overrides["force_model"] = "viscoelastic_dmt"
+            if not options.record_raw and "exclude:=" not in ros_args:
+                recorder_overrides["exclude"] = f"{topics.DEFLECTION},{topics.FORCE}"
         instrument = Instrument(executor=options.executor, record=not (options.no_record or options.attach),
-                                attach=options.attach, namespace=None)
+                                attach=options.attach, namespace=None, scanner=options.image,
+                                cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides)
         if "recorder" in instrument.nodes:
             print(f"recording to {instrument.nodes['recorder'].output_path}", flush=True)
-        summary = instrument.run_job(options.duration, options.free_time, options.setpoint_ratio, options.band,
-                                     interactive=options.interactive)
+        if options.image:
+            summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
+                                               options.band)
+        else:
+            summary = instrument.run_job(options.duration, options.free_time, options.setpoint_ratio, options.band,
+                                         interactive=options.interactive)
         print(summary.text(), flush=True)
         if options.json:
             print(json.dumps(asdict(summary)), flush=True)
