@@ -15,8 +15,8 @@ def config():
 
 
 def test_every_node_has_specs():
-    # the five instrument blocks each declare their parameters through specs
-    assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "recorder", "replay"}
+    # the six instrument blocks each declare their parameters through specs
+    assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "recorder", "replay", "scanner"}
 
 
 def test_yaml_file_is_the_generator_output():
@@ -54,10 +54,12 @@ def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_e
     from afm_ros.nodes.cantilever_node import CantileverNode
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.nodes.scanner_node import ScannerNode
     from afm_ros.nodes.z_controller_node import ZControllerNode
 
     kw = {"context": ros_context, "namespace": ros_namespace}
     nodes = {"cantilever": CantileverNode(**kw), "lockin": LockInNode(**kw), "z_controller": ZControllerNode(**kw),
+             "scanner": ScannerNode(**kw),
              "recorder": RecorderNode(parameter_overrides=[Parameter("output", value=str(tmp_path / "s.mcap"))], **kw)}
     client_node = rclpy.create_node("describer", context=ros_context, namespace=ros_namespace)
     for node in [*nodes.values(), client_node]:

@@ -134,6 +134,7 @@ def afm_nodes(ros_context, ros_executor, ros_namespace, tmp_path):
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.recorder_node import RecorderNode
     from afm_ros.nodes.replay_node import ReplayNode
+    from afm_ros.nodes.scanner_node import ScannerNode
     from afm_ros.nodes.z_controller_node import ZControllerNode
 
     kw = {"context": ros_context, "namespace": ros_namespace}
@@ -146,6 +147,7 @@ def afm_nodes(ros_context, ros_executor, ros_namespace, tmp_path):
         "replay": ReplayNode(parameter_overrides=[Parameter("file", value=str(_replay_file(tmp_path / "r.mcap"))),
                                                   Parameter("start_delay", value=60.0),
                                                   Parameter("topic_prefix", value="replayed")], **kw),
+        "scanner": ScannerNode(**kw),
     }
     cli_node = rclpy.create_node("ros2param_cli", context=ros_context, namespace=ros_namespace)
     for node in [*nodes.values(), cli_node]:
@@ -202,6 +204,8 @@ def test_values_typed_as_on_the_command_line_are_accepted_and_keep_the_declared_
     ("cantilever", "force_model", "lj"),
     ("z_controller", "setpoint", "-1e-9"),
     ("lockin", "harmonic", "nine"),
+    ("scanner", "pixels_per_line", "1"),
+    ("scanner", "slow_scan_direction", "sideways"),
 ])
 def test_refused_values_name_field_and_range_and_change_nothing(afm_nodes, short, name, text):
     nodes, cli = afm_nodes

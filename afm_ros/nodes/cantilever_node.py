@@ -220,7 +220,8 @@ class CantileverNode(Node):
             try:
                 self._samples[spec] = resolve_sample(spec)
             except (ValueError, OSError) as exc:
-                raise ValueError(f"sample={spec!r}: {exc}") from None
+                text = str(exc)
+                raise ValueError(text if text.startswith("sample=") else f"sample={spec!r}: {text}") from None
 
     def _apply_sample(self, values: dict) -> None:
         """Put the sample map (tip-dilated, per-material force constants) under the tip, or none."""

@@ -51,6 +51,14 @@ ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
 WAIT_POLL_S = 0.25  # while waiting, look at conditions the monitor cannot see (recorder, blow-up, Ctrl-C)
 IMAGE_SAMPLE = "ps_ldpe_blend"  # --image default: topography (islands) and phase contrast (PS vs LDPE)
+# --image default frame (each can be set with -p scanner:<name>:=...): 64 x 64 pixels over 5 um at 2 lines/s,
+# 32 s simulated, about a minute on 2 cores with recording
+IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}
+# --image records the loop's batches (lockin/outputs, z_controller/trace and z_command hold every lock-in
+# output, z and error), the images and the state topics, but not the raw 900 kS/s streams nor the
+# per-output scalar copies of the batches (unless --record-raw)
+IMAGE_RECORD_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
+                                 "z_controller/z_piezo", "z_controller/error"))
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
 
 
@@ -60,7 +68,7 @@ class BlowUpError(RuntimeError):
 
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
                 record: bool = True, cantilever_overrides: dict | None = None, scanner: bool = False,
-                recorder_overrides: dict | None = None) -> dict[str, Node]:
+                recorder_overrides: dict | None = None, scanner_overrides: dict | None = None) -> dict[str, Node]:
     """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers)."""
     from afm_ros.nodes.lockin_node import LockInNode
     kw = {"context": context}
@@ -74,7 +82,8 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
         nodes["z_controller"] = ZControllerNode(**kw)
     if scanner:
         from afm_ros.nodes.scanner_node import ScannerNode
-        nodes["scanner"] = ScannerNode(**kw)
+        nodes["scanner"] = ScannerNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in (scanner_overrides or {}).items()], **kw)
     if record:
         from afm_ros.nodes.recorder_node import RecorderNode
         nodes["recorder"] = RecorderNode(
@@ -345,7 +354,8 @@ class Summary:
         d = asdict(self)
         for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
             d.pop(k)
-        d.get("image", {}).pop("files", None)
+        for k in ("files", "scan_wall_s", "scan_real_time_factor"):
+            d.get("image", {}).pop(k, None)
         return d
 
     def text(self) -> str:
@@ -377,7 +387,8 @@ class Summary:
             from afm_ros.tools.frame_report import report_text
             im = self.image
             lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
-                         f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s)")
+                         f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
+                         f"real-time factor {im['scan_real_time_factor']:.2f} while scanning)")
             if "report" in im:
                 lines.append(report_text(im["report"]))
             for f in im.get("files", [])[:1]:
@@ -396,7 +407,8 @@ class Instrument:
 
     def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True,
                  attach: bool = False, keep_history: bool = False, scanner: bool = False,
-                 cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None):
+                 cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None,
+                 scanner_overrides: dict | None = None):
         self.context = context
         self.attached = attach
         self.namespace = (namespace or "").rstrip("/")
@@ -407,7 +419,7 @@ class Instrument:
         self.nodes = {} if attach else build_nodes(
             context, namespace, record=record,
             cantilever_overrides={**(cantilever_overrides or {}), "run_until": 0.0, "feedback_sync": "lockstep"},
-            scanner=scanner, recorder_overrides=recorder_overrides)
+            scanner=scanner, recorder_overrides=recorder_overrides, scanner_overrides=scanner_overrides)
         self.monitor = Monitor(keep_history=keep_history, **kw)
         self.namespace = self.monitor.get_namespace().rstrip("/")  # includes a -r __ns:= remapping
         self.executor = make_executor(executor, context)
@@ -678,6 +690,7 @@ class Instrument:
         wall0 = time.monotonic()
         summary = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)
         scanner, cantilever = self.nodes["scanner"], self.cantilever
+        wall_scan = time.monotonic()
         response = scanner._start(Trigger.Response(), single=True)
         if not response.success:
             raise RuntimeError(f"scanner: {response.message}")
@@ -687,13 +700,15 @@ class Instrument:
         chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
         self.advance_to(plan.start_time + plan.frame_time + 2 * chunk)  # outputs past the last line
         self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
+        wall_scan = time.monotonic() - wall_scan
         scanner.wait_for_writers()
         self.wait_recorded()
         frame = scanner.accumulator.frames_done[0]
         sample = cantilever._samples.get(cantilever._values["sample"])
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
-                 "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat"}
+                 "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
+                 "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan}
         if sample is not None:
             setup = cantilever._setup
             image["report"] = frame_report(frame, sample, summary.setpoint_m / summary.free_amplitude_m,
@@ -763,7 +778,7 @@ def parse_args(argv):
                              "force streams unless --record-raw) and print the frame's numbers")
     parser.add_argument("--record-raw", action="store_true",
                         help="--image: also record cantilever/deflection and cantilever/tip_sample_force "
-                             "(~7 MB per simulated second each)")
+                             "(~7 MB per simulated second each) and the per-output scalar topics")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
@@ -791,18 +806,20 @@ def main(args=None):
     instrument = None
     status = 0
     try:
-        cantilever_overrides, recorder_overrides = {}, {}
+        cantilever_overrides, recorder_overrides, scanner_overrides = {}, {}, {}
         if options.image:
             ros_args = " ".join(argv)
+            scanner_overrides = {k: v for k, v in IMAGE_SCAN.items() if f"{k}:=" not in ros_args}
             if "sample:=" not in ros_args:
                 cantilever_overrides["sample"] = IMAGE_SAMPLE
             if "force_model:=" not in ros_args:
                 cantilever_overrides["force_model"] = "viscoelastic_dmt"
             if not options.record_raw and "exclude:=" not in ros_args:
-                recorder_overrides["exclude"] = f"{topics.DEFLECTION},{topics.FORCE}"
+                recorder_overrides["exclude"] = IMAGE_RECORD_EXCLUDE
         instrument = Instrument(executor=options.executor, record=not (options.no_record or options.attach),
                                 attach=options.attach, namespace=None, scanner=options.image,
-                                cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides)
+                                cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides,
+                                scanner_overrides=scanner_overrides)
         if "recorder" in instrument.nodes:
             print(f"recording to {instrument.nodes['recorder'].output_path}", flush=True)
         if options.image:
