@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.scanner import ScanPlan, bin_into
 
 CHANNELS = ("height", "amplitude", "phase", "amplitude_error", "dissipation")
 UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J"}
@@ -76,7 +76,10 @@ class ImageAccumulator:
         self.constants = (float(spring_constant), float(quality_factor), float(free_amplitude),
                           float(frequency_ratio))
         n = plan.lines * plan.pixels * 2
-        self._sums = {c: np.zeros(n) for c in CHANNELS}
+        self._lockin_sums = np.zeros((len(_LOCKIN_CHANNELS), n))
+        self._z_sums = np.zeros((len(_Z_CHANNELS), n))
+        self._sums = {**{c: self._lockin_sums[i] for i, c in enumerate(_LOCKIN_CHANNELS)},
+                      **{c: self._z_sums[i] for i, c in enumerate(_Z_CHANNELS)}}
         self._counts = {"lockin": np.zeros(n, dtype=np.int64), "z": np.zeros(n, dtype=np.int64)}
         self._frame_index = 0
         self.frame = Frame.empty(plan, 0)
@@ -87,43 +90,25 @@ class ImageAccumulator:
         # however the two streams' messages interleave
         self._passed = {"lockin": -1, "z": -1}
 
-    def _note_progress(self, stream: str, t: np.ndarray) -> None:
-        if t.shape[0]:
-            count = int(math.floor((float(t[-1]) - self.plan.start_time) * self.plan.line_rate))
-            self._passed[stream] = max(self._passed[stream], count)
-
-    def _bins(self, t):
-        frame, line, direction, pixel = self.plan.slots(t)
-        ok = frame == self._frame_index
-        flat = (line * 2 + direction) * self.plan.pixels + pixel
-        return ok, flat
+    def _add(self, stream: str, t, values: np.ndarray, sums: np.ndarray) -> None:
+        p = self.plan
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        passed = bin_into(t, values, p.start_time, p.line_rate, p.lines, p.pixels, p.continuous,
+                          self._frame_index, sums, self._counts[stream])
+        self._passed[stream] = max(self._passed[stream], passed)
 
     def add_lockin(self, t, amplitude, phase_deg) -> None:
         """Lock-in outputs at simulated times t [s]: amplitude [m], phase lag [deg]."""
-        t = np.asarray(t, dtype=float)
-        self._note_progress("lockin", t)
-        ok, flat = self._bins(t)
-        if not ok.any():
-            return
-        flat = flat[ok]
-        a = np.asarray(amplitude, dtype=float)[ok]
-        p = np.asarray(phase_deg, dtype=float)[ok]
+        a = np.asarray(amplitude, dtype=float)
+        p = np.asarray(phase_deg, dtype=float)
         k, q, a0, ratio = self.constants
-        values = {"amplitude": a, "phase": p, "dissipation": dissipated_energy(a, p, k, q, a0, ratio)}
-        for c in _LOCKIN_CHANNELS:
-            np.add.at(self._sums[c], flat, values[c])
-        np.add.at(self._counts["lockin"], flat, 1)
+        values = np.array([a, p, dissipated_energy(a, p, k, q, a0, ratio)]).reshape(len(_LOCKIN_CHANNELS), -1)
+        self._add("lockin", t, values, self._lockin_sums)
 
     def add_z(self, t, z, error) -> None:
         """z controller outputs at simulated times t [s]: z piezo [m] and error setpoint - amplitude [m]."""
-        t = np.asarray(t, dtype=float)
-        self._note_progress("z", t)
-        ok, flat = self._bins(t)
-        if not ok.any():
-            return
-        np.add.at(self._sums["height"], flat[ok], np.asarray(z, dtype=float)[ok])
-        np.add.at(self._sums["amplitude_error"], flat[ok], -np.asarray(error, dtype=float)[ok])
-        np.add.at(self._counts["z"], flat[ok], 1)
+        values = np.array([np.asarray(z, dtype=float), -np.asarray(error, dtype=float)]).reshape(len(_Z_CHANNELS), -1)
+        self._add("z", t, values, self._z_sums)
 
     def finish_ready(self) -> list[tuple[Frame, int]]:
         """Close every line both streams (lock-in, z) have moved past (all its outputs are in);
@@ -145,8 +130,8 @@ class ImageAccumulator:
                 self._frame_index += 1
                 self._next_line = 0
                 self.frame = Frame.empty(plan, self._frame_index)
-                for arr in self._sums.values():
-                    arr[:] = 0.0
+                self._lockin_sums[:] = 0.0
+                self._z_sums[:] = 0.0
                 for arr in self._counts.values():
                     arr[:] = 0
 

@@ -146,20 +146,10 @@ class ScanPlan:
 
     def slots(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(frame, line, direction 0 trace / 1 retrace, pixel) of each time t [s]; frame -1 outside the scan."""
-        t = np.asarray(t, dtype=float)
-        rel = (t - self.start_time) * self.line_rate  # lines since the start
-        total = np.floor(rel)
-        u = rel - total
-        total = total.astype(np.int64)
-        frame = total // self.lines
-        line = total % self.lines
-        direction = (u >= 0.5).astype(np.int64)
-        along = np.where(direction == 0, 2.0 * u, 2.0 * u - 1.0)  # fraction of the pass done
-        index = np.minimum((along * self.pixels).astype(np.int64), self.pixels - 1)
-        pixel = np.where(direction == 0, index, self.pixels - 1 - index)
-        outside = (rel < 0) | (~self.continuous & (frame >= 1))
-        frame = np.where(outside, -1, frame)
-        return frame, line, direction, pixel
+        t = np.ascontiguousarray(t, dtype=np.float64).reshape(-1)
+        out = np.empty((4, t.shape[0]), dtype=np.int64)
+        _slots(t, self.start_time, self.line_rate, self.lines, self.pixels, self.continuous, out)
+        return out[0], out[1], out[2], out[3]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -198,3 +188,51 @@ SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **{s.name: s for s in 
               kind=str),
     ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
 )}}
+
+
+@njit(cache=True, nogil=True, inline="always")
+def slot_of(t, start, rate, lines, pixels, continuous):
+    """(frame, line, direction, pixel, line count) of time t [s]; frame -1 before the start or after a
+    single frame. The line count floor((t - start) rate) says how far the scan has gone."""
+    rel = (t - start) * rate
+    total = math.floor(rel)
+    u = rel - total
+    count = int(total)
+    frame = count // lines
+    line = count - frame * lines
+    direction = 1 if u >= 0.5 else 0
+    along = 2.0 * u - direction  # fraction of the pass done
+    index = min(int(along * pixels), pixels - 1)
+    pixel = index if direction == 0 else pixels - 1 - index
+    if rel < 0.0 or (not continuous and frame >= 1):
+        frame = -1
+    return frame, line, direction, pixel, count
+
+
+@njit(cache=True, nogil=True)
+def _slots(t, start, rate, lines, pixels, continuous, out):
+    for i in range(t.shape[0]):
+        frame, line, direction, pixel, _ = slot_of(t[i], start, rate, lines, pixels, continuous)
+        out[0, i] = frame
+        out[1, i] = line
+        out[2, i] = direction
+        out[3, i] = pixel
+
+
+@njit(cache=True, nogil=True)
+def bin_into(t, values, start, rate, lines, pixels, continuous, frame_index, sums, counts):
+    """Add ``values[c, i]`` to ``sums[c, slot]`` and count, for every time ``t[i]`` [s] in frame
+    ``frame_index`` (slot = (line * 2 + direction) * pixels + pixel); return the largest line count
+    seen (-1 if none)."""
+    passed = -1
+    for i in range(t.shape[0]):
+        frame, line, direction, pixel, count = slot_of(t[i], start, rate, lines, pixels, continuous)
+        if count > passed:
+            passed = count
+        if frame != frame_index:
+            continue
+        flat = (line * 2 + direction) * pixels + pixel
+        for c in range(values.shape[0]):
+            sums[c, flat] += values[c, i]
+        counts[flat] += 1
+    return passed

@@ -108,12 +108,16 @@ class ZControllerNode(Node):
         z_msg, e_msg = Float64(), Float64()
         n = batch.t.shape[0]
         zs, errors = np.empty(n), np.empty(n)
+        want_z = self.pub_z.get_subscription_count() > 0  # per-output copies of the trace: while subscribed
+        want_error = self.pub_error.get_subscription_count() > 0
         with self._lock:
             for i, (t, x, y) in enumerate(zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist())):
                 z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
                 e_msg.data = errors[i] = self.controller.error
-                self.pub_z.publish(z_msg)
-                self.pub_error.publish(e_msg)
+                if want_z:
+                    self.pub_z.publish(z_msg)
+                if want_error:
+                    self.pub_error.publish(e_msg)
             self.answered_end_index = batch.input_end_index
             self._send_command(batch.input_end_index, batch.input_end_time)
         trace = Float64MultiArray()
