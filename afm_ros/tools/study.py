@@ -8,6 +8,7 @@ figures and CSV tables (header row, SI units in the column names) into ``--out D
 - ``sweep``       steady-state observables vs z_base (approach, optional retract)
 - ``trajectory``  tip position, drive and tip-sample force vs time at one z_base
 - ``bench``       speed benchmark (one JSON object on stdout), see :mod:`afm_ros.tools.bench`
+- ``scan``        image a sample with the wired instrument (.gwy, PNGs, summary), see :mod:`afm_ros.tools.scan`
 
 The reusable pieces (:func:`convergence_study`, :func:`fit_order`, :func:`sweep`,
 :func:`trajectory`) are plain functions so tests can call them on tiny inputs.
@@ -726,9 +727,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
-    from afm_ros.tools import contrast, thermal_tune  # these validate their own flags (EXTERNAL below)
+    from afm_ros.tools import contrast, scan, thermal_tune  # these validate their own flags (EXTERNAL below)
     thermal_tune.add_parser(sub)
     contrast.add_parser(sub)
+    scan.add_parser(sub)
     return parser
 
 
@@ -740,7 +742,7 @@ def _external(module_name: str):
     return run
 
 
-EXTERNAL = {"thermal": "thermal_tune", "contrast": "contrast"}
+EXTERNAL = {"thermal": "thermal_tune", "contrast": "contrast", "scan": "scan"}
 
 
 COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep,

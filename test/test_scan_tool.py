@@ -1,0 +1,181 @@
+"""afm_study scan: the files it writes (read back by readers this project did not write: gwyfile
+directly, Gwyddion's thumbnailer), the summary, a written image as a sample again, bad flags.
+
+A small frame (16 px x 8 lines at 8 lines/s over 2.5 um of the PS/LDPE blend: 1 s simulated)
+scanned once by the command line in a subprocess and once in-process with the same flags: the
+scan is deterministic (noise off by default), so the file must hold the in-process frame's
+values bit for bit.
+"""
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+
+import gwyfile
+import numpy as np
+import pytest
+
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
+from afm_ros.core.samples import from_file
+from afm_ros.formats.frames import channel_title, frame_channels
+from afm_ros.tools import scan, study
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+ARGS = ["--sample", "ps_ldpe_blend", "--scan-size-x", "2.5e-6", "--scan-size-y", "2.5e-6",
+        "--scan-center-x", "6e-6", "--scan-center-y", "3e-6", "--pixels-per-line", "16", "--lines", "8",
+        "--line-rate", "8", "--engage-time", "0.05", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def cli(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scan")
+    proc = subprocess.run([sys.executable, "-m", "afm_ros.tools.study", "scan", *ARGS, "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+@pytest.fixture(scope="module")
+def frame():
+    parser = argparse.ArgumentParser()
+    scan._add_arguments(parser)
+    config = scan.config_from_args(parser.parse_args(ARGS))
+    return scan.run_scan(config).frame
+
+
+def test_cli_writes_gwy_previews_and_summary(cli):
+    out, proc = cli
+    text = proc.stdout
+    for words in ("afm_study scan summary", "step height", "true 10.000 nm", "predicted apparent",
+                  "phase contrast", "ldpe - polystyrene", "trace-retrace rms", "real-time factor",
+                  "edge exclusion"):
+        assert words in text, words
+    assert (out / "scan.gwy").is_file()
+    for channel in CHANNELS:
+        for direction in DIRECTIONS:
+            data = (out / f"scan_{channel}_{direction}.png").read_bytes()
+            assert data.startswith(PNG_SIGNATURE) and len(data) > 1000
+    summary = json.loads((out / "scan_summary.json").read_text())
+    assert summary["scan"]["pixels_per_line"] == 16 and summary["scan"]["lines"] == 8
+    assert summary["scan"]["speed_m_per_s"] == pytest.approx(2 * 2.5e-6 * 8, rel=1e-12)
+    assert summary["step"]["true_m"] == pytest.approx(10e-9, rel=0, abs=1e-15)
+    assert summary["step"]["level_materials"] == ["polystyrene", "ldpe"]
+    assert summary["edge_exclusion_m"] > 0 and summary["kept_pixels"] > 0
+    assert summary["timing"]["simulated_scan_s"] == pytest.approx(1.0, rel=1e-12)
+    assert summary["timing"]["real_time_factor"] > 0
+    assert summary["prediction"]["ldpe"]["phase_deg"] > summary["prediction"]["polystyrene"]["phase_deg"]
+    assert summary["peak_rss_bytes"] > 10 * 2 ** 20
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]  # atomic writes left no temporary
+
+
+def test_gwy_read_back_with_gwyfile(cli, frame):
+    """gwyfile itself: 10 channels with titles, pixel counts, real size = scan size, offsets =
+    the scan's lower-left corner, SI units, values equal to the frame's, metadata as strings."""
+    out, _ = cli
+    obj = gwyfile.load(str(out / "scan.gwy"))
+    plan = frame.plan
+    expected = frame_channels(frame)
+    assert list(expected) == [channel_title(c, d) for c in CHANNELS for d in DIRECTIONS]
+    for n, (title, (values, unit)) in enumerate(expected.items()):
+        field = obj[f"/{n}/data"]
+        assert obj[f"/{n}/data/title"] == title
+        assert (field["xres"], field["yres"]) == (16, 8)
+        assert field["xreal"] == plan.size_x and field["yreal"] == plan.size_y
+        assert field["xoff"] == pytest.approx(4.75e-6, rel=1e-12) and field["yoff"] == pytest.approx(1.75e-6, rel=1e-12)
+        assert field["xoff"] == plan.x_left and field["yoff"] == plan.y_low
+        assert field["si_unit_xy"]["unitstr"] == "m"
+        assert field["si_unit_z"]["unitstr"] == unit
+        data = np.asarray(field["data"], dtype=float).reshape(8, 16)
+        assert np.array_equal(data, values), title
+    assert obj["/0/data/title"] == "Height (trace)" and UNITS["phase"] == "deg"
+    meta = obj["/0/meta"]
+    assert meta["scan.line_rate [Hz]"] == "8.0"
+    assert meta["scan.pixels_per_line"] == "16"
+    assert meta["feedback.setpoint [m]"] == "4.8e-08"
+    assert meta["feedback.i_gain [1/s]"] == "100.0"
+    assert meta["cantilever.force_model"] == "viscoelastic_dmt"
+    assert meta["cantilever.temperature [K]"] == "0.0"
+    assert meta["sample.generator"] == "blend" and meta["sample.islands"] == "ldpe"
+    assert meta["sample.spec"] == "ps_ldpe_blend"
+    assert all(isinstance(v, str) for v in meta.values())
+
+
+@pytest.mark.skipif(shutil.which("gwyddion-thumbnailer") is None,
+                    reason="gwyddion-thumbnailer not installed (Debian package gwyddion)")
+def test_gwyddion_renders_the_scan(cli, tmp_path):
+    out, _ = cli
+    for n in (0, 4, 9):  # Height (trace), Phase (trace), Dissipation (retrace)
+        png = tmp_path / f"thumb{n}.png"
+        run = subprocess.run(["gwyddion-thumbnailer", "-c", str(n), "gnome2", "128", str(out / "scan.gwy"), str(png)],
+                             capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        data = png.read_bytes()
+        assert data.startswith(PNG_SIGNATURE) and len(data) > 60
+
+
+def test_written_gwy_is_a_sample_again(cli, frame, tmp_path, capsys):
+    """from_file takes the first channel (Height (trace), unit m) at the file's real size: the
+    height map is the frame's, bit for bit; and the tool images it (--sample FILE.gwy)."""
+    out, _ = cli
+    sample = from_file(str(out / "scan.gwy"))
+    assert np.array_equal(sample.height, frame.images["trace"]["height"].astype(float))
+    assert (sample.size_x, sample.size_y) == (frame.plan.size_x, frame.plan.size_y)
+    assert sample.materials == ("silicon",)
+    with pytest.raises(ValueError, match="Phase"):
+        from_file(str(out / "scan.gwy"), channel="Phase (trace)")  # deg, not a height
+    rc = scan.main(["--sample", str(out / "scan.gwy"), "--scan-size-x", "2e-6", "--scan-size-y", "2e-6",
+                    "--scan-center-x", "1.25e-6", "--scan-center-y", "1.25e-6", "--pixels-per-line", "8",
+                    "--lines", "2", "--line-rate", "10", "--engage-time", "0.02", "--force-model", "dmt",
+                    "--quiet", "--no-previews", "--out", str(tmp_path / "again")])
+    assert rc == 0
+    assert "silicon" in capsys.readouterr().out
+    assert (tmp_path / "again" / "scan.gwy").is_file()
+    assert not list((tmp_path / "again").glob("*.png"))
+
+
+@pytest.mark.parametrize("flags, field", [
+    (["--scan-size-x", "2"], "scan_size_x"),
+    (["--lines", "0"], "lines"),
+    (["--line-rate", "abc"], "line_rate"),
+    (["--slow-scan-direction", "left"], "slow_scan_direction"),
+    (["--setpoint", "7e-8"], "setpoint"),
+    (["--i-gain", "-1"], "i_gain"),
+    (["--force-model", "none"], "force_model"),
+    (["--sample", "nosuch"], "sample"),
+    (["--pixels-per-line", "600"], "pixels_per_line"),
+    (["--temperature", "-1"], "temperature"),
+    (["--engage-time", "-0.1"], "engage_time"),
+])
+def test_bad_flags_exit_2_with_one_line_naming_the_field(flags, field, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert study.main(["scan", *flags, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    flag = "--" + field.replace("_", "-")
+    assert err.startswith(f"afm_study scan: error: {flag}: ") and field in err
+    assert "allowed" in err
+    assert not out.exists()
+
+
+def test_pixels_per_line_limit_follows_the_lockin_output_rate():
+    """A pixel lasts 1 / (2 line_rate pixels); it needs one lock-in output, which comes every
+    1/output_rate, up to one input sample (1/900 kHz) late: 1 Hz, 1 kHz -> 499 pixels."""
+    interval = 1.0 / 900e3
+    assert scan.max_pixels(1.0, 1000.0, interval) == 499
+    assert scan.max_pixels(4.0, 1000.0, interval) == 124
+    assert scan.max_pixels(100.0, 125e3, interval) == 548
+
+
+def test_edge_keep_with_equal_distances_is_edge_mask():
+    """The tool's x/y edge exclusion with one distance for both axes is image_analysis.edge_mask."""
+    from afm_ros.core.image_analysis import edge_mask, sample_under_pixels
+    from afm_ros.core.samples import resolve_sample
+    from afm_ros.core.scanner import ScanPlan
+
+    plan = ScanPlan.from_values(dict(scan_size_x=5e-6, scan_size_y=4e-6, pixels_per_line=64, lines=40))
+    _, mat = sample_under_pixels(resolve_sample("ps_ldpe_blend"), plan)
+    for d in (0.0, 0.05e-6, 0.2e-6, 0.5e-6):
+        assert np.array_equal(scan.edge_keep(mat, plan, d, d), edge_mask(mat, plan, d))
+    wide_x = scan.edge_keep(mat, plan, 0.5e-6, 0.0)
+    assert wide_x.sum() > edge_mask(mat, plan, 0.5e-6).sum()
