@@ -95,6 +95,7 @@ class ScannerNode(Node):
         self._lockin_end = (0, -math.inf)  # (input end index, end time) of the last lock-in batch handled
         self._trace_end = (0, -math.inf)
         self.frames_written: list[Path] = []
+        self.line_walls: list[float] = []  # wall time [s, monotonic] at which each line of the scan was closed
         self.frames_done = 0
         self.lines_done = 0
         self.last_error = ""
@@ -176,7 +177,7 @@ class ScannerNode(Node):
             self.state = "scanning"
             self.frames_done = 0
             self.lines_done = 0
-            self._frame_started = _dt.datetime.now()
+            self.line_walls = []
             buffered, self._buffer = self._buffer, []
         self._publish_geometry(applied)
         for kind, data in buffered:
@@ -240,6 +241,7 @@ class ScannerNode(Node):
         if handled > 0:
             self._ack.send(handled)
         for frame, line in finished:
+            self.line_walls.append(time.monotonic())
             self._publish_line(frame, line)
             if line == frame.plan.lines - 1:
                 self._frame_finished(frame)
@@ -289,6 +291,13 @@ class ScannerNode(Node):
         except (OSError, ValueError) as exc:
             self.last_error = f"cannot write frame {frame.index} to {stem}: {exc}"
             self.get_logger().error(self.last_error)
+
+    @property
+    def sustained_real_time_factor(self) -> float:
+        """Simulated over wall time between the first and the last line closed in this scan (nan if < 2)."""
+        if len(self.line_walls) < 2 or self.plan is None:
+            return math.nan
+        return (len(self.line_walls) - 1) / self.plan.line_rate / (self.line_walls[-1] - self.line_walls[0])
 
     def wait_for_writers(self, timeout: float = 60.0) -> None:
         """Wait until every frame file being written is finished (for scripted jobs and tests)."""

@@ -354,7 +354,7 @@ class Summary:
         d = asdict(self)
         for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
             d.pop(k)
-        for k in ("files", "scan_wall_s", "scan_real_time_factor"):
+        for k in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor"):
             d.get("image", {}).pop(k, None)
         return d
 
@@ -708,7 +708,8 @@ class Instrument:
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
                  "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
-                 "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan}
+                 "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan,
+                 "line_real_time_factor": scanner.sustained_real_time_factor}
         if sample is not None:
             setup = cantilever._setup
             image["report"] = frame_report(frame, sample, summary.setpoint_m / summary.free_amplitude_m,

@@ -6,7 +6,9 @@ nothing dropped. A frame is 128 simulated seconds; the load per simulated second
 lock-in outputs, pixels and lines per second) does not depend on the number of lines, so the
 benchmark scans ``--lines`` lines (default 16) of 128-pixel lines at 1 Hz and reports the
 real-time factor over the scan (from the scan request to the frame's last line) and the samples
-lost. Runs with and without the recorder alternate (``--repeat`` times) in one process each, so
+lost: ``scan_real_time_factor`` over the whole scan phase (request to last line, including the
+job's pause, start and polling), ``sustained_real_time_factor`` between the first and the last
+line closed (what the loop sustains). Runs with and without the recorder alternate (``--repeat`` times) in one process each, so
 they see the same machine state. ``python -m afm_ros.tools.bench_image``.
 """
 from __future__ import annotations
@@ -36,6 +38,7 @@ def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float)
         summary = inst.run_image_job(0.05, 0.03, None, predict=False)
         rec = summary.recording or {}
         return {"record": record, "paced_rtf": rtf, "scan_real_time_factor": summary.image["scan_real_time_factor"],
+                "sustained_real_time_factor": summary.image["line_real_time_factor"],
                 "scan_wall_s": summary.image["scan_wall_s"], "simulated_scan_s": summary.image["frame_time_s"],
                 "lost_samples": summary.lost_samples, "recording_lost_samples": rec.get("lost_samples"),
                 "recording_complete": rec.get("complete")}
