@@ -154,6 +154,18 @@ def test_published_images_and_gwy_file_hold_the_frame(scanned):
         assert field.xreal == pytest.approx(plan.size_x) and field.yreal == pytest.approx(plan.size_y)
         assert field.xoff == pytest.approx(plan.x_left) and field.yoff == pytest.approx(plan.y_low)
         np.testing.assert_array_equal(field.data, frame.images[d][c].astype(np.float64))
+    # the settings in force are in the file: scan, cantilever (with the sample), feedback, lock-in
+    from afm_ros.formats.gwy import read_gwy
+    meta = read_gwy(path).metadata
+    def value(prefix):
+        keys = [k for k in meta if k.split(" [")[0] == prefix]
+        assert keys, f"{prefix} not in the .gwy metadata: {sorted(meta)[:40]}"
+        return meta[keys[0]]
+    assert float(value("scan.line_rate")) == SCAN["line_rate"]
+    assert float(value("z_controller.setpoint")) == 48e-9 and float(value("z_controller.i_gain")) == 100.0
+    assert float(value("lockin.time_constant")) == 2e-05
+    assert value("cantilever.sample") == "ps_ldpe_blend" and value("cantilever.force_model") == "viscoelastic_dmt"
+    assert "blend" in value("cantilever.description.generator")
 
 
 def test_services_and_progress(scanned):

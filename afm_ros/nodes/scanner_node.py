@@ -31,7 +31,12 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
+from rclpy.parameter import parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
+
+from afm_ros.core.controller import Z_CONTROLLER_SPECS
+from afm_ros.core.lockin import LOCKIN_SPECS
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
 from afm_ros.core.scanner import SCAN_SPECS, SCANNER_NODE_SPECS, ScanPlan
@@ -101,6 +106,9 @@ class ScannerNode(Node):
         self.last_error = ""
         self._writers: list[threading.Thread] = []
         self._applied: dict | None = None
+        # the feedback and lock-in settings in force when a scan starts, for the frame's metadata
+        self._settings: dict[str, dict] = {}
+        self._settings_clients = {role: AsyncParameterClient(self, role) for role in ("z_controller", "lockin")}
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
         self.get_logger().info("ready: %g x %g m, %d x %d pixels, %g lines/s; services scanner/start, "
@@ -180,9 +188,29 @@ class ScannerNode(Node):
             self.line_walls = []
             buffered, self._buffer = self._buffer, []
         self._publish_geometry(applied)
+        self._fetch_settings()
         for kind, data in buffered:
             (self._add_outputs if kind == "outputs" else self._add_trace)(data)
         self._finish_lines()
+
+    def _fetch_settings(self) -> None:
+        """Ask the z controller and the lock-in for their parameters (answered asynchronously)."""
+        self._settings = {}
+        for role, specs in (("z_controller", Z_CONTROLLER_SPECS), ("lockin", LOCKIN_SPECS)):
+            client = self._settings_clients[role]
+            if not client.services_are_ready():
+                self._settings[role] = {"unavailable": f"no {role} parameter service"}
+                continue
+            names = list(specs)
+            future = client.get_parameters(names)
+
+            def done(f, role=role, names=names):
+                try:
+                    values = [parameter_value_to_python(v) for v in f.result().values]
+                    self._settings[role] = dict(zip(names, values))
+                except Exception as exc:  # noqa: BLE001 - metadata only: say what happened
+                    self._settings[role] = {"unavailable": str(exc)}
+            future.add_done_callback(done)
 
     def _publish_geometry(self, applied: dict) -> None:
         p = self.plan
@@ -274,7 +302,8 @@ class ScannerNode(Node):
             folder = Path(values["output_directory"] or ".")
             stem = folder / f"{values['file_prefix']}_{stamp}_{frame.index:03d}"
             metadata = {**{f"scan.{k}": v for k, v in frame.plan.as_dict().items()},
-                        **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")}}
+                        **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")},
+                        **{f"{role}.{k}": v for role, values in self._settings.items() for k, v in values.items()}}
             writer = threading.Thread(target=self._write, args=(frame, stem, metadata), daemon=True,
                                       name="frame-writer")
             writer.start()
