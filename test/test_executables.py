@@ -76,8 +76,16 @@ def test_installed_cantilever_node_publishes_and_stops_on_sigint(install, monkey
     chunks = []
     try:
         node = Node("exe_listener", context=ctx, namespace="/exe_test")
-        node.create_subscription(Float64MultiArray, "cantilever/deflection",
-                                 lambda m: chunks.append(unpack(m.data)), CHUNK_QOS)
+        # an acknowledging consumer, so the cantilever waits for it instead of letting a slow test
+        # process (e.g. a busy machine) miss chunks of the contiguity check below
+        from afm_ros.nodes.topics import Acknowledger
+        ack = Acknowledger(node)
+
+        def take(m):
+            header, samples = unpack(m.data)
+            chunks.append((header, samples))
+            ack.send(header.first_sample_index + samples.shape[0])
+        node.create_subscription(Float64MultiArray, "cantilever/deflection", take, CHUNK_QOS)
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         deadline = time.monotonic() + 30.0
