@@ -9,7 +9,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # Python module -> rosdep key (rosdistro rosdep/python.yaml; python3-mcap-pip: see package.xml)
 PYTHON_KEYS = {"numpy": "python3-numpy", "numba": "python3-numba", "scipy": "python3-scipy",
                "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "mcap": "python3-mcap-pip",
-               "yaml": "python3-yaml", "PIL": "python3-pil", "gwyfile": "python3-gwyfile-pip"}
+               "yaml": "python3-yaml", "PIL": "python3-pil", "gwyfile": "python3-gwyfile-pip",
+               "foxglove": "python3-foxglove-sdk-pip"}
 
 
 def imported_top_level_modules():

@@ -68,7 +68,8 @@ class BlowUpError(RuntimeError):
 
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
                 record: bool = True, cantilever_overrides: dict | None = None, scanner: bool = False,
-                recorder_overrides: dict | None = None, scanner_overrides: dict | None = None) -> dict[str, Node]:
+                recorder_overrides: dict | None = None, scanner_overrides: dict | None = None,
+                live_view: bool = False, live_view_overrides: dict | None = None) -> dict[str, Node]:
     """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers)."""
     from afm_ros.nodes.lockin_node import LockInNode
     kw = {"context": context}
@@ -84,6 +85,10 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
         from afm_ros.nodes.scanner_node import ScannerNode
         nodes["scanner"] = ScannerNode(
             parameter_overrides=[Parameter(k, value=v) for k, v in (scanner_overrides or {}).items()], **kw)
+    if live_view:
+        from afm_ros.nodes.live_view_node import LiveViewNode
+        nodes["live_view"] = LiveViewNode(
+            parameter_overrides=[Parameter(k, value=v) for k, v in (live_view_overrides or {}).items()], **kw)
     if record:
         from afm_ros.nodes.recorder_node import RecorderNode
         nodes["recorder"] = RecorderNode(
@@ -408,7 +413,7 @@ class Instrument:
     def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True,
                  attach: bool = False, keep_history: bool = False, scanner: bool = False,
                  cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None,
-                 scanner_overrides: dict | None = None):
+                 scanner_overrides: dict | None = None, live_view: bool = False):
         self.context = context
         self.attached = attach
         self.namespace = (namespace or "").rstrip("/")
@@ -419,7 +424,8 @@ class Instrument:
         self.nodes = {} if attach else build_nodes(
             context, namespace, record=record,
             cantilever_overrides={**(cantilever_overrides or {}), "run_until": 0.0, "feedback_sync": "lockstep"},
-            scanner=scanner, recorder_overrides=recorder_overrides, scanner_overrides=scanner_overrides)
+            scanner=scanner, recorder_overrides=recorder_overrides, scanner_overrides=scanner_overrides,
+            live_view=live_view)
         self.monitor = Monitor(keep_history=keep_history, **kw)
         self.namespace = self.monitor.get_namespace().rstrip("/")  # includes a -r __ns:= remapping
         self.executor = make_executor(executor, context)
@@ -780,6 +786,9 @@ def parse_args(argv):
     parser.add_argument("--record-raw", action="store_true",
                         help="--image: also record cantilever/deflection and cantilever/tip_sample_force "
                              "(~7 MB per simulated second each) and the per-output scalar topics")
+    parser.add_argument("--live-view", action="store_true",
+                        help="also serve the instrument to Foxglove over WebSocket (the live_view node, "
+                             "ws://127.0.0.1:8765 by default, -p live_view:port:=...; docs/live_view.md)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
@@ -820,7 +829,11 @@ def main(args=None):
         instrument = Instrument(executor=options.executor, record=not (options.no_record or options.attach),
                                 attach=options.attach, namespace=None, scanner=options.image,
                                 cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides,
-                                scanner_overrides=scanner_overrides)
+                                scanner_overrides=scanner_overrides, live_view=options.live_view)
+        if "live_view" in instrument.nodes:
+            live = instrument.nodes["live_view"]
+            print(f"live view: ws://{live.get_parameter('address').value}:{live.port} (Foxglove; no authentication)",
+                  flush=True)
         if "recorder" in instrument.nodes:
             print(f"recording to {instrument.nodes['recorder'].output_path}", flush=True)
         if options.image:

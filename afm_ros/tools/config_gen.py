@@ -17,6 +17,7 @@ NODE_SPECS = {
     "recorder": ("afm_ros.formats.mcap_io", "RECORDER_SPECS"),
     "replay": ("afm_ros.formats.mcap_io", "REPLAY_SPECS"),
     "scanner": ("afm_ros.core.scanner", "SCANNER_NODE_SPECS"),
+    "live_view": ("afm_ros.core.live_view", "LIVE_VIEW_SPECS"),
 }
 
 

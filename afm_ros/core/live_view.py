@@ -1,0 +1,128 @@
+"""Live view over the Foxglove WebSocket protocol: parameters and pure helpers (no ROS import).
+
+The ``live_view`` node (:mod:`afm_ros.nodes.live_view_node`) serves the instrument's topics as
+Foxglove channels. What a screen cannot show is decimated here:
+
+- ``cantilever/deflection`` and ``cantilever/tip_sample_force`` (900 kS/s in 500 chunks/s): only
+  the chunks whose chunk number ``first_sample_index // samples_per_chunk`` is a multiple of
+  ``deflection_decimation`` are forwarded, unchanged (each a contiguous 2 ms trace of 1800 samples,
+  the preamble included). The default 25 gives 20 chunks/s, the refresh rate of a plot. The rule
+  depends only on the sample index, so which chunks a viewer sees does not depend on timing.
+- the images ``scanner/image/<channel>/<direction>`` (sensor_msgs/Image 32FC1, SI units) go out as
+  ``foxglove.RawImage`` mono8, scaled from the image's own finite minimum (0) to its maximum (255);
+  pixels not yet scanned (NaN) are 0. Foxglove shows them without a value range to set.
+
+Everything else is forwarded as received: the ROS 2 message bytes (CDR) with the ``ros2msg``
+definition the recorder writes, which Foxglove decodes natively.
+"""
+from __future__ import annotations
+
+import base64
+import struct
+
+import numpy as np
+
+from afm_ros.core.physics.parameters import ParamSpec
+
+LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
+    ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
+              "authentication: 0.0.0.0 lets anyone on the network read the instrument and change its parameters",
+              kind=str, live=False),
+    ParamSpec("port", 8765, "1", "TCP port of the Foxglove WebSocket server (0 = any free port, logged at start)",
+              0, 65535, kind=int, live=False),
+    ParamSpec("deflection_decimation", 25, "chunks", "forward one deflection (and force) chunk in N: the chunks whose "
+              "number (first sample index / samples per chunk) is a multiple of N; 25 = 20 chunks/s at the "
+              "defaults", 1, 100000, kind=int),
+    ParamSpec("message_backlog", 256, "messages", "messages queued per viewer before the oldest view frame is "
+              "dropped (a slow or stalled viewer loses view frames, the instrument never waits)", 16, 100000,
+              kind=int, live=False),
+    ParamSpec("discovery_period", 1.0, "s", "wall-clock period of looking for new topics and nodes", 0.05, 60.0,
+              live=False),
+    ParamSpec("parameter_timeout", 3.0, "s", "wall-clock time a parameter write or service call from a viewer may "
+              "take before it is reported as failed", 0.1, 60.0),
+)}
+
+DEFLECTION_TOPICS = ("cantilever/deflection", "cantilever/tip_sample_force")  # relative to the namespace
+PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "scanner", "recorder")
+SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
+IMAGE_PREFIX = "scanner/image/"
+PARAMETER_SEPARATOR = "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
+
+# foxglove.RawImage as JSON (Foxglove decodes its well-known schemas in JSON encoding too)
+RAW_IMAGE_SCHEMA = {
+    "title": "foxglove.RawImage", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+        "frame_id": {"type": "string"}, "width": {"type": "integer"}, "height": {"type": "integer"},
+        "encoding": {"type": "string"}, "step": {"type": "integer"},
+        "data": {"type": "string", "contentEncoding": "base64"}}}
+
+
+def parameter_name(node_fqn: str, name: str) -> str:
+    """Foxglove name of parameter ``name`` of node ``node_fqn`` (``/cantilever.z_base``)."""
+    return f"{node_fqn}{PARAMETER_SEPARATOR}{name}"
+
+
+def split_parameter_name(full: str) -> tuple[str, str]:
+    """(node fqn, parameter name) of a Foxglove parameter name; ValueError if it has no node part."""
+    node, sep, name = full.partition(PARAMETER_SEPARATOR)
+    if not sep or not node.startswith("/") or not name:
+        raise ValueError(f"parameter {full!r} is not of the form /<node>.<name>")
+    return node, name
+
+
+def chunk_first_index(cdr: bytes) -> tuple[int, int]:
+    """(first_sample_index, samples in the chunk) of a std_msgs/Float64MultiArray chunk in CDR
+    (little endian, as rmw writes it), read without deserialising the samples.
+
+    ValueError if the bytes are not a chunk (too short, no preamble)."""
+    try:
+        pos = 4  # encapsulation header; CDR alignment counts from here
+        (ndim,) = struct.unpack_from("<I", cdr, pos)
+        pos += 4
+        for _ in range(ndim):
+            (length,) = struct.unpack_from("<I", cdr, pos)
+            pos += 4 + length
+            pos += (-(pos - 4)) % 4
+            pos += 8  # size, stride
+        pos += 4  # data_offset
+        (n,) = struct.unpack_from("<I", cdr, pos)
+        pos += 4
+        pos += (-(pos - 4)) % 8
+        (first,) = struct.unpack_from("<d", cdr, pos)
+    except struct.error as exc:
+        raise ValueError(f"not a deflection chunk: {exc}") from None
+    samples = n - 6
+    if samples <= 0 or not np.isfinite(first):
+        raise ValueError("not a deflection chunk: no samples after the preamble")
+    return int(first), samples
+
+
+def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:
+    """True for the chunks a viewer gets: chunk number ``first_index // samples`` a multiple of ``decimation``."""
+    return (first_index // samples) % decimation == 0
+
+
+def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """``image`` (float, NaN = no data) scaled to uint8 from its finite min (0) to max (255); NaN -> 0.
+
+    Returns (pixels, min, max); a constant image is all 128, an image without data all 0."""
+    finite = np.isfinite(image)
+    if not finite.any():
+        return np.zeros(image.shape, np.uint8), float("nan"), float("nan")
+    low, high = float(image[finite].min()), float(image[finite].max())
+    out = np.zeros(image.shape, np.uint8)
+    if high > low:
+        out[finite] = np.clip(np.rint((image[finite] - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
+    else:
+        out[finite] = 128
+    return out, low, high
+
+
+def raw_image_json(image: np.ndarray, stamp_sec: int, stamp_nsec: int, frame_id: str) -> dict:
+    """foxglove.RawImage (JSON encoding, mono8) of a float image, row 0 first."""
+    pixels, _, _ = mono8(image)
+    height, width = pixels.shape
+    return {"timestamp": {"sec": int(stamp_sec), "nsec": int(stamp_nsec)}, "frame_id": frame_id,
+            "width": int(width), "height": int(height), "encoding": "mono8", "step": int(width),
+            "data": base64.b64encode(np.ascontiguousarray(pixels).tobytes()).decode("ascii")}

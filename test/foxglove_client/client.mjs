@@ -1,0 +1,163 @@
+// A scripted Foxglove WebSocket client built only from Foxglove's own npm libraries
+// (@foxglove/ws-protocol, @foxglove/rosmsg, @foxglove/rosmsg2-serialization) and ws.
+// Usage: node client.mjs '<plan JSON>'; prints one JSON object per line on stdout.
+// plan: {url, topics: [full topic names], count, timeoutMs, getParameters: [names],
+//        setParameters: [[{name, value, type?}], ...], services: [names], stallMs, listOnly}
+import { createRequire } from "node:module";
+// the libraries are CommonJS packages
+const require = createRequire(import.meta.url);
+const { FoxgloveClient } = require("@foxglove/ws-protocol");
+const { parse } = require("@foxglove/rosmsg");
+const { MessageReader } = require("@foxglove/rosmsg2-serialization");
+const WebSocket = require("ws");
+
+const plan = JSON.parse(process.argv[2]);
+const timeoutMs = plan.timeoutMs ?? 20000;
+const out = (obj) =>
+  process.stdout.write(
+    JSON.stringify(obj, (_k, v) =>
+      typeof v === "bigint" ? Number(v) : ArrayBuffer.isView(v) && !(v instanceof DataView) ? Array.from(v) : v,
+    ) + "\n",
+  );
+const fail = (text) => {
+  out({ event: "error", text });
+  process.exit(2);
+};
+setTimeout(() => fail(`timed out after ${timeoutMs} ms`), timeoutMs).unref?.();
+
+// the Foxglove app offers both names of the protocol; foxglove-sdk servers accept foxglove.sdk.v1
+const ws = new WebSocket(plan.url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
+const client = new FoxgloveClient({ ws });
+const channels = new Map(); // topic -> channel
+const services = new Map(); // name -> service
+const waiters = [];
+const statuses = [];
+const notify = () => {
+  for (const w of [...waiters]) {
+    if (w.test()) {
+      waiters.splice(waiters.indexOf(w), 1);
+      w.resolve();
+    }
+  }
+};
+const until = (test) => (test() ? Promise.resolve() : new Promise((resolve) => waiters.push({ test, resolve })));
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+client.on("error", (e) => fail(String(e?.message ?? e)));
+client.on("advertise", (list) => {
+  for (const c of list) channels.set(c.topic, c);
+  notify();
+});
+client.on("advertiseServices", (list) => {
+  for (const s of list) services.set(s.name, s);
+  notify();
+});
+client.on("status", (s) => {
+  statuses.push(s);
+  out({ event: "status", level: s.level, message: s.message });
+  notify();
+});
+const parameterReplies = new Map();
+client.on("parameterValues", (m) => {
+  parameterReplies.set(m.id ?? "", m.parameters);
+  notify();
+});
+const serviceReplies = new Map();
+client.on("serviceCallResponse", (m) => {
+  serviceReplies.set(m.callId, { ok: true, m });
+  notify();
+});
+client.on("serviceCallFailure", (m) => {
+  serviceReplies.set(m.callId, { ok: false, message: m.message });
+  notify();
+});
+
+const readers = new Map();
+const received = new Map(); // topic -> count
+const bySub = new Map(); // subscription id -> channel
+const decoder = new TextDecoder();
+function decode(channel, data) {
+  if (channel.encoding === "json") return JSON.parse(decoder.decode(data));
+  if (channel.encoding === "cdr" && channel.schemaEncoding === "ros2msg") {
+    let reader = readers.get(channel.id);
+    if (!reader) {
+      reader = new MessageReader(parse(channel.schema, { ros2: true }));
+      readers.set(channel.id, reader);
+    }
+    return reader.readMessage(data);
+  }
+  throw new Error(`cannot decode ${channel.topic}: ${channel.encoding}/${channel.schemaEncoding}`);
+}
+client.on("message", ({ subscriptionId, timestamp, data }) => {
+  const channel = bySub.get(subscriptionId);
+  if (!channel) return;
+  const n = (received.get(channel.topic) ?? 0) + 1;
+  received.set(channel.topic, n);
+  if (plan.stallMs) return;
+  if (n <= (plan.count ?? 1)) {
+    out({ event: "message", topic: channel.topic, schemaName: channel.schemaName, logTime: timestamp,
+          value: decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength)) });
+  }
+  notify();
+});
+
+await until(() => ws.readyState === WebSocket.OPEN);
+client.on("open", notify);
+const topics = plan.topics ?? [];
+await until(() => topics.every((t) => channels.has(t)) && (plan.services ?? []).every((s) => services.has(s)));
+out({ event: "channels", channels: [...channels.values()].map((c) => ({ topic: c.topic, encoding: c.encoding,
+      schemaName: c.schemaName, schemaEncoding: c.schemaEncoding })),
+      services: [...services.values()].map((s) => ({ name: s.name, type: s.type })) });
+
+if (plan.listOnly) {
+  out({ event: "done" });
+  process.exit(0);
+}
+for (const t of topics) bySub.set(client.subscribe(channels.get(t).id), channels.get(t));
+if (plan.stallMs) {
+  // a viewer that stops reading: the TCP socket is no longer read, the server's queue fills
+  await sleep(500);
+  ws._socket.pause();
+  out({ event: "stalled" });
+  await sleep(plan.stallMs);
+  out({ event: "done" });
+  process.exit(0);
+}
+await until(() => topics.every((t) => (received.get(t) ?? 0) >= (plan.count ?? 1)));
+
+if (plan.getParameters) {
+  client.getParameters(plan.getParameters, "get");
+  await until(() => parameterReplies.has("get"));
+  out({ event: "parameters", id: "get", parameters: parameterReplies.get("get") });
+}
+let k = 0;
+for (const params of plan.setParameters ?? []) {
+  const id = `set${k++}`;
+  const before = statuses.length;
+  client.setParameters(params, id);
+  await until(() => parameterReplies.has(id));
+  await sleep(500); // a refusal's status follows the reply
+  out({ event: "parameters", id, parameters: parameterReplies.get(id), statuses: statuses.slice(before) });
+}
+let callId = 1;
+for (const name of plan.services ?? []) {
+  const service = services.get(name);
+  const id = callId++;
+  // std_srvs/Trigger_Request is empty: CDR header + the one byte rmw writes for an empty struct
+  client.sendServiceCallRequest({ serviceId: service.id, callId: id, encoding: "cdr",
+                                  data: new Uint8Array([0, 1, 0, 0, 0]) });
+  await until(() => serviceReplies.has(id));
+  const reply = serviceReplies.get(id);
+  if (reply.ok) {
+    const schema = service.response?.schema ?? service.responseSchema;
+    const reader = new MessageReader(parse(schema, { ros2: true }));
+    const d = reply.m.data;
+    out({ event: "service", name, ok: true, encoding: reply.m.encoding,
+          value: reader.readMessage(new Uint8Array(d.buffer, d.byteOffset, d.byteLength)) });
+  } else {
+    out({ event: "service", name, ok: false, message: reply.message });
+  }
+}
+out({ event: "done", received: Object.fromEntries(received) });
+client.close();
+process.exit(0);

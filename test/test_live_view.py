@@ -1,0 +1,368 @@
+"""The live view (Foxglove WebSocket protocol, foxglove-sdk) seen by a client this project did not write.
+
+The client is ``test/foxglove_client/client.mjs`` on Foxglove's own npm libraries
+(``@foxglove/ws-protocol``, ``@foxglove/rosmsg``, ``@foxglove/rosmsg2-serialization``), run under
+node; ``npm install`` runs once per package.json into ``~/.cache/afm_ros/`` (or $XDG_CACHE_HOME).
+Without node/npm or the npm registry those tests are skipped with the reason.
+
+The instrument (cantilever, lock-in, z controller, scanner and the live view, as ``afm_instrument
+--live-view`` builds them) runs in a private context in this process; the client talks WebSocket to
+127.0.0.1 on a free port.
+"""
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from afm_ros.core.live_view import (LIVE_VIEW_SPECS, chunk_first_index, forward_chunk, mono8, parameter_name,
+                                    split_parameter_name)
+from conftest import EXACT_PHYSICS
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIENT_DIR = ROOT / "test" / "foxglove_client"
+LAYOUT = ROOT / "config" / "foxglove" / "afm_live_view.json"
+DECIMATION = 5
+SAMPLES = 1800  # per chunk at the defaults (900 kS/s, 2 ms)
+
+
+# --- the client ------------------------------------------------------------------------------------
+def _cache_root() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "afm_ros"
+
+
+@pytest.fixture(scope="session")
+def foxglove_client():
+    """run(plan) -> list of the client's JSON events; installs the npm packages once."""
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node and npm are needed for the Foxglove client (@foxglove/ws-protocol from npm)")
+    package = (CLIENT_DIR / "package.json").read_bytes()
+    cache = _cache_root() / f"foxglove_client-{hashlib.sha256(package).hexdigest()[:12]}"
+    marker = cache / "node_modules" / ".afm_ros_complete"
+    if not marker.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        (cache / "package.json").write_bytes(package)
+        try:
+            done = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--no-package-lock"], cwd=cache,
+                                  capture_output=True, text=True, timeout=300)
+        except subprocess.TimeoutExpired:
+            pytest.skip("npm install took more than 300 s (registry unreachable?)")
+        if done.returncode != 0:
+            last = (done.stderr.strip().splitlines() or ["?"])[-1]
+            pytest.skip(f"npm install of the Foxglove client failed (registry unreachable?): {last}")
+        marker.touch()
+    script_text = (CLIENT_DIR / "client.mjs").read_bytes()
+    script = cache / f"client-{hashlib.sha256(script_text).hexdigest()[:12]}.mjs"
+    if not script.exists():
+        tmp = script.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(script_text)
+        tmp.replace(script)
+
+    def run(plan: dict, timeout: float = 30.0) -> list[dict]:
+        done = subprocess.run([node, str(script), json.dumps(plan)], capture_output=True, text=True, timeout=timeout)
+        events = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
+        errors = [e for e in events if e["event"] == "error"]
+        assert done.returncode == 0 and not errors, f"client failed: {errors} {done.stderr[-2000:]}"
+        return events
+
+    return run
+
+
+def _one(events: list[dict], kind: str, **match) -> dict:
+    found = [e for e in events if e["event"] == kind and all(e.get(k) == v for k, v in match.items())]
+    assert len(found) == 1, (kind, match, events[-5:])
+    return found[0]
+
+
+def _wait(condition, timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+# --- a running instrument ------------------------------------------------------------------------
+class _Probe:
+    """Records what the instrument published (as a plain rclpy subscriber; it does not acknowledge)."""
+
+    def __init__(self, context, namespace: str):
+        import rclpy
+        from std_msgs.msg import Float64, Float64MultiArray
+
+        from afm_ros.nodes import topics
+        self.node = rclpy.create_node("probe", context=context, namespace=namespace)
+        self.chunks: dict[int, bytes] = {}  # first sample index -> digest of the data (forwarded chunks only)
+        self.amplitudes: set[float] = set()
+        self.node.create_subscription(Float64MultiArray, topics.DEFLECTION, self._on_chunk, topics.CONSUMER_QOS)
+        self.node.create_subscription(Float64, "lockin/amplitude", lambda m: self.amplitudes.add(m.data),
+                                      topics.CONSUMER_QOS)
+
+    def _on_chunk(self, msg) -> None:
+        first = int(msg.data[0])
+        if forward_chunk(first, SAMPLES, DECIMATION):
+            self.chunks[first] = _digest(np.asarray(msg.data, dtype=np.float64))
+
+
+def _digest(values) -> bytes:
+    return hashlib.blake2b(np.asarray(values, dtype="<f8").tobytes(), digest_size=16).digest()
+
+
+@pytest.fixture(scope="module")
+def instrument():
+    import rclpy
+
+    from afm_ros.nodes.node_main import make_executor
+    from afm_ros.tools.afm_instrument import build_nodes
+
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    namespace = f"/t_live_view_{os.getpid()}"
+    nodes = build_nodes(context, namespace, record=False, scanner=True, scanner_overrides={"write_files": False},
+                        cantilever_overrides=dict(EXACT_PHYSICS), live_view=True,
+                        live_view_overrides={"port": 0, "discovery_period": 0.2, "deflection_decimation": DECIMATION})
+    probe = _Probe(context, namespace)
+    executor = make_executor("events", context)
+    for node in [*nodes.values(), probe.node]:
+        executor.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set() and context.ok():
+            executor.spin_once(timeout_sec=0.1)
+
+    thread = threading.Thread(target=spin, name="executor", daemon=True)
+    thread.start()
+    live = nodes["live_view"]
+    try:
+        # every parameter node discovered and read, the data flowing
+        assert _wait(lambda: len(live._params) == 4 and len(probe.chunks) >= 1, 20.0), (list(live._params),)
+        yield SimpleNamespace(context=context, namespace=namespace, nodes=nodes, live=live, probe=probe,
+                              url=f"ws://127.0.0.1:{live.port}")
+    finally:
+        stop.set()
+        thread.join(10.0)
+        for node in [*nodes.values(), probe.node]:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=context)
+
+
+def _layout_names() -> tuple[set[str], set[str]]:
+    """(topics, services) the shipped layout names."""
+    layout = json.loads(LAYOUT.read_text())
+    found, services = set(), set()
+    for panel, config in layout["configById"].items():
+        for path in config.get("paths", []):
+            found.add(re.match(r"(/[A-Za-z0-9_/]+)", path["value"]).group(1))
+        if "imageMode" in config:
+            found.add(config["imageMode"]["imageTopic"])
+        if "topicPath" in config:
+            found.add(re.match(r"(/[A-Za-z0-9_/]+)", config["topicPath"]).group(1))
+        if "serviceName" in config:
+            services.add(config["serviceName"])
+    return found, services
+
+
+# --- tests -----------------------------------------------------------------------------------------
+def test_decimation_and_image_helpers():
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    for label in ("samples", "x", ""):
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label=label, size=7, stride=7)]
+        msg.layout.data_offset = 6
+        msg.data = [21.0, 0.1, 1e-6, 0.0, 45e3, 4e-8] + [1.0] * 7
+        assert chunk_first_index(serialize_message(msg)) == (21, 7)
+    with pytest.raises(ValueError):
+        chunk_first_index(b"\x00\x01\x00\x00")
+    # one chunk in N, by chunk number: the same chunks whatever arrives when
+    assert [k for k in range(12) if forward_chunk(k * SAMPLES, SAMPLES, 5)] == [0, 5, 10]
+    pixels, low, high = mono8(np.array([[0.0, 1.0], [np.nan, 0.5]]))
+    assert (low, high) == (0.0, 1.0) and pixels.tolist() == [[0, 255], [0, 128]]
+    assert mono8(np.full((2, 2), np.nan))[0].tolist() == [[0, 0], [0, 0]]
+    assert parameter_name("/afm1/z_controller", "setpoint") == "/afm1/z_controller.setpoint"
+    assert split_parameter_name("/afm1/z_controller.setpoint") == ("/afm1/z_controller", "setpoint")
+    with pytest.raises(ValueError):
+        split_parameter_name("setpoint")
+    assert LIVE_VIEW_SPECS["address"].default == "127.0.0.1"
+
+
+def test_layout_is_valid_json_and_names_only_topics_of_the_running_instrument(instrument, foxglove_client):
+    topics, services = _layout_names()
+    assert {"/cantilever/deflection", "/lockin/amplitude", "/lockin/phase", "/z_controller/z_piezo",
+            "/z_controller/error", "/scanner/image/height/trace", "/scanner/image/height/retrace",
+            "/scanner/image/phase/trace", "/scanner/image/phase/retrace"} <= topics
+    assert services == {"/scanner/start", "/scanner/scan_frame", "/scanner/stop"}
+    ns = instrument.namespace
+    events = foxglove_client({"url": instrument.url, "topics": [ns + t for t in sorted(topics)],
+                              "services": [ns + s for s in sorted(services)], "listOnly": True})
+    listing = _one(events, "channels")
+    channels = {c["topic"]: c for c in listing["channels"]}
+    assert {ns + t for t in topics} <= set(channels)
+    assert {s["name"] for s in listing["services"]} == {ns + s for s in services}
+    assert all(s["type"] == "std_srvs/srv/Trigger" for s in listing["services"])
+    deflection = channels[ns + "/cantilever/deflection"]
+    assert (deflection["encoding"], deflection["schemaEncoding"], deflection["schemaName"]) == (
+        "cdr", "ros2msg", "std_msgs/msg/Float64MultiArray")
+    image = channels[ns + "/scanner/image/height/trace"]
+    assert (image["encoding"], image["schemaName"]) == ("json", "foxglove.RawImage")
+    assert not any("/_" in t for t in channels)  # hidden plumbing (cantilever/_ack) is not served
+
+
+def test_messages_decode_to_the_values_the_instrument_published(instrument, foxglove_client):
+    ns = instrument.namespace
+    deflection, amplitude = ns + "/cantilever/deflection", ns + "/lockin/amplitude"
+    events = foxglove_client({"url": instrument.url, "topics": [deflection, amplitude], "count": 4})
+    messages = [e for e in events if e["event"] == "message"]
+    chunks = [e for e in messages if e["topic"] == deflection]
+    amplitudes = [e["value"]["data"] for e in messages if e["topic"] == amplitude]
+    assert len(chunks) == 4 and len(amplitudes) == 4
+    probe = instrument.probe
+    for chunk in chunks:
+        value = chunk["value"]
+        assert value["layout"]["data_offset"] == 6 and value["layout"]["dim"][0]["label"] == "samples"
+        first = int(value["data"][0])
+        assert first % (DECIMATION * SAMPLES) == 0  # one chunk in N, by chunk number
+        assert _wait(lambda: first in probe.chunks), first
+        assert _digest(value["data"]) == probe.chunks[first]  # every sample exact
+    assert _wait(lambda: set(amplitudes) <= probe.amplitudes)
+    assert all(10e-9 < a < 100e-9 for a in amplitudes)
+
+
+def test_parameter_writes_go_through_the_nodes_validation_and_services_work(instrument, foxglove_client):
+    ns = instrument.namespace
+    z = instrument.nodes["z_controller"]
+    name = f"{ns}/z_controller.setpoint"
+    events = foxglove_client({
+        "url": instrument.url,
+        "getParameters": [name, f"{ns}/cantilever.z_base", f"{ns}/scanner.lines"],
+        "setParameters": [[{"name": name, "value": 4.5e-8, "type": "float64"}],
+                          [{"name": name, "value": -1e-9, "type": "float64"}]],
+        "services": [f"{ns}/scanner/stop", f"{ns}/scanner/scan_frame", f"{ns}/scanner/stop"]})
+    got = {p["name"]: p["value"] for p in _one(events, "parameters", id="get")["parameters"]}
+    assert got == {name: 4.8e-8, f"{ns}/cantilever.z_base": 4e-8, f"{ns}/scanner.lines": 128}
+    good = _one(events, "parameters", id="set0")
+    assert good["parameters"] == [{"name": name, "type": "float64", "value": 4.5e-8}] and not good["statuses"]
+    assert z.get_parameter("setpoint").value == 4.5e-8
+    bad = _one(events, "parameters", id="set1")
+    assert bad["parameters"][0]["value"] == 4.5e-8  # the node kept its value; the panel shows it
+    reasons = [s["message"] for s in bad["statuses"]]
+    assert reasons == [f"{name}=-1e-09 refused: setpoint=-1e-09 m is out of range; allowed range [0, 1e-06] m"]
+    assert z.get_parameter("setpoint").value == 4.5e-8
+    calls = [e for e in events if e["event"] == "service"]
+    assert [(c["ok"], c["value"]["success"]) for c in calls] == [(True, False), (True, True), (True, True)]
+    assert calls[0]["value"]["message"] == "no scan is running"
+    assert calls[1]["value"]["message"].startswith("scan 1 requested")
+    assert calls[2]["value"]["message"].startswith("scan stopped")
+
+
+def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(instrument, foxglove_client):
+    ns = instrument.namespace
+    live, lockin = instrument.live, instrument.nodes["lockin"]
+    topic = ns + "/cantilever/deflection"
+    live.set_parameters([__import__("rclpy").parameter.Parameter("deflection_decimation", value=1)])
+    try:
+        before = dict(live.forwarded)
+        lost_before = lockin.lockin.stats.missing_samples
+        events = foxglove_client({"url": instrument.url, "topics": [topic, ns + "/lockin/amplitude"],
+                                  "stallMs": 4000}, timeout=30)
+        assert [e["event"] for e in events] == ["channels", "stalled", "done"]
+        forwarded = live.forwarded[topic] - before.get(topic, 0)
+        # every chunk went to the SDK while the viewer read nothing: far more than the SDK's
+        # per-viewer queue (message_backlog), so logging never waited for the viewer
+        assert forwarded > 2 * live.get_parameter("message_backlog").value, forwarded
+        assert lockin.lockin.stats.missing_samples == lost_before == 0
+        # the viewer is gone: its ROS subscriptions are removed
+        assert _wait(lambda: topic not in live._subs, 10.0)
+    finally:
+        live.set_parameters([__import__("rclpy").parameter.Parameter("deflection_decimation", value=DECIMATION)])
+
+
+def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglove_client):
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from afm_ros.nodes import topics
+    from afm_ros.nodes.live_view_node import LiveViewNode
+    from afm_ros.nodes.node_main import make_executor
+    from afm_ros.nodes.scanner_node import image_message
+
+    image = np.array([[1e-9, 2e-9, np.nan], [3e-9, 5e-9, 4e-9]])
+    publisher_node = rclpy.create_node("fake_scanner", context=ros_context, namespace=ros_namespace)
+    publisher = publisher_node.create_publisher(type(image_message(image, 0.0)), "scanner/image/height/trace",
+                                                topics.LATCHED_QOS)
+    publisher.publish(image_message(image, 1.25))  # before any viewer: latched
+    live = LiveViewNode(context=ros_context, namespace=ros_namespace,
+                        parameter_overrides=[Parameter("port", value=0), Parameter("discovery_period", value=0.1)])
+    executor = make_executor("events", ros_context)
+    executor.add_node(publisher_node)
+    executor.add_node(live)
+    stop = threading.Event()
+    thread = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.1) for _ in iter(stop.is_set, True)],
+                              daemon=True)
+    thread.start()
+    try:
+        topic = ros_namespace + "/scanner/image/height/trace"
+        events = foxglove_client({"url": f"ws://127.0.0.1:{live.port}", "topics": [topic], "count": 1})
+        value = _one(events, "message", topic=topic)["value"]
+        assert (value["width"], value["height"], value["encoding"], value["step"]) == (3, 2, "mono8", 3)
+        assert value["timestamp"] == {"sec": 1, "nsec": 250_000_000}
+        pixels = np.frombuffer(base64.b64decode(value["data"]), np.uint8).reshape(2, 3)
+        expected = mono8(image.astype(np.float32))[0]
+        assert pixels.tolist() == expected.tolist() and expected.tolist() == [[0, 64, 0], [128, 255, 191]]
+    finally:
+        stop.set()
+        thread.join(5.0)
+        for node in (publisher_node, live):
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+
+
+def test_standalone_executable_serves_and_stops_on_sigint(foxglove_client):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF", ROS_DOMAIN_ID="73", PYTHONUNBUFFERED="1")
+    child = subprocess.Popen([sys.executable, "-m", "afm_ros.nodes.live_view_node", "--ros-args", "-p", "port:=0",
+                              "-r", "__ns:=/standalone"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)
+    try:
+        port = None
+        end = time.monotonic() + 20
+        lines = []
+        while port is None and time.monotonic() < end:
+            line = child.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"ws://127\.0\.0\.1:(\d+) \(no authentication\)", line)
+            port = int(m.group(1)) if m else None
+        assert port, lines
+        events = foxglove_client({"url": f"ws://127.0.0.1:{port}", "services": ["/standalone/scanner/stop"]})
+        assert "/rosout" in {c["topic"] for c in _one(events, "channels")["channels"]}
+        # no scanner runs: the call fails with the reason
+        call = _one(events, "service", name="/standalone/scanner/stop")
+        assert not call["ok"] and "is not available" in call["message"]
+        child.send_signal(signal.SIGINT)
+        assert child.wait(20) == 0
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
