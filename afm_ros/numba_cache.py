@@ -25,7 +25,9 @@ import tempfile
 
 PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
 # the directories that hold modules with cached kernels (their __pycache__ is numba's in-tree cache)
-KERNEL_DIRS = (PACKAGE_DIR, os.path.join(PACKAGE_DIR, "physics"))
+# every folder with numba kernels (cache=True writes beside their sources)
+KERNEL_DIRS = (PACKAGE_DIR, os.path.join(PACKAGE_DIR, "core"), os.path.join(PACKAGE_DIR, "core", "physics"),
+               os.path.join(PACKAGE_DIR, "core", "samples"))
 
 chosen: str | None = None  # the directory set by configure(), None if numba's default is used
 reason: str = "not configured"

@@ -206,3 +206,13 @@ def test_node_imports_stay_light(module, forbidden):
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.strip() == "[]", f"{module} imports {run.stdout.strip()}"
+
+
+def test_every_folder_with_numba_kernels_is_checked_for_the_in_tree_cache():
+    """numba_cache decides between the in-tree cache and a user cache by the folders that hold
+    kernels (cache=True writes beside their sources): a folder missing there would send every
+    start to the fallback cache (it happened when the package was split into subpackages)."""
+    import pathlib
+    package = pathlib.Path(numba_cache.PACKAGE_DIR)
+    with_kernels = {str(p.parent) for p in package.rglob("*.py") if "njit(" in p.read_text()}
+    assert with_kernels <= set(map(os.path.normpath, numba_cache.KERNEL_DIRS)), sorted(with_kernels)
