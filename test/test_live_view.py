@@ -37,6 +37,7 @@ CLIENT_DIR = ROOT / "test" / "foxglove_client"
 LAYOUT = ROOT / "config" / "foxglove" / "afm_live_view.json"
 DECIMATION = 5
 SAMPLES = 1800  # per chunk at the defaults (900 kS/s, 2 ms)
+PER_OUTPUT = ("lockin/amplitude", "lockin/phase", "z_controller/z_piezo", "z_controller/error")
 
 
 # --- the client ------------------------------------------------------------------------------------
@@ -108,10 +109,11 @@ class _Probe:
         from afm_ros.nodes import topics
         self.node = rclpy.create_node("probe", context=context, namespace=namespace)
         self.chunks: dict[int, bytes] = {}  # first sample index -> digest of the data (forwarded chunks only)
-        self.amplitudes: set[float] = set()
         self.node.create_subscription(Float64MultiArray, topics.DEFLECTION, self._on_chunk, topics.CONSUMER_QOS)
-        self.node.create_subscription(Float64, "lockin/amplitude", lambda m: self.amplitudes.add(m.data),
-                                      topics.CONSUMER_QOS)
+        # the per-output topics, published by the lock-in and the z controller while subscribed
+        self.values: dict[str, set] = {t: set() for t in PER_OUTPUT}
+        for t in PER_OUTPUT:
+            self.node.create_subscription(Float64, t, lambda m, t=t: self.values[t].add(m.data), topics.CONSUMER_QOS)
 
     def _on_chunk(self, msg) -> None:
         first = int(msg.data[0])
@@ -230,21 +232,28 @@ def test_layout_is_valid_json_and_names_only_topics_of_the_running_instrument(in
 
 def test_messages_decode_to_the_values_the_instrument_published(instrument, foxglove_client):
     ns = instrument.namespace
-    deflection, amplitude = ns + "/cantilever/deflection", ns + "/lockin/amplitude"
-    events = foxglove_client({"url": instrument.url, "topics": [deflection, amplitude], "count": 4})
+    deflection = ns + "/cantilever/deflection"
+    per_output = [f"{ns}/{t}" for t in PER_OUTPUT]
+    events = foxglove_client({"url": instrument.url, "topics": [deflection, *per_output], "count": 4})
     messages = [e for e in events if e["event"] == "message"]
     chunks = [e for e in messages if e["topic"] == deflection]
-    amplitudes = [e["value"]["data"] for e in messages if e["topic"] == amplitude]
-    assert len(chunks) == 4 and len(amplitudes) == 4
+    assert len(chunks) == 4
     probe = instrument.probe
     for chunk in chunks:
+        assert chunk["schemaName"] == "std_msgs/msg/Float64MultiArray"
         value = chunk["value"]
         assert value["layout"]["data_offset"] == 6 and value["layout"]["dim"][0]["label"] == "samples"
         first = int(value["data"][0])
         assert first % (DECIMATION * SAMPLES) == 0  # one chunk in N, by chunk number
         assert _wait(lambda: first in probe.chunks), first
         assert _digest(value["data"]) == probe.chunks[first]  # every sample exact
-    assert _wait(lambda: set(amplitudes) <= probe.amplitudes)
+    # served from the batch topics, equal bit for bit to what the lock-in and z controller publish
+    for relative, topic in zip(PER_OUTPUT, per_output):
+        got = [e["value"]["data"] for e in messages if e["topic"] == topic]
+        assert len(got) == 4 and all(e["schemaName"] == "std_msgs/msg/Float64" for e in messages
+                                     if e["topic"] == topic)
+        assert _wait(lambda: set(got) <= probe.values[relative]), (relative, got)
+    amplitudes = [e["value"]["data"] for e in messages if e["topic"] == per_output[0]]
     assert all(10e-9 < a < 100e-9 for a in amplitudes)
 
 
@@ -292,7 +301,7 @@ def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(ins
         assert forwarded > 2 * live.get_parameter("message_backlog").value, forwarded
         assert lockin.lockin.stats.missing_samples == lost_before == 0
         # the viewer is gone: its ROS subscriptions are removed
-        assert _wait(lambda: topic not in live._subs, 10.0)
+        assert _wait(lambda: not live.serving and not live._subs, 10.0)
     finally:
         live.set_parameters([__import__("rclpy").parameter.Parameter("deflection_decimation", value=DECIMATION)])
 

@@ -12,12 +12,20 @@ Foxglove channels. What a screen cannot show is decimated here:
   ``foxglove.RawImage`` mono8, scaled from the image's own finite minimum (0) to its maximum (255);
   pixels not yet scanned (NaN) are 0. Foxglove shows them without a value range to set.
 
+- ``lockin/amplitude``, ``lockin/phase``, ``z_controller/z_piezo`` and ``z_controller/error`` (one
+  std_msgs/Float64 per lock-in output, 1 kHz) are served in full but built from the batch topics
+  ``lockin/outputs`` and ``z_controller/trace`` (:data:`DERIVED`, 500 messages/s each, always
+  published), with the values the lock-in and the z controller publish on them, bit for bit: those
+  nodes publish their per-output copies only while subscribed (~10 us each), so a viewer costs
+  them nothing.
+
 Everything else is forwarded as received: the ROS 2 message bytes (CDR) with the ``ros2msg``
 definition the recorder writes, which Foxglove decodes natively.
 """
 from __future__ import annotations
 
 import base64
+import math
 import struct
 
 import numpy as np
@@ -46,6 +54,10 @@ DEFLECTION_TOPICS = ("cantilever/deflection", "cantilever/tip_sample_force")  # 
 PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "scanner", "recorder")
 SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
 IMAGE_PREFIX = "scanner/image/"
+# per-output topics (1 kHz) served from the batch topics the loop always publishes, so the lock-in and
+# the z controller never publish per-output copies for a viewer: topic -> (source topic, field)
+DERIVED = {"lockin/amplitude": ("lockin/outputs", "amplitude"), "lockin/phase": ("lockin/outputs", "phase"),
+           "z_controller/z_piezo": ("z_controller/trace", "z"), "z_controller/error": ("z_controller/trace", "error")}
 PARAMETER_SEPARATOR = "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
 
 # foxglove.RawImage as JSON (Foxglove decodes its well-known schemas in JSON encoding too)
@@ -71,11 +83,9 @@ def split_parameter_name(full: str) -> tuple[str, str]:
     return node, name
 
 
-def chunk_first_index(cdr: bytes) -> tuple[int, int]:
-    """(first_sample_index, samples in the chunk) of a std_msgs/Float64MultiArray chunk in CDR
-    (little endian, as rmw writes it), read without deserialising the samples.
-
-    ValueError if the bytes are not a chunk (too short, no preamble)."""
+def multiarray_data(cdr: bytes) -> np.ndarray:
+    """``data`` of a std_msgs/Float64MultiArray in CDR (little endian, as rmw writes it), as a
+    read-only view of the bytes (no copy, no deserialisation). ValueError if malformed."""
     try:
         pos = 4  # encapsulation header; CDR alignment counts from here
         (ndim,) = struct.unpack_from("<I", cdr, pos)
@@ -89,13 +99,45 @@ def chunk_first_index(cdr: bytes) -> tuple[int, int]:
         (n,) = struct.unpack_from("<I", cdr, pos)
         pos += 4
         pos += (-(pos - 4)) % 8
-        (first,) = struct.unpack_from("<d", cdr, pos)
-    except struct.error as exc:
-        raise ValueError(f"not a deflection chunk: {exc}") from None
-    samples = n - 6
-    if samples <= 0 or not np.isfinite(first):
+        return np.frombuffer(cdr, dtype="<f8", count=n, offset=pos)
+    except (struct.error, ValueError) as exc:
+        raise ValueError(f"not a Float64MultiArray: {exc}") from None
+
+
+def chunk_first_index(cdr: bytes) -> tuple[int, int]:
+    """(first_sample_index, samples in the chunk) of a deflection chunk in CDR, read without
+    deserialising the samples. ValueError if the bytes are not a chunk (too short, no preamble)."""
+    data = multiarray_data(cdr)
+    samples = data.shape[0] - 6
+    if samples <= 0 or not np.isfinite(data[0]):
         raise ValueError("not a deflection chunk: no samples after the preamble")
-    return int(first), samples
+    return int(data[0]), samples
+
+
+def float64_cdr(value: float) -> bytes:
+    """std_msgs/Float64 ``value`` in CDR (little endian), the bytes rmw publishes."""
+    return _CDR_HEADER + struct.pack("<d", value)
+
+
+_CDR_HEADER = b"\x00\x01\x00\x00"
+
+
+def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[float], float]:
+    """(simulated times [s], values, batch end time [s]) of ``field`` from a batch's data:
+    ``amplitude`` / ``phase`` from a ``lockin/outputs`` batch, ``z`` / ``error`` from a
+    ``z_controller/trace``; computed exactly as the lock-in and the z controller compute the
+    values they publish on the per-output topics (bit for bit)."""
+    from afm_ros.formats import chunk_layout
+    if field in ("amplitude", "phase"):
+        b = chunk_layout.unpack_outputs(data)
+        xs, ys = b.x.tolist(), b.y.tolist()
+        if field == "amplitude":
+            values = [math.hypot(x, y) for x, y in zip(xs, ys)]
+        else:
+            values = [math.degrees(math.atan2(-y, x)) for x, y in zip(xs, ys)]
+        return b.t.tolist(), values, b.input_end_time
+    tr = chunk_layout.unpack_z_trace(data)
+    return tr.t.tolist(), (tr.z if field == "z" else tr.error).tolist(), tr.input_end_time
 
 
 def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:

@@ -38,9 +38,12 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
-from afm_ros.core.live_view import (DEFLECTION_TOPICS, IMAGE_PREFIX, LIVE_VIEW_SPECS, PARAMETER_NODES,
-                                    RAW_IMAGE_SCHEMA, SERVICES, chunk_first_index, forward_chunk, parameter_name,
-                                    raw_image_json, split_parameter_name)
+from std_msgs.msg import Float64MultiArray
+
+from afm_ros.core.live_view import (DEFLECTION_TOPICS, DERIVED, IMAGE_PREFIX, LIVE_VIEW_SPECS, PARAMETER_NODES,
+                                    RAW_IMAGE_SCHEMA, SERVICES, chunk_first_index, derived_values, float64_cdr,
+                                    forward_chunk, multiarray_data, parameter_name, raw_image_json,
+                                    split_parameter_name)
 from afm_ros.formats.mcap_io import message_definition
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
@@ -117,7 +120,9 @@ class LiveViewNode(Node):
         self._fg_context = foxglove.Context()
         self._channels: dict[str, tuple] = {}  # full topic -> (foxglove channel, ROS type)
         self._viewers: dict[str, set] = {}  # full topic -> ids of the viewers subscribed to it (SDK threads)
-        self._subs: dict[str, object] = {}  # full topic -> ROS subscription (executor thread only)
+        self._subs: dict[tuple, object] = {}  # ("direct", topic) / ("derived", source) -> subscription
+        self._derived_targets: dict[str, list] = {}  # source topic -> [(log, field, served topic)]
+        self.serving: set[str] = set()  # channels with a ROS source right now (executor thread only)
         self._param_clients: dict[str, AsyncParameterClient] = {}
         self._param_pending: set[str] = set()
         self._params: dict[str, dict] = {}  # node fqn -> {name: value}, loaded nodes only
@@ -183,17 +188,55 @@ class LiveViewNode(Node):
             viewers = self._viewers.setdefault(topic, set())
             (viewers.add if subscribed else viewers.discard)(client_id)
 
+    def _relative(self, topic: str) -> str | None:
+        return topic[len(self._scope):] if topic.startswith(self._scope) else None
+
     def _reconcile(self) -> None:
         """Create the ROS subscriptions viewers want, remove those nobody wants (executor thread)."""
         with self._lock:
             wanted = {t for t, v in self._viewers.items() if v and t in self._channels}
             channels = dict(self._channels)
-        for topic in list(self._subs):
-            if topic not in wanted:
-                self.destroy_subscription(self._subs.pop(topic))
-        for topic in wanted - set(self._subs):
-            channel, type_name = channels[topic]
-            self._subs[topic] = self._subscribe(topic, type_name, channel)
+        needed: dict[tuple, str] = {}
+        derived: dict[str, list] = {}
+        for topic in sorted(wanted):
+            relative = self._relative(topic)
+            if relative in DERIVED:
+                source, field = DERIVED[relative]
+                derived.setdefault(self._scope + source, []).append((channels[topic][0].base.log, field, topic))
+                needed[("derived", self._scope + source)] = self._scope + source
+            else:
+                needed[("direct", topic)] = topic
+        self._derived_targets = derived
+        for key in list(self._subs):
+            if key not in needed:
+                self.destroy_subscription(self._subs.pop(key))
+        for key, topic in needed.items():
+            if key in self._subs:
+                continue
+            if key[0] == "derived":
+                self._subs[key] = self._subscribe_derived(topic)
+            else:
+                channel, type_name = channels[topic]
+                self._subs[key] = self._subscribe(topic, type_name, channel)
+        for topic in wanted:
+            self.forwarded.setdefault(topic, 0)
+        self.serving = wanted
+
+    def _subscribe_derived(self, source: str):
+        """One subscription to a batch topic serves its per-output channels (DERIVED)."""
+        def callback(data: bytes) -> None:
+            try:
+                values_data = multiarray_data(data)
+                now = time.time_ns()
+                for log, field, topic in self._derived_targets.get(source, ()):
+                    times, values, t_end = derived_values(field, values_data)
+                    for t, v in zip(times, values):
+                        # receive time minus the output's simulated age within its batch
+                        log(float64_cdr(v), now - int((t_end - t) * 1e9))
+                    self.forwarded[topic] += len(values)
+            except ValueError:
+                return
+        return self.create_subscription(Float64MultiArray, source, callback, STREAM_QOS, raw=True)
 
     def _subscribe(self, topic: str, type_name: str, channel):
         from afm_ros.formats.mcap_io import message_class
@@ -204,7 +247,7 @@ class LiveViewNode(Node):
         qos = STATE_QOS if latched else STREAM_QOS
         log = channel.base.log
         self.forwarded.setdefault(topic, 0)
-        relative = topic[len(self._scope):] if topic.startswith(self._scope) else None
+        relative = self._relative(topic)
         if relative in DEFLECTION_TOPICS:
             def callback(data: bytes) -> None:
                 try:

@@ -2,7 +2,8 @@
 // (@foxglove/ws-protocol, @foxglove/rosmsg, @foxglove/rosmsg2-serialization) and ws.
 // Usage: node client.mjs '<plan JSON>'; prints one JSON object per line on stdout.
 // plan: {url, topics: [full topic names], count, timeoutMs, getParameters: [names],
-//        setParameters: [[{name, value, type?}], ...], services: [names], stallMs, listOnly}
+//        setParameters: [[{name, value, type?}], ...], services: [names], stallMs, listOnly,
+//        quiet (decode every message, print none)}
 import { createRequire } from "node:module";
 // the libraries are CommonJS packages
 const require = createRequire(import.meta.url);
@@ -19,9 +20,11 @@ const out = (obj) =>
       typeof v === "bigint" ? Number(v) : ArrayBuffer.isView(v) && !(v instanceof DataView) ? Array.from(v) : v,
     ) + "\n",
   );
+// exit once everything written has reached the pipe (process.exit alone would cut it off)
+const finish = (code) => process.stdout.write("", () => process.exit(code));
 const fail = (text) => {
   out({ event: "error", text });
-  process.exit(2);
+  finish(2);
 };
 setTimeout(() => fail(`timed out after ${timeoutMs} ms`), timeoutMs).unref?.();
 
@@ -94,7 +97,9 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
   const n = (received.get(channel.topic) ?? 0) + 1;
   received.set(channel.topic, n);
   if (plan.stallMs) return;
-  if (n <= (plan.count ?? 1)) {
+  if (plan.quiet) {
+    decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength)); // as a viewer would
+  } else if (n <= (plan.count ?? 1)) {
     out({ event: "message", topic: channel.topic, schemaName: channel.schemaName, logTime: timestamp,
           value: decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength)) });
   }
@@ -111,7 +116,7 @@ out({ event: "channels", channels: [...channels.values()].map((c) => ({ topic: c
 
 if (plan.listOnly) {
   out({ event: "done" });
-  process.exit(0);
+  await new Promise(() => finish(0));
 }
 for (const t of topics) bySub.set(client.subscribe(channels.get(t).id), channels.get(t));
 if (plan.stallMs) {
@@ -121,7 +126,7 @@ if (plan.stallMs) {
   out({ event: "stalled" });
   await sleep(plan.stallMs);
   out({ event: "done" });
-  process.exit(0);
+  await new Promise(() => finish(0));
 }
 await until(() => topics.every((t) => (received.get(t) ?? 0) >= (plan.count ?? 1)));
 
@@ -160,4 +165,4 @@ for (const name of plan.services ?? []) {
 }
 out({ event: "done", received: Object.fromEntries(received) });
 client.close();
-process.exit(0);
+await new Promise(() => finish(0));
