@@ -375,3 +375,17 @@ def test_standalone_executable_serves_and_stops_on_sigint(foxglove_client):
         if child.poll() is None:
             child.kill()
             child.wait()
+
+
+def test_a_port_in_use_is_refused_with_the_reason(ros_context, ros_namespace):
+    from rclpy.parameter import Parameter
+
+    from afm_ros.nodes.live_view_node import LiveViewNode
+
+    first = LiveViewNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[Parameter("port", value=0)])
+    try:
+        with pytest.raises(ValueError, match=f"port={first.port}: .*Address already in use"):
+            LiveViewNode(context=ros_context, namespace=ros_namespace + "_b",
+                         parameter_overrides=[Parameter("port", value=first.port)])
+    finally:
+        first.destroy_node()

@@ -143,11 +143,15 @@ class LiveViewNode(Node):
             self._service_clients[full] = self.create_client(Trigger, relative)
             services.append(foxglove.Service(full, schema=schema,
                                              handler=lambda request, full=full: self._call_service(full)))
-        self.server = foxglove.start_server(
-            name=f"afm_ros {self.get_fully_qualified_name()}", host=self._values["address"], port=self._values["port"],
-            capabilities=[Capability.Parameters, Capability.Services], server_listener=_Listener(self),
-            supported_encodings=["cdr"], services=services, context=self._fg_context,
-            message_backlog_size=self._values["message_backlog"])
+        try:
+            self.server = foxglove.start_server(
+                name=f"afm_ros {self.get_fully_qualified_name()}", host=self._values["address"],
+                port=self._values["port"], capabilities=[Capability.Parameters, Capability.Services],
+                server_listener=_Listener(self), supported_encodings=["cdr"], services=services,
+                context=self._fg_context, message_backlog_size=self._values["message_backlog"])
+        except RuntimeError as exc:  # FoxgloveError: the address or port cannot be used
+            raise ValueError(f"cannot serve on address={self._values['address']!r} port={self._values['port']}: "
+                             f"{exc}") from None
         self.port = self.server.port
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event,
@@ -401,7 +405,8 @@ class LiveViewNode(Node):
 
     def destroy_node(self):
         try:
-            self.server.stop()
+            if hasattr(self, "server"):
+                self.server.stop()
         except Exception:  # noqa: BLE001 - already stopped
             pass
         return super().destroy_node()
