@@ -27,11 +27,12 @@ def sample_under_pixels(sample, plan: ScanPlan, oversample: int = 1):
     return sample.height[np.ix_(rows, cols)], sample.material_index[np.ix_(rows, cols)]
 
 
-def edge_mask(labels: np.ndarray, plan: ScanPlan, distance: float) -> np.ndarray:
-    """True for pixels farther than ``distance`` [m] (along x and y) from any pixel of another label."""
+def edge_mask(labels: np.ndarray, plan: ScanPlan, distance: float, distance_y: float | None = None) -> np.ndarray:
+    """True for pixels farther than ``distance`` [m] along x (``distance_y`` [m] along y, default the
+    same) from any pixel of another label."""
     keep = np.ones(labels.shape, dtype=bool)
     nx = int(math.ceil(distance / plan.pixel_size))
-    ny = int(math.ceil(distance / plan.line_pitch))
+    ny = int(math.ceil((distance if distance_y is None else distance_y) / plan.line_pitch))
     rows, cols = labels.shape
     for dx in range(-nx, nx + 1):
         lo, hi = max(0, -dx), min(cols, cols - dx)

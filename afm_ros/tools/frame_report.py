@@ -3,8 +3,9 @@
 Used by ``afm_instrument --image`` (and usable on any :class:`afm_ros.core.imaging.Frame`):
 
 - height: the step between the two most common true height levels under the pixels, from the
-  image's medians on each level (pixels within ``edge_pixels`` of a height or material edge left
-  out), for trace and retrace, against the true step and against the *apparent* step the physics
+  image's medians on each level (pixels within ``edge_pixels`` pixels along x, where the feedback
+  settles after an edge, and one line along y of a height or material edge left out), for trace
+  and retrace, against the true step and against the *apparent* step the physics
   core predicts when the two levels are different materials (a soft material is indented more,
   so the feedback holds the setpoint amplitude with the base lower: true step + z_base(top
   material) - z_base(bottom material) at the setpoint, from :func:`afm_ros.tools.contrast.contrast_study`);
@@ -42,7 +43,7 @@ def frame_report(frame, sample, setpoint_ratio: float, force_model: str, cantile
     true_height, material = sample_under_pixels(sample, plan)
     levels = np.unique(np.round(true_height, 15), return_inverse=True)[1].reshape(true_height.shape)
     labels = levels * 256 + material.astype(np.int64)
-    keep = edge_mask(labels, plan, edge_pixels * max(plan.pixel_size, plan.line_pitch))
+    keep = edge_mask(labels, plan, edge_pixels * plan.pixel_size, plan.line_pitch)
     names = list(sample.materials)
     present = [names[i] for i in np.unique(material)]
     pred = predictions(present, force_model, setpoint_ratio, cantilever, drive, steps_per_period) if predict else {}

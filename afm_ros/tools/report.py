@@ -1221,7 +1221,8 @@ def _fmt(value, unit="", scale=1.0):
     return f"{value}{(' ' + unit) if unit else ''}"
 
 
-def write_markdown(data: SessionData, figures: list[Path], out: Path) -> Path:
+def write_markdown(data: SessionData, figures: list[Path], out: Path, images: dict | None = None,
+                   geometry: dict | None = None) -> Path:
     scan = data.scan
     lines = [f"# AFM session report: `{data.path.name}`", ""]
     if scan.complete:
@@ -1297,6 +1298,24 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path) -> Path:
             lines.append(f"| {t:.6g} | `{node}` | `{name}` | `{value!r}` |")
     else:
         lines.append("None.")
+    if images:
+        g = geometry or {}
+        lines += ["", "## Images (the last recorded frame)", ""]
+        if g:
+            lines.append(f"{g.get('pixels')} x {g.get('lines')} pixels over {g.get('size_x_m', 0) * 1e6:.3g} x "
+                         f"{g.get('size_y_m', 0) * 1e6:.3g} um at {g.get('line_rate_Hz')} lines/s from "
+                         f"x = {g.get('x_offset_m', 0) * 1e6:.4g} um, y = {g.get('y_offset_m', 0) * 1e6:.4g} um "
+                         f"(row 0 = lowest y), sample `{g.get('sample') or '?'}`; scan started "
+                         f"at t = {g.get('start_time_s', 0):.6g} s. Raw values, no levelling.")
+            lines.append("")
+        lines += ["| channel | direction | unit | lines acquired | min | median | max |", "|---|---|---|---|---|---|---|"]
+        units = g.get("channels", {})
+        for (c, d), arr in sorted(images.items()):
+            done = int(np.isfinite(arr).all(axis=1).sum())
+            finite = arr[np.isfinite(arr)]
+            stats = (f"{finite.min():.4g} | {np.median(finite):.4g} | {finite.max():.4g}" if finite.size
+                     else "- | - | -")
+            lines.append(f"| {c} | {d} | {units.get(c, '')} | {done} of {arr.shape[0]} | {stats} |")
     if figures:
         lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     path = out / "report.md"
@@ -1312,6 +1331,78 @@ class Report:
     data: SessionData
 
 
+IMAGE_TOPIC = "/scanner/image/"
+
+
+def last_images(path) -> tuple[dict, dict | None]:
+    """The last recorded frame of an imaging session: {(channel, direction): float32 array} from the
+    latest ``scanner/image/<channel>/<direction>`` messages (sensor_msgs/Image 32FC1), and the last
+    ``scanner/geometry`` (JSON) or None. Empty if the session has no images."""
+    import json
+
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    last, geometry = {}, None
+    for m in read_session(path):
+        if IMAGE_TOPIC in m.topic and m.type_name == "sensor_msgs/msg/Image":
+            last[m.topic] = m.data
+        elif m.topic.endswith("/scanner/geometry") and m.type_name == "std_msgs/msg/String":
+            try:
+                geometry = json.loads(deserialize_message(m.data, String).data)
+            except ValueError:
+                geometry = None
+    images = {}
+    for topic, data in last.items():
+        msg = deserialize_message(data, Image)
+        if msg.encoding != "32FC1":
+            continue
+        dtype = ">f4" if msg.is_bigendian else "<f4"
+        arr = np.frombuffer(bytes(msg.data), dtype=dtype).reshape(msg.height, msg.step // 4)[:, :msg.width]
+        channel, direction = topic.split(IMAGE_TOPIC, 1)[1].split("/")[:2]
+        images[(channel, direction)] = arr.astype(np.float32)
+    return images, geometry
+
+
+def write_image_figure(images: dict, geometry: dict | None, out: Path) -> Path:
+    """One figure of the frame's channels (rows: trace, retrace); raw values, no levelling."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    channels = sorted({c for c, _ in images}, key=lambda c: ("height", "amplitude", "phase", "amplitude_error",
+                                                             "dissipation").index(c) if c in (
+        "height", "amplitude", "phase", "amplitude_error", "dissipation") else 9)
+    directions = [d for d in ("trace", "retrace") if any(k[1] == d for k in images)]
+    units = (geometry or {}).get("channels", {})
+    fig, axes = plt.subplots(len(directions), len(channels), figsize=(3.2 * len(channels), 3.0 * len(directions)),
+                             squeeze=False)
+    extent = None
+    if geometry:
+        x0, y0 = geometry["x_offset_m"] * 1e6, geometry["y_offset_m"] * 1e6
+        extent = (x0, x0 + geometry["size_x_m"] * 1e6, y0 + geometry["size_y_m"] * 1e6, y0)
+    for i, d in enumerate(directions):
+        for j, c in enumerate(channels):
+            ax = axes[i][j]
+            arr = images.get((c, d))
+            if arr is None:
+                ax.axis("off")
+                continue
+            shown = np.where(np.isfinite(arr), arr, np.nan)
+            im = ax.imshow(shown, cmap="afmhot", extent=extent, interpolation="nearest")
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).set_label(units.get(c, ""))
+            ax.set_title(f"{c} ({d}), raw", fontsize=9)
+            if extent:
+                ax.set_xlabel("x [um]", fontsize=8)
+                ax.set_ylabel("y [um]", fontsize=8)
+    fig.tight_layout()
+    path = out / "images.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def make_report(session, out_dir=None) -> Report:
     """Read ``session`` and write figures and ``report.md`` into ``out_dir``."""
     session = Path(session)
@@ -1319,7 +1410,10 @@ def make_report(session, out_dir=None) -> Report:
     data = load_session(session)
     out.mkdir(parents=True, exist_ok=True)
     figures = write_figures(data, out)
-    md = write_markdown(data, figures, out)
+    images, geometry = last_images(session) if any(IMAGE_TOPIC in t for t in data.scan.topics) else ({}, None)
+    if images:
+        figures.append(write_image_figure(images, geometry, out))
+    md = write_markdown(data, figures, out, images, geometry)
     numbers = tracking_numbers(data)
     for role, stream in (("deflection", data.deflection), ("force", data.force)):
         if stream is not None:
