@@ -389,3 +389,9 @@ def test_a_port_in_use_is_refused_with_the_reason(ros_context, ros_namespace):
                          parameter_overrides=[Parameter("port", value=first.port)])
     finally:
         first.destroy_node()
+
+
+def test_afm_instrument_has_the_live_view_flag():
+    from afm_ros.tools.afm_instrument import parse_args
+    assert parse_args(["--live-view", "--interactive"]).live_view
+    assert not parse_args([]).live_view

@@ -788,7 +788,8 @@ def parse_args(argv):
                              "(~7 MB per simulated second each) and the per-output scalar topics")
     parser.add_argument("--live-view", action="store_true",
                         help="also serve the instrument to Foxglove over WebSocket (the live_view node, "
-                             "ws://127.0.0.1:8765 by default, -p live_view:port:=...; docs/live_view.md)")
+                             "ws://127.0.0.1:8765 by default, -p live_view:port:=...; docs/live_view.md); "
+                             "the scanner node runs too, so scans can be started from Foxglove")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
     for name in ("duration", "free_time"):
@@ -827,7 +828,7 @@ def main(args=None):
             if not options.record_raw and "exclude:=" not in ros_args:
                 recorder_overrides["exclude"] = IMAGE_RECORD_EXCLUDE
         instrument = Instrument(executor=options.executor, record=not (options.no_record or options.attach),
-                                attach=options.attach, namespace=None, scanner=options.image,
+                                attach=options.attach, namespace=None, scanner=options.image or options.live_view,
                                 cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides,
                                 scanner_overrides=scanner_overrides, live_view=options.live_view)
         if "live_view" in instrument.nodes:
