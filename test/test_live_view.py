@@ -80,6 +80,7 @@ def foxglove_client():
         assert done.returncode == 0 and not errors, f"client failed: {errors} {done.stderr[-2000:]}"
         return events
 
+    run.command = [node, str(script)]
     return run
 
 
@@ -285,25 +286,31 @@ def test_parameter_writes_go_through_the_nodes_validation_and_services_work(inst
 
 
 def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(instrument, foxglove_client):
+    from rclpy.parameter import Parameter
+
     ns = instrument.namespace
     live, lockin = instrument.live, instrument.nodes["lockin"]
     topic = ns + "/cantilever/deflection"
-    live.set_parameters([__import__("rclpy").parameter.Parameter("deflection_decimation", value=1)])
+    backlog = live.get_parameter("message_backlog").value
+    live.set_parameters([Parameter("deflection_decimation", value=1)])  # every chunk: 500 per second
+    plan = {"url": instrument.url, "topics": [topic, ns + "/lockin/amplitude"], "stallMs": 600_000}
+    viewer = subprocess.Popen([*foxglove_client.command, json.dumps(plan)], stdout=subprocess.PIPE, text=True)
     try:
-        before = dict(live.forwarded)
+        assert json.loads(viewer.stdout.readline())["event"] == "channels"
+        assert json.loads(viewer.stdout.readline())["event"] == "stalled"  # its socket is no longer read
+        before = live.forwarded[topic]
         lost_before = lockin.lockin.stats.missing_samples
-        events = foxglove_client({"url": instrument.url, "topics": [topic, ns + "/lockin/amplitude"],
-                                  "stallMs": 4000}, timeout=30)
-        assert [e["event"] for e in events] == ["channels", "stalled", "done"]
-        forwarded = live.forwarded[topic] - before.get(topic, 0)
-        # every chunk went to the SDK while the viewer read nothing: far more than the SDK's
-        # per-viewer queue (message_backlog), so logging never waited for the viewer
-        assert forwarded > 2 * live.get_parameter("message_backlog").value, forwarded
+        # the live view keeps handing every chunk to the SDK while the viewer reads nothing: far more
+        # than the SDK's per-viewer queue, so logging never waits for the viewer (the SDK drops)
+        assert _wait(lambda: live.forwarded[topic] - before > 4 * backlog, 25.0), live.forwarded[topic] - before
+        assert viewer.poll() is None  # the viewer is still there, still not reading
         assert lockin.lockin.stats.missing_samples == lost_before == 0
-        # the viewer is gone: its ROS subscriptions are removed
-        assert _wait(lambda: not live.serving and not live._subs, 10.0)
     finally:
-        live.set_parameters([__import__("rclpy").parameter.Parameter("deflection_decimation", value=DECIMATION)])
+        viewer.kill()
+        viewer.wait()
+        live.set_parameters([Parameter("deflection_decimation", value=DECIMATION)])
+    # the viewer is gone: its ROS subscriptions are removed
+    assert _wait(lambda: not live.serving and not live._subs, 10.0)
 
 
 def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglove_client):
