@@ -2,14 +2,16 @@
 viewer that stops reading. Prints JSON.
 
 Each run is the scripted job of ``afm_instrument`` in one process (cantilever, lock-in, z
-controller, recorder and, except in the ``no live_view`` baseline, the ``live_view`` node on a free
-port), ``--hold`` simulated seconds engaged, as fast as possible (``real_time_factor`` 0) and paced
+controller, with ``--record`` the recorder, and, except in the ``no live_view`` baseline, the
+``live_view`` node on a free port), ``--hold`` simulated seconds engaged, as fast as possible (``real_time_factor`` 0) and paced
 at real time (1). The viewer is Foxglove's own ``@foxglove/ws-protocol`` client under node
 (``test/foxglove_client/client.mjs``, installed with npm into ``~/.cache/afm_ros/``) subscribed to
 the layout's time series: the deflection (one chunk in ``deflection_decimation``), lock-in amplitude
 and phase, z piezo and error; "reading" decodes every message, "stalled" stops reading its socket
 half a second after subscribing. Reported per run: the real-time factor of the hold, the samples
-lost (the job's monitor, the recorder), and the view frames the live view handed to the SDK.
+lost (the job's monitor, an acknowledging consumer of every lock-in batch; the recorder), the view
+frames the live view handed to the SDK and the process's CPU time per simulated second (the
+viewer's own CPU, in its node process, is not counted but shares the machine).
 Configurations alternate (``--repeat`` rounds), each in its own process.
 ``python -m afm_ros.tools.bench_live_view``.
 """
@@ -59,7 +61,7 @@ def _self_cpu() -> float:
     return t.user + t.system
 
 
-def one_run(config: str, rtf: float, hold: float) -> dict:
+def one_run(config: str, rtf: float, hold: float, record: bool = False) -> dict:
     import rclpy
 
     from afm_ros.nodes import node_main
@@ -70,7 +72,7 @@ def one_run(config: str, rtf: float, hold: float) -> dict:
     rclpy.init(args=["--ros-args", "-p", "port:=0"], context=ctx)
     inst = viewer = None
     try:
-        inst = Instrument(context=ctx, namespace="/bench_live", record=True, live_view=config != "no live_view")
+        inst = Instrument(context=ctx, namespace="/bench_live", record=record, live_view=config != "no live_view")
         inst.set("cantilever", real_time_factor=rtf)
         live = inst.nodes.get("live_view")
         if config in ("reading viewer", "stalled viewer"):
@@ -94,10 +96,10 @@ def one_run(config: str, rtf: float, hold: float) -> dict:
         summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
         cpu = _self_cpu() - cpu0
         sim, wall = inst.hold_sim_wall
-        return {"config": config, "paced_rtf": rtf, "real_time_factor": sim / wall, "hold_simulated_s": sim,
+        rec = summary.recording or {}
+        return {"config": config, "paced_rtf": rtf, "record": record, "real_time_factor": sim / wall, "hold_simulated_s": sim,
                 "hold_wall_s": wall, "lost_samples_monitor": summary.lost_samples,
-                "lost_samples_recorder": summary.recording.get("lost_samples"),
-                "recording_complete": summary.recording.get("complete"),
+                "lost_samples_recorder": rec.get("lost_samples"), "recording_complete": rec.get("complete"),
                 "view_frames_forwarded": (sum(live.forwarded.values()) - forwarded0) if live else 0,
                 "cpu_s_per_simulated_s": cpu / summary.simulated_time_s,
                 "viewer_alive": viewer.poll() is None if viewer else None}
@@ -115,11 +117,12 @@ def main(argv=None) -> int:
     p.add_argument("--hold", type=float, default=4.0, help="simulated seconds engaged per run (default 4)")
     p.add_argument("--repeat", type=int, default=2, help="rounds of every configuration (default 2)")
     p.add_argument("--rtf", default="0,1", help="cantilever real_time_factor values, comma-separated (default 0,1)")
+    p.add_argument("--record", action="store_true", help="the recorder in the process too (records every topic)")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: "config|rtf"
     a = p.parse_args(argv)
     if a.one:
         config, rtf = a.one.split("|")
-        print(json.dumps(one_run(config, float(rtf), a.hold)))
+        print(json.dumps(one_run(config, float(rtf), a.hold, a.record)))
         return 0
     ensure_client()
     load = os.getloadavg()[0]
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
             for config in CONFIGS:
                 with tempfile.TemporaryDirectory() as tmp:
                     out = subprocess.run([sys.executable, "-m", "afm_ros.tools.bench_live_view", "--one",
-                                          f"{config}|{rtf}", "--hold", str(a.hold)], cwd=tmp, capture_output=True,
+                                          f"{config}|{rtf}", "--hold", str(a.hold)] + (["--record"] if a.record else []),
+                                         cwd=tmp, capture_output=True,
                                          text=True, timeout=900,
                                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(
                                              filter(None, [str(Path(__file__).resolve().parents[2]),
