@@ -36,7 +36,7 @@ LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
               "authentication: 0.0.0.0 lets anyone on the network read the instrument and change its parameters",
               kind=str, live=False),
-    ParamSpec("port", 8765, "1", "TCP port of the Foxglove WebSocket server (0 = any free port, logged at start)",
+    ParamSpec("port", 8765, "", "TCP port of the Foxglove WebSocket server (0 = any free port, logged at start)",
               0, 65535, kind=int, live=False),
     ParamSpec("deflection_decimation", 25, "chunks", "forward one deflection (and force) chunk in N: the chunks whose "
               "number (first sample index / samples per chunk) is a multiple of N; 25 = 20 chunks/s at the "
