@@ -17,12 +17,11 @@ import math
 import numpy as np
 import pytest
 
-from afm_ros.core.image_analysis import level_step, material_medians, sample_under_pixels
+from afm_ros.core.image_analysis import edge_mask, level_step, material_medians, sample_under_pixels
 from afm_ros.core.samples import Sample, resolve_sample
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.wired import WiredInstrument
 from afm_ros.tools.contrast import contrast_study
-from afm_ros.tools.scan import edge_keep
 
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "viscoelastic_dmt"}
 PLAN = dict(scan_size_x=2.5e-6, scan_size_y=2.5e-6, scan_center_x=6.0e-6, scan_center_y=3.0e-6,
@@ -45,7 +44,7 @@ def _scan(sample):
     w.run_until(0.1)
     frame = w.scan_frame(PLAN)
     true_h, mat = sample_under_pixels(sample, frame.plan)
-    keep = edge_keep(mat.astype(np.int64), frame.plan, EXCLUSION, TIP_RADIUS)
+    keep = edge_mask(mat.astype(np.int64), frame.plan, EXCLUSION, TIP_RADIUS)
     return frame, true_h, mat, keep
 
 

@@ -167,8 +167,9 @@ def test_pixels_per_line_limit_follows_the_lockin_output_rate():
     assert scan.max_pixels(100.0, 125e3, interval) == 548
 
 
-def test_edge_keep_with_equal_distances_is_edge_mask():
-    """The tool's x/y edge exclusion with one distance for both axes is image_analysis.edge_mask."""
+def test_edge_mask_with_equal_distances_is_the_one_distance_mask():
+    """edge_mask with a y distance equal to the x distance is the one-distance mask; a wider x
+    distance alone (the feedback lags along the fast axis only) keeps more than both."""
     from afm_ros.core.image_analysis import edge_mask, sample_under_pixels
     from afm_ros.core.samples import resolve_sample
     from afm_ros.core.scanner import ScanPlan
@@ -176,6 +177,6 @@ def test_edge_keep_with_equal_distances_is_edge_mask():
     plan = ScanPlan.from_values(dict(scan_size_x=5e-6, scan_size_y=4e-6, pixels_per_line=64, lines=40))
     _, mat = sample_under_pixels(resolve_sample("ps_ldpe_blend"), plan)
     for d in (0.0, 0.05e-6, 0.2e-6, 0.5e-6):
-        assert np.array_equal(scan.edge_keep(mat, plan, d, d), edge_mask(mat, plan, d))
-    wide_x = scan.edge_keep(mat, plan, 0.5e-6, 0.0)
+        assert np.array_equal(edge_mask(mat, plan, d, d), edge_mask(mat, plan, d))
+    wide_x = edge_mask(mat, plan, 0.5e-6, 0.0)
     assert wide_x.sum() > edge_mask(mat, plan, 0.5e-6).sum()

@@ -19,7 +19,7 @@ def pixel_centres(plan: ScanPlan) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
-def sample_under_pixels(sample, plan: ScanPlan, oversample: int = 1):
+def sample_under_pixels(sample, plan: ScanPlan):
     """(height [m], material index) of ``sample`` (periodic) at the pixel centres, rows x cols."""
     x, y = pixel_centres(plan)
     cols = np.floor(np.mod(x, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]

@@ -57,10 +57,6 @@ class Frame:
                   for d in DIRECTIONS}
         return cls(plan, index, images)
 
-    @property
-    def complete(self) -> bool:
-        return self.lines_done == self.plan.lines
-
 
 class ImageAccumulator:
     """Bins lock-in outputs (t, amplitude, phase) and z outputs (t, z) into the pixels of a plan's

@@ -137,13 +137,6 @@ class ScanPlan:
         out[PLAN_PARK_Y] = self.line_y(0)
         return out
 
-    def position(self, t) -> tuple[np.ndarray, np.ndarray]:
-        """Tip position (x, y) [m] at simulated time(s) t [s] (vectorised, the kernel's formula)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        plan = self.packed()
-        xy = np.array([scan_position(plan, float(ti)) for ti in t])
-        return xy[:, 0], xy[:, 1]
-
     def slots(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(frame, line, direction 0 trace / 1 retrace, pixel) of each time t [s]; frame -1 outside the scan."""
         t = np.ascontiguousarray(t, dtype=np.float64).reshape(-1)

@@ -80,25 +80,36 @@ class OutputBatch:
     y: np.ndarray
 
 
-def pack_outputs(batch: OutputBatch) -> np.ndarray:
-    n = batch.t.shape[0]
-    out = np.empty(OUTPUTS_PREAMBLE_LENGTH + 3 * n)
-    out[0], out[1], out[2] = float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time
-    p = OUTPUTS_PREAMBLE_LENGTH
-    out[p:p + n], out[p + n:p + 2 * n], out[p + 2 * n:] = batch.t, batch.x, batch.y
+def _pack_blocks(preamble: tuple, blocks: tuple) -> np.ndarray:
+    """``preamble`` values followed by equally long ``blocks``, as one float64 array."""
+    n = blocks[0].shape[0]
+    out = np.empty(len(preamble) + len(blocks) * n)
+    out[:len(preamble)] = preamble
+    for i, block in enumerate(blocks):
+        out[len(preamble) + i * n:len(preamble) + (i + 1) * n] = block
     return out
+
+
+def _unpack_blocks(data, preamble_length: int, count: int, what: str) -> tuple[np.ndarray, list]:
+    """(preamble, [block, ...]) of :func:`_pack_blocks`' layout; ValueError naming ``what``."""
+    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
+    body = arr.shape[0] - preamble_length
+    if body < 0 or body % count:
+        raise ValueError(f"{what} has {arr.shape[0]} values; expected {preamble_length} + {count} n")
+    n = body // count
+    p = preamble_length
+    return arr[:p], [arr[p + i * n:p + (i + 1) * n] for i in range(count)]
+
+
+def pack_outputs(batch: OutputBatch) -> np.ndarray:
+    return _pack_blocks((float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
+                        (batch.t, batch.x, batch.y))
 
 
 def unpack_outputs(data) -> OutputBatch:
     """Inverse of :func:`pack_outputs`; ValueError for a malformed message."""
-    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
-    body = arr.shape[0] - OUTPUTS_PREAMBLE_LENGTH
-    if body < 0 or body % 3:
-        raise ValueError(f"lock-in output batch has {arr.shape[0]} values; expected "
-                         f"{OUTPUTS_PREAMBLE_LENGTH} + 3 n")
-    n = body // 3
-    p = OUTPUTS_PREAMBLE_LENGTH
-    return OutputBatch(int(arr[0]), int(arr[1]), float(arr[2]), arr[p:p + n], arr[p + n:p + 2 * n], arr[p + 2 * n:])
+    pre, (t, x, y) = _unpack_blocks(data, OUTPUTS_PREAMBLE_LENGTH, 3, "lock-in output batch")
+    return OutputBatch(int(pre[0]), int(pre[1]), float(pre[2]), t, x, y)
 
 
 # --- z command (topic ``z_controller/z_command``) -------------------------------------------------
@@ -153,23 +164,13 @@ class ZTrace:
 
 
 def pack_z_trace(trace: ZTrace) -> np.ndarray:
-    n = trace.t.shape[0]
-    out = np.empty(Z_TRACE_PREAMBLE_LENGTH + 3 * n)
-    out[0], out[1] = float(trace.input_end_index), trace.input_end_time
-    p = Z_TRACE_PREAMBLE_LENGTH
-    out[p:p + n], out[p + n:p + 2 * n], out[p + 2 * n:] = trace.t, trace.z, trace.error
-    return out
+    return _pack_blocks((float(trace.input_end_index), trace.input_end_time), (trace.t, trace.z, trace.error))
 
 
 def unpack_z_trace(data) -> ZTrace:
     """Inverse of :func:`pack_z_trace`; ValueError for a malformed message."""
-    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
-    body = arr.shape[0] - Z_TRACE_PREAMBLE_LENGTH
-    if body < 0 or body % 3:
-        raise ValueError(f"z trace has {arr.shape[0]} values; expected {Z_TRACE_PREAMBLE_LENGTH} + 3 n")
-    n = body // 3
-    p = Z_TRACE_PREAMBLE_LENGTH
-    return ZTrace(int(arr[0]), float(arr[1]), arr[p:p + n], arr[p + n:p + 2 * n], arr[p + 2 * n:])
+    pre, (t, z, error) = _unpack_blocks(data, Z_TRACE_PREAMBLE_LENGTH, 3, "z trace")
+    return ZTrace(int(pre[0]), float(pre[1]), t, z, error)
 
 
 # --- consumer acknowledgement (topic ``cantilever/ack``, std_msgs/Int64MultiArray) ----------------

@@ -259,10 +259,6 @@ class CantileverNode(Node):
             self._pending_plan = request
         self._try_step(MAX_BURST)
 
-    @property
-    def plan_pending(self) -> bool:
-        return self._pending_plan is not None
-
     def _apply_plan(self) -> None:
         with self._plan_lock:
             request, self._pending_plan = self._pending_plan, None

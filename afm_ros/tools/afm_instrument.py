@@ -726,7 +726,6 @@ class Instrument:
         summary.simulated_time_s = self.t_paused
         summary.wall_time_s = time.monotonic() - wall0
         summary.real_time_factor = summary.simulated_time_s / summary.wall_time_s
-        self.frame = frame
         return summary
 
     def _run_until_interrupted(self) -> None:

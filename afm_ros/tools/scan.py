@@ -307,28 +307,6 @@ def auto_edge_exclusions(config: ScanConfig, instrument, plan: ScanPlan, step: f
     return out
 
 
-def edge_keep(labels: np.ndarray, plan: ScanPlan, distance_x: float, distance_y: float) -> np.ndarray:
-    """True for pixels farther than distance_x along x and distance_y along y [m] from any pixel
-    of another label (the frame's border counts as another label), as image_analysis.edge_mask
-    with separate distances: the feedback lags along the fast axis only."""
-    keep = np.ones(labels.shape, dtype=bool)
-    rows, cols = labels.shape
-    for axis, n, size in ((1, int(math.ceil(distance_x / plan.pixel_size)), cols),
-                          (0, int(math.ceil(distance_y / plan.line_pitch)), rows)):
-        for shift in range(-n, n + 1):
-            if shift == 0:
-                continue
-            lo, hi = max(0, -shift), min(size, size - shift)
-            same = np.zeros(labels.shape, dtype=bool)
-            if lo < hi:
-                if axis == 1:
-                    same[:, lo:hi] = labels[:, lo:hi] == labels[:, lo + shift:hi + shift]
-                else:
-                    same[lo:hi, :] = labels[lo:hi, :] == labels[lo + shift:hi + shift, :]
-            keep &= same
-    return keep
-
-
 def _clean(value):
     """JSON-ready: numpy scalars to Python, NaN/inf to None."""
     if isinstance(value, dict):
@@ -370,7 +348,8 @@ def predictions(materials, force_model: str, ratio: float, instrument) -> dict:
 
 def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dict:
     """The summary numbers (see the module doc) as a JSON-ready dict."""
-    from afm_ros.core.image_analysis import level_step, material_medians, sample_under_pixels, trace_retrace_rms
+    from afm_ros.core.image_analysis import (edge_mask, level_step, material_medians, sample_under_pixels,
+                                             trace_retrace_rms)
 
     frame, plan, w = result.frame, result.plan, result.instrument
     sample = config.sample
@@ -390,7 +369,7 @@ def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dic
     # the first candidate that leaves pixels on each of the two main levels (and on each material)
     top = np.argsort(np.bincount(level_index.ravel()))[-2:] if levels.size >= 2 else np.array([0])
     for distance, rule in candidates:
-        keep = edge_keep(labels, plan, distance, distance_y)
+        keep = edge_mask(labels, plan, distance, distance_y)
         if all((keep & (level_index == k)).any() for k in top) and \
                 all((keep & (mat == k)).any() for k in np.unique(mat)):
             break

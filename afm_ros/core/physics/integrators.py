@@ -45,6 +45,17 @@ def samples_in_range(n0: int, nsteps: int, decimation: int) -> int:
 
 
 @njit(cache=True, inline="always")
+def _thermal_force(noise_sigma, noise_seed, index, first_of_call, spare):
+    """(thermal force [N] of step ``index``, the spare normal for the next step): number ``index``
+    of the seed's thermal stream; an even index draws a Box-Muller pair and keeps the second
+    number for the next (odd) step, which draws only when it starts a call."""
+    if index & 1 == 0 or first_of_call:
+        first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
+        return noise_sigma * (first if index & 1 == 0 else second), second
+    return noise_sigma * spare, spare
+
+
+@njit(cache=True, inline="always")
 def _rk4_step(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model, fp, z_offset, h, hh, dt, dth, sixth,
               dt_sixth):
     """One classic RK4 step with the force at every stage; ``f1`` is the force at the step's start
@@ -88,13 +99,7 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
         # leaves the deterministic sums bit-identical
         fth = 0.0
         if noise_sigma > 0.0:
-            index = noise_n0 + i
-            if index & 1 == 0 or i == 0:
-                first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
-                fth = noise_sigma * (first if index & 1 == 0 else second)
-                spare = second
-            else:
-                fth = noise_sigma * spare
+            fth, spare = _thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         f1 = tip_sample_force(model, fp, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z
@@ -216,13 +221,7 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
     for i in range(nsteps):
         fth = 0.0
         if noise_sigma > 0.0:
-            index = noise_n0 + i
-            if index & 1 == 0 or i == 0:
-                first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
-                fth = noise_sigma * (first if index & 1 == 0 else second)
-                spare = second
-            else:
-                fth = noise_sigma * spare
+            fth, spare = _thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         t = segment_start + (n0 + i) * dt
         rel = (t - start) * rate
         if scanning and rel >= 0.0:
