@@ -168,17 +168,35 @@ def instrument():
         rclpy.try_shutdown(context=context)
 
 
+def _layout_scripts() -> dict[str, dict]:
+    """The shipped layout's user scripts by output topic: {"inputs": [...], "source": TypeScript}."""
+    scripts = {}
+    for node in json.loads(LAYOUT.read_text())["userNodes"].values():
+        source = node["sourceCode"]
+        inputs = json.loads(re.search(r"export const inputs = (\[[^\]]*\]);", source).group(1))
+        output = re.search(r'export const output = "([^"]+)";', source).group(1)
+        assert output.startswith("/studio_script/"), output  # the prefix Foxglove requires of script outputs
+        scripts[output] = {"inputs": inputs, "source": source}
+    return scripts
+
+
 def _layout_names() -> tuple[set[str], set[str]]:
-    """(topics, services) the shipped layout names."""
+    """(topics, services) the shipped layout names; a user script's output stands for its inputs."""
     layout = json.loads(LAYOUT.read_text())
+    scripts = _layout_scripts()
     found, services = set(), set()
+
+    def add(path: str) -> None:
+        topic = re.match(r"(/[A-Za-z0-9_/]+)", path).group(1)
+        found.update(scripts[topic]["inputs"] if topic.startswith("/studio_script/") else [topic])
+
     for panel, config in layout["configById"].items():
         for path in config.get("paths", []):
-            found.add(re.match(r"(/[A-Za-z0-9_/]+)", path["value"]).group(1))
+            add(path["value"])
         if "imageMode" in config:
-            found.add(config["imageMode"]["imageTopic"])
+            add(config["imageMode"]["imageTopic"])
         if "topicPath" in config:
-            found.add(re.match(r"(/[A-Za-z0-9_/]+)", config["topicPath"]).group(1))
+            add(config["topicPath"])
         if "serviceName" in config:
             services.add(config["serviceName"])
     return found, services
@@ -202,6 +220,17 @@ def test_decimation_and_image_helpers():
     pixels, low, high = mono8(np.array([[0.0, 1.0], [np.nan, 0.5]]))
     assert (low, high) == (0.0, 1.0) and pixels.tolist() == [[0, 255], [0, 128]]
     assert mono8(np.full((2, 2), np.nan))[0].tolist() == [[0, 0], [0, 0]]
+    # a two-level image (islands 1 nm above the matrix) with 1 % of its pixels spiking to +-100 nm, as
+    # at island edges: the spikes fall into the 2 % tails cut off, so the two levels span the grey scale
+    # (black and white) instead of two neighbouring greys near 50 %
+    levels = np.where(np.arange(100 * 100).reshape(100, 100) % 3 == 0, 1e-9, 0.0)
+    spiked = levels.copy()
+    spiked.flat[::200] = 100e-9
+    spiked.flat[100::200] = -100e-9
+    pixels, low, high = mono8(spiked)
+    assert (low, high) == (0.0, 1e-9)
+    assert set(pixels[spiked == 0.0].tolist()) == {0} and set(pixels[spiked == 1e-9].tolist()) == {255}
+    assert set(pixels[spiked == 100e-9].tolist()) == {255} and set(pixels[spiked == -100e-9].tolist()) == {0}
     assert parameter_name("/afm1/z_controller", "setpoint") == "/afm1/z_controller.setpoint"
     assert split_parameter_name("/afm1/z_controller.setpoint") == ("/afm1/z_controller", "setpoint")
     with pytest.raises(ValueError):
@@ -229,6 +258,31 @@ def test_layout_is_valid_json_and_names_only_topics_of_the_running_instrument(in
     image = channels[ns + "/scanner/image/height/trace"]
     assert (image["encoding"], image["schemaName"]) == ("json", "foxglove.RawImage")
     assert not any("/_" in t for t in channels)  # hidden plumbing (cantilever/_ack) is not served
+
+
+def test_layout_scripts_show_the_published_metres_in_nanometres(instrument, foxglove_client):
+    """The layout plots lengths through user scripts (m -> nm: the viewers' axes label three decimals).
+    Run as Foxglove runs them (TypeScript compiled, default export called per message) on what the
+    instrument served, each gives 1e9 times its input: the deflection chunk's samples after the
+    preamble (layout.data_offset), the amplitude, z piezo and error values."""
+    scripts = _layout_scripts()
+    assert set(scripts) == {"/studio_script/cantilever/deflection_nm", "/studio_script/lockin/amplitude_nm",
+                            "/studio_script/z_controller/z_piezo_nm", "/studio_script/z_controller/error_nm"}
+    ns = instrument.namespace
+    inputs = sorted({ns + t for s in scripts.values() for t in s["inputs"]})
+    events = foxglove_client({"url": instrument.url, "topics": inputs, "count": 3,
+                              "scripts": [{"source": s["source"], "namespace": ns} for s in scripts.values()]})
+    runs = [e for e in events if e["event"] == "script"]
+    assert {(e["output"], e["input"]) for e in runs} == {(o, t) for o, s in scripts.items() for t in s["inputs"]}
+    assert len(runs) == 3 * len(scripts)
+    for run in runs:
+        if run["input"] == "/cantilever/deflection":
+            offset = run["value"]["layout"]["data_offset"]
+            samples = run["value"]["data"][offset:]
+            assert offset == 6 and len(samples) == SAMPLES
+            assert run["result"]["data"] == [v * 1e9 for v in samples]
+        else:
+            assert run["result"] == {"data": run["value"]["data"] * 1e9}
 
 
 def test_messages_decode_to_the_values_the_instrument_published(instrument, foxglove_client):

@@ -9,8 +9,10 @@ Foxglove channels. What a screen cannot show is decimated here:
   the preamble included). The default 25 gives 20 chunks/s, the refresh rate of a plot. The rule
   depends only on the sample index, so which chunks a viewer sees does not depend on timing.
 - the images ``scanner/image/<channel>/<direction>`` (sensor_msgs/Image 32FC1, SI units) go out as
-  ``foxglove.RawImage`` mono8, scaled from the image's own finite minimum (0) to its maximum (255);
-  pixels not yet scanned (NaN) are 0. Foxglove shows them without a value range to set.
+  ``foxglove.RawImage`` mono8, scaled to the image's own range with the extreme 2 % of pixels at
+  each end cut off (:data:`IMAGE_TAIL_CUT`, as Gwyddion's automatic colour range does), so that a
+  few spikes at island edges do not squeeze the rest into one grey; pixels not yet scanned (NaN)
+  are 0. Foxglove shows them without a value range to set.
 
 - ``lockin/amplitude``, ``lockin/phase``, ``z_controller/z_piezo`` and ``z_controller/error`` (one
   std_msgs/Float64 per lock-in output, 1 kHz) are served in full but built from the batch topics
@@ -140,22 +142,32 @@ def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[floa
     return tr.t.tolist(), (tr.z if field == "z" else tr.error).tolist(), tr.input_end_time
 
 
+IMAGE_TAIL_CUT = 0.02  # fraction of an image's pixels clipped at each end of its grey scale
+
+
 def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:
     """True for the chunks a viewer gets: chunk number ``first_index // samples`` a multiple of ``decimation``."""
     return (first_index // samples) % decimation == 0
 
 
 def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """``image`` (float, NaN = no data) scaled to uint8 from its finite min (0) to max (255); NaN -> 0.
+    """``image`` (float, NaN = no data) scaled to uint8 between its tail-cut limits (0 and 255); NaN -> 0.
 
-    Returns (pixels, min, max); a constant image is all 128, an image without data all 0."""
+    The limits are the finite values of rank ``k`` from either end, ``k = floor(IMAGE_TAIL_CUT * n)``
+    for ``n`` finite pixels (``k = 0``, the plain minimum and maximum, below 50 pixels); pixels
+    beyond them are clipped to 0 or 255. Returns (pixels, low, high); a constant image is all 128,
+    an image without data all 0."""
     finite = np.isfinite(image)
-    if not finite.any():
+    values = image[finite]
+    n = values.size
+    if n == 0:
         return np.zeros(image.shape, np.uint8), float("nan"), float("nan")
-    low, high = float(image[finite].min()), float(image[finite].max())
+    k = int(IMAGE_TAIL_CUT * n)
+    ordered = np.partition(values, (k, n - 1 - k))
+    low, high = float(ordered[k]), float(ordered[n - 1 - k])
     out = np.zeros(image.shape, np.uint8)
     if high > low:
-        out[finite] = np.clip(np.rint((image[finite] - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
+        out[finite] = np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
     else:
         out[finite] = 128
     return out, low, high

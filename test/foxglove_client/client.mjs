@@ -3,7 +3,9 @@
 // Usage: node client.mjs '<plan JSON>'; prints one JSON object per line on stdout.
 // plan: {url, topics: [full topic names], count, timeoutMs, getParameters: [names],
 //        setParameters: [[{name, value, type?}], ...], services: [names], stallMs, listOnly,
-//        quiet (decode every message, print none)}
+//        quiet (decode every message, print none),
+//        scripts: [{source, namespace}] (Foxglove user scripts of a layout: each is transpiled with the
+//        TypeScript compiler and run on the first `count` messages of its inputs, as a viewer would)}
 import { createRequire } from "node:module";
 // the libraries are CommonJS packages
 const require = createRequire(import.meta.url);
@@ -77,6 +79,7 @@ client.on("serviceCallFailure", (m) => {
 
 const readers = new Map();
 const received = new Map(); // topic -> count
+const kept = new Map(); // topic -> the first `count` decoded messages (for plan.scripts)
 const bySub = new Map(); // subscription id -> channel
 const decoder = new TextDecoder();
 function decode(channel, data) {
@@ -100,8 +103,12 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
   if (plan.quiet) {
     decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength)); // as a viewer would
   } else if (n <= (plan.count ?? 1)) {
-    out({ event: "message", topic: channel.topic, schemaName: channel.schemaName, logTime: timestamp,
-          value: decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength)) });
+    const value = decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength));
+    if (plan.scripts) {
+      kept.set(channel.topic, [...(kept.get(channel.topic) ?? []), { receiveTime: timestamp, value }]);
+    } else {
+      out({ event: "message", topic: channel.topic, schemaName: channel.schemaName, logTime: timestamp, value });
+    }
   }
   notify();
 });
@@ -129,6 +136,22 @@ if (plan.stallMs) {
   await new Promise(() => finish(0));
 }
 await until(() => topics.every((t) => (received.get(t) ?? 0) >= (plan.count ?? 1)));
+
+for (const { source, namespace } of plan.scripts ?? []) {
+  // what Foxglove does with a layout's user script: compile the TypeScript, call the default export
+  // with {topic, receiveTime, message} for each message on its inputs, publish the result on `output`
+  const ts = require("typescript");
+  const js = ts.transpileModule(source, {
+    compilerOptions: { module: ts.ModuleKind.ESNext, target: ts.ScriptTarget.ES2022 },
+  }).outputText;
+  const script = await import("data:text/javascript;base64," + Buffer.from(js).toString("base64"));
+  for (const input of script.inputs) {
+    for (const { receiveTime, value } of kept.get(namespace + input) ?? []) {
+      const result = script.default({ topic: input, receiveTime, message: value });
+      out({ event: "script", output: script.output, input, value, result });
+    }
+  }
+}
 
 if (plan.getParameters) {
   client.getParameters(plan.getParameters, "get");
