@@ -49,6 +49,7 @@ from afm_ros.nodes.node_main import make_executor
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
+COPIES_WAIT_S = 30.0  # longest wait for the recorder to take the last per-output copies (wall s)
 WAIT_POLL_S = 0.25  # while waiting, look at conditions the monitor cannot see (recorder, blow-up, Ctrl-C)
 IMAGE_SAMPLE = "ps_ldpe_blend"  # --image default: topography (islands) and phase contrast (PS vs LDPE)
 # --image default frame (each can be set with -p scanner:<name>:=...): 64 x 64 pixels over 5 um at 2 lines/s,
@@ -567,6 +568,13 @@ class Instrument:
                 wanted.discard(self.monitor.resolve_topic_name(topics.SCAN_PLAN))
         if rec is not None and rec.get_fully_qualified_name() == name:
             self.spin_until(lambda: wanted <= set(rec.topics), f"waiting for {name} to subscribe to {sorted(wanted)}")
+            # the per-output copies are published only while subscribed: their publishers must have
+            # matched the recorder's subscriptions before the first batch, or its copies are never sent
+            copies = [pub for node in self.nodes.values() for pub in node.publishers
+                      if pub.topic_name in wanted
+                      and pub.topic_name in {node.resolve_topic_name(n) for n in getattr(node, "published_copies", ())}]
+            self.spin_until(lambda: all(pub.get_subscription_count() > 0 for pub in copies),
+                            f"waiting for the per-output publishers to match {name}")
             return
         self.spin_until(lambda: wanted <= set(self.monitor.diagnostic_values(name, "recording").get(
             "topics", "").split(",")), f"waiting for {name} to subscribe to {sorted(wanted)} (its diagnostics)")
@@ -609,6 +617,20 @@ class Instrument:
             self.spin_until(lambda: rec.error is not None or (topic in rec.streams
                                                                and rec.streams[topic].next_index == end),
                             "waiting for the recorder to write the last chunks")
+        # the per-output copies (lockin/amplitude, z_controller/z_piezo, ...) are not ordered with the
+        # chunks: wait until the recorder has every one their publishers in this process counted (a
+        # quiet period alone misses the last one on a starved machine); the bound only guards a
+        # recorder that subscribed after more than a history's worth of them
+        expected = {}
+        for node in self.nodes.values():
+            for name, count in getattr(node, "published_copies", {}).items():
+                full = node.resolve_topic_name(name)
+                if full in rec.received:
+                    expected[full] = count
+        deadline = time.monotonic() + COPIES_WAIT_S
+        self.spin_until(lambda: rec.error is not None or time.monotonic() > deadline
+                        or all(rec.received[t] >= n for t, n in expected.items()),
+                        "waiting for the recorder to take the last per-output messages")
         rec.drain(self.executor)
 
     def recording_status(self) -> dict:
