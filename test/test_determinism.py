@@ -69,7 +69,8 @@ def run_in_process(tmp: Path, ns: str, executor: str, rtf: float) -> dict:
         summary = inst.run_job(HOLD, FREE, None)
         out = session(inst, summary)
         out["recording"] = Path(inst.nodes["recorder"].output_path)
-        out["z_published"] = inst.nodes["z_controller"].published_copies["z_controller/z_piezo"]
+        z_controller = inst.nodes["z_controller"]
+        out["z_published"] = z_controller.published_copies[z_controller.pub_z]
     finally:
         if inst is not None:
             inst.destroy()  # closes the recording

@@ -63,8 +63,8 @@ class LockInNode(Node):
         self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
         self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
         self.pub_xy = self.create_publisher(Vector3Stamped, "lockin/xy", OUTPUT_QOS)
-        # messages published per per-output topic: a recorder in this process is waited for until it has them all
-        self.published_copies = {"lockin/amplitude": 0, "lockin/phase": 0, "lockin/xy": 0}
+        # messages published per per-output publisher: a recorder in this process is waited for until it has them all
+        self.published_copies = {self.pub_amplitude: 0, self.pub_phase: 0, self.pub_xy: 0}
         self.pub_batch = self.create_publisher(Float64MultiArray, topics.LOCKIN_OUTPUTS, BATCH_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.bad_chunks = 0
@@ -144,9 +144,9 @@ class LockInNode(Node):
                     xy.vector.x = x
                     xy.vector.y = y
                     self.pub_xy.publish(xy)
-            for name, wanted in (("lockin/amplitude", want_amp), ("lockin/phase", want_phase), ("lockin/xy", want_xy)):
+            for pub, wanted in ((self.pub_amplitude, want_amp), (self.pub_phase, want_phase), (self.pub_xy, want_xy)):
                 if wanted:
-                    self.published_copies[name] += n
+                    self.published_copies[pub] += n
         self._ack.send(end)
 
     def _publish_diagnostics(self) -> None:

@@ -52,8 +52,8 @@ class ZControllerNode(Node):
             make_set_callback(Z_CONTROLLER_SPECS, lambda: dict(self.controller.params), check_limits, self._apply))
         self.pub_z = self.create_publisher(Float64, "z_controller/z_piezo", Z_QOS)
         self.pub_error = self.create_publisher(Float64, "z_controller/error", ERROR_QOS)
-        # messages published per per-output topic: a recorder in this process is waited for until it has them all
-        self.published_copies = {"z_controller/z_piezo": 0, "z_controller/error": 0}
+        # messages published per per-output publisher: a recorder in this process is waited for until it has them all
+        self.published_copies = {self.pub_z: 0, self.pub_error: 0}
         self.pub_command = self.create_publisher(Float64MultiArray, topics.Z_COMMAND, COMMAND_QOS)
         self.pub_trace = self.create_publisher(Float64MultiArray, topics.Z_TRACE, topics.HISTORY_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -75,7 +75,7 @@ class ZControllerNode(Node):
 
     def _publish_z(self) -> None:
         self.pub_z.publish(Float64(data=self.controller.z))
-        self.published_copies["z_controller/z_piezo"] += 1
+        self.published_copies[self.pub_z] += 1
 
     def _send_command(self, answered_end_index: int, answered_end_time: float) -> None:
         self._command.data = [float(answered_end_index), float(answered_end_time), float(self.controller.z)]
@@ -121,8 +121,8 @@ class ZControllerNode(Node):
                     self.pub_z.publish(z_msg)
                 if want_error:
                     self.pub_error.publish(e_msg)
-            self.published_copies["z_controller/z_piezo"] += n if want_z else 0
-            self.published_copies["z_controller/error"] += n if want_error else 0
+            self.published_copies[self.pub_z] += n if want_z else 0
+            self.published_copies[self.pub_error] += n if want_error else 0
             self.answered_end_index = batch.input_end_index
             self._send_command(batch.input_end_index, batch.input_end_time)
         trace = Float64MultiArray()

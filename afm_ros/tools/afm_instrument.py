@@ -570,14 +570,16 @@ class Instrument:
             self.spin_until(lambda: wanted <= set(rec.topics), f"waiting for {name} to subscribe to {sorted(wanted)}")
             # the per-output copies are published only while subscribed: their publishers must have
             # matched the recorder's subscriptions before the first batch, or its copies are never sent
-            copies = [pub for node in self.nodes.values() for pub in node.publishers
-                      if pub.topic_name in wanted
-                      and pub.topic_name in {node.resolve_topic_name(n) for n in getattr(node, "published_copies", ())}]
+            copies = [pub for pub, _ in self._copy_publishers() if pub.topic_name in wanted]
             self.spin_until(lambda: all(pub.get_subscription_count() > 0 for pub in copies),
                             f"waiting for the per-output publishers to match {name}")
             return
         self.spin_until(lambda: wanted <= set(self.monitor.diagnostic_values(name, "recording").get(
             "topics", "").split(",")), f"waiting for {name} to subscribe to {sorted(wanted)} (its diagnostics)")
+
+    def _copy_publishers(self) -> list[tuple]:
+        """(publisher, messages published) of the per-output copies of the nodes in this process."""
+        return [item for node in self.nodes.values() for item in getattr(node, "published_copies", {}).items()]
 
     def wait_for_consumer(self, name: str) -> None:
         """Until the cantilever lists ``name`` (fully qualified) among its acknowledging consumers."""
@@ -621,12 +623,7 @@ class Instrument:
         # chunks: wait until the recorder has every one their publishers in this process counted (a
         # quiet period alone misses the last one on a starved machine); the bound only guards a
         # recorder that subscribed after more than a history's worth of them
-        expected = {}
-        for node in self.nodes.values():
-            for name, count in getattr(node, "published_copies", {}).items():
-                full = node.resolve_topic_name(name)
-                if full in rec.received:
-                    expected[full] = count
+        expected = {pub.topic_name: count for pub, count in self._copy_publishers() if pub.topic_name in rec.received}
         deadline = time.monotonic() + COPIES_WAIT_S
         self.spin_until(lambda: rec.error is not None or time.monotonic() > deadline
                         or all(rec.received[t] >= n for t, n in expected.items()),

@@ -105,7 +105,8 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
   } else if (n <= (plan.count ?? 1)) {
     const value = decode(channel, new Uint8Array(data.buffer, data.byteOffset, data.byteLength));
     if (plan.scripts) {
-      kept.set(channel.topic, [...(kept.get(channel.topic) ?? []), { receiveTime: timestamp, value }]);
+      if (!kept.has(channel.topic)) kept.set(channel.topic, []);
+      kept.get(channel.topic).push({ receiveTime: timestamp, value });
     } else {
       out({ event: "message", topic: channel.topic, schemaName: channel.schemaName, logTime: timestamp, value });
     }
@@ -137,10 +138,10 @@ if (plan.stallMs) {
 }
 await until(() => topics.every((t) => (received.get(t) ?? 0) >= (plan.count ?? 1)));
 
+const ts = plan.scripts ? require("typescript") : undefined;
 for (const { source, namespace } of plan.scripts ?? []) {
   // what Foxglove does with a layout's user script: compile the TypeScript, call the default export
   // with {topic, receiveTime, message} for each message on its inputs, publish the result on `output`
-  const ts = require("typescript");
   const js = ts.transpileModule(source, {
     compilerOptions: { module: ts.ModuleKind.ESNext, target: ts.ScriptTarget.ES2022 },
   }).outputText;
