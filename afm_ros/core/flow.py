@@ -169,3 +169,66 @@ class ConsumerWindow:
     def ready(self, starts: ChunkStarts) -> bool:
         need = starts.back(self.window)
         return all(a >= need for a in self.acks.values())
+
+
+class SlowdownReporter:
+    """When, and in what words, to tell the user that the loop runs slower than asked (wall s).
+
+    A slowdown is an episode in which the pacing gives up simulated time (it cannot keep up). The
+    first report comes only after ``first_after`` wall seconds of one episode (a start-up compile or
+    a short stall is not news), later ones at most every ``period`` seconds; each gives the factor
+    achieved since the previous report, what limits it (the gate the loop spent most of that wall
+    time waiting at, else the integration itself) and what the user can do. Nothing is ever lost
+    by a slowdown: the loop waits, the session stays exact.
+    """
+
+    def __init__(self, first_after: float = 5.0, period: float = 60.0, gap: float = 2.0):
+        self.first_after, self.period, self.gap = first_after, period, gap
+        self._episode: float | None = None  # wall time the current episode started
+        self._last_giveup = -float("inf")  # wall time simulated time was last given up
+        self._given_up = 0.0
+        self._mark: tuple[float, float, dict] | None = None  # (wall, simulated, waits) the next report measures from
+        self._last_report = -float("inf")
+        self.reports = 0
+
+    def update(self, now: float, sim_time: float, given_up: float, requested: float,
+               waits: dict[str, float], reasons: dict[str, str]) -> str | None:
+        """Feed the pacing state: ``given_up`` simulated seconds given up so far, ``waits`` the wall
+        seconds spent at each gate so far ('feedback', 'consumers') and ``reasons`` the last wait
+        reason of each. Returns a warning text or None."""
+        if given_up <= self._given_up:
+            if self._episode is not None and now - self._last_giveup > self.gap:
+                self._episode = None  # caught up again
+            return None  # reported only while behind
+        self._given_up = given_up
+        if self._episode is None:
+            self._episode = now
+            if self._mark is None or now - self._last_report > self.period:
+                self._mark = (now, sim_time, dict(waits))
+        self._last_giveup = now
+        if now - self._episode < self.first_after or now - self._last_report < self.period:
+            return None
+        wall = now - self._mark[0]
+        achieved = (sim_time - self._mark[1]) / wall if wall > 0 else 0.0
+        waited = {k: waits.get(k, 0.0) - self._mark[2].get(k, 0.0) for k in waits}
+        kind = max(waited, key=waited.get, default=None)
+        if kind is not None and waited[kind] < 0.2 * wall:
+            kind = None
+        self._mark = (now, sim_time, dict(waits))
+        self._last_report = now
+        self.reports += 1
+        suggest = float(f"{max(achieved * 0.9, 0.01):.1g}")
+        return (f"running at {achieved:.2f}x real time instead of the requested {requested:g}x: "
+                f"{slowdown_bottleneck(kind, reasons.get(kind, ''))} cannot keep up on this machine. Nothing is "
+                f"lost (the loop waits, every sample is computed and the session stays exact). To run steadily, "
+                f"lower the cantilever's real_time_factor, e.g. 'afm_ctl set cantilever real_time_factor "
+                f"{suggest:g}' (0 = as fast as possible); next report in {self.period:g} s at the earliest")
+
+
+def slowdown_bottleneck(wait_kind: str | None, wait_reason: str) -> str:
+    """Which part of the loop limits the speed, from the gate it waited at most (None: none)."""
+    if wait_kind == "feedback":
+        return f"the thread serving the lock-in, z controller and recorder ({wait_reason})"
+    if wait_kind == "consumers":
+        return f"a consumer of the stream ({wait_reason})"
+    return "the integration (RK4 worker)"

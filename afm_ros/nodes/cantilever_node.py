@@ -40,7 +40,7 @@ from afm_ros.nodes import ros_params, topics
 from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, build, check_all, material_values
 from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
-from afm_ros.core.flow import ChunkStarts, ConsumerWindow, FeedbackGate
+from afm_ros.core.flow import ChunkStarts, ConsumerWindow, FeedbackGate, SlowdownReporter
 from afm_ros.nodes.node_main import run_node
 from afm_ros.core.physics.integrators import phase_at_step, samples_in_range
 from afm_ros.core.physics.noise import detector_noise
@@ -72,7 +72,7 @@ IDLE_TIMER_PERIOD_S = 0.02  # paused or waiting: the timer only looks now and th
 IDLE_AFTER_WAIT_S = 0.1  # a gate closed this long (wall) counts as idle
 FREE_RUN_TIMER_PERIOD_S = 0.001  # real_time_factor 0
 DIAGNOSTICS_PERIOD_S = 1.0
-LAG_WARNING_PERIOD_S = 5.0
+WAIT_REPORT_PERIOD_S = 5.0  # a closed gate is reported at most this often (wall s)
 WAIT_WARNING_S = 2.0  # a gate closed this long (wall) is reported
 CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
 RUNAWAY_DEFLECTION_M = 1e-3  # a deflection beyond 1 mm is a numerical runaway, not a cantilever
@@ -161,10 +161,11 @@ class CantileverNode(Node):
         self._diag_cpu = 0.0
         self._chunks = 0
         self._stopped = False
-        self._last_lag_warning = -math.inf
+        self._slowdown = SlowdownReporter()
         self._waiting_since: float | None = None
         self._wait_kind = "feedback"
         self._wait_reason = ""
+        self._wait_reasons: dict[str, str] = {}  # the last reason per gate, for the slowdown report
         self._last_wait_warning = -math.inf
         self.wait_wall_s = {"feedback": 0.0, "consumers": 0.0}  # wall time a gate held the loop
         self._paused_reported = False
@@ -586,7 +587,7 @@ class CantileverNode(Node):
         if self._waiting_since is None:
             self._waiting_since = now
             self._wait_kind = kind
-        self._wait_reason = reason
+        self._wait_reason = self._wait_reasons[kind] = reason
         return False
 
     def _try_step(self, max_chunks: int, from_worker: bool = False) -> int:
@@ -657,18 +658,15 @@ class CantileverNode(Node):
             else:
                 self._lag = 0.0
         if lag is not None:
-            if self.forgiven_lag_s > 0 and now - self._last_lag_warning > LAG_WARNING_PERIOD_S \
-                    and lag >= limit * 0.99:
-                self._last_lag_warning = now
-                self.get_logger().warning(
-                    f"cannot keep up with real_time_factor={rtf:g}" +
-                    (f" ({self._wait_reason})" if self._waiting_since is not None else " (CPU)") +
-                    f": {self.forgiven_lag_s:.3g} s of simulated time behind so far")
+            warning = self._slowdown.update(now, self._t_end, self.forgiven_lag_s, rtf, self.wait_wall_s,
+                                            self._wait_reasons)
+            if warning is not None:
+                self.get_logger().warning(warning)
         if self._idle_waiting() and self._timer.timer_period_ns != int(IDLE_TIMER_PERIOD_S * 1e9):
             self._timer_dirty = True
             self._try_step(0)  # applies the idle period
         if self._waiting_since is not None and now - self._waiting_since > WAIT_WARNING_S \
-                and now - self._last_wait_warning > LAG_WARNING_PERIOD_S:
+                and now - self._last_wait_warning > WAIT_REPORT_PERIOD_S:
             self._last_wait_warning = now
             self.get_logger().warning(f"{self._wait_reason} for {now - self._waiting_since:.1f} s")
         if now - self._diag_wall >= DIAGNOSTICS_PERIOD_S:

@@ -29,18 +29,23 @@ import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rcl_interfaces.msg import ParameterEvent
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.qos import qos_profile_parameter_events
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
+from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
+from afm_ros.tools.run_setup import RosArgs, make_run_folder, session_path
 from afm_ros.formats import chunk_layout
 
 from afm_ros.nodes import node_main, topics
@@ -55,12 +60,18 @@ IMAGE_SAMPLE = "ps_ldpe_blend"  # --image default: topography (islands) and phas
 # --image default frame (each can be set with -p scanner:<name>:=...): 64 x 64 pixels over 5 um at 2 lines/s,
 # 32 s simulated, about a minute on 2 cores with recording
 IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}
-# --image records the loop's batches (lockin/outputs, z_controller/trace and z_command hold every lock-in
+# the job records the loop's batches (lockin/outputs, z_controller/trace and z_command hold every lock-in
 # output, z and error), the images and the state topics, but not the raw 900 kS/s streams nor the
-# per-output scalar copies of the batches (unless --record-raw)
-IMAGE_RECORD_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
-                                 "z_controller/z_piezo", "z_controller/error"))
-INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second  # wall seconds without simulated progress before the job gives up
+# per-output scalar copies of the batches (unless --record-raw): a session a person can leave on
+RAW_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
+                        "z_controller/z_piezo", "z_controller/error"))
+IMAGE_FORCE_MODEL = "viscoelastic_dmt"  # --image: PS and LDPE differ in dissipation, hence in phase
+INTERRUPTED_STATUS = 130  # the shell's convention for a job ended by Ctrl-C (128 + SIGINT)
+INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second
+MAX_LISTED_CHANGES = 50  # parameter changes by others kept for the summary (the newest)
+MAX_UNPAIRED_BATCHES = 256  # lock-in batches kept waiting for their z trace (a trace that never comes)
+MAX_SUMMARY_CHANGES = 10
+STATUS_PERIOD_S = 5.0  # --interactive: a status line this often (wall s)  # changes printed in the summary text (the newest; the JSON has all kept)
 
 
 class BlowUpError(RuntimeError):
@@ -97,145 +108,13 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     return nodes
 
 
-@dataclass
-class WindowStats:
-    """Running mean/std of lock-in amplitude [m] and phase [deg], and mean z [m], over [t0, t1) simulated."""
-
-    t0: float
-    t1: float
-    n: int = 0
-    mean_a: float = 0.0
-    m2_a: float = 0.0
-    sum_phase: float = 0.0
-    nz: int = 0
-    sum_z: float = 0.0
-
-    def add_outputs(self, t: np.ndarray, a: np.ndarray, p: np.ndarray) -> None:
-        sel = (t >= self.t0) & (t < self.t1)
-        for ai, pi in zip(a[sel].tolist(), p[sel].tolist()):
-            self.n += 1
-            d = ai - self.mean_a
-            self.mean_a += d / self.n
-            self.m2_a += d * (ai - self.mean_a)
-            self.sum_phase += pi
-
-    def add_z(self, t: float, z: float) -> None:
-        if self.t0 <= t < self.t1:
-            self.nz += 1
-            self.sum_z += z
-
-    @property
-    def amplitude(self) -> float:
-        return self.mean_a if self.n else math.nan
-
-    @property
-    def amplitude_std(self) -> float:
-        return math.sqrt(self.m2_a / self.n) if self.n else math.nan
-
-    @property
-    def phase(self) -> float:
-        return self.sum_phase / self.n if self.n else math.nan
-
-    @property
-    def z(self) -> float:
-        return self.sum_z / self.nz if self.nz else math.nan
-
-
-class RollingStats:
-    """Amplitude/phase/z statistics over the most recent ``span`` simulated seconds, in 10 ms bins
-    (bounded memory for a session of any length); same properties as :class:`WindowStats`."""
-
-    BIN_S = 0.01
-
-    def __init__(self, span: float):
-        self.span = span
-        self.bins: dict[int, list] = {}  # bin -> [n, sum da, sum da^2, sum phase, nz, sum z]
-        self.ref: float | None = None  # amplitudes are summed relative to the first one (precision)
-
-    def _bin(self, t: float) -> list:
-        k = int(math.floor(t / self.BIN_S))
-        b = self.bins.get(k)
-        if b is None:
-            b = self.bins[k] = [0, 0.0, 0.0, 0.0, 0, 0.0]
-            oldest = k - int(math.ceil(self.span / self.BIN_S))
-            for old in [j for j in self.bins if j <= oldest]:
-                del self.bins[old]
-        return b
-
-    def add_outputs(self, t: np.ndarray, a: np.ndarray, p: np.ndarray) -> None:
-        for ti, ai, pi in zip(t.tolist(), a.tolist(), p.tolist()):
-            if self.ref is None:
-                self.ref = ai
-            b = self._bin(ti)
-            d = ai - self.ref
-            b[0] += 1
-            b[1] += d
-            b[2] += d * d
-            b[3] += pi
-
-    def add_z(self, t: float, z: float) -> None:
-        b = self._bin(t)
-        b[4] += 1
-        b[5] += z
-
-    def _sum(self, i: int) -> float:
-        return sum(b[i] for b in self.bins.values())
-
-    @property
-    def n(self) -> int:
-        return int(self._sum(0))
-
-    @property
-    def amplitude(self) -> float:
-        n = self._sum(0)
-        return self.ref + self._sum(1) / n if n else math.nan
-
-    @property
-    def amplitude_std(self) -> float:
-        n = self._sum(0)
-        return math.sqrt(max(0.0, self._sum(2) / n - (self._sum(1) / n) ** 2)) if n else math.nan
-
-    @property
-    def phase(self) -> float:
-        n = self._sum(0)
-        return self._sum(3) / n if n else math.nan
-
-    @property
-    def z(self) -> float:
-        nz = self._sum(4)
-        return self._sum(5) / nz if nz else math.nan
-
-
-@dataclass
-class SettlingTracker:
-    """Simulated time from ``t_enable`` until |A - setpoint| <= band for good (incremental)."""
-
-    t_enable: float
-    setpoint: float
-    band: float
-    inside_since: float | None = None
-    ever_outside: bool = False
-
-    def add(self, t: np.ndarray, a: np.ndarray) -> None:
-        sel = t >= self.t_enable
-        for ti, ai in zip(t[sel].tolist(), a[sel].tolist()):
-            if abs(ai - self.setpoint) > self.band or not math.isfinite(ai):
-                self.ever_outside = True
-                self.inside_since = None
-            elif self.inside_since is None:
-                self.inside_since = ti
-
-    @property
-    def settling_time(self) -> float | None:
-        if not self.ever_outside:
-            return 0.0
-        return None if self.inside_since is None else self.inside_since - self.t_enable
-
-
 class Monitor(Node):
     """The job's eyes: consumes ``lockin/outputs`` and ``z_controller/z_command`` (acknowledging
-    what it handled), keeps running statistics over simulated-time windows (memory does not grow
-    with the session) and the latest ``/diagnostics`` of every node; optional full history for tests."""
+    what it handled) and ``z_controller/trace``, keeps running statistics over simulated-time
+    windows (memory does not grow with the session), the setpoint in force with each change's
+    settling (:class:`SetpointHistory`, from amplitude + error of the same output), the latest
+    ``/diagnostics`` of every node and the parameter changes nobody in this job made; optional
+    full history for tests."""
 
     def __init__(self, keep_history: bool = False, **kwargs):
         super().__init__("afm_instrument_monitor", **kwargs)
@@ -246,7 +125,12 @@ class Monitor(Node):
         self.z_piezo_t: list[float] = []  # answered chunk end time [s] of each z command
         self.z_piezo: list[float] = []  # z [m] of each z command
         self.windows: list[WindowStats] = []
-        self.settling: SettlingTracker | None = None
+        self.setpoints: SetpointHistory | None = None
+        self._amplitudes: dict[int, tuple] = {}  # input end index -> (t, amplitude) waiting for its z trace
+        self._errors: dict[int, np.ndarray] = {}  # input end index -> error [m] waiting for its outputs
+        self.paired_end_time = -1.0  # every lock-in output before this simulated time [s] went through _pair
+        self.own_changes: dict[tuple[str, str], list] = {}  # (node, name) -> values the job set itself
+        self.user_changes: list[dict] = []  # parameter changes made by someone else (t_s, node, name, value)
         self.outputs_end_index = 0  # every lock-in output of the samples before this index arrived
         self.outputs_end_time = 0.0
         self.answer_index = -1  # newest z command's answered index (-1: none yet)
@@ -261,7 +145,10 @@ class Monitor(Node):
         self._ack = topics.Acknowledger(self)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS)
         self.create_subscription(Float64MultiArray, topics.Z_COMMAND, self._on_command, topics.CONSUMER_QOS)
+        self.create_subscription(Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 50)
+        self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event,
+                                 qos_profile_parameter_events)
 
     def _on_batch(self, msg: Float64MultiArray) -> None:
         try:
@@ -277,10 +164,8 @@ class Monitor(Node):
         p = np.degrees(np.arctan2(-b.y, b.x))
         self.outputs += a.shape[0]
         self.non_finite_outputs += int(np.count_nonzero(~np.isfinite(a)))
-        for w in self.windows:
-            w.add_outputs(b.t, a, p)
-        if self.settling is not None:
-            self.settling.add(b.t, a)
+        self._amplitudes[b.input_end_index] = (b.t, a, p, b.input_end_time)
+        self._pair()
         if self.keep_history:
             self.t.extend(b.t.tolist())
             self.x.extend(b.x.tolist())
@@ -288,6 +173,47 @@ class Monitor(Node):
         self.outputs_end_index, self.outputs_end_time = b.input_end_index, b.input_end_time
         self._ack.send(b.input_end_index)
         self._poke()
+
+    def _on_trace(self, msg: Float64MultiArray) -> None:
+        try:
+            tr = chunk_layout.unpack_z_trace(msg.data)
+        except ValueError:
+            return
+        self._errors[tr.input_end_index] = tr.error
+        self._pair()
+        self._poke()
+
+    def _pair(self) -> None:
+        """In time order, each batch's outputs with the z controller's errors: first the setpoint
+        history (which may start new hold statistics at a change), then the statistics windows."""
+        while self._amplitudes:
+            first = min(self._amplitudes)
+            for k in [k for k in self._errors if k < first]:
+                del self._errors[k]  # a trace whose outputs never reached the monitor
+            error = self._errors.pop(first, None)
+            if error is None and len(self._amplitudes) <= MAX_UNPAIRED_BATCHES:
+                return  # its trace is on its way
+            t, a, p, end_time = self._amplitudes.pop(first)
+            if self.setpoints is not None and error is not None and error.shape == a.shape:
+                self.setpoints.add(t, a, error)
+            for w in self.windows:
+                w.add_outputs(t, a, p)
+            self.paired_end_time = end_time
+
+    def _on_parameter_event(self, event: ParameterEvent) -> None:
+        ns = self.get_namespace().rstrip("/")
+        if not event.node.startswith(ns + "/") or event.node == self.get_fully_qualified_name():
+            return
+        role = event.node[len(ns) + 1:]
+        for param in event.changed_parameters:  # new_parameters are declarations
+            value = parameter_value_to_python(param.value)
+            own = self.own_changes.get((role, param.name))
+            if own and value in own:
+                own.remove(value)
+                continue
+            self.user_changes.append({"time_s": max(self.answer_time, 0.0), "node": role, "name": param.name,
+                                      "value": value})
+            del self.user_changes[:-MAX_LISTED_CHANGES]
 
     def _poke(self) -> None:
         if self.waiter is not None:
@@ -335,7 +261,7 @@ class Monitor(Node):
 class Summary:
     free_amplitude_m: float
     free_phase_deg: float
-    setpoint_m: float
+    setpoint_m: float  # in force at the end (after any live change)
     reached_amplitude_m: float
     amplitude_std_m: float
     contact_phase_deg: float
@@ -354,11 +280,16 @@ class Summary:
     wall_time_s: float = 0.0
     real_time_factor: float = 0.0
     image: dict = field(default_factory=dict)  # --image: the frame's numbers and files
+    engage_setpoint_m: float = math.nan  # the setpoint the feedback was enabled at
+    setpoint_changes: list = field(default_factory=list)  # live changes: time_s, old_m, new_m, settling_time_s, band_m
+    parameter_changes: list = field(default_factory=list)  # changes by others: time_s (approx.), node, name, value
+    interrupted: str = ""  # what Ctrl-C / SIGTERM interrupted ('' = the job ran to its end)
+    run_folder: str = ""
 
     def deterministic_part(self) -> dict:
         """Everything that must repeat exactly between runs (not wall time, not the file name)."""
         d = asdict(self)
-        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
+        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window", "run_folder"):
             d.pop(k)
         for k in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor"):
             d.get("image", {}).pop(k, None)
@@ -366,35 +297,68 @@ class Summary:
 
     def text(self) -> str:
         nm = 1e9
-        settle = ("not settled" if self.settling_time_s is None
-                  else f"{self.settling_time_s * 1e3:.3f} ms (simulated)")
-        lines = [
-            "afm_instrument summary",
+
+        def settled(t):
+            return "not settled" if t is None else f"{t * 1e3:.3f} ms (simulated)"
+
+        ratio = (f"{100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free"
+                 if self.free_amplitude_m > 0 else "free amplitude not measured")
+        title = "afm_instrument summary"
+        if self.interrupted:
+            title += f" -- INTERRUPTED {self.interrupted}"
+        lines = [title]
+        if self.run_folder:
+            lines.append(f"  run folder          {self.run_folder}")
+        lines += [
             f"  free amplitude      {self.free_amplitude_m * nm:9.3f} nm",
             f"  free phase          {self.free_phase_deg:9.3f} deg (lag behind drive)",
-            f"  setpoint            {self.setpoint_m * nm:9.3f} nm "
-            f"({100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free)",
-            f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
-            f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
-            f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
-            f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
-            f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
-            f"  settling time       {settle}, band +-{self.settling_band_m * nm:.3f} nm around the setpoint",
+            f"  setpoint            {self.setpoint_m * nm:9.3f} nm ({ratio})"
+            + (" at the end" if self.setpoint_changes else ""),
+        ]
+        if not math.isfinite(self.engage_time_s):
+            lines.append("  (interrupted before the feedback was enabled: no contact numbers)")
+        else:
+            lines += [
+                f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
+                f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
+                f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
+                f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
+                f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
+                f"  settling time       {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
+                f"around the {'engage ' if self.setpoint_changes else ''}setpoint"
+                + (f" {self.engage_setpoint_m * nm:.3f} nm" if self.setpoint_changes else ""),
+            ]
+        for c in self.setpoint_changes[-MAX_SUMMARY_CHANGES:]:
+            lines.append(f"  setpoint change     t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> {c['new_m'] * nm:.3f} nm, "
+                         f"settling {settled(c['settling_time_s'])}"
+                         + (" (by the end)" if c['settling_time_s'] is None else "")
+                         + f", band +-{c['band_m'] * nm:.3f} nm")
+        if len(self.setpoint_changes) > MAX_SUMMARY_CHANGES:
+            lines.append(f"  ... and {len(self.setpoint_changes) - MAX_SUMMARY_CHANGES} earlier setpoint changes")
+        others = [c for c in self.parameter_changes if (c["node"], c["name"]) != ("z_controller", "setpoint")]
+        for c in others[-MAX_SUMMARY_CHANGES:]:  # (setpoint changes: above, placed exactly from the data)
+            lines.append(f"  parameter change    t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = {c['value']!r}")
+        if len(others) > MAX_SUMMARY_CHANGES:
+            lines.append(f"  ... and {len(others) - MAX_SUMMARY_CHANGES} earlier parameter changes")
+        lines += [
             f"  feedback latency    {self.feedback_latency_chunks} chunk(s), lockstep (deterministic)",
             f"  lost samples        {self.lost_samples} (lock-in outputs: {self.lockin_outputs}, "
             f"non-finite: {self.non_finite_outputs})",
         ]
         if self.recording:
             r = self.recording
-            lines.append(f"  recording           {'complete' if r.get('complete') else 'INCOMPLETE'}: "
-                         f"{r.get('file')} ({r.get('lost_samples', 0)} samples lost"
+            state = ("complete" if r.get("complete") else
+                     f"STOPPED ({r['stopped']})" if r.get("stopped") else "INCOMPLETE")
+            size = f"{r['bytes'] / 1e6:.1f} MB, " if r.get("bytes") else ""
+            lines.append(f"  recording           {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
         if self.image:
             from afm_ros.tools.frame_report import report_text
             im = self.image
+            partial = (f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines" if im.get("partial") else "")
             lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
                          f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
-                         f"real-time factor {im['scan_real_time_factor']:.2f} while scanning)")
+                         f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
             if "report" in im:
                 lines.append(report_text(im["report"]))
             for f in im.get("files", [])[:1]:
@@ -402,6 +366,51 @@ class Summary:
         lines.append(f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
                      f"(real-time factor {self.real_time_factor:.2f})")
         return "\n".join(lines)
+
+
+@dataclass
+class JobState:
+    """What the job knows so far (simulated s, m, deg); the summary is built from it, also after Ctrl-C."""
+
+    wall0: float
+    duration: float = math.nan
+    interactive: bool = False
+    phase: str = "starting"
+    t_start: float = math.nan
+    t_enable: float = math.nan
+    t_end: float = math.nan
+    free: WindowStats | None = None
+    recent: RollingStats | None = None  # the last second, whatever the phase
+    hold: object = None  # WindowStats (scripted hold) or RollingStats (interactive)
+    hold_since_change: float = math.nan  # the hold statistics restarted at this setpoint change [s]
+    setpoint: float = math.nan  # engage setpoint [m]
+    band_fraction: float = 0.01
+    latency: int = 0
+    z_base: float = math.nan
+
+
+class ScanProgress:
+    """The image job's progress line: at every tenth of the frame and at least every 15 s of wall time."""
+
+    def __init__(self, plan, scanner, monitor, every_wall_s: float = 15.0):
+        self.plan, self.scanner, self.monitor, self.every = plan, scanner, monitor, every_wall_s
+        self.wall0 = self.last = time.monotonic()
+        self.marks = sorted({max(1, round(plan.lines * k / 10)) for k in range(1, 11)})
+        self.shown = 0
+
+    def __call__(self) -> None:
+        done = min(self.scanner.lines_done, self.plan.lines)
+        now = time.monotonic()
+        mark = next((m for m in reversed(self.marks) if m <= done), 0)
+        if mark > self.shown or (now - self.last >= self.every and done < self.plan.lines):
+            self.shown = max(self.shown, mark)
+            self.last = now
+            sim = max(self.monitor.answer_time - self.plan.start_time, 0.0)
+            wall = now - self.wall0
+            rate = sim / wall if wall > 0 else 0.0
+            left = (self.plan.frame_time - sim) / rate if rate > 0 else math.inf
+            print(f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), {sim:.1f} of "
+                  f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left", flush=True)
 
 
 class Instrument:
@@ -437,6 +446,11 @@ class Instrument:
         self.t_paused = 0.0
         self.hold_sim_wall = (math.nan, math.nan)  # simulated and wall seconds of the last hold
         self.attached_recorder: str | None = None  # a recorder running beside attached nodes
+        self.job: JobState | None = None
+        self._finishing = False  # finishing the current scan line after a first Ctrl-C
+        self.partial_frame = None  # the lines kept when Ctrl-C interrupted a scan
+        self.partial_lines = 0
+        self.run_folder = ""  # where the session and frames go (set by main)
 
     @property
     def cantilever(self) -> CantileverNode:
@@ -450,21 +464,25 @@ class Instrument:
         return max(self.monitor.answer_time, 0.0)
 
     def context_ok(self) -> bool:
-        """False after Ctrl-C / SIGTERM (see afm_ros.nodes.node_main) or once the context is shut down."""
+        """False after Ctrl-C / SIGTERM (see afm_ros.nodes.node_main) or once the context is shut down;
+        while the job finishes after a first Ctrl-C (the current scan line), only the latter."""
+        if self._finishing:
+            return rclpy.ok(context=self.context)
         return node_main.running(self.context)
 
-    def spin_until(self, condition, what: str, stall_timeout: float = STALL_TIMEOUT_S) -> None:
-        """Spin until ``condition()``; TimeoutError if the loop makes no progress for ``stall_timeout`` wall s."""
+    def spin_until(self, condition, what: str, stall_timeout: float = STALL_TIMEOUT_S, on_poll=None) -> None:
+        """Spin until ``condition()``; TimeoutError if the loop makes no progress for ``stall_timeout`` wall s;
+        ``on_poll()`` is called between spins (at least every WAIT_POLL_S)."""
         last_progress = time.monotonic()
         last_mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
         reached = Future()  # completed by the monitor's callbacks as soon as the condition holds
         self.monitor.waiter = (condition, reached)
         try:
-            self._spin_until(condition, reached, what, stall_timeout, last_progress, last_mark)
+            self._spin_until(condition, reached, what, stall_timeout, last_progress, last_mark, on_poll)
         finally:
             self.monitor.waiter = None
 
-    def _spin_until(self, condition, reached, what, stall_timeout, last_progress, last_mark) -> None:
+    def _spin_until(self, condition, reached, what, stall_timeout, last_progress, last_mark, on_poll) -> None:
         events = node_main.is_events_executor(self.executor)
         while not condition():
             if not self.context_ok():
@@ -474,6 +492,8 @@ class Instrument:
                 self.executor.spin_until_future_complete(reached, timeout_sec=WAIT_POLL_S)
             else:
                 self.executor.spin_once(timeout_sec=0.01)
+            if on_poll is not None:
+                on_poll()
             mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
             now = time.monotonic()
             if mark != last_mark:
@@ -508,6 +528,8 @@ class Instrument:
 
     def set(self, role: str, **values) -> None:
         """Set parameters of one node through its validation; ValueError naming the field on a refusal."""
+        for name, value in values.items():  # the job's own steps are not "changes during the session"
+            self.monitor.own_changes.setdefault((role, name), []).append(value)
         if not self.attached:
             node = self.nodes[role]
             results = node.set_parameters([Parameter(k, value=v) for k, v in values.items()])
@@ -520,8 +542,9 @@ class Instrument:
             future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
             self.spin_until(future.done, f"setting {role} parameters")
             results = future.result().results
-        for (name, _), result in zip(values.items(), results):
+        for (name, value), result in zip(values.items(), results):
             if not result.successful:
+                self.monitor.own_changes[(role, name)].remove(value)
                 raise ValueError(f"{role}.{name}: {result.reason}")
 
     def get(self, role: str, name: str):
@@ -590,13 +613,14 @@ class Instrument:
             self._fqn("cantilever"), "simulation").get("consumers", "").split(","),
             f"waiting for consumer {name} (cantilever diagnostics)")
 
-    def advance_to(self, t_end: float) -> float:
+    def advance_to(self, t_end: float, on_poll=None) -> float:
         """Run the simulation to the first chunk boundary at or after ``t_end`` [s] and wait until every
-        lock-in output and z command of it arrived; return that boundary's time [s]."""
+        lock-in output and z command of it arrived; return that boundary's time [s]. ``on_poll()`` is
+        called while waiting (a progress line)."""
         self.set("cantilever", run_until=float(t_end))
         limit = t_end - PAUSE_TOLERANCE_S
-        self.spin_until(lambda: self.monitor.answer_time >= limit and self.monitor.outputs_end_time >= limit,
-                        f"running to t={t_end:g} s")
+        self.spin_until(lambda: self.monitor.answer_time >= limit and self.monitor.paired_end_time >= limit,
+                        f"running to t={t_end:g} s", on_poll=on_poll)
         self.t_paused = self.monitor.answer_time
         return self.t_paused
 
@@ -630,11 +654,13 @@ class Instrument:
                         "waiting for the recorder to take the last per-output messages")
         rec.drain(self.executor)
 
-    def recording_status(self) -> dict:
+    def recording_status(self, spin: bool = True) -> dict:
+        """File, completeness and losses of the session's recording ({} without one); ``spin=False``
+        (after Ctrl-C): what is known now, without waiting for a separate recorder's diagnostics."""
         rec = self.nodes.get("recorder")
         if rec is None and self.attached_recorder is not None:
             # a separate recorder: its /diagnostics after the last chunk (published once per second)
-            end = time.monotonic() + 2.5
+            end = time.monotonic() + (2.5 if spin else 0.0)
             while time.monotonic() < end:
                 node_main.spin_for(self.executor, 0.1)
             v = self.monitor.diagnostic_values(self.attached_recorder, "recording")
@@ -652,118 +678,224 @@ class Instrument:
 
     def run_job(self, duration: float, free_time: float, setpoint_ratio: float | None,
                 band_fraction: float = 0.01, interactive: bool = False) -> Summary:
-        """Withdraw, measure free, engage, hold ``duration`` simulated seconds; return the summary."""
-        wall0 = time.monotonic()
+        """Withdraw, measure free, engage, hold ``duration`` simulated seconds; return the summary.
+
+        ``self.job`` holds what is known so far, so :meth:`summary` can also describe a job that
+        Ctrl-C interrupted."""
+        job = self.job = JobState(wall0=time.monotonic(), duration=duration, interactive=interactive)
         mon = self.monitor
         self.wait_ready()
         if self.attached:
             self.set("cantilever", feedback_sync="lockstep")
         self.set("z_controller", enabled=False, disabled_action="withdraw")
-        t_start = self.t_paused = mon.answer_time
-        free = WindowStats(t_start + free_time / 2, t_start + free_time)
-        mon.windows.append(free)
-        self.advance_to(t_start + free_time)
-        if free.n == 0:
+        job.t_start = self.t_paused = mon.answer_time
+        job.free = WindowStats(job.t_start + free_time / 2, job.t_start + free_time)
+        mon.windows.append(job.free)
+        job.recent = RollingStats(INTERACTIVE_HOLD_SPAN_S)  # what an interrupted job reports
+        mon.windows.append(job.recent)
+        job.phase = "measuring the free amplitude"
+        self.advance_to(job.t_start + free_time)
+        if job.free.n == 0:
             raise RuntimeError("no lock-in output received during the free measurement")
-        free_amp, free_phase = free.amplitude, free.phase
         if setpoint_ratio is not None:
-            self.set("z_controller", setpoint=setpoint_ratio * free_amp)
-        setpoint = float(self.get("z_controller", "setpoint"))
-        t_enable = self.t_paused
-        band = band_fraction * setpoint
-        mon.settling = SettlingTracker(t_enable, setpoint, band)
-        self.set("z_controller", enabled=True)
-        latency = int(self.get("cantilever", "feedback_latency"))
-        z_base = float(self.get("cantilever", "z_base"))
+            self.set("z_controller", setpoint=setpoint_ratio * job.free.amplitude)
+        job.setpoint = float(self.get("z_controller", "setpoint"))
+        job.t_enable = self.t_paused
+        job.band_fraction = band_fraction
+        job.latency = int(self.get("cantilever", "feedback_latency"))
+        job.z_base = float(self.get("cantilever", "z_base"))
         if interactive:
-            # the hold statistics cover the last second before Ctrl-C
-            hold = RollingStats(INTERACTIVE_HOLD_SPAN_S)
-            mon.windows.append(hold)
-            self._run_until_interrupted()
-            t_end = mon.answer_time
+            job.hold = RollingStats(INTERACTIVE_HOLD_SPAN_S)  # the last second before Ctrl-C
         else:
-            hold = WindowStats(t_enable + 0.75 * duration, math.inf)
-            mon.windows.append(hold)
+            job.hold = WindowStats(job.t_enable + 0.75 * duration, math.inf)
+        mon.windows.append(job.hold)
+        mon.setpoints = SetpointHistory(job.t_enable, job.setpoint, band_fraction, on_change=self._restart_hold)
+        self.set("z_controller", enabled=True)
+        if interactive:
+            job.phase = "running"
+            self._run_until_interrupted()
+            job.t_end = mon.answer_time
+        else:
+            job.phase = "holding the setpoint"
             wall_hold = time.monotonic()
-            self.advance_to(t_enable + duration)
-            self.hold_sim_wall = (self.t_paused - t_enable, time.monotonic() - wall_hold)
+            self.advance_to(job.t_enable + duration)
+            self.hold_sim_wall = (self.t_paused - job.t_enable, time.monotonic() - wall_hold)
             self.wait_recorded()
-            t_end = self.t_paused
-        wall = time.monotonic() - wall0
+            job.t_end = self.t_paused
+        return self.summary()
+
+    def _restart_hold(self, change) -> None:
+        """A live setpoint change: the hold statistics start again at it (they describe the setpoint in force)."""
+        job, windows = self.job, self.monitor.windows
+        old = job.hold
+        new = (RollingStats(old.span, t0=change.time_s) if isinstance(old, RollingStats)
+               else WindowStats(max(old.t0, change.time_s), math.inf))
+        windows[windows.index(old)] = new
+        job.hold = new
+        job.hold_since_change = change.time_s
+
+    def summary(self, interrupted: str = "") -> Summary:
+        """The summary of what the job knows now (without spinning: also after Ctrl-C)."""
+        job, mon = self.job, self.monitor
+        hist = mon.setpoints
+        t_end = job.t_end if math.isfinite(job.t_end) else max(mon.answer_time, 0.0)
+        if interrupted or job.hold is None:
+            stats = job.recent
+            window = "the last second before the interruption"
+        else:
+            stats = job.hold
+            window = ("the last second before Ctrl-C" if job.interactive else "the last quarter of the hold")
+        change = job.hold_since_change
+        if stats is job.hold and math.isfinite(change) and (
+                t_end - change < INTERACTIVE_HOLD_SPAN_S if job.interactive else change > job.t_enable + 0.75 * job.duration):
+            window += f", since the setpoint change at t={change:.4f} s"
+        free = job.free
+        wall = time.monotonic() - job.wall0
+        simulated = t_end - job.t_start if math.isfinite(job.t_start) else 0.0
         return Summary(
-            free_amplitude_m=free_amp, free_phase_deg=free_phase, setpoint_m=setpoint,
-            reached_amplitude_m=hold.amplitude, amplitude_std_m=hold.amplitude_std,
-            contact_phase_deg=hold.phase, z_piezo_m=hold.z,
-            z_base_m=z_base,
-            settling_time_s=mon.settling.settling_time, settling_band_m=band, engage_time_s=t_enable,
-            simulated_time_s=t_end - t_start, feedback_latency_chunks=latency,
+            free_amplitude_m=free.amplitude if free is not None else math.nan,
+            free_phase_deg=free.phase if free is not None else math.nan,
+            setpoint_m=hist.setpoint if hist is not None else job.setpoint,
+            reached_amplitude_m=stats.amplitude if stats is not None else math.nan,
+            amplitude_std_m=stats.amplitude_std if stats is not None else math.nan,
+            contact_phase_deg=stats.phase if stats is not None else math.nan, z_piezo_m=stats.z if stats else math.nan,
+            z_base_m=job.z_base,
+            settling_time_s=hist.engage.settling_time if hist is not None else None,
+            settling_band_m=job.band_fraction * job.setpoint, engage_time_s=job.t_enable,
+            simulated_time_s=simulated, feedback_latency_chunks=job.latency,
             lockin_outputs=mon.outputs, lost_samples=mon.lost_input_samples,
-            non_finite_outputs=mon.non_finite_outputs, recording=self.recording_status(),
-            hold_window=("the last second before Ctrl-C" if interactive else "the last quarter of the hold"),
-            wall_time_s=wall, real_time_factor=(t_end - t_start) / wall if wall > 0 else math.inf)
+            non_finite_outputs=mon.non_finite_outputs,
+            recording=self.recording_status(spin=not interrupted),
+            hold_window=window, wall_time_s=wall, real_time_factor=simulated / wall if wall > 0 else math.inf,
+            engage_setpoint_m=job.setpoint,
+            setpoint_changes=[c.as_dict() for c in hist.changes] if hist is not None else [],
+            parameter_changes=list(mon.user_changes), interrupted=interrupted, run_folder=self.run_folder)
+
+    def interruption(self) -> str:
+        """What Ctrl-C interrupted, for the summary's title."""
+        job = self.job
+        where = f"at t={max(self.monitor.answer_time, 0.0):.3f} s simulated"
+        if job is None:
+            return f"{where}, while starting"
+        return f"{where}, while {job.phase}"
 
     def run_image_job(self, engage_time: float, free_time: float, setpoint_ratio: float | None,
-                      band_fraction: float = 0.01, predict: bool = True) -> Summary:
+                      band_fraction: float = 0.01, predict: bool = True, progress: bool = True) -> Summary:
         """Withdraw, measure free, engage and hold ``engage_time``, then scan one frame with the
-        scanner's settings; the summary gets the frame's numbers (tools/frame_report.py) and files."""
-        from std_srvs.srv import Trigger
+        scanner's settings; the summary gets the frame's numbers (tools/frame_report.py) and files.
 
-        from afm_ros.tools.frame_report import frame_report
+        Ctrl-C during the scan finishes the current line, writes the lines done as a partial frame
+        (``*_partial.gwy``) and returns the summary marked interrupted (a second Ctrl-C stops at once)."""
+        from std_srvs.srv import Trigger
 
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
-        wall0 = time.monotonic()
-        summary = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)
+        self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)
+        job = self.job
         scanner, cantilever = self.nodes["scanner"], self.cantilever
         wall_scan = time.monotonic()
         response = scanner._start(Trigger.Response(), single=True)
         if not response.success:
             raise RuntimeError(f"scanner: {response.message}")
         # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
+        job.phase = "starting the scan"
         self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
         plan = scanner.plan
         chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
-        self.advance_to(plan.start_time + plan.frame_time + 2 * chunk)  # outputs past the last line
-        self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
+        job.phase = "scanning"
+        show = ScanProgress(plan, scanner, self.monitor) if progress else None
+        interrupted = ""
+        try:
+            self.advance_to(plan.start_time + plan.frame_time + 2 * chunk,  # outputs past the last line
+                            on_poll=show)
+            self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
+        except ExternalShutdownException:
+            if not rclpy.ok(context=self.context):
+                raise
+            interrupted = self._finish_line(scanner, plan, chunk)
         wall_scan = time.monotonic() - wall_scan
         scanner.wait_for_writers()
-        self.wait_recorded()
-        frame = scanner.accumulator.frames_done[0]
+        if not interrupted:
+            self.wait_recorded()
+        frame = scanner.accumulator.frames_done[0] if scanner.accumulator.frames_done else None
         sample = cantilever._samples.get(cantilever._values["sample"])
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
                  "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
                  "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
-        if sample is not None:
+        if interrupted:
+            image.update(partial=True, lines_done=self.partial_lines)
+            frame = self.partial_frame
+        if sample is not None and frame is not None:
+            from afm_ros.tools.frame_report import frame_report
             setup = cantilever._setup
-            image["report"] = frame_report(frame, sample, summary.setpoint_m / summary.free_amplitude_m,
+            image["report"] = frame_report(frame, sample, job.setpoint / job.free.amplitude,
                                            cantilever._values["force_model"], setup.cantilever, setup.drive,
                                            setup.steps_per_period, predict=predict)
+        job.t_end = self.monitor.answer_time if interrupted else self.t_paused
+        summary = self.summary(interrupted=interrupted)
         summary.image = image
-        summary.recording = self.recording_status()
-        summary.simulated_time_s = self.t_paused
-        summary.wall_time_s = time.monotonic() - wall0
-        summary.real_time_factor = summary.simulated_time_s / summary.wall_time_s
+        summary.simulated_time_s = job.t_end
         return summary
+
+    def _finish_line(self, scanner, plan, chunk: float) -> str:
+        """Ctrl-C while scanning: run to the end of the current line, stop the scan and keep the lines
+        done as a partial frame; returns the summary's interruption text."""
+        done = scanner.lines_done
+        line = min(done, plan.lines - 1)
+        t_line = plan.line_end_time(0, line)
+        print(f"interrupted: finishing line {line + 1}/{plan.lines} (to t={t_line:.3f} s simulated), then writing "
+              f"the {line + 1} lines as a partial frame; Ctrl-C again to stop at once", flush=True)
+        self._finishing = True
+        try:
+            self.advance_to(t_line + 2 * chunk)
+            self.spin_until(lambda: scanner.lines_done > line or scanner.frames_done >= 1,
+                            f"waiting for line {line + 1} to close")
+        finally:
+            self._finishing = False
+        self.partial_lines = min(scanner.lines_done, plan.lines)
+        self.partial_frame, paths = scanner.stop_scan(write_partial=True)
+        return (f"at t={self.monitor.answer_time:.3f} s simulated, while scanning: {self.partial_lines} of "
+                f"{plan.lines} lines kept as a partial frame")
 
     def _run_until_interrupted(self) -> None:
         """Interactive: run without a pause until Ctrl-C, with a status line every 5 s of wall time."""
         self.set("cantilever", run_until=-1.0)
         mon = self.monitor
-        print("running until Ctrl-C (ros2 param set works now)", flush=True)
+        print("running until Ctrl-C; tune it from another terminal with afm_ctl (no ROS install needed), e.g. "
+              f"'afm_ctl{self._ns_flag()} set z_controller setpoint 40e-9', 'afm_ctl{self._ns_flag()} list', "
+              f"'afm_ctl{self._ns_flag()} watch' (with ROS 2: ros2 param set)", flush=True)
         last = time.monotonic()
         stop = node_main.stop_future()
         try:
             while self.context_ok():
-                node_main.serve(self.executor, stop, done=lambda: time.monotonic() - last >= 5.0)
-                if time.monotonic() - last >= 5.0:
+                node_main.serve(self.executor, stop, done=lambda: time.monotonic() - last >= STATUS_PERIOD_S)
+                if time.monotonic() - last >= STATUS_PERIOD_S:
                     last = time.monotonic()
-                    print(f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  outputs={mon.outputs}",
-                          flush=True)
+                    print(self.status_line(), flush=True)
         finally:
             if not self.attached:
                 self.cantilever.stop()
+
+    def _ns_flag(self) -> str:
+        return f" --ns {self.namespace}" if self.namespace else ""
+
+    def status_line(self) -> str:
+        """One line of the loop's state: simulated time, amplitude vs setpoint, z, speed, recording."""
+        mon, job = self.monitor, self.job
+        recent = job.recent if job is not None else None
+        amp = recent.amplitude if recent is not None else math.nan
+        setpoint = mon.setpoints.setpoint if mon.setpoints is not None else math.nan
+        rtf = self.monitor.diagnostic_values(self._fqn("cantilever"), "simulation").get("real_time_factor_achieved")
+        text = (f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  amplitude={amp * 1e9:.3f} nm "
+                f"(setpoint {setpoint * 1e9:.3f} nm)  outputs={mon.outputs}")
+        if rtf is not None:
+            text += f"  {float(rtf):.2f}x real time"
+        rec = self.nodes.get("recorder")
+        if rec is not None and getattr(rec, "bytes_written", None) is not None:
+            text += f"  recorded {rec.bytes_written / 1e6:.1f} MB"
+        return text
 
     def destroy(self) -> None:
         for node in [*self.nodes.values(), self.monitor]:
@@ -788,22 +920,29 @@ def parse_args(argv):
     parser.add_argument("--executor", choices=["single", "multi", "events"], default="events",
                         help="executor for all nodes (default events: fastest and fair, see docs/cantilever.md)")
     parser.add_argument("--no-record", action="store_true",
-                        help="do not record the session (default: ./afm_session_<date-time>.mcap, "
-                             "see docs/recording.md; -p recorder:output:=FILE chooses the file)")
+                        help="do not record the session (default: afm_session_<date-time>.mcap in the run "
+                             "folder, see docs/recording.md; -p recorder:output:=FILE chooses the file)")
+    parser.add_argument("--out", metavar="DIR", default=None,
+                        help="folder for this run's session and frames (default: a new "
+                             "afm_runs/<date>_<time>[_<namespace>] in the working directory)")
+    parser.add_argument("--verbose", action="store_true",
+                        help="also show the nodes' INFO log lines (default: warnings and errors only; the job "
+                             "prints its own progress)")
     parser.add_argument("--attach", action="store_true",
                         help="create no nodes: run the job against cantilever, lockin and z_controller nodes "
                              "already running (e.g. as ros2 run processes) in this process's namespace")
     parser.add_argument("--interactive", action="store_true",
-                        help="after engaging, keep running until Ctrl-C (tune with ros2 param set), then "
-                             "print the summary")
+                        help="after engaging, keep running until Ctrl-C (tune it from another terminal with "
+                             "afm_ctl, or ros2 param set with ROS 2), then print the summary")
     parser.add_argument("--image", action="store_true",
                         help="the imaging job: engage for --duration, then scan one frame with the scanner's "
                              "parameters (-p scanner:...) over the cantilever's sample (default ps_ldpe_blend), "
-                             "write .gwy + PNG previews, record the session (without the raw deflection and "
-                             "force streams unless --record-raw) and print the frame's numbers")
+                             "write .gwy + PNG previews, record the session and print the frame's numbers; "
+                             "Ctrl-C finishes the current line and keeps the lines done as a partial frame")
     parser.add_argument("--record-raw", action="store_true",
-                        help="--image: also record cantilever/deflection and cantilever/tip_sample_force "
-                             "(~7 MB per simulated second each) and the per-output scalar topics")
+                        help="also record the raw 900 kS/s cantilever/deflection and cantilever/tip_sample_force "
+                             "streams and the per-output scalar topics (about 14 MB per simulated second with the "
+                             "default noise; default: the loop's batches, images, parameters and diagnostics only)")
     parser.add_argument("--live-view", action="store_true",
                         help="also serve the instrument to Foxglove over WebSocket (the live_view node, "
                              "ws://127.0.0.1:8765 by default, -p live_view:port:=...; docs/live_view.md); "
@@ -820,6 +959,42 @@ def parse_args(argv):
     return args
 
 
+def _node_log_level(names, namespace: str, level) -> None:
+    """Set the loggers of the instrument's nodes (created later) to ``level``."""
+    from rclpy.logging import set_logger_level
+    prefix = namespace.strip("/").replace("/", ".")
+    for name in names:
+        set_logger_level(f"{prefix}.{name}" if prefix else name, level)
+
+
+def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, dict, dict, list[str]]:
+    """Parameter values the job gives its nodes (never one the user set), and the lines that say so."""
+    cantilever, recorder, scanner = ros.node_rules("cantilever"), ros.node_rules("recorder"), ros.node_rules("scanner")
+    notes = []
+    if options.image:
+        scanner.update({k: v for k, v in IMAGE_SCAN.items() if not ros.given("scanner", k)})
+        switched = []
+        if not ros.given("cantilever", "sample"):
+            cantilever["sample"] = IMAGE_SAMPLE
+            switched.append(f"sample {IMAGE_SAMPLE}")
+        if not ros.given("cantilever", "force_model"):
+            cantilever["force_model"] = IMAGE_FORCE_MODEL
+            switched.append(f"force_model {IMAGE_FORCE_MODEL} (the parameter's default is dmt, which dissipates "
+                            "nothing: the phase contrast between PS and LDPE comes from dissipation)")
+        plan = {k: scanner.get(k) for k in IMAGE_SCAN}
+        notes.append("imaging defaults: " + ", ".join(switched + [
+            f"{plan['pixels_per_line']} x {plan['lines']} pixels at {plan['line_rate']:g} lines/s"])
+            + "; change any with -p cantilever:<name>:=... or -p scanner:<name>:=...")
+    if run_folder is not None:
+        if not ros.given("recorder", "output"):
+            recorder["output"] = str(session_path(run_folder, ros.namespace))
+        if not ros.given("scanner", "output_directory"):
+            scanner["output_directory"] = str(run_folder)
+    if not options.record_raw and not ros.given("recorder", "exclude") and not ros.given("recorder", "topics"):
+        recorder["exclude"] = RAW_EXCLUDE
+    return cantilever, recorder, scanner, notes
+
+
 def main(args=None):
     argv = sys.argv if args is None else args
     try:
@@ -829,32 +1004,41 @@ def main(args=None):
         print(f"afm_instrument: invalid --ros-args: {first}", file=sys.stderr)
         return 2
     options = parse_args(plain[1:])
+    ros = RosArgs.parse(argv)
     failed = node_main.exit_on_startup_error("afm_instrument", argv)
     if failed is not None:
         return failed
     instrument = None
     status = 0
     try:
-        cantilever_overrides, recorder_overrides, scanner_overrides = {}, {}, {}
-        if options.image:
-            ros_args = " ".join(argv)
-            scanner_overrides = {k: v for k, v in IMAGE_SCAN.items() if f"{k}:=" not in ros_args}
-            if "sample:=" not in ros_args:
-                cantilever_overrides["sample"] = IMAGE_SAMPLE
-            if "force_model:=" not in ros_args:
-                cantilever_overrides["force_model"] = "viscoelastic_dmt"
-            if not options.record_raw and "exclude:=" not in ros_args:
-                recorder_overrides["exclude"] = IMAGE_RECORD_EXCLUDE
-        instrument = Instrument(executor=options.executor, record=not (options.no_record or options.attach),
-                                attach=options.attach, namespace=None, scanner=options.image or options.live_view,
+        record = not (options.no_record or options.attach)
+        scanner = options.image or options.live_view
+        run_folder = None
+        if (record or scanner) and not options.attach:
+            try:
+                run_folder = make_run_folder(options.out, ros.namespace)
+            except OSError as exc:
+                raise ValueError(f"--out: cannot create the run folder: {exc}") from None
+        cantilever_overrides, recorder_overrides, scanner_overrides, notes = _overrides(options, ros, run_folder)
+        if not options.verbose and ros.log_level is None:  # the job says what matters; node INFO lines with --verbose
+            from rclpy.logging import LoggingSeverity
+            _node_log_level((*ROLES, "scanner", "recorder", "live_view", "afm_instrument_monitor"), ros.namespace,
+                            LoggingSeverity.WARN)
+        instrument = Instrument(executor=options.executor, record=record,
+                                attach=options.attach, namespace=None, scanner=scanner,
                                 cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides,
                                 scanner_overrides=scanner_overrides, live_view=options.live_view)
+        instrument.run_folder = str(run_folder) if run_folder is not None else ""
+        if run_folder is not None:
+            print(f"run folder: {run_folder}", flush=True)
+        for note in notes:
+            print(note, flush=True)
         if "live_view" in instrument.nodes:
             live = instrument.nodes["live_view"]
             print(f"live view: ws://{live.get_parameter('address').value}:{live.port} (Foxglove; no authentication)",
                   flush=True)
         if "recorder" in instrument.nodes:
-            print(f"recording to {instrument.nodes['recorder'].output_path}", flush=True)
+            print(recording_line(instrument.nodes["recorder"], options.record_raw), flush=True)
         if options.image:
             summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
                                                options.band)
@@ -864,12 +1048,23 @@ def main(args=None):
         print(summary.text(), flush=True)
         if options.json:
             print(json.dumps(asdict(summary)), flush=True)
-        if summary.recording and not summary.recording["complete"]:
+        if summary.interrupted:
+            status = INTERRUPTED_STATUS
+        elif summary.recording and not summary.recording["complete"]:
             print("afm_instrument: the recording is incomplete", file=sys.stderr)
             status = 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, TimeoutError, RuntimeError) as exc:  # RecordingError is a RuntimeError
+        status = INTERRUPTED_STATUS
+        if instrument is not None and instrument.job is not None and not options.interactive:
+            summary = instrument.summary(interrupted=instrument.interruption())
+            print(summary.text(), flush=True)
+            if options.json:
+                print(json.dumps(asdict(summary)), flush=True)
+        elif not (options.interactive and instrument is not None and instrument.job is not None):
+            print("afm_instrument: interrupted while starting", file=sys.stderr)
+        else:
+            status = 0  # --interactive ends with Ctrl-C
+    except (ValueError, TimeoutError, RuntimeError, OSError) as exc:  # RecordingError is a RuntimeError
         print(f"afm_instrument: {exc}", file=sys.stderr)
         status = 1
     finally:
@@ -879,6 +1074,16 @@ def main(args=None):
             rclpy.try_shutdown()
         node_main.teardown_within(teardown, "afm_instrument", status)
     return status
+
+
+def recording_line(recorder, raw: bool) -> str:
+    """The start line of the recording: the file, what is recorded and what it costs."""
+    what = ("every stream, the raw 900 kS/s deflection and force included (about 14 MB per simulated second "
+            "with the default noise)" if raw else
+            "the loop's batches (every lock-in output, z and error), images, parameters and diagnostics; the raw "
+            "900 kS/s deflection and force streams are off (--record-raw adds them: about 14 MB per simulated "
+            "second with the default noise)")
+    return f"recording to {recorder.output_path}: {what}"
 
 
 if __name__ == "__main__":

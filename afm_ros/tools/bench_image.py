@@ -24,7 +24,7 @@ import tempfile
 def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float) -> dict:
     import rclpy
 
-    from afm_ros.tools.afm_instrument import IMAGE_RECORD_EXCLUDE, Instrument
+    from afm_ros.tools.afm_instrument import RAW_EXCLUDE, Instrument
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
     rclpy.init()
@@ -33,7 +33,7 @@ def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float)
                                             "force_model": "viscoelastic_dmt"},
                       scanner_overrides={"pixels_per_line": pixels, "lines": lines, "line_rate": line_rate,
                                          "write_files": False},
-                      recorder_overrides={"exclude": IMAGE_RECORD_EXCLUDE})
+                      recorder_overrides={"exclude": RAW_EXCLUDE})
     try:
         summary = inst.run_image_job(0.05, 0.03, None, predict=False)
         rec = summary.recording or {}
