@@ -71,3 +71,33 @@ def test_z_base_step_is_compensated_by_the_feedback(instrument):
     # so z_piezo rises by the 3 nm the base came down (to within the 0.06 nm z resolution above)
     assert sum(z_after) / len(z_after) - z_before == pytest.approx(3e-9, abs=6e-11)
     assert a.mean() == pytest.approx(summary.setpoint_m, rel=1e-3)
+
+
+def test_a_setpoint_change_is_placed_and_settled_in_the_summary(instrument):
+    """A live setpoint change (here made while paused, so at a defined simulated time): the summary
+    reports the setpoint in force at the end, the change at the simulated time it took effect with its
+    own settling time, keeps the engage settling time, and its hold numbers describe the new setpoint.
+
+    The z controller applies the new setpoint from the first lock-in output it handles after the
+    change, the output at the pause time (outputs every 1 ms): the change must be found there, within
+    one output period. The loop settles a 48 -> 40 nm step in ~30 ms at i_gain 100 1/s (the engage
+    approach took ~0.12 s from 100 nm away); 0.2 s bounds both with margin, and the hold mean over
+    the last quarter must sit at the new setpoint within 0.1 %, as for the engage setpoint."""
+    first = instrument.run_job(duration=0.3, free_time=0.03, setpoint_ratio=None)
+    assert first.setpoint_m == 48e-9 and first.setpoint_changes == []
+    t_change = instrument.t_paused
+    instrument.set("z_controller", setpoint=40e-9)
+    instrument.job.duration = 0.6  # the hold now ends 0.6 s after engaging: last quarter from t_enable + 0.45
+    instrument.advance_to(instrument.job.t_enable + 0.6)
+    instrument.job.t_end = instrument.t_paused
+    s = instrument.summary()
+    assert s.setpoint_m == 40e-9 and s.engage_setpoint_m == 48e-9
+    assert s.settling_time_s == first.settling_time_s  # the engage settling stays what it was
+    [change] = s.setpoint_changes
+    assert change["old_m"] == 48e-9 and change["new_m"] == pytest.approx(40e-9, abs=1e-15)
+    assert t_change - 1e-9 <= change["time_s"] <= t_change + 1e-3 + 1e-9
+    assert change["settling_time_s"] is not None and change["settling_time_s"] < 0.2
+    assert change["band_m"] == pytest.approx(0.01 * 40e-9)
+    assert s.reached_amplitude_m == pytest.approx(40e-9, rel=1e-3)
+    assert "setpoint change     t=" in s.text() and "48.000 -> 40.000 nm" in s.text()
+    assert s.parameter_changes == []  # the job's own steps are not listed as changes by others

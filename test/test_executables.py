@@ -140,15 +140,19 @@ def test_afm_instrument_runs_the_main_job_and_prints_the_summary(tmp_path):
 
 
 def assert_complete_recording(directory, stdout):
+    """One closed session in the run's folder (afm_runs/<date>_<time>/), announced at start, holding the
+    loop's batches; the raw 900 kS/s streams are opt-in (--record-raw), so absent here."""
     from mcap.reader import make_reader
-    files = list(directory.glob("afm_session_*.mcap"))
-    assert len(files) == 1, (files, stdout)
+    files = list(directory.glob("afm_runs/*/afm_session_*.mcap"))
+    assert len(files) == 1, (list(directory.rglob("*")), stdout)
+    assert {p.name for p in directory.iterdir()} <= {"afm_runs", "afm.yaml"}  # no litter beside the run folder
     assert f"recording to {files[0]}" in stdout or files[0].name in stdout, stdout
     with open(files[0], "rb") as f:
         summary = make_reader(f).get_summary()  # present only if the file was closed cleanly
     assert summary is not None and summary.statistics.message_count > 0
     topics = {c.topic for c in summary.channels.values()}
-    assert {"/cantilever/deflection", "/lockin/amplitude", "/z_controller/z_piezo"} <= topics, topics
+    assert {"/lockin/outputs", "/z_controller/trace", "/z_controller/z_command"} <= topics, topics
+    assert "/cantilever/deflection" not in topics and "/lockin/amplitude" not in topics, topics
 
 
 def test_afm_instrument_rejects_bad_arguments_clearly(tmp_path):
@@ -161,15 +165,26 @@ def test_afm_instrument_rejects_bad_arguments_clearly(tmp_path):
 
 
 def test_afm_instrument_stops_cleanly_on_sigint(tmp_path):
-    proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--duration", "100"],
+    """Ctrl-C during the scripted hold: the summary of what was measured, marked INTERRUPTED with the
+    simulated time and the phase, exit status 130 (the shell's convention) and a closed session."""
+    proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--duration", "100", "--json"],
                             env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=tmp_path)
-    time.sleep(4.0)  # imports, numba cache load, nodes up, job running
-    assert proc.poll() is None, proc.communicate()[1]
+    lines = []
+    while not any(line.startswith("recording to") for line in lines):  # nodes up, job starting
+        line = proc.stdout.readline()
+        assert line or proc.poll() is None, proc.communicate()[1]
+        lines.append(line)
+    time.sleep(2.0)  # into the job (any phase will do: each one is reported)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=20)
-    assert proc.returncode == 0, err
+    out, err = proc.communicate(timeout=30)
+    out = "".join(lines) + out
+    assert proc.returncode == 130, err
     assert "Traceback" not in err
+    assert "afm_instrument summary -- INTERRUPTED at t=" in out and ", while " in out
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["interrupted"].startswith("at t=")
+    assert summary["simulated_time_s"] < 100
     assert_complete_recording(tmp_path, out)  # Ctrl-C closes the session file with its summary
 
 
@@ -247,7 +262,7 @@ def test_afm_instrument_interactive_runs_until_ctrl_c_then_prints_the_summary(tm
         assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[1]
         lines.append(proc.stdout.readline())
     status = proc.stdout.readline()  # the first status line: it keeps running after engaging
-    assert status.startswith("t=") and "z_piezo=" in status
+    assert status.startswith("t=") and "z_piezo=" in status and "setpoint 48.000 nm" in status
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err

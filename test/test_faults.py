@@ -271,7 +271,7 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     from afm_ros.formats.mcap_io import SessionScan, read_session
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
-    result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--ros-args",
+    result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--record-raw", "--ros-args",
                              "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25",
                              # noise-free: noise does not compress, and the byte budget above assumes it does
                              "-p", "cantilever:temperature:=0.0", "-p", "cantilever:detector_noise_density:=0.0"],
@@ -281,7 +281,7 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     assert "No space left on device" in result.stderr and "the recording is incomplete" in result.stderr
     assert "recording           INCOMPLETE" in result.stdout
     # the partial file is readable up to the failure: chunks flushed before it are intact
-    path = next(small_disk.glob("afm_session_*.mcap"))
+    path = next(small_disk.glob("afm_runs/*/afm_session_*.mcap"))
     scan = SessionScan(path)
     chunks = [m for m in read_session(path, scan) if m.topic.endswith("cantilever/deflection")]
     assert not scan.complete and scan.truncated_reason

@@ -49,7 +49,7 @@ def runs(tmp_path_factory):
 
 
 def frame_arrays(cwd: Path) -> dict:
-    [gwy] = list(cwd.glob("afm_frame_*.gwy"))
+    [gwy] = list(cwd.glob("afm_runs/*/afm_frame_*.gwy"))
     return read_gwy(gwy).channels
 
 
@@ -63,12 +63,13 @@ def test_the_job_writes_the_frame_and_a_complete_session(runs):
     assert set(channels) == {channel_title(c, d) for c in CHANNELS for d in DIRECTIONS}
     for title, (values, unit) in channels.items():
         assert values.shape == (16, 32) and np.isfinite(values).all(), title
-    assert len(list(cwd.glob("afm_frame_*_*.png"))) == len(CHANNELS) * len(DIRECTIONS)
+    assert len(list(cwd.glob("afm_runs/*/afm_frame_*_*.png"))) == len(CHANNELS) * len(DIRECTIONS)
+    assert list(cwd.iterdir()) == [cwd / "afm_runs"]  # everything in the run's folder, nothing else around
     report_numbers = image["report"]["directions"]["trace"]
     # the islands (10 nm) image far lower on the soft LDPE: the summary gives the core's apparent height
     assert report_numbers["true_step_m"] == pytest.approx(10e-9, abs=1e-15)
     assert "predicted_apparent_step_m" in report_numbers
-    scan = SessionScan(next(cwd.glob("afm_session_*.mcap")))
+    scan = SessionScan(next(cwd.glob("afm_runs/*/afm_session_*.mcap")))
     topics = {m.topic for m in read_session(scan.path, scan)}
     assert "/scanner/image/height/trace" in topics and "/cantilever/scan" in topics
     assert "/cantilever/deflection" not in topics  # the raw stream is left out unless --record-raw
@@ -80,7 +81,7 @@ def test_two_runs_give_the_same_summary_and_frame(runs):
 
     def deterministic(s):
         s = dict(s)
-        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window"):
+        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window", "run_folder"):
             s.pop(k)
         s["image"] = {k: v for k, v in s["image"].items()
                       if k not in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor")}
@@ -93,7 +94,7 @@ def test_two_runs_give_the_same_summary_and_frame(runs):
 
 def test_report_draws_the_recorded_frame(runs, tmp_path):
     cwd, _ = runs[0]
-    session = next(cwd.glob("afm_session_*.mcap"))
+    session = next(cwd.glob("afm_runs/*/afm_session_*.mcap"))
     result = report.make_report(session, tmp_path / "rep")
     assert (tmp_path / "rep" / "images.png").stat().st_size > 10_000
     text = result.markdown.read_text()

@@ -108,8 +108,10 @@ def test_two_namespaced_instruments_side_by_side(tmp_path):
         # different setpoints, so a loop fed by the other instrument's topics would show it
         setpoint = {"/afm1": 48e-9, "/afm2": 42e-9}[ns]
         runs[ns] = (cwd, subprocess.Popen(
+            # /afm2 names the node: rcl itself applies -p node:name only in the root namespace, the
+            # instrument passes it on under its namespace
             [str(BIN / "afm_instrument"), "--duration", "0.4", "--json", "--ros-args", "-r", f"__ns:={ns}",
-             "-p", f"setpoint:={setpoint}"],
+             "-p", f"setpoint:={setpoint}" if ns == "/afm1" else f"z_controller:setpoint:={setpoint}"],
             cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     results = {}
     for ns, (cwd, p) in runs.items():
@@ -121,10 +123,11 @@ def test_two_namespaced_instruments_side_by_side(tmp_path):
         assert s["setpoint_m"] == setpoint
         assert s["reached_amplitude_m"] == pytest.approx(setpoint, rel=1e-3)
         assert s["lost_samples"] == 0 and s["recording"]["complete"]
-        recording = next(cwd.glob("afm_session_*.mcap"))
+        # each run its own folder, named after its namespace
+        recording = next(cwd.glob(f"afm_runs/*_{ns.strip('/')}/afm_session_*_{ns.strip('/')}.mcap"))
         topics = {m.topic for m in read_session(recording)}
         other = "/afm2" if ns == "/afm1" else "/afm1"
         # each recorder keeps to its instrument (global /parameter_events, /diagnostics, /rosout aside)
-        assert f"{ns}/cantilever/deflection" in topics and f"{ns}/clock" in topics
+        assert f"{ns}/lockin/outputs" in topics and f"{ns}/clock" in topics
         assert not any(t.startswith(other) for t in topics), topics
         assert "/clock" not in topics  # each instrument has its own simulated clock

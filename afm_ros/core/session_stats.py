@@ -179,12 +179,14 @@ class SetpointHistory:
     """Setpoint segments from ``t_enable`` on: the engage setpoint, then each live change.
 
     ``band_fraction`` x setpoint is each segment's settling band; ``on_change(change)`` is called for
-    each change found (e.g. to restart the hold statistics)."""
+    each change found and ``on_settled(change, t)`` when the amplitude enters the band of a changed
+    setpoint at ``t`` [s] (again, if it left it), e.g. to restart the hold statistics there."""
 
     t_enable: float
     setpoint: float
     band_fraction: float
     on_change: object = None
+    on_settled: object = None
     changes: list = field(default_factory=list)  # SetpointChange after the engage one
 
     def __post_init__(self):
@@ -205,7 +207,7 @@ class SetpointHistory:
             if not off.size:
                 break
             i = start + int(off[0])
-            self.current.add(t[start:i], a[start:i])
+            self._add_current(t[start:i], a[start:i])
             new = float(s[i])
             change = SetpointChange(float(t[i]), self.setpoint, new,
                                     SettlingTracker(float(t[i]), new, self.band_fraction * new))
@@ -214,4 +216,12 @@ class SetpointHistory:
             start = i
             if self.on_change is not None:
                 self.on_change(change)
-        self.current.add(t[start:], a[start:])
+        self._add_current(t[start:], a[start:])
+
+    def _add_current(self, t: np.ndarray, a: np.ndarray) -> None:
+        tracker = self.current
+        before = tracker.inside_since
+        tracker.add(t, a)
+        if self.changes and self.on_settled is not None and tracker.inside_since is not None \
+                and tracker.inside_since != before:
+            self.on_settled(self.changes[-1], tracker.inside_since)

@@ -81,30 +81,36 @@ class BlowUpError(RuntimeError):
 def build_nodes(context=None, namespace: str | None = None, with_controller: bool = True,
                 record: bool = True, cantilever_overrides: dict | None = None, scanner: bool = False,
                 recorder_overrides: dict | None = None, scanner_overrides: dict | None = None,
-                live_view: bool = False, live_view_overrides: dict | None = None) -> dict[str, Node]:
-    """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers)."""
+                live_view: bool = False, live_view_overrides: dict | None = None,
+                overrides: dict | None = None) -> dict[str, Node]:
+    """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers).
+
+    ``overrides``: role -> {parameter: value} for any node; the ``<role>_overrides`` win over it."""
     from afm_ros.nodes.lockin_node import LockInNode
     kw = {"context": context}
     if namespace:
         kw["namespace"] = namespace
-    overrides = [Parameter(k, value=v) for k, v in (cantilever_overrides or {}).items()]
-    nodes: dict[str, Node] = {"cantilever": CantileverNode(parameter_overrides=overrides, **kw),
-                              "lockin": LockInNode(**kw)}
+    given = {role: dict(values) for role, values in (overrides or {}).items()}
+    for role, values in (("cantilever", cantilever_overrides), ("scanner", scanner_overrides),
+                         ("live_view", live_view_overrides), ("recorder", recorder_overrides)):
+        given.setdefault(role, {}).update(values or {})
+
+    def make(cls, role):
+        return cls(parameter_overrides=[Parameter(k, value=v) for k, v in given.get(role, {}).items()], **kw)
+
+    nodes: dict[str, Node] = {"cantilever": make(CantileverNode, "cantilever"), "lockin": make(LockInNode, "lockin")}
     if with_controller:
         from afm_ros.nodes.z_controller_node import ZControllerNode
-        nodes["z_controller"] = ZControllerNode(**kw)
+        nodes["z_controller"] = make(ZControllerNode, "z_controller")
     if scanner:
         from afm_ros.nodes.scanner_node import ScannerNode
-        nodes["scanner"] = ScannerNode(
-            parameter_overrides=[Parameter(k, value=v) for k, v in (scanner_overrides or {}).items()], **kw)
+        nodes["scanner"] = make(ScannerNode, "scanner")
     if live_view:
         from afm_ros.nodes.live_view_node import LiveViewNode
-        nodes["live_view"] = LiveViewNode(
-            parameter_overrides=[Parameter(k, value=v) for k, v in (live_view_overrides or {}).items()], **kw)
+        nodes["live_view"] = make(LiveViewNode, "live_view")
     if record:
         from afm_ros.nodes.recorder_node import RecorderNode
-        nodes["recorder"] = RecorderNode(
-            parameter_overrides=[Parameter(k, value=v) for k, v in (recorder_overrides or {}).items()], **kw)
+        nodes["recorder"] = make(RecorderNode, "recorder")
     return nodes
 
 
@@ -382,7 +388,7 @@ class JobState:
     free: WindowStats | None = None
     recent: RollingStats | None = None  # the last second, whatever the phase
     hold: object = None  # WindowStats (scripted hold) or RollingStats (interactive)
-    hold_since_change: float = math.nan  # the hold statistics restarted at this setpoint change [s]
+    hold_since: tuple = (math.nan, "")  # the hold statistics restarted then [s], and why (a setpoint change)
     setpoint: float = math.nan  # engage setpoint [m]
     band_fraction: float = 0.01
     latency: int = 0
@@ -423,7 +429,7 @@ class Instrument:
     def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True,
                  attach: bool = False, keep_history: bool = False, scanner: bool = False,
                  cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None,
-                 scanner_overrides: dict | None = None, live_view: bool = False):
+                 scanner_overrides: dict | None = None, live_view: bool = False, overrides: dict | None = None):
         self.context = context
         self.attached = attach
         self.namespace = (namespace or "").rstrip("/")
@@ -435,7 +441,7 @@ class Instrument:
             context, namespace, record=record,
             cantilever_overrides={**(cantilever_overrides or {}), "run_until": 0.0, "feedback_sync": "lockstep"},
             scanner=scanner, recorder_overrides=recorder_overrides, scanner_overrides=scanner_overrides,
-            live_view=live_view)
+            live_view=live_view, overrides=overrides)
         self.monitor = Monitor(keep_history=keep_history, **kw)
         self.namespace = self.monitor.get_namespace().rstrip("/")  # includes a -r __ns:= remapping
         self.executor = make_executor(executor, context)
@@ -709,7 +715,8 @@ class Instrument:
         else:
             job.hold = WindowStats(job.t_enable + 0.75 * duration, math.inf)
         mon.windows.append(job.hold)
-        mon.setpoints = SetpointHistory(job.t_enable, job.setpoint, band_fraction, on_change=self._restart_hold)
+        mon.setpoints = SetpointHistory(job.t_enable, job.setpoint, band_fraction, on_change=self._restart_hold,
+                                       on_settled=self._restart_hold)
         self.set("z_controller", enabled=True)
         if interactive:
             job.phase = "running"
@@ -724,15 +731,17 @@ class Instrument:
             job.t_end = self.t_paused
         return self.summary()
 
-    def _restart_hold(self, change) -> None:
-        """A live setpoint change: the hold statistics start again at it (they describe the setpoint in force)."""
+    def _restart_hold(self, change, t0: float | None = None) -> None:
+        """A live setpoint change: the hold statistics describe the new setpoint, from the change on
+        and again from the moment the amplitude settled into its band (``t0`` [s])."""
         job, windows = self.job, self.monitor.windows
+        start = change.time_s if t0 is None else t0
         old = job.hold
-        new = (RollingStats(old.span, t0=change.time_s) if isinstance(old, RollingStats)
-               else WindowStats(max(old.t0, change.time_s), math.inf))
+        new = (RollingStats(old.span, t0=start) if isinstance(old, RollingStats)
+               else WindowStats(max(job.t_enable + 0.75 * job.duration, start), math.inf))
         windows[windows.index(old)] = new
         job.hold = new
-        job.hold_since_change = change.time_s
+        job.hold_since = (start, "settled at the new setpoint" if t0 is not None else "the setpoint change")
 
     def summary(self, interrupted: str = "") -> Summary:
         """The summary of what the job knows now (without spinning: also after Ctrl-C)."""
@@ -745,10 +754,10 @@ class Instrument:
         else:
             stats = job.hold
             window = ("the last second before Ctrl-C" if job.interactive else "the last quarter of the hold")
-        change = job.hold_since_change
-        if stats is job.hold and math.isfinite(change) and (
-                t_end - change < INTERACTIVE_HOLD_SPAN_S if job.interactive else change > job.t_enable + 0.75 * job.duration):
-            window += f", since the setpoint change at t={change:.4f} s"
+        since, what = job.hold_since
+        if stats is job.hold and math.isfinite(since) and (
+                t_end - since < INTERACTIVE_HOLD_SPAN_S if job.interactive else since > job.t_enable + 0.75 * job.duration):
+            window += f", since {what} at t={since:.4f} s"
         free = job.free
         wall = time.monotonic() - job.wall0
         simulated = t_end - job.t_start if math.isfinite(job.t_start) else 0.0
@@ -967,9 +976,11 @@ def _node_log_level(names, namespace: str, level) -> None:
         set_logger_level(f"{prefix}.{name}" if prefix else name, level)
 
 
-def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, dict, dict, list[str]]:
-    """Parameter values the job gives its nodes (never one the user set), and the lines that say so."""
-    cantilever, recorder, scanner = ros.node_rules("cantilever"), ros.node_rules("recorder"), ros.node_rules("scanner")
+def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, list[str]]:
+    """Parameter values the job gives its nodes by role (never one the user set; under a namespace the
+    user's -p node:name values, which rcl applies only in the root namespace), and the lines that say so."""
+    given = {role: ros.node_rules(role) for role in (*ROLES, "scanner", "recorder", "live_view")}
+    cantilever, recorder, scanner = given["cantilever"], given["recorder"], given["scanner"]
     notes = []
     if options.image:
         scanner.update({k: v for k, v in IMAGE_SCAN.items() if not ros.given("scanner", k)})
@@ -981,18 +992,19 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, di
             cantilever["force_model"] = IMAGE_FORCE_MODEL
             switched.append(f"force_model {IMAGE_FORCE_MODEL} (the parameter's default is dmt, which dissipates "
                             "nothing: the phase contrast between PS and LDPE comes from dissipation)")
-        plan = {k: scanner.get(k) for k in IMAGE_SCAN}
-        notes.append("imaging defaults: " + ", ".join(switched + [
-            f"{plan['pixels_per_line']} x {plan['lines']} pixels at {plan['line_rate']:g} lines/s"])
+        plan = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in IMAGE_SCAN.items()}
+        notes.append("imaging: " + ", ".join(switched + [
+            f"{plan['pixels_per_line']} x {plan['lines']} pixels at {plan['line_rate']} lines/s"])
             + "; change any with -p cantilever:<name>:=... or -p scanner:<name>:=...")
     if run_folder is not None:
-        if not ros.given("recorder", "output"):
+        # '' (the parameters' own default, e.g. from a dumped config) means: the run folder
+        if not ros.value("recorder", "output"):
             recorder["output"] = str(session_path(run_folder, ros.namespace))
-        if not ros.given("scanner", "output_directory"):
+        if not ros.value("scanner", "output_directory"):
             scanner["output_directory"] = str(run_folder)
-    if not options.record_raw and not ros.given("recorder", "exclude") and not ros.given("recorder", "topics"):
+    if not options.record_raw and not ros.value("recorder", "exclude") and not ros.value("recorder", "topics"):
         recorder["exclude"] = RAW_EXCLUDE
-    return cantilever, recorder, scanner, notes
+    return given, notes
 
 
 def main(args=None):
@@ -1019,15 +1031,14 @@ def main(args=None):
                 run_folder = make_run_folder(options.out, ros.namespace)
             except OSError as exc:
                 raise ValueError(f"--out: cannot create the run folder: {exc}") from None
-        cantilever_overrides, recorder_overrides, scanner_overrides, notes = _overrides(options, ros, run_folder)
+        overrides, notes = _overrides(options, ros, run_folder)
         if not options.verbose and ros.log_level is None:  # the job says what matters; node INFO lines with --verbose
             from rclpy.logging import LoggingSeverity
             _node_log_level((*ROLES, "scanner", "recorder", "live_view", "afm_instrument_monitor"), ros.namespace,
                             LoggingSeverity.WARN)
         instrument = Instrument(executor=options.executor, record=record,
                                 attach=options.attach, namespace=None, scanner=scanner,
-                                cantilever_overrides=cantilever_overrides, recorder_overrides=recorder_overrides,
-                                scanner_overrides=scanner_overrides, live_view=options.live_view)
+                                overrides=overrides, live_view=options.live_view)
         instrument.run_folder = str(run_folder) if run_folder is not None else ""
         if run_folder is not None:
             print(f"run folder: {run_folder}", flush=True)

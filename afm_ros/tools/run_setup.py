@@ -21,6 +21,7 @@ from pathlib import Path
 import yaml
 
 RUNS_DIR = "afm_runs"
+_MISSING = object()
 
 
 def _yaml_value(text: str):
@@ -87,10 +88,20 @@ class RosArgs:
                     sections.append(section["ros__parameters"])
         return sections
 
+    def value(self, node: str, name: str, default=None):
+        """The value the user gave ``node``'s parameter ``name`` (by -p, with or without the node, or a
+        params file; the last one wins as in rcl: files, then -p), else ``default``."""
+        for source in (self.params.get(node, {}), self.params.get("", {})):
+            if name in source:
+                return source[name]
+        for section in reversed(self._file_sections(node)):
+            if name in section:
+                return section[name]
+        return default
+
     def given(self, node: str, name: str) -> bool:
-        """True if the user set ``node``'s parameter ``name`` (by -p, with or without the node, or a file)."""
-        return (name in self.params.get(node, {}) or name in self.params.get("", {})
-                or any(name in s for s in self._file_sections(node)))
+        """True if the user set ``node``'s parameter ``name`` (see :meth:`value`)."""
+        return self.value(node, name, _MISSING) is not _MISSING
 
     def node_rules(self, node: str) -> dict:
         """The ``-p node:name:=value`` values rcl does not apply to ``node`` because of the namespace."""
