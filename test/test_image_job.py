@@ -65,10 +65,10 @@ def test_the_job_writes_the_frame_and_a_complete_session(runs):
         assert values.shape == (16, 32) and np.isfinite(values).all(), title
     assert len(list(cwd.glob("afm_runs/*/afm_frame_*_*.png"))) == len(CHANNELS) * len(DIRECTIONS)
     assert list(cwd.iterdir()) == [cwd / "afm_runs"]  # everything in the run's folder, nothing else around
-    report_numbers = image["report"]["directions"]["trace"]
+    step = image["report"]["step"]
     # the islands (10 nm) image far lower on the soft LDPE: the summary gives the core's apparent height
-    assert report_numbers["true_step_m"] == pytest.approx(10e-9, abs=1e-15)
-    assert "predicted_apparent_step_m" in report_numbers
+    assert step["true_m"] == pytest.approx(10e-9, abs=1e-15)
+    assert step["predicted_apparent_m"] is not None and step["level_materials"] == ["polystyrene", "ldpe"]
     scan = SessionScan(next(cwd.glob("afm_runs/*/afm_session_*.mcap")))
     topics = {m.topic for m in read_session(scan.path, scan)}
     assert "/scanner/image/height/trace" in topics and "/cantilever/scan" in topics

@@ -24,6 +24,7 @@ declares the name uses it).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -359,14 +360,14 @@ class Summary:
             lines.append(f"  recording           {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
         if self.image:
-            from afm_ros.tools.frame_report import report_text
+            from afm_ros.tools.frame_report import frame_lines
             im = self.image
             partial = (f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines" if im.get("partial") else "")
             lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
                          f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
                          f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
             if "report" in im:
-                lines.append(report_text(im["report"]))
+                lines += frame_lines(im["report"])
             for f in im.get("files", [])[:1]:
                 lines.append(f"  frame file          {f} (+ PNG previews beside it)")
         lines.append(f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
@@ -414,7 +415,7 @@ class ScanProgress:
             sim = max(self.monitor.answer_time - self.plan.start_time, 0.0)
             wall = now - self.wall0
             rate = sim / wall if wall > 0 else 0.0
-            left = (self.plan.frame_time - sim) / rate if rate > 0 else math.inf
+            left = max(self.plan.frame_time - sim, 0.0) / rate if rate > 0 else math.inf
             print(f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), {sim:.1f} of "
                   f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left", flush=True)
 
@@ -713,7 +714,7 @@ class Instrument:
         if interactive:
             job.hold = RollingStats(INTERACTIVE_HOLD_SPAN_S)  # the last second before Ctrl-C
         else:
-            job.hold = WindowStats(job.t_enable + 0.75 * duration, math.inf)
+            job.hold = WindowStats(job.t_enable + 0.75 * duration, job.t_enable + duration)
         mon.windows.append(job.hold)
         mon.setpoints = SetpointHistory(job.t_enable, job.setpoint, band_fraction, on_change=self._restart_hold,
                                        on_settled=self._restart_hold)
@@ -738,7 +739,7 @@ class Instrument:
         start = change.time_s if t0 is None else t0
         old = job.hold
         new = (RollingStats(old.span, t0=start) if isinstance(old, RollingStats)
-               else WindowStats(max(job.t_enable + 0.75 * job.duration, start), math.inf))
+               else WindowStats(max(job.t_enable + 0.75 * job.duration, start), job.t_enable + job.duration))
         windows[windows.index(old)] = new
         job.hold = new
         job.hold_since = (start, "settled at the new setpoint" if t0 is not None else "the setpoint change")
@@ -799,7 +800,7 @@ class Instrument:
 
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
-        self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)
+        engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)  # contact numbers: the hold
         job = self.job
         scanner, cantilever = self.nodes["scanner"], self.cantilever
         wall_scan = time.monotonic()
@@ -837,16 +838,18 @@ class Instrument:
             image.update(partial=True, lines_done=self.partial_lines)
             frame = self.partial_frame
         if sample is not None and frame is not None:
-            from afm_ros.tools.frame_report import frame_report
-            setup = cantilever._setup
-            image["report"] = frame_report(frame, sample, job.setpoint / job.free.amplitude,
-                                           cantilever._values["force_model"], setup.cantilever, setup.drive,
-                                           setup.steps_per_period, predict=predict)
-        job.t_end = self.monitor.answer_time if interrupted else self.t_paused
-        summary = self.summary(interrupted=interrupted)
-        summary.image = image
-        summary.simulated_time_s = job.t_end
-        return summary
+            from afm_ros.tools.frame_report import Loop, analyse_frame
+            setup, values = cantilever._setup, cantilever._values
+            latency = values["feedback_latency"] * values["chunk_duration"] + 1.0 / self.get("lockin", "output_rate")
+            loop = Loop(self.monitor.setpoints.setpoint, self.get("z_controller", "p_gain"),
+                        self.get("z_controller", "i_gain"), job.free.amplitude, latency, values["tip_radius"])
+            image["report"] = analyse_frame(frame, sample, loop, values["force_model"], setup.cantilever, setup.drive,
+                                            predict=predict)
+        t_end = self.monitor.answer_time if interrupted else self.t_paused
+        wall = time.monotonic() - job.wall0
+        return dataclasses.replace(engaged, image=image, interrupted=interrupted, simulated_time_s=t_end,
+                                   recording=self.recording_status(spin=not interrupted), wall_time_s=wall,
+                                   real_time_factor=t_end / wall if wall > 0 else math.inf)
 
     def _finish_line(self, scanner, plan, chunk: float) -> str:
         """Ctrl-C while scanning: run to the end of the current line, stop the scan and keep the lines

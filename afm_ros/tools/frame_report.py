@@ -1,103 +1,265 @@
 """What a scanned frame shows against what the sample is and what the physics core predicts.
 
-Used by ``afm_instrument --image`` (and usable on any :class:`afm_ros.core.imaging.Frame`):
+One analysis for every frame, offline (``afm_study scan``) and live (``afm_instrument --image``), so
+both say the same thing with the same caveats:
 
-- height: the step between the two most common true height levels under the pixels, from the
-  image's medians on each level (pixels within ``edge_pixels`` pixels along x, where the feedback
-  settles after an edge, and one line along y of a height or material edge left out), for trace
-  and retrace, against the true step and against the *apparent* step the physics
-  core predicts when the two levels are different materials (a soft material is indented more,
-  so the feedback holds the setpoint amplitude with the base lower: true step + z_base(top
-  material) - z_base(bottom material) at the setpoint, from :func:`afm_ros.tools.contrast.contrast_study`);
-- phase: the median phase on each material and their difference, against the difference the
-  physics core predicts at the same amplitude setpoint ratio;
-- trace - retrace: rms difference of the height images.
+- step / island height: the image's medians on the two most common true height levels
+  (:func:`afm_ros.core.image_analysis.level_step`), pixels within the edge-exclusion distance of
+  another level or material left out, against the true step; when the two levels are different
+  materials also the apparent step the physics core predicts, true + z_base(top material) -
+  z_base(bottom material) from :func:`afm_ros.tools.contrast.contrast_study` at the same setpoint (a
+  soft material is indented deeper, so it looks lower: a real tapping-mode artefact);
+- phase contrast and dissipation between the materials (medians per material) against
+  contrast_study's steady states at A/A0 = setpoint / free amplitude;
+- the amplitude error on the kept pixels: above :data:`SETTLED_ERROR` the feedback has not settled
+  on the features (scan too fast for the gains), the medians are biased by the loop, not by the
+  material, and every measured-vs-predicted line says so;
+- trace-retrace rms of height and phase.
+
+Edge exclusion (default; an explicit distance overrides): tip radius + speed x (latency + t_fall + 3
+tau), with latency = feedback_latency x chunk_duration + 1/output_rate, tau = (1 + p_gain) / i_gain
+the loop's time constant (dA/dz = 1) and t_fall = max(0, H - (1 + p_gain) dA) / (i_gain dA) the free
+fall after a down-step of height H when the tip loses contact (dA = A0 - setpoint, z then moves at
+the speed limit i_gain dA): beyond it the feedback error is below ~5 % of the step.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from afm_ros.core.image_analysis import edge_mask, level_step, material_medians, sample_under_pixels, trace_retrace_rms
 from afm_ros.core.imaging import DIRECTIONS
 
-
-def predictions(materials, force_model: str, ratio: float, cantilever, drive, steps_per_period: int) -> dict:
-    """{material: {"phase_deg", "z_base_m", "dissipated_energy_J"}} at amplitude ratio A/A0 = ratio."""
-    from afm_ros.tools.contrast import CONTRAST_MODELS, contrast_study
-
-    names = list(dict.fromkeys(materials))
-    if force_model not in CONTRAST_MODELS or len(names) < 2:
-        return {}
-    rows, _ = contrast_study(names, force_model, ratios=(ratio,), cantilever=cantilever, drive=drive,
-                             steps_per_period=steps_per_period)
-    return {r["material"]: {"phase_deg": float(r["phase_deg"]), "z_base_m": float(r["z_base_m"]),
-                            "dissipated_energy_J": float(r["dissipated_energy_J"])} for r in rows}
+DISCRETE_LEVELS = 16  # more distinct true heights than this: no step to measure (e.g. a rough sample)
+SETTLED_ERROR = 0.1e-9  # [m] largest median amplitude error on the kept pixels for the frame to count as settled
+NOT_SETTLED = " [feedback not settled: biased, see the warning]"
 
 
-def frame_report(frame, sample, setpoint_ratio: float, force_model: str, cantilever, drive,
-                 steps_per_period: int, edge_pixels: float = 2.0, predict: bool = True) -> dict:
-    """Numbers of a frame (see module doc); SI units, angles in degrees."""
-    plan = frame.plan
-    true_height, material = sample_under_pixels(sample, plan)
-    levels = np.unique(np.round(true_height, 15), return_inverse=True)[1].reshape(true_height.shape)
-    labels = levels * 256 + material.astype(np.int64)
-    keep = edge_mask(labels, plan, edge_pixels * plan.pixel_size, plan.line_pitch)
-    names = list(sample.materials)
-    present = [names[i] for i in np.unique(material)]
-    pred = predictions(present, force_model, setpoint_ratio, cantilever, drive, steps_per_period) if predict else {}
-    out = {"edge_pixels_excluded": edge_pixels, "pixels_kept": int(keep.sum()), "materials": present,
-           "setpoint_ratio": setpoint_ratio, "force_model": force_model, "predicted": pred, "directions": {}}
-    for d in DIRECTIONS:
-        images = frame.images[d]
-        entry = {}
-        try:
-            step = level_step(images["height"].astype(float), true_height, keep)
-            entry["true_step_m"] = step.true_step
-            entry["measured_step_m"] = step.measured_step
-            level_materials = []
-            for level in step.levels:
-                on = (np.abs(true_height - level) < 1e-15) & keep
-                counts = np.bincount(material[on], minlength=len(names))
-                level_materials.append(names[int(np.argmax(counts))])
-            entry["level_materials"] = level_materials
-            if pred and level_materials[0] != level_materials[1] and all(m in pred for m in level_materials):
-                entry["predicted_apparent_step_m"] = (step.true_step + pred[level_materials[1]]["z_base_m"]
-                                                      - pred[level_materials[0]]["z_base_m"])
-        except ValueError as exc:
-            entry["step_error"] = str(exc)
-        phases = material_medians(images["phase"].astype(float), material, keep, names)
-        entry["phase_deg"] = phases
-        if len(phases) >= 2:
-            a, b = list(phases)[:2]
-            entry["phase_contrast_deg"] = {"materials": [b, a], "measured": phases[b] - phases[a]}
-            if a in pred and b in pred:
-                entry["phase_contrast_deg"]["predicted"] = pred[b]["phase_deg"] - pred[a]["phase_deg"]
-        entry["dissipation_J"] = material_medians(images["dissipation"].astype(float), material, keep, names)
-        out["directions"][d] = entry
-    out["trace_retrace_rms_m"] = trace_retrace_rms(frame)
+@dataclass
+class Loop:
+    """The z feedback as the frame saw it (SI units)."""
+
+    setpoint: float  # [m]
+    p_gain: float  # [m/m]
+    i_gain: float  # [1/s]
+    free_amplitude: float  # [m]
+    latency: float  # [s] feedback_latency x chunk_duration + 1 / lock-in output_rate
+    tip_radius: float  # [m]
+
+    def numbers(self) -> dict:
+        """Speed limit, time constant and latency of the z feedback (see the module doc)."""
+        da = self.free_amplitude - self.setpoint
+        return {"free_amplitude_m": self.free_amplitude, "setpoint_ratio": self.setpoint / self.free_amplitude,
+                "amplitude_margin_m": da, "z_speed_limit_m_per_s": self.i_gain * da,
+                "loop_time_constant_s": (1.0 + self.p_gain) / self.i_gain if self.i_gain > 0 else math.inf,
+                "latency_s": self.latency}
+
+
+def auto_edge_exclusions(loop: Loop, plan, step: float) -> list[tuple[float, str]]:
+    """Candidate exclusion distances along x [m], most settled first (module doc): tip radius +
+    speed x (latency + t_fall + n tau) for n = 3 (error below ~5 % of the step) and n = 1 (1/e),
+    then tip radius + one pixel (no settling allowance); each at least one pixel."""
+    numbers = loop.numbers()
+    out = []
+    if loop.i_gain > 0.0:
+        da = numbers["amplitude_margin_m"]
+        t_fall = max(0.0, abs(step) - (1.0 + loop.p_gain) * da) / (loop.i_gain * da)
+        for n, text in ((3, "settled to ~5 %"), (1, "settled to ~1/e only: medians biased towards the neighbour")):
+            d = loop.tip_radius + plan.speed * (loop.latency + t_fall + n * numbers["loop_time_constant_s"])
+            out.append((max(d, plan.pixel_size),
+                        f"tip radius + speed x (latency + t_fall + {n} (1 + p_gain) / i_gain), {text}"))
+    out.append((loop.tip_radius + plan.pixel_size, "tip radius + 1 pixel: the feedback has not settled on these "
+                                                   "features at this speed, medians biased"))
     return out
 
 
-def report_text(report: dict) -> str:
-    nm = 1e9
-    lines = []
-    for d, e in report["directions"].items():
-        if "measured_step_m" in e:
-            text = (f"  {d:8s} step {e['measured_step_m'] * nm:7.3f} nm (true {e['true_step_m'] * nm:.3f} nm "
-                    f"{e['level_materials'][1]} on {e['level_materials'][0]}")
-            if "predicted_apparent_step_m" in e:
-                text += f"; apparent step the physics predicts {e['predicted_apparent_step_m'] * nm:.3f} nm"
-            lines.append(text + ")")
-        elif "step_error" in e:
-            lines.append(f"  {d:8s} step: {e['step_error']}")
-        pc = e.get("phase_contrast_deg")
-        if pc:
-            text = f"  {d:8s} phase {pc['materials'][0]} - {pc['materials'][1]}: {pc['measured']:+.3f} deg"
-            if "predicted" in pc:
-                text += f" (physics core at A/A0 = {report['setpoint_ratio']:.3f}: {pc['predicted']:+.3f} deg)"
-            lines.append(text)
-    rms = report.get("trace_retrace_rms_m", math.nan)
-    lines.append(f"  trace - retrace height rms {rms * nm:.3f} nm")
-    return "\n".join(lines)
+def predictions(materials, force_model: str, ratio: float, cantilever, drive, steps_per_period: int | None = None
+                ) -> dict:
+    """contrast_study's steady state per material at A/A0 = ratio: {name: row} (two or more materials),
+    with ``image_dissipation_J``: what the image's first-harmonic dissipation estimate reads for that
+    steady state (E_dis + the damping of the higher harmonics, pi k (w / w0) / Q sum_{n>=2} n^2 A_n^2)."""
+    from afm_ros.tools.contrast import CONTRAST_MODELS, DEFAULT_SPP, contrast_study
+
+    names = list(dict.fromkeys(materials))
+    if force_model not in CONTRAST_MODELS or not 0.0 < ratio < 1.0 or len(names) < 2:
+        return {}
+    rows, scans = contrast_study(names, force_model, (ratio,), cantilever, drive,
+                                 steps_per_period=steps_per_period or DEFAULT_SPP)
+    c, d = cantilever, drive
+    out = {}
+    for r in rows:
+        point = scans[r["material"]][0]
+        if point.analysis is not None:
+            a = point.analysis.harmonics
+            n = np.arange(1, a.size + 1)
+            r = {**r, "image_dissipation_J": r["dissipated_energy_J"] + math.pi * c.spring_constant
+                 * (d.frequency / c.resonance_frequency) / c.quality_factor * float(np.sum((n[1:] * a[1:]) ** 2))}
+        out[r["material"]] = r
+    return out
+
+
+def clean(value):
+    """JSON-ready: numpy scalars to Python, NaN/inf to None."""
+    if isinstance(value, dict):
+        return {str(k): clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [clean(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return clean(value.tolist())
+    return value
+
+
+def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive,
+                  steps_per_period: int | None = None, edge_exclusion: float = -1.0, predict: bool = True) -> dict:
+    """The frame's numbers (module doc) as a JSON-ready dict; SI units in the keys, angles in degrees.
+
+    ``edge_exclusion`` [m] < 0: automatic. The frame may be partial (fewer lines than planned)."""
+    plan = frame.plan
+    true_h, mat = sample_under_pixels(sample, plan)
+    levels, level_index = np.unique(np.round(true_h, 15), return_inverse=True)
+    level_index = level_index.reshape(true_h.shape)
+    numbers = loop.numbers()
+    discrete = 2 <= levels.size <= DISCRETE_LEVELS
+    step_guess = float(levels.max() - levels.min()) if levels.size >= 2 else 0.0
+    labels = level_index.astype(np.int64) * 256 + mat.astype(np.int64)
+    if edge_exclusion >= 0.0:
+        candidates = [(edge_exclusion, "explicit")]
+        distance_y = edge_exclusion
+    else:
+        candidates = auto_edge_exclusions(loop, plan, step_guess)
+        distance_y = loop.tip_radius
+    # the first candidate that leaves pixels on each of the two main levels (and on each material)
+    top = np.argsort(np.bincount(level_index.ravel()))[-2:] if levels.size >= 2 else np.array([0])
+    for distance, rule in candidates:
+        keep = edge_mask(labels, plan, distance, distance_y)
+        if all((keep & (level_index == k)).any() for k in top) and \
+                all((keep & (mat == k)).any() for k in np.unique(mat)):
+            break
+    names = list(sample.materials)
+    present = [names[k] for k in np.unique(mat[keep])] if keep.any() else []
+    ratio = numbers["setpoint_ratio"]
+    pred = predictions(present, force_model, ratio, cantilever, drive, steps_per_period) \
+        if predict and present else {}
+
+    step: dict = {"levels_m": levels.tolist() if discrete else None}
+    if not discrete:
+        step["note"] = (f"{levels.size} distinct true heights under the pixels: no two-level step"
+                        if levels.size > DISCRETE_LEVELS else "one true height level: no step")
+    else:
+        try:
+            by_dir = {d: level_step(frame.images[d]["height"].astype(float), true_h, keep) for d in DIRECTIONS}
+        except ValueError as exc:
+            step["note"] = f"not measurable: {exc} (edge exclusion {distance:.3g} m)"
+        else:
+            ls = by_dir["trace"]
+            level_mats = []
+            for lv in ls.levels:
+                counts = np.bincount(mat[keep & (np.abs(true_h - lv) < 1e-15)], minlength=len(names))
+                level_mats.append(names[int(np.argmax(counts))])
+            step.update({"true_m": ls.true_step, "measured_trace_m": ls.measured_step,
+                         "measured_retrace_m": by_dir["retrace"].measured_step, "level_pixels": ls.pixels.tolist(),
+                         "level_materials": level_mats, "two_levels_m": ls.levels.tolist()})
+            if level_mats[0] == level_mats[1]:
+                step["predicted_apparent_m"] = ls.true_step
+                step["predicted_rule"] = "one material: apparent = true"
+            elif all(m in pred and pred[m]["regime"] != "not_reached" for m in level_mats):
+                zb = [float(pred[m]["z_base_m"]) for m in level_mats]
+                step["predicted_apparent_m"] = ls.true_step + zb[1] - zb[0]
+                step["z_base_m"] = dict(zip(level_mats, zb))
+                step["predicted_rule"] = (f"true + z_base({level_mats[1]}) - z_base({level_mats[0]}) "
+                                          f"(contrast_study at A/A0 = {ratio:.4g})")
+
+    phase, dissipation, amplitude_error = {}, {}, {}
+    for d in DIRECTIONS:
+        phase[d] = material_medians(frame.images[d]["phase"].astype(float), mat, keep, names)
+        dissipation[d] = material_medians(frame.images[d]["dissipation"].astype(float), mat, keep, names)
+        amplitude_error[d] = material_medians(frame.images[d]["amplitude_error"].astype(float), mat, keep, names)
+    worst = max((abs(v) for e in amplitude_error.values() for v in e.values()), default=math.nan)
+    # without dissipation, at resonance, sin(phi) = A / A0: dphi/dA = 1 / (A0 cos(phi)) = 1 / (A0 sqrt(1 - r^2))
+    # at the setpoint ratio r (1.6 deg/nm at r = 0.8; the core's slope on PS and LDPE is the same)
+    sensitivity = math.degrees(1.0 / (numbers["free_amplitude_m"] * math.sqrt(max(1.0 - ratio ** 2, 1e-12))))
+    contrast: dict = {}
+    if len(present) >= 2:
+        ref = present[0] if names[0] not in present else names[0]
+        for other in (m for m in present if m != ref):
+            key = f"{other} - {ref}"
+            contrast[key] = {d: phase[d][other] - phase[d][ref] for d in DIRECTIONS}
+            if other in pred and ref in pred:
+                contrast[key]["predicted"] = float(pred[other]["phase_deg"] - pred[ref]["phase_deg"])
+    return clean({
+        "feedback": numbers, "force_model": force_model,
+        "lines_scanned": int(plan.lines),
+        "edge_exclusion_m": distance, "edge_exclusion_y_m": distance_y, "edge_exclusion_rule": rule,
+        "kept_pixels": int(keep.sum()), "pixels": int(keep.size),
+        "step": step, "phase_deg": phase, "phase_contrast_deg": contrast, "dissipation_J": dissipation,
+        "amplitude_error_m": amplitude_error,
+        "settled": bool(worst <= SETTLED_ERROR) if math.isfinite(worst) else False,
+        "phase_per_amplitude_deg_per_m": sensitivity,
+        "prediction": {m: {k: r.get(k) for k in ("z_base_m", "amplitude_m", "phase_deg", "dissipated_energy_J",
+                                                 "image_dissipation_J", "indentation_m", "peak_force_N", "regime")}
+                       for m, r in pred.items()},
+        "trace_retrace_rms": {"height_m": trace_retrace_rms(frame, "height"),
+                              "phase_deg": trace_retrace_rms(frame, "phase")},
+    })
+
+
+def _nm(x) -> str:
+    return "n/a" if x is None else f"{x * 1e9:.3f} nm"
+
+
+def frame_lines(s: dict) -> list[str]:
+    """The printed lines of :func:`analyse_frame`'s dict (the same in every tool)."""
+    st = s["step"]
+    caveat = "" if s["settled"] else NOT_SETTLED
+    lines = [f"  edge exclusion       {s['edge_exclusion_m'] * 1e6:.3g} um along x, "
+             f"{s['edge_exclusion_y_m'] * 1e6:.3g} um along y ({s['edge_exclusion_rule']}); "
+             f"{s['kept_pixels']} of {s['pixels']} pixels kept"]
+    if "true_m" in st:
+        lines.append(f"  step height          true {_nm(st['true_m'])}; measured {_nm(st['measured_trace_m'])} (trace), "
+                     f"{_nm(st['measured_retrace_m'])} (retrace){caveat}")
+        if st.get("predicted_apparent_m") is not None:
+            lines.append(f"  predicted apparent   {_nm(st['predicted_apparent_m'])} = {st['predicted_rule']}")
+            if st["level_materials"][0] != st["level_materials"][1]:
+                lines.append(f"                       ({st['level_materials'][1]} on {st['level_materials'][0]}: "
+                             f"the softer material is indented deeper and looks lower; a real tapping-mode artefact)")
+    else:
+        lines.append(f"  step height          {st.get('note', 'n/a')}")
+    for d in DIRECTIONS:
+        ph = s["phase_deg"][d]
+        if ph:
+            lines.append(f"  {'phase, ' + d:<21s}" + ", ".join(f"{m} {v:.3f} deg" for m, v in ph.items()))
+    for key, c in s["phase_contrast_deg"].items():
+        pred = f"; predicted {c['predicted']:.3f} deg (contrast_study)" if c.get("predicted") is not None else ""
+        lines.append(f"  phase contrast       {key}: {c['trace']:.3f} deg (trace), "
+                     f"{c['retrace']:.3f} deg (retrace){pred}{caveat}")
+    ds = s["dissipation_J"]["trace"]
+    if ds:
+        lines.append("  dissipation (trace)  " + ", ".join(f"{m} {v * 1e18:.2f} aJ" for m, v in ds.items()) + caveat)
+        if s["prediction"]:
+            pr = s["prediction"]
+            lines.append("  core dissipation     " + ", ".join(
+                f"{m} {r['dissipated_energy_J'] * 1e18:.2f} aJ" for m, r in pr.items())
+                + "; as the image estimates it (+ higher-harmonic damping) " + ", ".join(
+                f"{m} {r['image_dissipation_J'] * 1e18:.2f} aJ" for m, r in pr.items()
+                if r.get("image_dissipation_J") is not None))
+    errors = {m: v for e in s["amplitude_error_m"].values() for m, v in e.items()}
+    if errors:
+        worst = max(errors, key=lambda m: abs(errors[m]))
+        text = ", ".join(f"{m} {_nm(v)}" for m, v in s["amplitude_error_m"]["trace"].items())
+        lines.append(f"  amplitude error      {text} (trace medians)")
+        if not s["settled"]:
+            lines.append(f"  warning              not settled: median amplitude error up to {_nm(errors[worst])} "
+                         f"({worst}); the phase moves ~{s['phase_per_amplitude_deg_per_m'] * 1e-9:.2g} deg per nm "
+                         f"of amplitude error and the height by up to as much: medians are biased by the feedback, "
+                         f"not material (scan slower or raise the gains)")
+    rms = s["trace_retrace_rms"]
+    lines.append(f"  trace-retrace rms    height {_nm(rms['height_m'])}, phase "
+                 f"{'n/a' if rms['phase_deg'] is None else format(rms['phase_deg'], '.3f')} deg")
+    return lines

@@ -11,24 +11,10 @@ accumulator in lockstep, deterministic: noise is off unless ``--temperature`` or
   (:func:`afm_ros.formats.frames.write_frame`);
 - ``scan_summary.json``: the numbers below (SI units in the key names).
 
-The printed summary compares the image with what the physics predicts:
-
-- step / island height: the image's medians on the two most common true height levels
-  (:func:`afm_ros.core.image_analysis.level_step`), pixels within the stated edge-exclusion
-  distance of another level or material left out, against the true step; when the two levels
-  are different materials also the apparent step the physics core predicts, true + z_base(top
-  material) - z_base(bottom material) from :func:`afm_ros.tools.contrast.contrast_study` at the
-  same setpoint (a soft material is indented deeper, so it looks lower: a real tapping-mode
-  artefact, see docs/imaging.md);
-- phase contrast between the materials (medians per material) against contrast_study's steady
-  phases at A/A0 = setpoint / free amplitude;
-- trace-retrace rms of height and phase, and the real-time factor (simulated / wall time of the scan).
-
-Edge exclusion (default, ``--edge-exclusion`` overrides): tip radius + speed x (latency + t_fall +
-3 tau), with latency = feedback_latency x chunk_duration + 1/output_rate, tau = (1 + p_gain) /
-i_gain the loop's time constant (dA/dz = 1) and t_fall = max(0, H - (1 + p_gain) dA) / (i_gain dA)
-the free fall after a down-step of height H when the tip loses contact (dA = A0 - setpoint, z then
-moves at the speed limit i_gain dA): beyond it the feedback error is below ~5 % of the step.
+The printed summary compares the image with what the physics predicts (step and apparent step,
+phase contrast, dissipation, the amplitude error that says whether the feedback settled,
+trace-retrace rms; edge exclusion): the same analysis as ``afm_instrument --image``,
+:mod:`afm_ros.tools.frame_report`, plus the real-time factor of the scan.
 
 A bad value prints one line naming the flag, the field and the allowed range, and exits with 2.
 """
@@ -51,6 +37,7 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import NOISE_SPECS, ParamSpec, parse_number
 from afm_ros.core.scanner import SCAN_SPECS, ScanPlan
+from afm_ros.tools.frame_report import Loop, analyse_frame, clean, frame_lines
 
 PROG = "afm_study scan"
 SCAN_FLAG_NAMES = tuple(n for n in SCAN_SPECS if n != "continuous")  # the tool scans one frame
@@ -70,8 +57,6 @@ TOOL_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 NOISE_FLAGS = {"temperature": "--temperature", "detector_noise_density": "--detector-noise",
                "noise_seed": "--noise-seed"}
 DEFAULT_SAMPLE = "ps_ldpe_blend"
-DISCRETE_LEVELS = 16  # more distinct true heights than this: no step to measure (e.g. a rough sample)
-SETTLED_ERROR = 0.1e-9  # [m] largest median amplitude error on the kept pixels for the summary to call them settled
 
 
 def _flag(name: str) -> str:
@@ -276,188 +261,37 @@ def _progress_printer(lines: int):
 
 
 # --- what the image says -------------------------------------------------------------------
-def loop_numbers(config: ScanConfig, instrument) -> dict:
-    """Speed limit, time constant and latency of the z feedback (see the module doc)."""
-    p, i = config.feedback["p_gain"], config.feedback["i_gain"]
-    a0 = instrument.values["free_amplitude"]
-    da = a0 - config.feedback["setpoint"]
+def frame_loop(config: ScanConfig, instrument) -> Loop:
+    """The z feedback of the wired instrument, for :func:`afm_ros.tools.frame_report.analyse_frame`."""
     latency = instrument.latency * instrument.values["chunk_duration"] + 1.0 / config.lockin_output_rate
-    return {"free_amplitude_m": a0, "setpoint_ratio": config.feedback["setpoint"] / a0,
-            "amplitude_margin_m": da, "z_speed_limit_m_per_s": i * da,
-            "loop_time_constant_s": (1.0 + p) / i if i > 0 else math.inf, "latency_s": latency}
-
-
-def auto_edge_exclusions(config: ScanConfig, instrument, plan: ScanPlan, step: float) -> list[tuple[float, str]]:
-    """Candidate exclusion distances along x [m], most settled first (module doc): tip radius +
-    speed x (latency + t_fall + n tau) for n = 3 (error below ~5 % of the step) and n = 1 (1/e),
-    then tip radius + one pixel (no settling allowance); each at least one pixel."""
-    loop = loop_numbers(config, instrument)
-    i, p = config.feedback["i_gain"], config.feedback["p_gain"]
-    radius = instrument.values["tip_radius"]
-    out = []
-    if i > 0.0:
-        da = loop["amplitude_margin_m"]
-        t_fall = max(0.0, abs(step) - (1.0 + p) * da) / (i * da)
-        for n, text in ((3, "settled to ~5 %"), (1, "settled to ~1/e only: medians biased towards the neighbour")):
-            d = radius + plan.speed * (loop["latency_s"] + t_fall + n * loop["loop_time_constant_s"])
-            out.append((max(d, plan.pixel_size),
-                        f"tip radius + speed x (latency + t_fall + {n} (1 + p_gain) / i_gain), {text}"))
-    out.append((radius + plan.pixel_size, "tip radius + 1 pixel: the feedback has not settled on these features "
-                                          "at this speed, medians biased"))
-    return out
-
-
-def _clean(value):
-    """JSON-ready: numpy scalars to Python, NaN/inf to None."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        v = float(value)
-        return v if math.isfinite(v) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    return value
-
-
-def predictions(materials, force_model: str, ratio: float, instrument) -> dict:
-    """contrast_study's steady state per material at A/A0 = ratio: {name: row} (two or more materials)."""
-    from afm_ros.tools.contrast import CONTRAST_MODELS, contrast_study
-
-    names = list(dict.fromkeys(materials))
-    if force_model not in CONTRAST_MODELS or not 0.0 < ratio < 1.0 or len(names) < 2:
-        return {}
-    c, d = instrument.setup.cantilever, instrument.setup.drive
-    rows, scans = contrast_study(names, force_model, (ratio,), c, d)
-    out = {}
-    for r in rows:
-        point = scans[r["material"]][0]
-        if point.analysis is not None:
-            # what the image's first-harmonic dissipation estimate reads for this steady state:
-            # E_dis + the damping of the higher harmonics, pi k (w / w0) / Q sum_{n>=2} n^2 A_n^2
-            a = point.analysis.harmonics
-            n = np.arange(1, a.size + 1)
-            r = {**r, "image_dissipation_J": r["dissipated_energy_J"] + math.pi * c.spring_constant
-                 * (d.frequency / c.resonance_frequency) / c.quality_factor * float(np.sum((n[1:] * a[1:]) ** 2))}
-        out[r["material"]] = r
-    return out
+    return Loop(config.feedback["setpoint"], config.feedback["p_gain"], config.feedback["i_gain"],
+                instrument.values["free_amplitude"], latency, instrument.values["tip_radius"])
 
 
 def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dict:
-    """The summary numbers (see the module doc) as a JSON-ready dict."""
-    from afm_ros.core.image_analysis import (edge_mask, level_step, material_medians, sample_under_pixels,
-                                             trace_retrace_rms)
-
+    """The summary numbers (module doc; :func:`afm_ros.tools.frame_report.analyse_frame`) as a JSON-ready dict."""
     frame, plan, w = result.frame, result.plan, result.instrument
     sample = config.sample
-    true_h, mat = sample_under_pixels(sample, plan)
-    levels, level_index = np.unique(np.round(true_h, 15), return_inverse=True)
-    level_index = level_index.reshape(true_h.shape)
-    loop = loop_numbers(config, w)
-    discrete = 2 <= levels.size <= DISCRETE_LEVELS
-    step_guess = float(levels.max() - levels.min()) if levels.size >= 2 else 0.0
-    labels = level_index.astype(np.int64) * 256 + mat.astype(np.int64)
-    if config.edge_exclusion >= 0.0:
-        candidates = [(config.edge_exclusion, "--edge-exclusion")]
-        distance_y = config.edge_exclusion
-    else:
-        candidates = auto_edge_exclusions(config, w, plan, step_guess)
-        distance_y = w.values["tip_radius"]
-    # the first candidate that leaves pixels on each of the two main levels (and on each material)
-    top = np.argsort(np.bincount(level_index.ravel()))[-2:] if levels.size >= 2 else np.array([0])
-    for distance, rule in candidates:
-        keep = edge_mask(labels, plan, distance, distance_y)
-        if all((keep & (level_index == k)).any() for k in top) and \
-                all((keep & (mat == k)).any() for k in np.unique(mat)):
-            break
-    names = list(sample.materials)
-    present = [names[k] for k in np.unique(mat[keep])] if keep.any() else []
-    ratio = loop["setpoint_ratio"]
-    pred = predictions(present, config.force_model, ratio, w) if predict and present else {}
-
-    step: dict = {"levels_m": levels.tolist() if discrete else None}
-    if not discrete:
-        step["note"] = (f"{levels.size} distinct true heights under the pixels: no two-level step"
-                        if levels.size > DISCRETE_LEVELS else "one true height level: no step")
-    else:
-        try:
-            by_dir = {d: level_step(frame.images[d]["height"].astype(float), true_h, keep)
-                      for d in ("trace", "retrace")}
-        except ValueError as exc:
-            step["note"] = f"not measurable: {exc} (edge exclusion {distance:.3g} m; set --edge-exclusion)"
-        else:
-            ls = by_dir["trace"]
-            lo_sel = [keep & (np.abs(true_h - lv) < 1e-15) for lv in ls.levels]
-            level_mats = []
-            for sel in lo_sel:
-                counts = np.bincount(mat[sel], minlength=len(names))
-                level_mats.append(names[int(np.argmax(counts))])
-            step.update({"true_m": ls.true_step, "measured_trace_m": ls.measured_step,
-                         "measured_retrace_m": by_dir["retrace"].measured_step, "level_pixels": ls.pixels.tolist(),
-                         "level_materials": level_mats, "two_levels_m": ls.levels.tolist()})
-            if level_mats[0] == level_mats[1]:
-                step["predicted_apparent_m"] = ls.true_step
-                step["predicted_rule"] = "one material: apparent = true"
-            elif all(m in pred and pred[m]["regime"] != "not_reached" for m in level_mats):
-                zb = [float(pred[m]["z_base_m"]) for m in level_mats]
-                step["predicted_apparent_m"] = ls.true_step + zb[1] - zb[0]
-                step["z_base_m"] = dict(zip(level_mats, zb))
-                step["predicted_rule"] = (f"true + z_base({level_mats[1]}) - z_base({level_mats[0]}) "
-                                          f"(contrast_study at A/A0 = {ratio:.4g})")
-
-    phase: dict = {}
-    dissipation: dict = {}
-    amplitude_error: dict = {}
-    for d in ("trace", "retrace"):
-        phase[d] = material_medians(frame.images[d]["phase"].astype(float), mat, keep, names)
-        dissipation[d] = material_medians(frame.images[d]["dissipation"].astype(float), mat, keep, names)
-        amplitude_error[d] = material_medians(frame.images[d]["amplitude_error"].astype(float), mat, keep, names)
-    worst = max((abs(v) for e in amplitude_error.values() for v in e.values()), default=math.nan)
-    # without dissipation, at resonance, sin(phi) = A / A0: dphi/dA = 1 / (A0 cos(phi)) = 1 / (A0 sqrt(1 - r^2))
-    # at the setpoint ratio r (1.6 deg/nm at r = 0.8; the core's slope on PS and LDPE is the same)
-    sensitivity = math.degrees(1.0 / (loop["free_amplitude_m"] * math.sqrt(1.0 - loop["setpoint_ratio"] ** 2)))
-    contrast: dict = {}
-    if len(present) >= 2:
-        ref = present[0] if names[0] not in present else names[0]
-        for other in (m for m in present if m != ref):
-            key = f"{other} - {ref}"
-            contrast[key] = {d: phase[d][other] - phase[d][ref] for d in ("trace", "retrace")}
-            if other in pred and ref in pred:
-                contrast[key]["predicted"] = float(pred[other]["phase_deg"] - pred[ref]["phase_deg"])
+    out = analyse_frame(frame, sample, frame_loop(config, w), config.force_model, w.setup.cantilever, w.setup.drive,
+                        edge_exclusion=config.edge_exclusion, predict=predict)
+    if out["edge_exclusion_rule"] == "explicit":
+        out["edge_exclusion_rule"] = "--edge-exclusion"
+    out["feedback"] = {**config.feedback, **out["feedback"]}
     sim_scan = plan.frame_time
-    summary = {
-        "sample": {"spec": config.sample_spec, "materials": names, "size_m": [sample.size_x, sample.size_y],
-                   "description": sample.description},
+    return clean({
+        "sample": {"spec": config.sample_spec, "materials": list(sample.materials),
+                   "size_m": [sample.size_x, sample.size_y], "description": sample.description},
         "scan": {**plan.values(), "speed_m_per_s": plan.speed, "x_left_m": plan.x_left, "y_low_m": plan.y_low,
                  "pixel_size_m": plan.pixel_size, "line_pitch_m": plan.line_pitch},
-        "feedback": {**config.feedback, **loop},
-        "force_model": config.force_model,
+        **out,
         "lockin_output_rate_hz": config.lockin_output_rate,
         "noise": config.noise,
         "engage": {"time_s": config.engage_time, "amplitude_error_at_scan_start_m": result.engage_amplitude_error},
-        "edge_exclusion_m": distance, "edge_exclusion_y_m": distance_y, "edge_exclusion_rule": rule,
-        "kept_pixels": int(keep.sum()),
-        "pixels": int(keep.size),
-        "step": step,
-        "phase_deg": phase, "phase_contrast_deg": contrast,
-        "dissipation_J": dissipation,
-        "amplitude_error_m": amplitude_error,
-        "settled": bool(worst <= SETTLED_ERROR) if math.isfinite(worst) else False,
-        "phase_per_amplitude_deg_per_m": sensitivity,
-        "prediction": {m: {k: r.get(k) for k in ("z_base_m", "amplitude_m", "phase_deg", "dissipated_energy_J",
-                                                 "image_dissipation_J", "indentation_m", "peak_force_N", "regime")}
-                       for m, r in pred.items()},
-        "trace_retrace_rms": {"height_m": trace_retrace_rms(frame, "height"),
-                              "phase_deg": trace_retrace_rms(frame, "phase")},
         "timing": {"simulated_scan_s": sim_scan, "wall_scan_s": result.wall_scan,
                    "real_time_factor": sim_scan / result.wall_scan if result.wall_scan > 0 else math.inf,
                    "wall_setup_s": result.wall_setup, "wall_engage_s": result.wall_engage},
         "peak_rss_scan_bytes": result.peak_rss_scan,
-    }
-    return _clean(summary)
+    })
 
 
 def _nm(x) -> str:
@@ -466,7 +300,7 @@ def _nm(x) -> str:
 
 def format_summary(s: dict) -> str:
     """The printed summary of :func:`analyse`'s dict."""
-    sc, fb, st = s["scan"], s["feedback"], s["step"]
+    sc, fb = s["scan"], s["feedback"]
     lines = [f"{PROG} summary",
              f"  sample               {s['sample']['spec']} ({', '.join(s['sample']['materials'])}; "
              f"{s['sample']['size_m'][0] * 1e6:g} x {s['sample']['size_m'][1] * 1e6:g} um, periodic)",
@@ -479,51 +313,7 @@ def format_summary(s: dict) -> str:
              f"{(fb['loop_time_constant_s'] or math.inf) * 1e3:.3g} ms",
              f"  engage               {s['engage']['time_s']:g} s at the first pixel; amplitude error at the scan "
              f"start {_nm(s['engage']['amplitude_error_at_scan_start_m'])}",
-             f"  edge exclusion       {s['edge_exclusion_m'] * 1e6:.3g} um along x, "
-             f"{s['edge_exclusion_y_m'] * 1e6:.3g} um along y ({s['edge_exclusion_rule']}); {s['kept_pixels']} of {s['pixels']} pixels kept"]
-    if "true_m" in st:
-        line = (f"  step height          true {_nm(st['true_m'])}; measured {_nm(st['measured_trace_m'])} (trace), "
-                f"{_nm(st['measured_retrace_m'])} (retrace)")
-        lines.append(line)
-        if st.get("predicted_apparent_m") is not None:
-            lines.append(f"  predicted apparent   {_nm(st['predicted_apparent_m'])} = {st['predicted_rule']}")
-            if st["level_materials"][0] != st["level_materials"][1]:
-                lines.append(f"                       ({st['level_materials'][1]} on {st['level_materials'][0]}: "
-                             f"the softer material is indented deeper and looks lower; a real tapping-mode artefact)")
-    else:
-        lines.append(f"  step height          {st.get('note', 'n/a')}")
-    for d in ("trace", "retrace"):
-        ph = s["phase_deg"][d]
-        if ph:
-            lines.append(f"  {'phase, ' + d:<21s}" + ", ".join(f"{m} {v:.3f} deg" for m, v in ph.items()))
-    for key, c in s["phase_contrast_deg"].items():
-        pred = f"; predicted {c['predicted']:.3f} deg (contrast_study)" if "predicted" in c else ""
-        lines.append(f"  phase contrast       {key}: {c['trace']:.3f} deg (trace), "
-                     f"{c['retrace']:.3f} deg (retrace){pred}")
-    for d in ("trace",):
-        ds = s["dissipation_J"][d]
-        if ds:
-            lines.append("  dissipation (trace)  " + ", ".join(f"{m} {v * 1e18:.2f} aJ" for m, v in ds.items()))
-            if s["prediction"]:
-                pr = s["prediction"]
-                lines.append("  core dissipation     " + ", ".join(
-                    f"{m} {r['dissipated_energy_J'] * 1e18:.2f} aJ" for m, r in pr.items())
-                    + "; as the image estimates it (+ higher-harmonic damping) " + ", ".join(
-                    f"{m} {r['image_dissipation_J'] * 1e18:.2f} aJ" for m, r in pr.items()
-                    if r.get("image_dissipation_J") is not None))
-    errors = {m: v for e in s["amplitude_error_m"].values() for m, v in e.items()}
-    if errors:
-        worst = max(errors, key=lambda m: abs(errors[m]))
-        text = ", ".join(f"{m} {_nm(v)}" for m, v in s["amplitude_error_m"]["trace"].items())
-        lines.append(f"  amplitude error      {text} (trace medians)")
-        if not s["settled"]:
-            lines.append(f"  warning              not settled: median amplitude error up to {_nm(errors[worst])} "
-                         f"({worst}); the phase moves ~{s['phase_per_amplitude_deg_per_m'] * 1e-9:.2g} deg per nm "
-                         f"of amplitude error and the height by up to as much: medians are biased by the feedback, "
-                         f"not material (scan slower or raise the gains)")
-    rms = s["trace_retrace_rms"]
-    lines.append(f"  trace-retrace rms    height {_nm(rms['height_m'])}, phase "
-                 f"{'n/a' if rms['phase_deg'] is None else format(rms['phase_deg'], '.3f')} deg")
+             *frame_lines(s)]
     t = s["timing"]
     lines.append(f"  simulated / wall     {t['simulated_scan_s']:g} s / {t['wall_scan_s']:.2f} s "
                  f"(real-time factor {t['real_time_factor']:.2f})")
