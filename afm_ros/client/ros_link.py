@@ -189,15 +189,18 @@ def python_value(value: Any) -> ParameterValue:
     return rclpy.parameter.Parameter("_", value=value).get_parameter_value()
 
 
-def same_value(a: Any, b: Any) -> bool:
-    """True if ``a`` and ``b`` are the same parameter value, also across text and number (a file
-    written by ``ros2 param dump`` and read back by YAML holds ``6e-08`` as text)."""
-    if a == b and type(a) is type(b):
-        return True
-    try:
-        return float(a) == float(b) and not isinstance(a, bool) and not isinstance(b, bool)
-    except (TypeError, ValueError):
-        return str(a).lower() == str(b).lower()
+def same_value(wanted: Any, current: Any, type_name: str) -> bool:
+    """True if ``wanted`` (e.g. from a YAML file) is the ``current`` value of a parameter of type
+    ``type_name``, also across text and number (a file written by ``ros2 param dump`` holds ``6e-08``,
+    which YAML reads as text)."""
+    if type_name in ("double", "integer"):
+        if isinstance(wanted, bool):
+            return False
+        try:
+            return float(wanted) == float(current)
+        except (TypeError, ValueError):
+            return False
+    return type(wanted) is type(current) and wanted == current
 
 
 def fqn(namespace: str, name: str) -> str:
@@ -248,8 +251,8 @@ class Change:
 
 @dataclass
 class LoadResult:
-    """What :meth:`RosLink.load_parameters` did: old and new values of the parameters it set, and
-    the read-only ones it left because the file holds their current value."""
+    """What :meth:`RosLink.load_parameters` did: old and new values of the parameters it set, the
+    ones that already had the file's value (not sent), and the read-only ones (holding the file's value)."""
 
     node: str
     changed: dict[str, tuple[Any, Any]]
@@ -494,8 +497,8 @@ class RosLink:
 
         Checked before anything is sent (:class:`params_file.ParamsFileError`,
         :class:`UnknownParameter`, :class:`ParameterRefused` for a read-only parameter whose value
-        differs); a read-only parameter holding its current value is left alone. ``atomic``: all or
-        nothing, the node checks the values together.
+        differs). Only values that differ from the node's are sent; ``atomic``: all or nothing, the
+        node checks them together (a refusal raises :class:`ParameterRefused`, nothing changes).
         """
         name = self.resolve(node)
         self.wait_for_node(name)
@@ -510,15 +513,16 @@ class RosLink:
         info = self.describe_parameters(name, list(wanted))
         read_only = [n for n in wanted if not info[n].live]
         for n in read_only:
-            if not same_value(wanted[n], info[n].value):
+            if not same_value(wanted[n], info[n].value, info[n].type):
                 raise ParameterRefused(name, [n], f"{n} is read-only while the node runs (file: {wanted[n]!r}, "
                                                   f"node: {info[n].value!r}); set it when starting the node")
-        to_set = {n: v for n, v in wanted.items() if n not in read_only}
-        if to_set:
+        to_set = {n: v for n, v in wanted.items()
+                  if n not in read_only and not same_value(v, info[n].value, info[n].type)}
+        if to_set:  # only what differs: a node may restart work on any change it is sent
             self._set(name, [ParameterMsg(name=n, value=python_value(v)) for n, v in to_set.items()], atomic)
         new = self.get_parameters(name, list(to_set)) if to_set else {}
-        changed = {n: (info[n].value, new[n]) for n in to_set if not same_value(info[n].value, new[n])}
-        return LoadResult(name, changed, [n for n in to_set if n not in changed], read_only)
+        return LoadResult(name, {n: (info[n].value, new[n]) for n in to_set},
+                          [n for n in wanted if n not in to_set and n not in read_only], read_only)
 
     # --- services ----------------------------------------------------------------------------------
     def trigger(self, service: str, node: str = "scanner") -> str:
