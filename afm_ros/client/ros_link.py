@@ -16,6 +16,7 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ from rcl_interfaces.srv import (DescribeParameters, GetParameters, ListParameter
                                 SetParametersAtomically)
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import get_parameter_value, parameter_value_to_python
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
@@ -60,7 +61,7 @@ TYPE_NAMES = {ParameterType.PARAMETER_NOT_SET: "not set", ParameterType.PARAMETE
 WATCH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.BEST_EFFORT)
 # scanner/progress is latched (transient local): the current state arrives on subscription
 PROGRESS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=rclpy.qos.DurabilityPolicy.TRANSIENT_LOCAL)
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 # an afm_ros description: "<text> [<unit>]; allowed <range>[; read-only after start][; ...]"
@@ -282,8 +283,8 @@ class RosLink:
             context = rclpy.Context()
             rclpy.init(args=[], context=context)
         self.context = context
-        self.node = rclpy.create_node(f"_afm_client_{id(self):x}", context=context, start_parameter_services=False,
-                                      enable_rosout=False)
+        self.node = rclpy.create_node(f"_afm_client_{os.getpid()}_{id(self):x}", context=context,
+                                      start_parameter_services=False, enable_rosout=False)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self._clients: dict[str, Any] = {}  # service clients by service name
@@ -484,7 +485,7 @@ class RosLink:
         namespace) instead of the fully qualified name."""
         name = self.resolve(node)
         info = self.describe_parameters(node)
-        comments = {n: (f"{i.description} [{i.unit}]" if i.unit else i.description) +
+        comments = {n: (f"{i.description} [{i.unit}]" if i.unit else i.description.rstrip(".")) +
                        (f"; allowed {i.range}" if i.range else "") + ("" if i.live else "; read-only")
                     for n, i in info.items()}
         key = f"/**/{split_fqn(name)[1]}" if portable else name
@@ -576,7 +577,8 @@ class RosLink:
 
     def diagnostics_publishers(self) -> list[str]:
         """The nodes of this namespace that publish on /diagnostics (as discovered so far)."""
-        return sorted({fqn(i.node_namespace, i.node_name) for i in self.node.get_publishers_info_by_topic("/diagnostics")
+        infos = self.node.get_publishers_info_by_topic("/diagnostics")
+        return sorted({fqn(i.node_namespace, i.node_name) for i in infos
                        if "/" + i.node_namespace.strip("/") == self.namespace and not i.node_name.startswith("_")})
 
     def collect_diagnostics(self, timeout: float | None = None) -> dict[str, list[DiagnosticStatus]]:

@@ -13,7 +13,6 @@ import math
 import os
 import re
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -100,8 +99,8 @@ def status_summary(what: str, values: dict) -> str:
     """The facts a person looks at first in one /diagnostics status of an afm_ros node."""
     if what == "simulation":
         text = (f"t {_float(values, 'simulated_time_s'):.3f} s, real-time factor "
-                f"{_float(values, 'real_time_factor_achieved'):.2f} of {values.get('real_time_factor_requested', '?')}, "
-                f"lag {_float(values, 'lag_s'):.3f} s")
+                f"{_float(values, 'real_time_factor_achieved'):.2f} of "
+                f"{values.get('real_time_factor_requested', '?')}, lag {_float(values, 'lag_s'):.3f} s")
         if values.get("paused") == "true":
             text += ", paused"
         text += f", blow-ups {values.get('blowups', '?')}"
@@ -201,8 +200,8 @@ def cmd_load(link, args, out) -> int:
     node = link.wait_for_node(args.node)
     result = link.load_parameters(node, args.file)
     print(f"loaded {args.file} into {node}: {len(result.changed)} changed, {len(result.unchanged)} already had "
-          f"that value" + (f", {len(result.read_only_skipped)} read-only left as they are "
-                           f"({', '.join(result.read_only_skipped)})" if result.read_only_skipped else ""), file=out)
+          f"that value" + (f", read-only and already set: {', '.join(result.read_only_skipped)}"
+                           if result.read_only_skipped else ""), file=out)
     for name, (old, new) in result.changed.items():
         print(f"  {name}: {value_text(old)} -> {value_text(new)}", file=out)
     return 0
@@ -460,6 +459,8 @@ def main(argv=None) -> int:
         if isinstance(exc, NodeNotFound) and exc.elsewhere:
             other = exc.elsewhere[0] if exc.name is None else exc.elsewhere[0].rpartition("/")[0] or "/"
             hint = f" (try --ns {other})"
+        elif isinstance(exc, NoAnswer) and "set_parameters" in exc.what:
+            hint = "; the node may still apply the values when it gets to the request: check with afm_ctl get"
         print(f"afm_ctl: {exc}{hint}", file=sys.stderr)
         status = 3
     except (ClientError, ParamsFileError) as exc:
