@@ -352,15 +352,17 @@ def test_afm_instrument_interactive_in_a_namespace(ctl_env, tmp_path):
     """The issue's case: the README's interactive instrument under -r __ns:=, tuned from a second
     terminal with afm_ctl; the amplitude follows the new setpoint."""
     ns = "/t_ctl_interactive"
-    proc = subprocess.Popen([str(VENV_BIN / "afm_instrument"), "--interactive", "--no-record", "--duration", "0.1",
-                             "--ros-args", "-r", f"__ns:={ns}"], env=ctl_env, cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    log = tmp_path / "afm_instrument.log"
+    with open(log, "wb") as err:
+        proc = subprocess.Popen([str(VENV_BIN / "afm_instrument"), "--interactive", "--no-record", "--duration", "0.1",
+                                 "--ros-args", "-r", f"__ns:={ns}"], env=ctl_env, cwd=tmp_path,
+                                stdout=subprocess.PIPE, stderr=err, text=True)
     try:
         for line in proc.stdout:
             if line.startswith("running until Ctrl-C"):
                 break
         else:
-            pytest.fail("afm_instrument ended before it was running")
+            pytest.fail(f"afm_instrument ended before it was running:\n{log.read_text()}")
         r = ctl(ctl_env, "set", "z_controller", "setpoint", "40e-9", ns=ns)
         assert r.returncode == 0, r.stderr
         t_set = math.inf

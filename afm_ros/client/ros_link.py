@@ -581,18 +581,20 @@ class RosLink:
         return sorted({fqn(i.node_namespace, i.node_name) for i in infos
                        if "/" + i.node_namespace.strip("/") == self.namespace and not i.node_name.startswith("_")})
 
-    def collect_diagnostics(self, timeout: float | None = None) -> dict[str, list[DiagnosticStatus]]:
+    def collect_diagnostics(self, timeout: float | None = None,
+                            at_least: float = 1.5) -> dict[str, list[DiagnosticStatus]]:
         """The latest statuses (by their name) of every node of the namespace that publishes
-        /diagnostics, waiting until each has sent one (the nodes publish about once a second) or
-        ``timeout``; by node. Nodes that sent nothing in time are absent."""
+        /diagnostics, by node: gathered for ``at_least`` s (the nodes publish about once a second)
+        and until each publisher discovered has sent one, at most ``timeout`` s. Nodes that sent
+        nothing in time are absent."""
         timeout = self.timeout if timeout is None else timeout
         latest: dict[str, dict[str, DiagnosticStatus]] = {}
         sub = self.on_diagnostics(lambda node, s: latest.setdefault(node, {}).__setitem__(s.name, s))
         try:
-            end = time.monotonic() + timeout
-            while time.monotonic() < end:
+            start = time.monotonic()
+            while time.monotonic() - start < timeout:
                 publishers = self.diagnostics_publishers()
-                if publishers and all(p in latest for p in publishers):
+                if time.monotonic() - start >= at_least and publishers and all(p in latest for p in publishers):
                     break
                 self.spin_for(POLL_S)
         finally:
