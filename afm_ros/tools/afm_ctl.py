@@ -13,6 +13,7 @@ import math
 import os
 import re
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -207,6 +208,12 @@ def cmd_load(link, args, out) -> int:
     return 0
 
 
+def circular_mean_deg(angles: np.ndarray) -> float:
+    """Mean direction of angles [deg] in (-180, 180] (a phase near +-180 deg does not average to 0)."""
+    r = np.radians(angles)
+    return float(np.degrees(np.arctan2(np.sin(r).mean(), np.cos(r).mean())))
+
+
 class FrameWatch:
     """Follows ``scanner/progress`` and decides when the frame being scanned (or the next one) is done."""
 
@@ -284,7 +291,7 @@ def watch(link, out, period: float = 1.0, until_frame_done: bool = False, count:
             window["p"].clear()
             cells = [f"{latest['t']:10.3f}" if math.isfinite(latest["t"]) else f"{'-':>10}",
                      f"{a.mean() * 1e9:14.3f}" if a.shape[0] else f"{'-':>14}",
-                     f"{p.mean():11.3f}" if p.shape[0] else f"{'-':>11}",
+                     f"{circular_mean_deg(p):11.3f}" if p.shape[0] else f"{'-':>11}",
                      f"{latest['z'] * 1e9:12.3f}" if math.isfinite(latest["z"]) else f"{'-':>12}",
                      frame.text()]
             note = f"  ({latest['cantilever']})" if latest["cantilever"] else ""
@@ -358,6 +365,9 @@ def _common(parser: argparse.ArgumentParser, suppress: bool) -> None:
                         help="how long to wait for the nodes to be discovered and for each answer (default 10)")
 
 
+NODE_HELP = "node name, relative to --ns (z_controller) or fully qualified (/afm1/z_controller)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="afm_ctl", description=DESCRIPTION,
@@ -366,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def command(name, help, func):
-        p = sub.add_parser(name, help=help, description=help, epilog=EXIT_CODES,
+        p = sub.add_parser(name, help=help, description=textwrap.fill(help, 100), epilog=EXIT_CODES,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _common(p, suppress=True)
         p.set_defaults(func=func)
@@ -375,29 +385,28 @@ def build_parser() -> argparse.ArgumentParser:
     command("nodes", "the nodes in the namespace (fully qualified names)", cmd_nodes)
     p = command("list", "parameters with value, unit, allowed range and whether they can be changed live",
                 cmd_list)
-    p.add_argument("node", nargs="*", metavar="NODE", help="node name, relative to --ns or fully qualified "
-                   "(default: every node of the namespace)")
+    p.add_argument("node", nargs="*", metavar="NODE", help=NODE_HELP + " (default: every node of the namespace)")
     p.add_argument("-l", "--long", action="store_true", help="also each parameter's description")
     p.add_argument("--all", action="store_true", help="also the parameters rclpy declares itself (use_sim_time, ...)")
     p = command("get", "current values of parameters, with their units", cmd_get)
-    p.add_argument("node", metavar="NODE")
+    p.add_argument("node", metavar="NODE", help=NODE_HELP)
     p.add_argument("name", nargs="+", metavar="NAME")
     p.add_argument("--value-only", action="store_true", help="print only the values, one a line (for scripts)")
     p = command("set", "set parameters through the node's validation (several: all or nothing). A value is "
                 "read like ros2 param set reads it and converted by the node: 30e-9, 240, true, dmt. A refusal "
                 "prints the node's reason; the node keeps its old values", cmd_set)
-    p.add_argument("node", metavar="NODE")
+    p.add_argument("node", metavar="NODE", help=NODE_HELP)
     p.add_argument("pairs", nargs="+", metavar="NAME VALUE", help="one or more name value pairs")
     p._negative_number_matcher = _NEGATIVE_NUMBER  # -1.5e-7 is a value (argparse: only -5 and -.5 forms)
     p = command("dump", "the node's parameters as a parameter file (for afm_ctl load, ros2 param load and "
                 "--params-file)", cmd_dump)
-    p.add_argument("node", metavar="NODE")
+    p.add_argument("node", metavar="NODE", help=NODE_HELP)
     p.add_argument("-o", "--output", metavar="FILE", help="write to FILE (default: standard output)")
     p.add_argument("--any-namespace", action="store_true",
                    help="key /**/<node> (applies in every namespace) instead of the fully qualified name")
     p = command("load", "set the values a parameter file holds for the node (all or nothing; a read-only "
                 "parameter must hold its current value)", cmd_load)
-    p.add_argument("node", metavar="NODE")
+    p.add_argument("node", metavar="NODE", help=NODE_HELP)
     p.add_argument("file", metavar="FILE", help="parameter file: afm_ctl dump, ros2 param dump or --params-file "
                    "format (e.g. config/afm.yaml: /**/<node> keys)")
     p = command("scan", "call the scanner: start (continuous if its parameter says so), frame (one frame), "
