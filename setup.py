@@ -35,6 +35,7 @@ setup(
             "live_view_node = afm_ros.nodes.live_view_node:main",
             "afm_study = afm_ros.tools.study:main",
             "afm_report = afm_ros.tools.report:main",
+            "afm_ctl = afm_ros.tools.afm_ctl:main",
         ],
     },
 )
