@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from afm_ros.tools.config_gen import _yaml_value as yaml_value  # doubles that rcl and YAML 1.1 read as doubles
+from afm_ros.tools.config_gen import yaml_value  # doubles that rcl and YAML 1.1 read as doubles
 
 PARAMETERS_KEY = "ros__parameters"
 
@@ -79,7 +79,7 @@ def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
 def dump_text(key: str, values: dict[str, Any], comments: dict[str, str] | None = None, header: str = "") -> str:
     """A parameter file with ``values`` (dotted names nested) under node key ``key``; each value
     preceded by ``# comments[name]`` if given. Doubles keep a '.' so that YAML reads them back as
-    doubles (see :func:`afm_ros.tools.config_gen._yaml_value`)."""
+    doubles (see :func:`afm_ros.tools.config_gen.yaml_value`)."""
     lines = [f"# {line}" for line in header.splitlines()] + [f"{key}:", f"  {PARAMETERS_KEY}:"]
     opened: list[str] = []
     for name in sorted(values):

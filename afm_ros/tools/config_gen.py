@@ -35,7 +35,7 @@ def node_specs() -> dict:
     return out
 
 
-def _yaml_value(value) -> str:
+def yaml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
@@ -51,7 +51,7 @@ def _yaml_value(value) -> str:
             return f"{mantissa}e{exponent}"
         return text if "." in text else text + ".0"
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
     if isinstance(value, str):
         return "'" + value.replace("'", "''") + "'"
     return str(value)
@@ -74,7 +74,7 @@ def yaml_text(nodes: dict | None = None) -> str:
         for name, spec in specs.items():
             unit = f" [{spec.unit}]" if spec.unit else ""
             lines.append(f"    # {spec.description}{unit}; allowed {spec.range_text()}")
-            lines.append(f"    {name}: {_yaml_value(spec.default)}")
+            lines.append(f"    {name}: {yaml_value(spec.default)}")
     return "\n".join(lines) + "\n"
 
 
@@ -84,7 +84,7 @@ def table_text(nodes: dict | None = None) -> str:
             "|---|---|---|---|---|---|---|"]
     for node, specs in nodes.items():
         for name, spec in specs.items():
-            default = _yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
+            default = yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
             rows.append(f"| {node} | `{name}` | {default} | {spec.unit or '-'} | {spec.range_text()} | "
                         f"{'yes' if spec.live else 'no'} | {spec.description} |")
     return "\n".join(rows) + "\n"

@@ -24,7 +24,7 @@ RUNS_DIR = "afm_runs"
 _MISSING = object()
 
 
-def _yaml_value(text: str):
+def _parse_value(text: str):
     """A ``-p`` value as rcl reads it (YAML)."""
     try:
         return yaml.safe_load(text)
@@ -57,7 +57,7 @@ class RosArgs:
                 if arg in ("-p", "--param") and ":=" in value:
                     key, text = value.split(":=", 1)
                     node, _, name = key.rpartition(":")
-                    out.params.setdefault(node, {})[name] = _yaml_value(text)
+                    out.params.setdefault(node, {})[name] = _parse_value(text)
                     i += 1
                 elif arg == "--params-file":
                     out.files.append(value)
