@@ -167,13 +167,13 @@ def _value(flag: str, spec: ParamSpec, text):
 
 
 def load_sample(spec: str):
-    """The sample of ``--sample``: a built-in name, a description file or a .gwy/.npy/.png height map."""
-    from afm_ros.core.samples import from_file, resolve_sample
+    """The sample of ``--sample``: a built-in name, a description file or a .gwy height map (the
+    same rule as the cantilever's ``sample`` parameter: :func:`afm_ros.core.samples.resolve_sample`)."""
+    from afm_ros.core.samples import resolve_sample
 
     text = str(spec)
-    ext = os.path.splitext(text)[1].lower()
     try:
-        sample = from_file(text) if ext in (".gwy", ".npy", ".png") else resolve_sample(text)
+        sample = resolve_sample(text)
     except (ValueError, OSError) as exc:
         raise ValueError(f"--sample: {exc}") from None
     if sample is None:
