@@ -161,10 +161,12 @@ def test_bad_flags_exit_2_with_one_line_naming_the_field(flags, field, tmp_path,
 def test_pixels_per_line_limit_follows_the_lockin_output_rate():
     """A pixel lasts 1 / (2 line_rate pixels); it needs one lock-in output, which comes every
     1/output_rate, up to one input sample (1/900 kHz) late: 1 Hz, 1 kHz -> 499 pixels."""
+    from afm_ros.core.scanner import max_pixels
+
     interval = 1.0 / 900e3
-    assert scan.max_pixels(1.0, 1000.0, interval) == 499
-    assert scan.max_pixels(4.0, 1000.0, interval) == 124
-    assert scan.max_pixels(100.0, 125e3, interval) == 548
+    assert max_pixels(1.0, 1000.0, interval) == 499
+    assert max_pixels(4.0, 1000.0, interval) == 124
+    assert max_pixels(100.0, 125e3, interval) == 548
 
 
 def test_edge_mask_with_equal_distances_is_the_one_distance_mask():

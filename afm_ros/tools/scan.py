@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import resource
 import sys
 import time
@@ -50,7 +49,7 @@ from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import NOISE_SPECS, ParamSpec, parse_number
-from afm_ros.core.scanner import SCAN_SPECS, ScanPlan
+from afm_ros.core.scanner import SCAN_SPECS, ScanPlan, check_scan
 
 PROG = "afm_study scan"
 SCAN_FLAG_NAMES = tuple(n for n in SCAN_SPECS if n != "continuous")  # the tool scans one frame
@@ -182,13 +181,6 @@ def load_sample(spec: str):
     return sample
 
 
-def max_pixels(line_rate: float, output_rate: float, sample_interval: float) -> int:
-    """Most pixels per line for which every pixel holds a lock-in output: a pixel lasts
-    1 / (2 line_rate pixels) and the outputs come every 1/output_rate, each at the first input
-    sample at or after its grid time (up to one sample interval late)."""
-    return int(math.floor(1.0 / (2.0 * line_rate * (1.0 / output_rate + sample_interval)) * (1.0 + 1e-12)))
-
-
 def config_from_args(ns) -> ScanConfig:
     """Validated :class:`ScanConfig` from parsed flags; ValueError naming the flag for a bad value."""
     from afm_ros.core.cantilever_params import build, default_values
@@ -209,16 +201,10 @@ def config_from_args(ns) -> ScanConfig:
         raise ValueError(f"--setpoint: setpoint={feedback['setpoint']!r} m must be between 0 and the free amplitude "
                          f"{a0:g} m for the tip to tap; allowed range (0, {a0:g}) m")
     setup = build(values)
-    limit = max_pixels(plan_values["line_rate"], output_rate, setup.sample_interval)
-    if plan_values["pixels_per_line"] > limit:
-        slots = 2.0 * plan_values["line_rate"] * plan_values["pixels_per_line"]  # pixel slots per second
-        room = 1.0 - slots * setup.sample_interval
-        hint = f"--lockin-output-rate >= {math.ceil(slots / room)} Hz, or " if room > 0 and \
-            slots / room <= LOCKIN_SPECS["output_rate"].high else ""
-        raise ValueError(
-            f"--pixels-per-line: pixels_per_line={plan_values['pixels_per_line']} leaves pixels without a lock-in "
-            f"output at line_rate={plan_values['line_rate']:g} Hz and lockin_output_rate={output_rate:g} Hz; "
-            f"allowed range [2, {max(limit, 0)}] here (or {hint}a lower --line-rate)")
+    try:  # the same rule as the scanner node's: one lock-in output per pixel, bounded frame memory
+        check_scan(plan_values, output_rate, setup.sample_interval)
+    except ValueError as exc:
+        raise ValueError(f"--pixels-per-line: {exc}") from None
     sample = load_sample(getattr(ns, "sample", DEFAULT_SAMPLE) or DEFAULT_SAMPLE)
     return ScanConfig(plan_values, str(getattr(ns, "sample", DEFAULT_SAMPLE)), sample, force_model, feedback,
                       output_rate, engage, noise, edge, Path(getattr(ns, "out", "scan_out")),
