@@ -304,3 +304,56 @@ def test_diagnostics_clear_an_old_write_error_after_a_successful_write(stopped):
     assert recovered.level == DiagnosticStatus.OK and recovered.message == "ok"
     assert values["frames_failed"] == "1"  # the count stays
     assert json.loads(json.dumps(values))["lockin_output_rate_Hz"] == "1000.0"
+
+
+# --- the ROS-free rules the node, afm_study scan and afm_instrument share ----------------------
+def test_check_scan_hints_are_right_and_the_memory_estimate_follows_the_buffers():
+    """The refusal's suggestions pass the same check (a lower line_rate, a higher lock-in rate),
+    and the per-pixel estimate of the accumulator and frame is what they really allocate."""
+    import re
+
+    from afm_ros.core.imaging import ImageAccumulator
+    from afm_ros.core.scanner import (ACCUMULATOR_BYTES_PER_PIXEL, FRAME_BYTES_PER_PIXEL, check_scan,
+                                      default_sample_interval, max_pixels)
+
+    values = {**SCAN, "pixels_per_line": 1000, "line_rate": 1.0}
+    with pytest.raises(ValueError) as refused:
+        check_scan(values, 1000.0)
+    text = str(refused.value)
+    limit = max_pixels(1.0, 1000.0, default_sample_interval())
+    assert f"[2, {limit}]" in text and limit == 499
+    rate = float(re.search(r"output_rate to >= (\d+) Hz", text).group(1))
+    line_rate = float(re.search(r"line_rate to <= ([0-9.e-]+) Hz", text).group(1))
+    assert check_scan(values, rate).max_pixels >= 1000
+    assert check_scan({**values, "line_rate": line_rate}, 1000.0).max_pixels >= 1000
+    with pytest.raises(ValueError):
+        check_scan(values, rate - 1)  # the suggestion is the smallest whole rate that works
+    plan = ScanPlan.from_values({**SCAN, "pixels_per_line": 64, "lines": 32, "line_rate": 1.0})
+    acc = ImageAccumulator(plan, 10.0, 25.0, 60e-9)
+    allocated = acc._lockin_sums.nbytes + acc._z_sums.nbytes + sum(c.nbytes for c in acc._counts.values())
+    assert allocated == ACCUMULATOR_BYTES_PER_PIXEL * 64 * 32
+    frame_bytes = sum(a.nbytes for chans in acc.frame.images.values() for a in chans.values())
+    assert frame_bytes == FRAME_BYTES_PER_PIXEL * 64 * 32
+    assert check_scan(plan, 1000.0, memory_limit=10 ** 9).memory_bytes < 10 ** 9
+    with pytest.raises(ValueError, match=r"pixels_per_line=64 x lines=32 needs about .*allowed at most"):
+        check_scan(plan, 1000.0, memory_limit=2048 * 16)
+
+
+def test_output_directory_rule(tmp_path):
+    from afm_ros.formats.folders import check_output_directory
+
+    assert check_output_directory(str(tmp_path)) == tmp_path
+    made = check_output_directory(str(tmp_path / "run1"), create=True)
+    assert made == tmp_path / "run1" and made.is_dir()
+    with pytest.raises(ValueError, match=r"output_directory=.*a/b'.*does not exist; only the last level"):
+        check_output_directory(str(tmp_path / "a" / "b"), create=True)
+    assert not (tmp_path / "a").exists()
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ValueError, match="is a file, not a folder"):
+        check_output_directory(str(tmp_path / "f"), create=True)
+    with pytest.raises(ValueError, match="file-system root"):
+        check_output_directory("/afm_ros_never_made", create=True)
+    with pytest.raises(ValueError, match=r"free on its file system, a frame needs about"):
+        check_output_directory(str(tmp_path), need_bytes=2 ** 62)
+    with pytest.raises(ValueError, match="--out="):
+        check_output_directory(str(tmp_path / "f"), field="--out")

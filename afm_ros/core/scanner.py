@@ -299,7 +299,8 @@ def check_scan(values, lockin_output_rate: float, sample_interval: float | None 
 # the scanner node's parameters: the scan settings above plus where frames go
 SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **{s.name: s for s in (
     ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
-              "directory; a missing folder is created at the scan start if its parent exists)", kind=str),
+              "directory); checked when set and at each scan start; a missing last level is created then (never "
+              "a chain of folders, never at /)", kind=str),
     ParamSpec("file_prefix", "afm_frame", "", "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
               kind=str),
     ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
