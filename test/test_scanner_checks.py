@@ -221,6 +221,7 @@ def stopped(tmp_path_factory):
         spin_until(ex, lambda: cantilever.paused and scanner.accumulator.frame.lines_done >= 3)
         result["line_end"] = scanner.line_end_after(cantilever.sim_time)
         result["paths"] = scanner.stop_scan(write_partial=True)
+        result["partial_frame"] = scanner.partial_frame
         result["lines_done"] = 3
         # the second scan, stopped through the service (partial frames are written by default)
         assert scanner.write_error == ""
@@ -282,6 +283,9 @@ def test_a_stopped_scan_writes_its_completed_lines_as_a_partial_frame(stopped):
             assert f.yoff == pytest.approx(plan.y_low, rel=1e-12) and f.xoff == pytest.approx(plan.x_left, rel=1e-12)
             assert np.isfinite(f.data).all()
             np.testing.assert_array_equal(f.data, full.images[d][c][:done].astype(np.float64), err_msg=f"{c} {d}")
+    kept = stopped["partial_frame"]  # what an in-process caller summarises
+    assert kept.partial and kept.lines_done == done and kept.plan.lines == done
+    np.testing.assert_array_equal(kept.images["trace"]["phase"], full.images["trace"]["phase"][:done])
     meta = obj["/0/meta"]
     assert meta["frame.partial"] == "true" and meta["frame.lines_done"] == "3" and meta["frame.lines_planned"] == "8"
     assert meta["scan.lines"] == "8"  # the scan as planned; the data field has the completed part

@@ -112,6 +112,7 @@ class ScannerNode(Node):
         self.last_error = ""  # a problem of the data stream (e.g. the buffer before a scan started)
         self.write_error = ""  # the last failed frame write; cleared by a later successful one
         self.frames_failed = 0
+        self.partial_frame = None  # the completed lines of the last stopped scan (Frame.completed), if any
         self._writers: list[threading.Thread] = []
         self._applied: dict | None = None
         # the feedback and lock-in settings in force when a scan starts, for the frame's metadata
@@ -210,7 +211,8 @@ class ScannerNode(Node):
         (:meth:`afm_ros.core.imaging.Frame.completed`: only those rows, marked ``frame.partial`` in
         the metadata, ``<prefix>_<date>_<time>_<frame>_partial.gwy`` + previews) and wait for it.
         Returns the paths written ([] if none: no line completed, or the write failed and
-        :attr:`write_error` says why), or None if no scan was running."""
+        :attr:`write_error` says why), or None if no scan was running; :attr:`partial_frame` is
+        the frame of the completed lines (also when nothing is written)."""
         result = self._stop_scan(write_partial)
         if result is None:
             return None
@@ -240,14 +242,13 @@ class ScannerNode(Node):
             self._plan_request = None
             values = dict(self._values)
         self._pub_plan.publish(String(data=json.dumps(park)))
-        writer = None
-        if frame is not None and frame.lines_done > 0 and write_partial and values["write_files"]:
-            frame = frame.completed()
+        self.partial_frame = frame.completed() if frame is not None and frame.lines_done > 0 else None
+        frame, writer = None, None
+        if self.partial_frame is not None and write_partial and values["write_files"]:
+            frame = self.partial_frame
             writer = self._write_frame(frame, values)
             self.get_logger().info(f"scan stopped after {frame.lines_done} of {frame.lines_planned} lines: "
                                    f"writing them as a partial frame")
-        else:
-            frame = None
         self._publish_progress()
         return park["park"], frame, writer
 

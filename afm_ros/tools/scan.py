@@ -30,7 +30,10 @@ i_gain the loop's time constant (dA/dz = 1) and t_fall = max(0, H - (1 + p_gain)
 the free fall after a down-step of height H when the tip loses contact (dA = A0 - setpoint, z then
 moves at the speed limit i_gain dA): beyond it the feedback error is below ~5 % of the step.
 
-A bad value prints one line naming the flag, the field and the allowed range, and exits with 2.
+A bad value prints one line naming the flag, the field and the allowed range, and exits with 2;
+so does a scan the lock-in cannot fill or memory cannot hold (:func:`afm_ros.core.scanner.check_scan`)
+and an ``--out`` that cannot be written. Ctrl-C finishes the current line, writes the completed
+lines as ``scan_partial.gwy`` and a summary marked interrupted, and exits with 130 (:class:`Interruption`).
 """
 from __future__ import annotations
 
