@@ -591,3 +591,76 @@ def test_docs_list_every_generator_parameter():
 def test_describe_needs_a_generated_sample():
     with pytest.raises(ValueError, match="no description"):
         describe(random_sample())
+
+
+# --- one loading path, text digests, bounded maps (issue 16, points 17 and 18) ------------------
+def test_a_gwy_path_resolves_like_from_file(tmp_path):
+    """resolve_sample (the cantilever's `sample` parameter, afm_study scan --sample) takes a .gwy
+    height map through from_file: its first channel at the file's real size (it used to read the
+    binary file as a YAML description and fail with a UTF-8 decode error)."""
+    from afm_ros.core.samples import resolve_sample
+
+    s = rough(pixels=(48, 32), size=(3e-6, 2e-6), correlation_length=0.2e-6, seed=2)
+    path = tmp_path / "map.gwy"
+    write_gwy(path, {"Height": (s.height, "m")}, s.size_x, s.size_y)
+    loaded = resolve_sample(str(path))
+    np.testing.assert_array_equal(loaded.height, s.height)
+    assert (loaded.size_x, loaded.size_y) == (s.size_x, s.size_y)
+    assert describe(loaded) == describe(from_file(path))
+
+
+def test_an_all_digit_sha256_in_yaml_is_text(tmp_path):
+    """YAML reads an unquoted all-digit digest as an integer; 64 decimal digits are taken back as
+    text (and then checked against the file), anything else is refused naming the field."""
+    np.save(tmp_path / "m.npy", np.zeros((8, 8)))
+    digest = hashlib.sha256((tmp_path / "m.npy").read_bytes()).hexdigest()
+    base = "generator: from_file\npath: m.npy\nsize: 1.0e-6\n"
+    digits = "1" * 64
+    (tmp_path / "digits.yaml").write_text(base + f"sha256: {digits}\n")
+    with pytest.raises(ValueError, match=f"SHA-256 is {digest}, the description expects sha256='{digits}'"):
+        load_sample_file(tmp_path / "digits.yaml")  # read as text and compared, not "is not a string"
+    (tmp_path / "short.yaml").write_text(base + "sha256: 0123\n")  # YAML 1.1: octal 83
+    with pytest.raises(ValueError, match=r"short.yaml: sha256=83 must be text of 64 hex digits.*quote it"):
+        load_sample_file(tmp_path / "short.yaml")
+    (tmp_path / "bad.yaml").write_text(base + "sha256: xyz\n")
+    with pytest.raises(ValueError, match="sha256='xyz' is not 64 hex digits"):
+        load_sample_file(tmp_path / "bad.yaml")
+    (tmp_path / "good.yaml").write_text(base + f"sha256: {digest.upper()}\n")
+    assert describe(load_sample_file(tmp_path / "good.yaml"))["sha256"] == digest
+
+
+def _sparse_npy(path, rows, cols, dtype=np.float64):
+    """A valid .npy of rows x cols zeros, written sparsely (no data blocks on disk)."""
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((1, 1), dtype=dtype))
+    header["shape"] = (rows, cols)
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.truncate(f.tell() + rows * cols * np.dtype(dtype).itemsize)
+
+
+def test_a_map_above_the_bound_is_refused_before_it_is_read(tmp_path):
+    """A 512 MiB map used to be read, hashed and copied (and, live, stall the cantilever's
+    parameter service for over 10 s): now the file size and the header's pixel count are checked
+    first, so the refusal allocates nothing like the file (tracemalloc peak < 8 MiB)."""
+    import tracemalloc
+
+    from afm_ros.core.samples import resolve_sample
+
+    big = tmp_path / "big.npy"
+    _sparse_npy(big, 8192, 8192)  # 512 MiB
+    (tmp_path / "big.yaml").write_text("generator: from_file\npath: big.npy\nsize: 1.0e-5\n")
+    wide = tmp_path / "wide.npy"
+    _sparse_npy(wide, 4097, 4096, np.float32)  # 64 MiB: within the file bound, but more pixels than 4096 x 4096
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match=r"big.npy: the file has 512.0 MiB; allowed at most 256 MiB"):
+            from_file(big, size=1e-5)
+        with pytest.raises(ValueError, match=r"big.yaml: .*big.npy: the file has 512.0 MiB"):
+            resolve_sample(str(tmp_path / "big.yaml"))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * 2 ** 20, peak
+    assert wide.stat().st_size <= 256 * 2 ** 20  # the documented file bound
+    with pytest.raises(ValueError, match=r"wide.npy: the map has 4096 x 4097 pixels; allowed at most 16777216"):
+        from_file(wide, size=1e-5)

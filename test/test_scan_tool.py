@@ -161,10 +161,12 @@ def test_bad_flags_exit_2_with_one_line_naming_the_field(flags, field, tmp_path,
 def test_pixels_per_line_limit_follows_the_lockin_output_rate():
     """A pixel lasts 1 / (2 line_rate pixels); it needs one lock-in output, which comes every
     1/output_rate, up to one input sample (1/900 kHz) late: 1 Hz, 1 kHz -> 499 pixels."""
+    from afm_ros.core.scanner import max_pixels
+
     interval = 1.0 / 900e3
-    assert scan.max_pixels(1.0, 1000.0, interval) == 499
-    assert scan.max_pixels(4.0, 1000.0, interval) == 124
-    assert scan.max_pixels(100.0, 125e3, interval) == 548
+    assert max_pixels(1.0, 1000.0, interval) == 499
+    assert max_pixels(4.0, 1000.0, interval) == 124
+    assert max_pixels(100.0, 125e3, interval) == 548
 
 
 def test_edge_mask_with_equal_distances_is_the_one_distance_mask():
@@ -180,3 +182,52 @@ def test_edge_mask_with_equal_distances_is_the_one_distance_mask():
         assert np.array_equal(edge_mask(mat, plan, d, d), edge_mask(mat, plan, d))
     wide_x = edge_mask(mat, plan, 0.5e-6, 0.0)
     assert wide_x.sum() > edge_mask(mat, plan, 0.5e-6).sum()
+
+
+LONG = [a if a != "8" or ARGS[i - 1] != "--lines" else "128" for i, a in enumerate(ARGS) if a != "--quiet"]
+
+
+def test_ctrl_c_keeps_the_completed_lines_and_exits_130(tmp_path):
+    """SIGINT once lines have been reported: the scan finishes the current line, writes the
+    completed lines as scan_partial.gwy (+ previews, readable by gwyfile; the lines equal those of
+    a full run: the scan is deterministic), prints the summary marked interrupted and exits 130.
+    It used to print a 25-line traceback and keep nothing."""
+    import signal
+
+    assert "--lines" in LONG and LONG[LONG.index("--lines") + 1] == "128"
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "afm_ros.tools.study", "scan", *LONG, "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err = []
+    for line in proc.stderr:  # progress lines: "afm_study scan: line 13/128 (0.6 s)" at every tenth
+        err.append(line)
+        if "line 13/128" in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    rest_err = proc.stderr.read()
+    stdout = proc.stdout.read()
+    assert proc.wait(timeout=300) == 130, "".join(err) + rest_err
+    assert "Traceback" not in rest_err and "interrupted: finishing line" in rest_err, rest_err
+    assert "afm_study scan summary (interrupted)" in stdout and "Ctrl-C after" in stdout, stdout
+    assert not (out / "scan.gwy").exists()
+    assert {p.name for p in out.glob("scan_partial_*.png")} == {f"scan_partial_{c}_{d}.png" for c in CHANNELS
+                                                                 for d in DIRECTIONS}
+    summary = json.loads((out / "scan_summary.json").read_text())
+    done = summary["interrupted"]["lines_done"]
+    assert summary["interrupted"]["partial"] is True and summary["interrupted"]["lines_planned"] == 128
+    assert 13 <= done < 128 and summary["scan"]["lines"] == done
+    obj = gwyfile.load(str(out / "scan_partial.gwy"))
+    assert obj["/0/meta"]["frame.partial"] == "true" and obj["/0/meta"]["frame.lines_done"] == str(done)
+    assert obj["/0/meta"]["scan.lines"] == "128"
+    parser = argparse.ArgumentParser()
+    scan._add_arguments(parser)
+    full = scan.run_scan(scan.config_from_args(parser.parse_args(LONG + ["--quiet"]))).frame
+    pitch = full.plan.line_pitch
+    for n, (title, (values, unit)) in enumerate(frame_channels(full).items()):
+        field = obj[f"/{n}/data"]
+        assert obj[f"/{n}/data/title"] == title
+        assert (field["xres"], field["yres"]) == (16, done)
+        assert field["yreal"] == pytest.approx(done * pitch, rel=1e-12)
+        assert field["yoff"] == pytest.approx(full.plan.y_low, rel=1e-12)
+        data = np.asarray(field["data"], dtype=float).reshape(done, 16)
+        assert np.array_equal(data, values[:done]), title

@@ -78,6 +78,7 @@ def scanned(tmp_path_factory):
         ex.add_node(n)
     try:
         spin_until(ex, lambda: {f"{ns}/lockin", f"{ns}/scanner"} <= set(cantilever.consumers))
+        spin_until(ex, lambda: scanner.lockin_output_rate is not None)  # asked asynchronously
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
         spin_until(ex, lambda: cantilever.paused and scanner._lockin_end[1] >= ENGAGE - 1e-9)
         first = scanner._start(Trigger.Response(), single=True)

@@ -19,7 +19,7 @@ delay is not compensated (a real controller does not either). Channels and units
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,18 +44,48 @@ def dissipated_energy(amplitude, phase_deg, spring_constant: float, quality_fact
 
 @dataclass
 class Frame:
-    """One frame's images: ``images[direction][channel]`` (lines x pixels, float32, NaN = not acquired)."""
+    """One frame's images: ``images[direction][channel]`` (lines x pixels, float32, NaN = not acquired).
+
+    ``lines_planned``: the lines of the frame that was planned, when this is the completed part of
+    one (:meth:`completed`); 0 = ``plan.lines``."""
 
     plan: ScanPlan
     index: int
     images: dict = field(default_factory=dict)
     lines_done: int = 0
+    lines_planned: int = 0
 
     @classmethod
     def empty(cls, plan: ScanPlan, index: int) -> "Frame":
         images = {d: {c: np.full((plan.lines, plan.pixels), np.nan, dtype=np.float32) for c in CHANNELS}
                   for d in DIRECTIONS}
         return cls(plan, index, images)
+
+    @property
+    def partial(self) -> bool:
+        """Fewer lines than planned (a stopped or interrupted scan)."""
+        return self.lines_done < (self.lines_planned or self.plan.lines)
+
+    def completed(self) -> "Frame":
+        """The frame of the lines completed so far: only their rows (cropped, no unscanned pixel),
+        with a plan whose ``lines``, ``size_y`` and centre describe them, so a file gets the right
+        physical y size and y offset. ValueError if no line is complete."""
+        p, done = self.plan, self.lines_done
+        if done < 1:
+            raise ValueError(f"frame {self.index}: no line completed (0 of {p.lines}): nothing to keep")
+        if done >= p.lines:
+            return self
+        # acquisition lines 0..done-1 are rows 0..done-1 (up) or lines-done..lines-1 (down)
+        first = 0 if p.slow_scan_direction == "up" else p.lines - done
+        size_y = done * p.line_pitch
+        plan = replace(p, size_y=size_y, lines=done, center_y=p.y_low + first * p.line_pitch + 0.5 * size_y)
+        images = {d: {c: a[first:first + done].copy() for c, a in chans.items()} for d, chans in self.images.items()}
+        return Frame(plan, self.index, images, done, p.lines)
+
+    def info(self) -> dict:
+        """Metadata of what the frame holds: ``partial``, ``lines_done``, ``lines_planned``."""
+        planned = self.lines_planned or self.plan.lines
+        return {"partial": self.partial, "lines_done": self.lines_done, "lines_planned": planned}
 
 
 class ImageAccumulator:
@@ -109,7 +139,7 @@ class ImageAccumulator:
     def finish_ready(self) -> list[tuple[Frame, int]]:
         """Close every line both streams (lock-in, z) have moved past (all its outputs are in);
         return (frame, acquisition line) of each, in order. A finished frame moves to
-        :attr:`frames_done` and, for a continuous plan, the next one starts."""
+        :attr:`frames_done` (which keeps only the latest) and, for a continuous plan, the next one starts."""
         done = []
         plan = self.plan
         passed = min(self._passed.values())
@@ -123,6 +153,7 @@ class ImageAccumulator:
             self._next_line += 1
             if self._next_line == plan.lines:
                 self.frames_done.append(self.frame)
+                del self.frames_done[:-1]  # continuous: only the latest (bounded memory, see check_scan)
                 self._frame_index += 1
                 self._next_line = 0
                 self.frame = Frame.empty(plan, self._frame_index)

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
+from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 
 SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
@@ -122,6 +123,14 @@ class ScanPlan:
         """Simulated time [s] at which the retrace of ``line`` of ``frame`` ends."""
         return self.start_time + (frame * self.lines + line + 1) / self.line_rate
 
+    def line_end_after(self, t: float) -> float:
+        """Simulated time [s] at which the line being scanned at time ``t`` [s] ends (before the
+        start: the first line; a single frame ends with its last line)."""
+        count = max(0, math.floor((t - self.start_time) * self.line_rate))
+        if not self.continuous:
+            count = min(count, self.lines - 1)
+        return self.start_time + (count + 1) / self.line_rate
+
     def packed(self) -> np.ndarray:
         out = np.zeros(PLAN_LENGTH)
         out[PLAN_ACTIVE] = 1.0
@@ -173,13 +182,130 @@ def parked_plan(x: float, y: float) -> np.ndarray:
     return out
 
 
+# --- what a scan needs: lock-in outputs per pixel, memory, disk -------------------------------
+# Memory per image pixel (pixels_per_line x lines) of one frame [bytes]: the accumulator's sums
+# (5 channels x 2 directions, float64) and counts (2 streams x 2 directions, int64); a frame (10
+# float32 images), twice in continuous mode (the next frame fills while the last is written);
+# writing the .gwy (float64 copies of the 10 channels and gwyfile's serialisation: measured 320
+# B/pixel at 512 x 512 and 1024 x 1024, the PNG previews stay below that peak).
+ACCUMULATOR_BYTES_PER_PIXEL = 2 * (5 * 8 + 2 * 8)
+FRAME_BYTES_PER_PIXEL = 2 * 5 * 4
+WRITE_BYTES_PER_PIXEL = 320
+# A scan's frame buffers may take at most this (and at most the memory available when it starts):
+# 2048 x 2048 needs 1.9 GiB, 4096 x 4096 (the largest the specs allow) 7.4 GiB, which a 2-core
+# workstation running the instrument beside it cannot spare, and which could never be written.
+MAX_FRAME_MEMORY_BYTES = 4 * 2 ** 30
+GWY_BYTES_PER_PIXEL = 2 * 5 * 8  # 10 float64 channels
+FRAME_FILES_OVERHEAD_BYTES = 12 * 2 ** 20  # metadata + ten PNG previews (each < 1 MiB: a fixed-size figure)
+
+
+def max_pixels(line_rate: float, output_rate: float, sample_interval: float) -> int:
+    """Most pixels per line for which every pixel holds a lock-in output: a pixel lasts
+    1 / (2 line_rate pixels) [s] and the outputs come every 1/output_rate [s], each at the first
+    input sample at or after its grid time (up to one sample interval [s] late)."""
+    return int(math.floor(1.0 / (2.0 * line_rate * (1.0 / output_rate + sample_interval)) * (1.0 + 1e-12)))
+
+
+def frame_memory_bytes(pixels: int, lines: int, continuous: bool = False) -> int:
+    """Estimated peak memory [bytes] of one scan's frame buffers (accumulator, frame, writing)."""
+    per_pixel = ACCUMULATOR_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * (2 if continuous else 1) + WRITE_BYTES_PER_PIXEL
+    return int(pixels) * int(lines) * per_pixel
+
+
+def frame_file_bytes(pixels: int, lines: int) -> int:
+    """Estimated disk space [bytes] of one written frame (.gwy + previews)."""
+    return int(pixels) * int(lines) * GWY_BYTES_PER_PIXEL + FRAME_FILES_OVERHEAD_BYTES
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable of /proc/meminfo [bytes] (None where there is none)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def default_sample_interval() -> float:
+    """Interval [s] of the cantilever's published samples with its default parameters."""
+    from afm_ros.core.cantilever_params import build, default_values
+    return build(default_values()).sample_interval
+
+
+@dataclass(frozen=True)
+class ScanNeeds:
+    """What a checked scan needs: its plan, the most pixels per line the lock-in allows, the
+    estimated memory of its frame buffers and disk space of one frame's files [bytes]."""
+
+    plan: ScanPlan
+    max_pixels: int
+    memory_bytes: int
+    file_bytes: int
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2 ** 30:.2f} GiB" if n >= 2 ** 30 else f"{n / 2 ** 20:.0f} MiB"
+
+
+def check_scan(values, lockin_output_rate: float, sample_interval: float | None = None,
+               memory_limit: int | None = None) -> ScanNeeds:
+    """Check a scan before it starts (``values``: scanner parameter values or a ScanPlan):
+
+    - every pixel gets a lock-in output: ``pixels_per_line <= max_pixels(line_rate,
+      lockin_output_rate [Hz], sample_interval [s])`` (default interval: the cantilever's defaults);
+    - its frame buffers (accumulator + frame + writing, :func:`frame_memory_bytes`) fit in
+      ``memory_limit`` [bytes] (default :data:`MAX_FRAME_MEMORY_BYTES` and the memory available now).
+
+    ValueError naming the field, the value and the allowed range; else the :class:`ScanNeeds`.
+    """
+    plan = values if isinstance(values, ScanPlan) else ScanPlan.from_values(values)
+    rate = float(lockin_output_rate)
+    if not (math.isfinite(rate) and rate > 0.0):
+        raise ValueError(f"lockin output_rate={lockin_output_rate!r} Hz must be a positive number")
+    interval = default_sample_interval() if sample_interval is None else float(sample_interval)
+    limit = max_pixels(plan.line_rate, rate, interval)
+    if plan.pixels > limit:
+        needed = 2.0 * plan.pixels * plan.line_rate  # outputs per second: one per pixel slot
+        room = 1.0 - needed * interval
+        hints = []
+        if room > 0 and needed / room <= LOCKIN_SPECS["output_rate"].high:
+            hints.append(f"raise the lock-in output_rate to >= {math.ceil(needed / room)} Hz")
+        hints.append(f"lower line_rate to <= {1.0 / (2.0 * plan.pixels * (1.0 / rate + interval)):.3g} Hz")
+        raise ValueError(
+            f"pixels_per_line={plan.pixels} needs {2 * plan.pixels} lock-in outputs per line (one per pixel, trace "
+            f"and retrace) at line_rate={plan.line_rate:g} Hz; the lock-in output_rate={rate:g} Hz gives "
+            f"{rate / plan.line_rate:.6g}: allowed pixels_per_line [2, {max(limit, 0)}] here, or "
+            + " or ".join(hints))
+    memory = frame_memory_bytes(plan.pixels, plan.lines, plan.continuous)
+    if memory_limit is None:
+        available = available_memory_bytes()
+        bound, why = MAX_FRAME_MEMORY_BYTES, "the bound for one scan"
+        if available is not None and available < bound:
+            bound, why = available, "the memory available now"
+    else:
+        bound, why = int(memory_limit), "the limit given"
+    if memory > bound:
+        per_pixel = memory / (plan.pixels * plan.lines)
+        raise ValueError(
+            f"pixels_per_line={plan.pixels} x lines={plan.lines} needs about {_gib(memory)} for the frame buffers "
+            f"(accumulator, frame and writing the .gwy: {per_pixel:.0f} bytes per pixel); allowed at most "
+            f"{_gib(bound)} ({why}): at most {int(bound // per_pixel)} pixels per frame")
+    return ScanNeeds(plan, limit, memory, frame_file_bytes(plan.pixels, plan.lines))
+
+
 # the scanner node's parameters: the scan settings above plus where frames go
 SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **{s.name: s for s in (
     ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
-              "directory)", kind=str),
+              "directory); checked when set and at each scan start; a missing last level is created then (never "
+              "a chain of folders, never at /)", kind=str),
     ParamSpec("file_prefix", "afm_frame", "", "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
               kind=str),
     ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
+    ParamSpec("write_partial_frames", True, "", "a stopped scan writes the lines completed so far as "
+              "<prefix>_<date>_<time>_<frame>_partial.gwy (+ PNG previews), if write_files", kind=bool),
 )}}
 
 
@@ -229,3 +355,19 @@ def bin_into(t, values, start, rate, lines, pixels, continuous, frame_index, sum
             sums[c, flat] += values[c, i]
         counts[flat] += 1
     return passed
+
+
+def check_scanner_values(values: dict) -> ScanPlan:
+    """The scanner node's parameter values (SCANNER_NODE_SPECS names), what can be checked when
+    they are set: the scan (:meth:`ScanPlan.from_values`), ``file_prefix`` (a file name part) and
+    ``output_directory`` (not a file, its parent exists; writing and space are checked when a scan
+    starts). ValueError naming the field; else the plan."""
+    from afm_ros.formats.folders import check_output_directory
+
+    plan = ScanPlan.from_values(values)
+    prefix = values.get("file_prefix", SCANNER_NODE_SPECS["file_prefix"].default)
+    if not prefix or "/" in prefix or "\\" in prefix or "\0" in prefix or prefix in (".", ".."):
+        raise ValueError(f"file_prefix={prefix!r} must be a non-empty file name part without '/' or '\\'; "
+                         f"the folder is output_directory")
+    check_output_directory(values.get("output_directory", ""), probe_write=False)
+    return plan

@@ -140,12 +140,25 @@ class WiredInstrument:
         while self.sim.t < t_end - 1e-12:
             self.step()
 
-    def scan_frame(self, plan_values: dict, progress=None):
-        """Scan one frame from now; returns the finished :class:`afm_ros.core.imaging.Frame`."""
+    def scan_frame(self, plan_values: dict, progress=None, stop=None):
+        """Scan one frame from now; returns the finished :class:`afm_ros.core.imaging.Frame`.
+
+        ``progress(images)`` is called after every chunk; ``stop(self)`` too, returning None to go
+        on or a number of completed lines at which to end early: the frame returned then has those
+        ``lines_done`` (``Frame.completed()`` gives them as a frame of their own)."""
         plan_values = {**plan_values, "continuous": False}
         self.start_scan(plan_values)
         while not self.images.done:
             self.step()
             if progress is not None:
                 progress(self.images)
+            if stop is not None:
+                lines = stop(self)
+                if lines is not None and self.images.frame.lines_done >= lines and not self.images.done:
+                    return self.images.frame
         return self.images.frames_done[0]
+
+    @property
+    def frame_so_far(self):
+        """The frame of the current scan as far as it got (its ``lines_done`` lines are complete)."""
+        return self.images.frames_done[0] if self.images.done else self.images.frame

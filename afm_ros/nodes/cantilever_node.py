@@ -117,11 +117,12 @@ class CantileverNode(Node):
         values = self._start_material(values)
         check_all(values)
         self._samples: dict = {}  # sample parameter -> loaded Sample (None: flat)
+        self._surfaces: dict = {}  # _surface_key -> its SurfaceMap (tip-dilated, force constants)
+        self._lock = threading.Lock()
+        self._pending: dict = {}
         self._check_sample(values)
         self._values = values
         self._setup = build(values)
-        self._lock = threading.Lock()
-        self._pending: dict = {}
         s = self._setup
         self._sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
         self._sim.set_thermal(values["temperature"], values["noise_seed"])
@@ -215,24 +216,53 @@ class CantileverNode(Node):
         self._check_sample(values)
 
     def _check_sample(self, values: dict) -> None:
-        """Load (and keep) the ``sample`` now, so a bad name or file is refused at set time."""
+        """Load the ``sample`` and build its tip-dilated surface now, so a bad name, file or tip is
+        refused at set time and the chunk boundary that applies it has nothing left to compute. A
+        height map above afm_ros.core.samples' size bound is refused before it is read. Only the
+        samples and surfaces of the values in force, pending and being checked are kept."""
         spec = values["sample"]
-        if spec not in self._samples:
-            try:
+        keep = [self._values, self._requested_values()] if hasattr(self, "_values") else []
+        try:
+            if spec not in self._samples:
                 self._samples[spec] = resolve_sample(spec)
-            except (ValueError, OSError) as exc:
-                text = str(exc)
-                raise ValueError(text if text.startswith("sample=") else f"sample={spec!r}: {text}") from None
+            key = self._surface_key(values)
+            if key is not None and key not in self._surfaces:
+                self._surfaces[key] = surface_map(self._samples[spec], values["force_model"], self._tip(values))
+            keep.append(values)
+        except (ValueError, OSError) as exc:
+            text = str(exc)
+            raise ValueError(text if text.startswith("sample=") else f"sample={spec!r}: {text}") from None
+        finally:
+            keys = {self._surface_key(v) for v in keep}
+            self._surfaces = {k: v for k, v in self._surfaces.items() if k in keys}
+            self._samples = {k: v for k, v in self._samples.items() if k in {v["sample"] for v in keep}}
+
+    @staticmethod
+    def _tip(values: dict) -> DMTSample:
+        return DMTSample(**{name: values[name] for name in DMT_SPECS})
+
+    def _surface_key(self, values: dict) -> tuple | None:
+        """What a sample's SurfaceMap depends on: the sample, the force model and the tip."""
+        if self._samples.get(values["sample"]) is None:
+            return None
+        return (values["sample"], values["force_model"],
+                *(values[n] for n in ("tip_radius", "intermolecular_distance", "tip_youngs_modulus",
+                                      "tip_poisson_ratio")))
 
     def _apply_sample(self, values: dict) -> None:
         """Put the sample map (tip-dilated, per-material force constants) under the tip, or none."""
-        sample = self._samples.get(values["sample"])
+        if values["sample"] not in self._samples:  # dropped by a check that ran meanwhile: load it again
+            self._samples[values["sample"]] = resolve_sample(values["sample"])
+        sample = self._samples[values["sample"]]
         if sample is None:
             self._sim.set_surface(None)
             self._surface_info = {"sample": values["sample"] or "flat"}
             return
-        tip = DMTSample(**{name: values[name] for name in DMT_SPECS})
-        self._sim.set_surface(surface_map(sample, values["force_model"], tip))
+        key = self._surface_key(values)
+        surface = self._surfaces.get(key)
+        if surface is None:  # not checked with exactly these values (e.g. a start value): build it now
+            surface = self._surfaces[key] = surface_map(sample, values["force_model"], self._tip(values))
+        self._sim.set_surface(surface)
         if self.scan_plan is None:
             self._sim.set_scan(parked_plan(0.5 * sample.size_x, 0.5 * sample.size_y))
         self._surface_info = {"sample": values["sample"], "description": describe(sample),

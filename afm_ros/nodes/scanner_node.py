@@ -27,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterEvent
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import qos_profile_parameter_events
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
 from rclpy.parameter import parameter_value_to_python
@@ -39,7 +41,9 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
-from afm_ros.core.scanner import SCAN_SPECS, SCANNER_NODE_SPECS, ScanPlan
+from afm_ros.core.scanner import (SCAN_SPECS, SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values,
+                                  max_pixels)
+from afm_ros.formats.folders import check_output_directory
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.lockin_node import sim_time_msg
@@ -48,6 +52,8 @@ from afm_ros.nodes.ros_params import declare, make_set_callback
 
 MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
 DIAGNOSTICS_PERIOD_S = 1.0
+LOCKIN_POLL_PERIOD_S = 0.05  # until the lock-in's output_rate is known, look for its service this often
+LOCKIN_IDLE_PERIOD_S = 5.0
 
 
 def image_message(array: np.ndarray, stamp_s: float, frame_id: str = "afm_scan") -> Image:
@@ -74,9 +80,9 @@ class ScannerNode(Node):
     def __init__(self, **kwargs):
         super().__init__("scanner", **kwargs)
         self._values = declare(self, SCANNER_NODE_SPECS)
-        ScanPlan.from_values(self._values)
+        check_scanner_values(self._values)
         self.add_on_set_parameters_callback(make_set_callback(
-            SCANNER_NODE_SPECS, lambda: dict(self._values), lambda v: ScanPlan.from_values(v), self._apply))
+            SCANNER_NODE_SPECS, lambda: dict(self._values), check_scanner_values, self._apply))
         self._lock = threading.RLock()
         self._pub_plan = self.create_publisher(String, topics.SCAN_PLAN, topics.LATCHED_QOS)
         self._pub_progress = self.create_publisher(String, "scanner/progress", topics.LATCHED_QOS)
@@ -103,14 +109,27 @@ class ScannerNode(Node):
         self.line_walls: list[float] = []  # wall time [s, monotonic] at which each line of the scan was closed
         self.frames_done = 0
         self.lines_done = 0
-        self.last_error = ""
+        self.last_error = ""  # a problem of the data stream (e.g. the buffer before a scan started)
+        self.write_error = ""  # the last failed frame write; cleared by a later successful one
+        self.frames_failed = 0
+        self.partial_frame = None  # the completed lines of the last stopped scan (Frame.completed), if any
         self._writers: list[threading.Thread] = []
         self._applied: dict | None = None
         # the feedback and lock-in settings in force when a scan starts, for the frame's metadata
         self._settings: dict[str, dict] = {}
         self._settings_clients = {role: AsyncParameterClient(self, role) for role in ("z_controller", "lockin")}
+        # the lock-in's output_rate [Hz] (None: not known yet), asked for asynchronously and kept current
+        # from /parameter_events (a service callback must not wait for another node's service), and
+        # the interval [s] of its input samples, from consecutive output batches
+        self.lockin_output_rate: float | None = None
+        self.sample_interval: float | None = None
+        self._lockin_fqn = self.get_namespace().rstrip("/") + "/lockin"
+        self._lockin_asking = False
+        self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event,
+                                 qos_profile_parameter_events)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
+        self._lockin_timer = self.create_timer(LOCKIN_POLL_PERIOD_S, self._ask_lockin, clock=self._steady)
         self.get_logger().info("ready: %g x %g m, %d x %d pixels, %g lines/s; services scanner/start, "
                                "scanner/scan_frame, scanner/stop" % (
                                    self._values["scan_size_x"], self._values["scan_size_y"],
@@ -135,7 +154,13 @@ class ScannerNode(Node):
             values = dict(self._values)
             if single:
                 values["continuous"] = False
-            plan = ScanPlan.from_values(values, start_time=0.0)
+            try:
+                plan = self.check_start(values)
+            except ValueError as exc:
+                response.success = False
+                response.message = f"scan refused: {exc}"
+                self.get_logger().error(response.message)
+                return response
             self._request_id += 1
             request = {"id": self._request_id, "plan": plan.as_dict()}
             self._plan_request = request
@@ -147,23 +172,124 @@ class ScannerNode(Node):
                             f"{plan.frame_time:g} s per frame" + (" (one frame)" if not plan.continuous else ""))
         return response
 
+    def check_start(self, values: dict | None = None) -> ScanPlan:
+        """What a scan with ``values`` (default: the current parameters) needs, checked before it
+        starts: the lock-in's output_rate gives every pixel an output, the frame buffers fit in
+        memory (:func:`afm_ros.core.scanner.check_scan`), and, if frames are written, the output
+        folder exists or is created (only its last level) and has room for a frame's files
+        (:func:`afm_ros.formats.folders.check_output_directory`). ValueError with the reason."""
+        values = dict(self._values) if values is None else values
+        plan = check_scanner_values(values)
+        if self.lockin_output_rate is None:
+            reachable = self._settings_clients["lockin"].services_are_ready()
+            raise ValueError(f"the lock-in's output_rate is not known yet ({self._lockin_fqn} "
+                             + ("answers; asked for it, try again in a second)" if reachable else
+                                "is not reachable: is the lock-in node running in this namespace?)")
+                             + "; every pixel needs one lock-in output")
+        needs = check_scan(plan, self.lockin_output_rate, self.sample_interval)
+        if values["write_files"]:
+            check_output_directory(values["output_directory"], need_bytes=needs.file_bytes, create=True)
+        return plan
+
     def _stop(self, request, response):
+        values = dict(self._values)
+        result = self._stop_scan(values["write_partial_frames"])
+        if result is None:
+            response.success = False
+            response.message = "no scan is running"
+            return response
+        park, frame, _ = result
+        response.success = True
+        response.message = (f"scan stopped; the tip parks at the scan start ({park[0]:g}, {park[1]:g}) m"
+                            + (f"; writing the {frame.lines_done} completed lines of {frame.lines_planned} as a "
+                               f"partial frame" if frame is not None else ""))
+        return response
+
+    def stop_scan(self, write_partial: bool = True, timeout: float = 120.0) -> list[Path] | None:
+        """Stop the scan and park the tip at its start; with ``write_partial`` (and ``write_files``)
+        write the lines of the current frame completed so far as a partial frame
+        (:meth:`afm_ros.core.imaging.Frame.completed`: only those rows, marked ``frame.partial`` in
+        the metadata, ``<prefix>_<date>_<time>_<frame>_partial.gwy`` + previews) and wait for it.
+        Returns the paths written ([] if none: no line completed, or the write failed and
+        :attr:`write_error` says why), or None if no scan was running; :attr:`partial_frame` is
+        the frame of the completed lines (also when nothing is written)."""
+        result = self._stop_scan(write_partial)
+        if result is None:
+            return None
+        _, _, writer = result
+        if writer is None:
+            return []
+        writer.join(timeout)
+        return list(getattr(writer, "paths", []))
+
+    def line_end_after(self, t: float) -> float | None:
+        """Simulated time [s] at which the line being scanned at ``t`` [s] ends (None: no scan
+        confirmed); run the cantilever past it and wait for ``lines_done`` to finish a line."""
+        plan = self.plan if self.state == "scanning" else None
+        return None if plan is None else plan.line_end_after(t)
+
+    def _stop_scan(self, write_partial: bool):
+        """Stop: (park position, partial frame or None, its writer thread or None); None if idle."""
         with self._lock:
             if self.state == "idle":
-                response.success = False
-                response.message = "no scan is running"
-                return response
+                return None
             plan = self.plan or ScanPlan.from_values(self._values)
+            frame = self.accumulator.frame if self.state == "scanning" and self.accumulator is not None else None
             self._request_id += 1
             park = {"id": self._request_id, "park": [plan.x_left, plan.line_y(0)]}
             self.state = "idle"
             self.accumulator = None
             self._plan_request = None
+            values = dict(self._values)
         self._pub_plan.publish(String(data=json.dumps(park)))
-        response.success = True
-        response.message = f"scan stopped; the tip parks at the scan start ({park['park'][0]:g}, {park['park'][1]:g}) m"
+        self.partial_frame = frame.completed() if frame is not None and frame.lines_done > 0 else None
+        frame, writer = None, None
+        if self.partial_frame is not None and write_partial and values["write_files"]:
+            frame = self.partial_frame
+            writer = self._write_frame(frame, values)
+            self.get_logger().info(f"scan stopped after {frame.lines_done} of {frame.lines_planned} lines: "
+                                   f"writing them as a partial frame")
         self._publish_progress()
-        return response
+        return park["park"], frame, writer
+
+    # --- the lock-in's output rate ------------------------------------------------------------------
+    def _ask_lockin(self) -> None:
+        """While the lock-in's output_rate is unknown, ask its parameter service (asynchronously)."""
+        client = self._settings_clients["lockin"]
+        if self.lockin_output_rate is not None or self._lockin_asking or not client.services_are_ready():
+            return
+        self._lockin_asking = True
+
+        def done(future) -> None:
+            self._lockin_asking = False
+            try:
+                value = parameter_value_to_python(future.result().values[0])
+            except Exception as exc:  # noqa: BLE001 - asked again at the next poll
+                self.get_logger().warning(f"cannot read the lock-in's output_rate: {exc!r}", throttle_duration_sec=10.0)
+                return
+            if self.lockin_output_rate is None and isinstance(value, float):
+                self._set_lockin_rate(value)
+        client.get_parameters(["output_rate"]).add_done_callback(done)
+
+    def _on_parameter_event(self, event: ParameterEvent) -> None:
+        if event.node != self._lockin_fqn:
+            return
+        for param in (*event.new_parameters, *event.changed_parameters):
+            if param.name == "output_rate":
+                self._set_lockin_rate(parameter_value_to_python(param.value))
+
+    def _set_lockin_rate(self, rate: float) -> None:
+        self.lockin_output_rate = float(rate)
+        # from now on /parameter_events keeps it current: the poll idles (a period change, not cancel(),
+        # which rclpy's executors do not allow for a timer already ready in the current wait)
+        self._lockin_timer.timer_period_ns = int(LOCKIN_IDLE_PERIOD_S * 1e9)
+        plan = self.plan if self.state == "scanning" else None
+        if plan is not None:
+            limit = max_pixels(plan.line_rate, rate, self.sample_interval or 0.0)
+            if plan.pixels > limit:
+                self.get_logger().warning(
+                    f"the lock-in's output_rate is now {rate:g} Hz: the running scan's {plan.pixels} pixels per line "
+                    f"need more (at most {limit} here); its pixels will miss data and the frame cannot be written")
 
     # --- the cantilever's confirmation ---------------------------------------------------------
     def _on_applied(self, msg: String) -> None:
@@ -244,6 +370,9 @@ class ScannerNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"malformed lock-in output batch ignored: {exc}", throttle_duration_sec=5.0)
             return
+        last_index, last_time = self._lockin_end
+        if b.input_first_index == last_index and b.input_end_index > last_index:
+            self.sample_interval = (b.input_end_time - last_time) / (b.input_end_index - last_index)
         self._lockin_end = (b.input_end_index, b.input_end_time)
         if not record_only and self.accumulator is not None and b.t.shape[0]:
             self.accumulator.add_lockin(b.t, np.hypot(b.x, b.y), np.degrees(np.arctan2(-b.y, b.x)))
@@ -296,30 +425,43 @@ class ScannerNode(Node):
             single = not frame.plan.continuous
             if single:
                 self.state = "idle"
-            values, applied = dict(self._values), dict(self._applied or {})
+            values = dict(self._values)
         if values["write_files"]:
-            stamp = _dt.datetime.now().strftime("%Y%m%d_%H%M%S")
-            folder = Path(values["output_directory"] or ".")
-            stem = folder / f"{values['file_prefix']}_{stamp}_{frame.index:03d}"
-            metadata = {**{f"scan.{k}": v for k, v in frame.plan.as_dict().items()},
-                        **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")},
-                        **{f"{role}.{k}": v for role, values in self._settings.items() for k, v in values.items()}}
-            writer = threading.Thread(target=self._write, args=(frame, stem, metadata), daemon=True,
-                                      name="frame-writer")
-            writer.start()
-            self._writers.append(writer)
+            self._write_frame(frame, values)
         self.get_logger().info(f"frame {frame.index} finished" + (" (single frame: idle)" if single else ""))
         self._publish_progress()
+
+    def _write_frame(self, frame, values: dict) -> threading.Thread:
+        """Write ``frame`` (full, or the completed part of one) in a background thread; the
+        thread's ``paths`` are the files written."""
+        stamp = _dt.datetime.now().strftime("%Y%m%d_%H%M%S")
+        folder = Path(values["output_directory"] or ".").expanduser()
+        stem = folder / (f"{values['file_prefix']}_{stamp}_{frame.index:03d}" + ("_partial" if frame.partial else ""))
+        applied = dict(self._applied or {})
+        planned = self.plan or frame.plan  # the scan as planned; the file's own size is the frame's
+        metadata = {**{f"scan.{k}": v for k, v in planned.as_dict().items()},
+                    **{f"frame.{k}": v for k, v in frame.info().items()},
+                    **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")},
+                    **{f"{role}.{k}": v for role, values in self._settings.items() for k, v in values.items()}}
+        writer = threading.Thread(target=self._write, args=(frame, stem, metadata), daemon=True, name="frame-writer")
+        writer.paths = []
+        writer.start()
+        self._writers.append(writer)
+        return writer
 
     def _write(self, frame, stem: Path, metadata: dict) -> None:
         from afm_ros.formats.frames import write_frame
         try:
             paths = write_frame(frame, stem, metadata)
-            self.frames_written.append(paths[0])
-            self.get_logger().info(f"wrote {paths[0]} and {len(paths) - 1} previews")
         except (OSError, ValueError) as exc:
-            self.last_error = f"cannot write frame {frame.index} to {stem}: {exc}"
-            self.get_logger().error(self.last_error)
+            self.frames_failed += 1
+            self.write_error = f"cannot write frame {frame.index} to {stem}: {exc}"
+            self.get_logger().error(self.write_error)
+            return
+        threading.current_thread().paths = paths
+        self.frames_written.append(paths[0])
+        self.write_error = ""  # an old failure no longer describes the writer
+        self.get_logger().info(f"wrote {paths[0]} and {len(paths) - 1} previews")
 
     @property
     def sustained_real_time_factor(self) -> float:
@@ -336,11 +478,13 @@ class ScannerNode(Node):
 
     def _publish_diagnostics(self) -> None:
         p = self.plan
-        topics.publish_status(self, self._pub_diag, "scan", self.last_error or None, {
+        problems = [e for e in (self.last_error, self.write_error) if e]
+        topics.publish_status(self, self._pub_diag, "scan", "; ".join(problems) or None, {
             "state": self.state, "frames_done": self.frames_done, "lines_done": self.lines_done,
             "line": (self.lines_done % p.lines) if p else 0, "lines": p.lines if p else self._values["lines"],
             "time_left_s": ((p.lines - self.lines_done % p.lines) / p.line_rate) if p and self.state != "idle" else 0.0,
-            "frames_written": len(self.frames_written)})
+            "frames_written": len(self.frames_written), "frames_failed": self.frames_failed,
+            "lockin_output_rate_Hz": self.lockin_output_rate if self.lockin_output_rate is not None else "unknown"})
 
     def destroy_node(self):
         self.wait_for_writers(30.0)

@@ -16,16 +16,20 @@ phase contrast, dissipation, the amplitude error that says whether the feedback 
 trace-retrace rms; edge exclusion): the same analysis as ``afm_instrument --image``,
 :mod:`afm_ros.tools.frame_report`, plus the real-time factor of the scan.
 
-A bad value prints one line naming the flag, the field and the allowed range, and exits with 2.
+A bad value prints one line naming the flag, the field and the allowed range, and exits with 2;
+so does a scan the lock-in cannot fill or memory cannot hold (:func:`afm_ros.core.scanner.check_scan`)
+and an ``--out`` that cannot be written. Ctrl-C finishes the current line, writes the completed
+lines as ``scan_partial.gwy`` and a summary marked interrupted, and exits with 130 (:class:`Interruption`).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
-import os
 import resource
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +40,8 @@ from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import NOISE_SPECS, ParamSpec, parse_number
-from afm_ros.core.scanner import SCAN_SPECS, ScanPlan
+from afm_ros.core.scanner import SCAN_SPECS, ScanPlan, check_scan, frame_file_bytes
+from afm_ros.formats.folders import check_output_directory
 from afm_ros.tools.frame_report import Loop, analyse_frame, clean, frame_lines
 
 PROG = "afm_study scan"
@@ -152,26 +157,19 @@ def _value(flag: str, spec: ParamSpec, text):
 
 
 def load_sample(spec: str):
-    """The sample of ``--sample``: a built-in name, a description file or a .gwy/.npy/.png height map."""
-    from afm_ros.core.samples import from_file, resolve_sample
+    """The sample of ``--sample``: a built-in name, a description file or a .gwy height map (the
+    same rule as the cantilever's ``sample`` parameter: :func:`afm_ros.core.samples.resolve_sample`)."""
+    from afm_ros.core.samples import resolve_sample
 
     text = str(spec)
-    ext = os.path.splitext(text)[1].lower()
     try:
-        sample = from_file(text) if ext in (".gwy", ".npy", ".png") else resolve_sample(text)
+        sample = resolve_sample(text)
     except (ValueError, OSError) as exc:
         raise ValueError(f"--sample: {exc}") from None
     if sample is None:
         raise ValueError(f"--sample: sample={text!r} is flat: nothing to image; use a built-in name "
                          f"(ps_ldpe_blend, tgz_grating, terraces), a description file or a .gwy height map")
     return sample
-
-
-def max_pixels(line_rate: float, output_rate: float, sample_interval: float) -> int:
-    """Most pixels per line for which every pixel holds a lock-in output: a pixel lasts
-    1 / (2 line_rate pixels) and the outputs come every 1/output_rate, each at the first input
-    sample at or after its grid time (up to one sample interval late)."""
-    return int(math.floor(1.0 / (2.0 * line_rate * (1.0 / output_rate + sample_interval)) * (1.0 + 1e-12)))
 
 
 def config_from_args(ns) -> ScanConfig:
@@ -194,16 +192,10 @@ def config_from_args(ns) -> ScanConfig:
         raise ValueError(f"--setpoint: setpoint={feedback['setpoint']!r} m must be between 0 and the free amplitude "
                          f"{a0:g} m for the tip to tap; allowed range (0, {a0:g}) m")
     setup = build(values)
-    limit = max_pixels(plan_values["line_rate"], output_rate, setup.sample_interval)
-    if plan_values["pixels_per_line"] > limit:
-        slots = 2.0 * plan_values["line_rate"] * plan_values["pixels_per_line"]  # pixel slots per second
-        room = 1.0 - slots * setup.sample_interval
-        hint = f"--lockin-output-rate >= {math.ceil(slots / room)} Hz, or " if room > 0 and \
-            slots / room <= LOCKIN_SPECS["output_rate"].high else ""
-        raise ValueError(
-            f"--pixels-per-line: pixels_per_line={plan_values['pixels_per_line']} leaves pixels without a lock-in "
-            f"output at line_rate={plan_values['line_rate']:g} Hz and lockin_output_rate={output_rate:g} Hz; "
-            f"allowed range [2, {max(limit, 0)}] here (or {hint}a lower --line-rate)")
+    try:  # the same rule as the scanner node's: one lock-in output per pixel, bounded frame memory
+        check_scan(plan_values, output_rate, setup.sample_interval)
+    except ValueError as exc:
+        raise ValueError(f"--pixels-per-line: {exc}") from None
     sample = load_sample(getattr(ns, "sample", DEFAULT_SAMPLE) or DEFAULT_SAMPLE)
     return ScanConfig(plan_values, str(getattr(ns, "sample", DEFAULT_SAMPLE)), sample, force_model, feedback,
                       output_rate, engage, noise, edge, Path(getattr(ns, "out", "scan_out")),
@@ -229,8 +221,10 @@ def peak_rss_bytes() -> int:
     return int(rss if sys.platform == "darwin" else rss * 1024)
 
 
-def run_scan(config: ScanConfig, progress=None) -> ScanResult:
-    """Engage at the first pixel, then scan one frame; returns the frame and timings."""
+def run_scan(config: ScanConfig, progress=None, interruption: "Interruption | None" = None) -> ScanResult:
+    """Engage at the first pixel, then scan one frame; returns the frame and timings. With an
+    ``interruption``, Ctrl-C ends the scan early (see :class:`Interruption`): the result then
+    holds the completed lines only (``frame.partial``), or no frame if none was completed."""
     from afm_ros.core.wired import WiredInstrument
 
     t0 = time.perf_counter()
@@ -242,9 +236,65 @@ def run_scan(config: ScanConfig, progress=None) -> ScanResult:
     w.run_until(config.engage_time)
     engage_error = -float(w.controller.error) if math.isfinite(w.controller.error) else math.nan  # A - setpoint
     t2 = time.perf_counter()
-    frame = w.scan_frame(config.plan_values, progress=progress)
+    if interruption is None:
+        frame = w.scan_frame(config.plan_values, progress=progress)
+    else:
+        interruption.phase = "scan"
+        try:
+            frame = w.scan_frame(config.plan_values, progress=progress,
+                                 stop=lambda instrument: interruption.lines_to_keep(instrument, t2))
+        except KeyboardInterrupt:  # a second Ctrl-C: the lines completed so far are kept
+            frame = w.frame_so_far
+        interruption.phase = "files"
+        if frame.partial:
+            frame = frame.completed() if frame.lines_done else None
     t3 = time.perf_counter()
-    return ScanResult(frame, w, frame.plan, t1 - t0, t2 - t1, t3 - t2, engage_error, peak_rss_bytes())
+    return ScanResult(frame, w, frame.plan if frame is not None else plan0, t1 - t0, t2 - t1, t3 - t2, engage_error,
+                      peak_rss_bytes())
+
+
+FINISH_LINE_WALL_S = 10.0  # a first Ctrl-C finishes the current line if that takes at most this [s] (wall)
+
+
+class Interruption:
+    """Ctrl-C (SIGINT) in ``afm_study scan``, the instrument's convention: during the scan the first
+    one finishes the current line (or stops at once if that line would take more than
+    :data:`FINISH_LINE_WALL_S` of wall time at the speed so far), then the completed lines are
+    written as a partial frame and summarised, exit status 130; a second one stops at once, keeping
+    the completed lines. Before the scan (set-up, engage) it stops at once: nothing to keep; while
+    the files are written the first one lets them finish."""
+
+    def __init__(self):
+        self.count = 0
+        self.phase = "setup"
+        self.stop_after: int | None = None  # completed lines at which the scan ends
+
+    def __call__(self, signum, frame) -> None:
+        self.count += 1
+        if self.phase == "setup" or self.count >= 2:
+            raise KeyboardInterrupt
+        if self.phase == "files":
+            print(f"{PROG}: interrupted: finishing the files (Ctrl-C again stops now)", file=sys.stderr, flush=True)
+
+    def lines_to_keep(self, w, wall_start: float) -> int | None:
+        """The ``stop`` callback of WiredInstrument.scan_frame: None until interrupted."""
+        if not self.count or self.phase != "scan":
+            return None
+        if self.stop_after is None:
+            plan = w.images.plan
+            end = plan.line_end_after(w.t)
+            line = round((end - plan.start_time) * plan.line_rate)  # lines complete at the end of this one
+            speed = (w.t - plan.start_time) / max(time.perf_counter() - wall_start, 1e-9)  # simulated / wall
+            wall_left = (end - w.t) / speed if speed > 0 else math.inf
+            if wall_left <= FINISH_LINE_WALL_S:
+                self.stop_after = line
+                note = f"finishing line {line}/{plan.lines} (about {wall_left:.1f} s; Ctrl-C again stops now)"
+            else:
+                self.stop_after = w.images.frame.lines_done
+                note = (f"stopping now with {self.stop_after} complete lines (line {line} would take about "
+                        f"{wall_left:.0f} s more)")
+            print(f"{PROG}: interrupted: {note}", file=sys.stderr, flush=True)
+        return self.stop_after
 
 
 def _progress_printer(lines: int):
@@ -330,8 +380,10 @@ def metadata_for(config: ScanConfig, result: ScanResult) -> tuple[dict, dict]:
                         "tip_youngs_modulus", "tip_poisson_ratio", "force_model", "temperature",
                         "detector_noise_density", "noise_seed", "chunk_duration", "output_sample_rate",
                         "feedback_latency")
+    planned = ScanPlan.from_values(config.plan_values, start_time=result.plan.start_time)
     meta = {
-        "scan": {**result.plan.values(), "start_time": result.plan.start_time},
+        "scan": {**planned.values(), "start_time": planned.start_time},
+        "frame": result.frame.info(),
         "feedback": dict(w.controller.params),
         "lockin": dict(w.lock_in.params),
         "cantilever": {n: w.values[n] for n in cantilever_names},
@@ -346,13 +398,16 @@ def metadata_for(config: ScanConfig, result: ScanResult) -> tuple[dict, dict]:
     return meta, units
 
 
-def write_outputs(config: ScanConfig, result: ScanResult, summary: dict) -> list[Path]:
-    """scan.gwy, the previews and scan_summary.json into config.out; returns the paths."""
+def write_outputs(config: ScanConfig, result: ScanResult, summary: dict, written: list | None = None) -> list[Path]:
+    """scan.gwy (scan_partial.gwy for the completed lines of an interrupted scan), the previews
+    and scan_summary.json into config.out; returns the paths (also appended to ``written``)."""
     from afm_ros.formats.frames import write_frame, write_text_atomically
 
+    written = [] if written is None else written
     config.out.mkdir(parents=True, exist_ok=True)
     meta, units = metadata_for(config, result)
-    written = write_frame(result.frame, config.out / "scan", meta, previews=config.previews, units=units)
+    stem = "scan_partial" if result.frame.partial else "scan"
+    written += write_frame(result.frame, config.out / stem, meta, previews=config.previews, units=units)
     summary["files"] = [str(p) for p in written] + [str(config.out / "scan_summary.json")]
     summary["peak_rss_bytes"] = peak_rss_bytes()
     written.append(write_text_atomically(config.out / "scan_summary.json", json.dumps(summary, indent=1) + "\n"))
@@ -360,7 +415,8 @@ def write_outputs(config: ScanConfig, result: ScanResult, summary: dict) -> list
 
 
 def run(args, prog: str = PROG) -> int:
-    """Run a scan from parsed flags; 0 on success, 2 (one line on stderr) for a bad value."""
+    """Run a scan from parsed flags; 0 on success, 2 (one line on stderr) for a bad value, 130
+    after Ctrl-C (what was completed is written and summarised, marked interrupted)."""
     try:
         config = config_from_args(args)
     except ValueError as exc:
@@ -368,20 +424,50 @@ def run(args, prog: str = PROG) -> int:
         return 2
     try:
         config.out.mkdir(parents=True, exist_ok=True)
+        check_output_directory(config.out, need_bytes=frame_file_bytes(config.plan_values["pixels_per_line"],
+                                                                       config.plan_values["lines"]), field="--out")
     except OSError as exc:
         print(f"{prog}: error: --out: cannot create {config.out}: {exc.strerror}", file=sys.stderr)
         return 2
-    progress = None if config.quiet else _progress_printer(config.plan_values["lines"])
-    result = run_scan(config, progress)
-    summary = analyse(config, result)
-    try:
-        written = write_outputs(config, result, summary)
-    except OSError as exc:
+    except ValueError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 1
-    print(format_summary(summary))
-    print(f"  wrote                {written[0]} (+ {len(written) - 2} previews) and {written[-1]}")
-    return 0
+        return 2
+    interruption = Interruption()
+    handler = signal.signal(signal.SIGINT, interruption) if threading.current_thread() is threading.main_thread() \
+        else None
+    written: list[Path] = []
+    try:
+        progress = None if config.quiet else _progress_printer(config.plan_values["lines"])
+        result = run_scan(config, progress, interruption)
+        if result.frame is None:
+            print(f"{prog}: interrupted before the first line was complete: nothing written", file=sys.stderr)
+            return 130
+        partial = result.frame.partial
+        summary = analyse(config, result)
+        if partial:
+            info = result.frame.info()
+            summary["interrupted"] = {**info, "note": "Ctrl-C: every number is over the completed lines only"}
+        try:
+            written = write_outputs(config, result, summary, written)
+        except OSError as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 1
+        text = format_summary(summary)
+        if partial:
+            head, rest = text.split("\n", 1)
+            text = (f"{head} (interrupted)\n  interrupted          Ctrl-C after {info['lines_done']} of "
+                    f"{info['lines_planned']} lines: every number below is over those lines only, the file holds "
+                    f"them (a partial frame)\n{rest}")
+        print(text)
+        print(f"  wrote                {written[0]} (+ {len(written) - 2} previews) and {written[-1]}")
+        return 130 if interruption.count else 0
+    except KeyboardInterrupt:
+        what = f"kept {', '.join(str(p) for p in written)}" if written else "nothing written"
+        print(f"{prog}: interrupted: {what}", file=sys.stderr)
+        return 130
+    finally:
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
 
 
 def main(argv=None) -> int:

@@ -16,7 +16,7 @@ import json
 import os
 
 from afm_ros.core.physics.parameters import DMT_SPECS, parse_number
-from afm_ros.core.samples.generators import GENERATORS, PAIRS, SPECS
+from afm_ros.core.samples.generators import GENERATORS, MAP_EXTENSIONS, PAIRS, SPECS, from_file
 from afm_ros.core.samples.surface import Sample, dilate
 
 TOP_LEVEL = ("generator", "tip_radius")
@@ -122,8 +122,10 @@ def builtin_samples() -> dict[str, str]:
 
 def resolve_sample(spec: str) -> Sample | None:
     """``''`` or ``'flat'``: None (the flat sample of the force parameters); a built-in name
-    (:func:`builtin_samples`); else a description file's path. Errors name the sample and the
-    allowed names."""
+    (:func:`builtin_samples`); a description file (``.yaml``, ``.yml``, ``.json``); or a height map
+    file (``.gwy``: its first channel at the file's real size; ``.npy``/``.png`` need a size, so
+    they come through a description file). Every sample parameter and ``--sample`` flag goes
+    through here. Errors name the sample and the allowed names."""
     if not isinstance(spec, str):
         raise ValueError(f"sample={spec!r} must be a string: '', 'flat', a built-in name or a file")
     if spec in ("", "flat"):
@@ -131,9 +133,13 @@ def resolve_sample(spec: str) -> Sample | None:
     named = builtin_samples()
     if spec in named:
         return load_sample_file(named[spec])
-    if os.path.splitext(spec)[1].lower() in (".yaml", ".yml", ".json") or os.sep in spec:
+    ext = os.path.splitext(spec)[1].lower()
+    if ext in (".yaml", ".yml", ".json", *MAP_EXTENSIONS) or os.sep in spec:
         if not os.path.exists(spec):
             raise ValueError(f"sample={spec!r}: no such file")
+        if ext in MAP_EXTENSIONS:
+            return from_file(spec)
         return load_sample_file(spec)
     raise ValueError(f"sample={spec!r} is not known; allowed: 'flat', "
-                     + ", ".join(repr(n) for n in named) + " or a sample description file (.yaml, .json)")
+                     + ", ".join(repr(n) for n in named) + " or a sample description file (.yaml, .json) or a "
+                     ".gwy height map")

@@ -12,6 +12,7 @@ import hashlib
 import inspect
 import math
 import os
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -84,11 +85,27 @@ PAIRS = {"size", "pixels"}
 OPTIONAL = {("from_file", "size"), ("from_file", "z_scale"), ("from_file", "channel"), ("from_file", "sha256")}
 
 
+def _sha256_text(value) -> str:
+    """The ``sha256`` field as text: 64 hex digits. YAML reads an all-digit digest as an integer:
+    64 decimal digits are taken back as text (the digest check then confirms them); any other
+    number is refused, since YAML may have read it as octal or dropped its leading zeros."""
+    if isinstance(value, int) and not isinstance(value, bool) and len(str(value)) == 64:
+        value = str(value)
+    if not isinstance(value, str):
+        raise ValueError(f"sha256={value!r} must be text of 64 hex digits; YAML reads an all-digit value as a "
+                         f"number: quote it (sha256: '0123...')")
+    if not re.fullmatch(r"[0-9a-fA-F]{64}", value):
+        raise ValueError(f"sha256={value!r} is not 64 hex digits (a SHA-256 digest, e.g. from sha256sum)")
+    return value.lower()
+
+
 def check(generator: str, name: str, value):
     """``value`` of parameter ``name`` of ``generator``, validated and normalised (pairs as tuples)."""
     spec = SPECS[generator][name]
     if value is None and (generator, name) in OPTIONAL:
         return None
+    if (generator, name) == ("from_file", "sha256"):
+        return _sha256_text(value)
     if name in PAIRS:
         if isinstance(value, (list, tuple, np.ndarray)):
             if len(value) != 2:
@@ -289,6 +306,49 @@ def rough(rms: float = 1e-9, correlation_length: float = 50e-9, size=(2e-6, 2e-6
 
 
 # --- from_file -------------------------------------------------------------------------------
+MAP_EXTENSIONS = (".gwy", ".npy", ".png")
+# A height map file is refused before it is read if it is larger than this or (.npy, .png: from
+# the header) has more pixels than the generators allow (4096 x 4096: 134 MB as float64). Loading
+# and tip-dilating a map happen where the sample is chosen (the cantilever checks a new `sample`
+# in its parameter callback), so the bound keeps that answer to a few seconds (docs/samples.md).
+MAX_MAP_PIXELS = 4096 * 4096
+MAX_MAP_FILE_BYTES = 256 * 2 ** 20
+
+
+def _map_shape(path: str, ext: str) -> tuple[int, int] | None:
+    """(rows, cols) of a .npy or .png height map from its header, without reading the data."""
+    if ext == ".npy":
+        try:  # memory-mapped: only the header is read
+            shape = np.load(path, mmap_mode="r", allow_pickle=False).shape
+        except (ValueError, EOFError) as e:
+            raise ValueError(f"{path}: not a readable .npy array ({e})") from None
+        return tuple(int(n) for n in shape) if len(shape) == 2 else None
+    if ext == ".png":
+        with open(path, "rb") as f:
+            head = f.read(24)
+        if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+            return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
+    return None
+
+
+def check_map_file(path: str) -> None:
+    """Refuse a height map file above :data:`MAX_MAP_FILE_BYTES` or (.npy/.png header)
+    :data:`MAX_MAP_PIXELS` before it is read: ValueError naming the file, its size and the limit;
+    OSError naming it if it cannot be read."""
+    try:
+        size = os.stat(path).st_size
+    except OSError as e:
+        raise OSError(e.errno, f"cannot read sample file {path}: {e.strerror}") from e
+    if size > MAX_MAP_FILE_BYTES:
+        raise ValueError(f"{path}: the file has {size / 2 ** 20:.1f} MiB; allowed at most "
+                         f"{MAX_MAP_FILE_BYTES / 2 ** 20:g} MiB for a sample map (at most 4096 x 4096 pixels; "
+                         f"crop or resample it, or keep only its height channel)")
+    shape = _map_shape(path, os.path.splitext(path)[1].lower())
+    if shape is not None and shape[0] * shape[1] > MAX_MAP_PIXELS:
+        raise ValueError(f"{path}: the map has {shape[1]} x {shape[0]} pixels; allowed at most "
+                         f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)")
+
+
 def _sha256(path: str) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as f:
@@ -335,13 +395,14 @@ def from_file(path: str, size=None, z_scale: float | None = None, channel: str |
                                    sha256=sha256))
     path = os.path.abspath(p["path"])
     ext = os.path.splitext(path)[1].lower()
-    if ext not in (".gwy", ".npy", ".png"):
+    if ext not in MAP_EXTENSIONS:
         raise ValueError(f"path={path!r} has the extension {ext!r}; allowed: '.gwy', '.npy', '.png'")
+    check_map_file(path)
     try:
         digest = _sha256(path)
     except OSError as e:
         raise OSError(e.errno, f"cannot read sample file {path}: {e.strerror}") from e
-    if p["sha256"] is not None and p["sha256"].lower() != digest:
+    if p["sha256"] is not None and p["sha256"] != digest:
         raise ValueError(f"{path}: SHA-256 is {digest}, the description expects sha256={p['sha256']!r}")
     if ext == ".gwy":
         from afm_ros.formats.gwy import read_gwy
@@ -383,6 +444,9 @@ def from_file(path: str, size=None, z_scale: float | None = None, channel: str |
                              f"allowed range {SPECS['from_file']['size'].range_text()}")
         if p["channel"] is not None:
             raise ValueError(f"channel={p['channel']!r} applies to .gwy files only; {path} is {ext}")
+    if np.size(values) > MAX_MAP_PIXELS:
+        raise ValueError(f"{path}: the map has {np.shape(values)[-1]} x {np.shape(values)[0]} pixels; allowed at most "
+                         f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)")
     height = np.asarray(values, dtype=np.float64) * scale
     if not np.all(np.isfinite(height)):
         raise ValueError(f"{path}: the height map has non-finite values")
