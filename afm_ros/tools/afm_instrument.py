@@ -455,8 +455,6 @@ class Instrument:
         self.attached_recorder: str | None = None  # a recorder running beside attached nodes
         self.job: JobState | None = None
         self._finishing = False  # finishing the current scan line after a first Ctrl-C
-        self.partial_frame = None  # the lines kept when Ctrl-C interrupted a scan
-        self.partial_lines = 0
         self.run_folder = ""  # where the session and frames go (set by main)
 
     @property
@@ -800,15 +798,18 @@ class Instrument:
 
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
+        self.check_scan()  # before anything long starts
         engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)  # contact numbers: the hold
         job = self.job
         scanner, cantilever = self.nodes["scanner"], self.cantilever
         wall_scan = time.monotonic()
+        job.phase = "starting the scan"
+        self.spin_until(lambda: scanner.lockin_output_rate is not None,
+                        "waiting for the scanner to learn the lock-in's output_rate")
         response = scanner._start(Trigger.Response(), single=True)
         if not response.success:
             raise RuntimeError(f"scanner: {response.message}")
         # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
-        job.phase = "starting the scan"
         self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
         plan = scanner.plan
         chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
@@ -827,16 +828,16 @@ class Instrument:
         scanner.wait_for_writers()
         if not interrupted:
             self.wait_recorded()
-        frame = scanner.accumulator.frames_done[0] if scanner.accumulator.frames_done else None
+        complete = scanner.frames_done >= 1
+        frame = scanner.accumulator.frames_done[0] if complete else scanner.partial_frame
         sample = cantilever._samples.get(cantilever._values["sample"])
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
                  "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
                  "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
-        if interrupted:
-            image.update(partial=True, lines_done=self.partial_lines)
-            frame = self.partial_frame
+        if not complete:
+            image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
         if sample is not None and frame is not None:
             from afm_ros.tools.frame_report import Loop, analyse_frame
             setup, values = cantilever._setup, cantilever._values
@@ -853,23 +854,39 @@ class Instrument:
 
     def _finish_line(self, scanner, plan, chunk: float) -> str:
         """Ctrl-C while scanning: run to the end of the current line, stop the scan and keep the lines
-        done as a partial frame; returns the summary's interruption text."""
-        done = scanner.lines_done
-        line = min(done, plan.lines - 1)
-        t_line = plan.line_end_time(0, line)
-        print(f"interrupted: finishing line {line + 1}/{plan.lines} (to t={t_line:.3f} s simulated), then writing "
-              f"the {line + 1} lines as a partial frame; Ctrl-C again to stop at once", flush=True)
-        self._finishing = True
-        try:
-            self.advance_to(t_line + 2 * chunk)
-            self.spin_until(lambda: scanner.lines_done > line or scanner.frames_done >= 1,
-                            f"waiting for line {line + 1} to close")
-        finally:
-            self._finishing = False
-        self.partial_lines = min(scanner.lines_done, plan.lines)
-        self.partial_frame, paths = scanner.stop_scan(write_partial=True)
-        return (f"at t={self.monitor.answer_time:.3f} s simulated, while scanning: {self.partial_lines} of "
-                f"{plan.lines} lines kept as a partial frame")
+        done as a partial frame (``*_partial.gwy``); returns the summary's interruption text."""
+        t_line = scanner.line_end_after(self.monitor.answer_time)
+        if t_line is not None:
+            line = scanner.lines_done % plan.lines + 1
+            print(f"interrupted: finishing line {line}/{plan.lines} (to t={t_line:.3f} s simulated), then writing "
+                  f"the lines done as a partial frame; Ctrl-C again to stop at once", flush=True)
+            done = scanner.lines_done
+            self._finishing = True
+            try:
+                self.advance_to(t_line + 2 * chunk)
+                self.spin_until(lambda: scanner.lines_done > done or scanner.frames_done >= 1,
+                                f"waiting for line {line} to close")
+            finally:
+                self._finishing = False
+        if scanner.frames_done >= 1:  # the last line closed the frame: nothing is partial
+            return f"at t={self.monitor.answer_time:.3f} s simulated, at the end of the scan: the frame is complete"
+        scanner.stop_scan(write_partial=True)
+        frame = scanner.partial_frame
+        kept = (f"{frame.lines_done} of {plan.lines} lines kept as a partial frame" if frame is not None
+                else "no line was complete: nothing kept")
+        return f"at t={self.monitor.answer_time:.3f} s simulated, while scanning: {kept}"
+
+    def check_scan(self) -> None:
+        """Before the image job engages: the scan can be completed and its files written
+        (:func:`afm_ros.core.scanner.check_scan`, :func:`afm_ros.formats.folders.check_output_directory`);
+        ValueError with the reason."""
+        from afm_ros.core.scanner import check_scan
+        from afm_ros.formats.folders import check_output_directory
+
+        values = self.nodes["scanner"]._values
+        needs = check_scan(values, self.get("lockin", "output_rate"), self.cantilever._setup.sample_interval)
+        if values["write_files"]:
+            check_output_directory(values["output_directory"], need_bytes=needs.file_bytes, create=True)
 
     def _run_until_interrupted(self) -> None:
         """Interactive: run without a pause until Ctrl-C, with a status line every 5 s of wall time."""
