@@ -89,6 +89,8 @@ class ScannerNode(Node):
         self._pub_geometry = self.create_publisher(String, "scanner/geometry", topics.LATCHED_QOS)
         self._pub_images = {(c, d): self.create_publisher(Image, image_topic(c, d), topics.LATCHED_QOS)
                             for c in CHANNELS for d in DIRECTIONS}
+        # images published per publisher: a recorder in the same process is waited for until it has them all
+        self.published_copies = {pub: 0 for pub in self._pub_images.values()}
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._ack = topics.Acknowledger(self)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS)
@@ -407,6 +409,7 @@ class ScannerNode(Node):
         stamp = frame.plan.line_end_time(frame.index, line)
         for (c, d), pub in self._pub_images.items():
             pub.publish(image_message(frame.images[d][c], stamp))
+            self.published_copies[pub] += 1
         self._publish_progress()
 
     def _publish_progress(self) -> None:

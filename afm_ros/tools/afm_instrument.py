@@ -806,6 +806,13 @@ class Instrument:
         job.phase = "starting the scan"
         self.spin_until(lambda: scanner.lockin_output_rate is not None,
                         "waiting for the scanner to learn the lock-in's output_rate")
+        rec = self.nodes.get("recorder")
+        if rec is not None:  # every image of every line in the session: subscribed before the first line
+            from afm_ros.nodes.recorder_node import matches
+            images = [p for p in scanner.published_copies if not matches(p.topic_name, rec._exclude)]
+            self.spin_until(lambda: {p.topic_name for p in images} <= set(rec.topics)
+                            and all(p.get_subscription_count() > 0 for p in images),
+                            "waiting for the recorder to subscribe to the scanner's images")
         response = scanner._start(Trigger.Response(), single=True)
         if not response.success:
             raise RuntimeError(f"scanner: {response.message}")
