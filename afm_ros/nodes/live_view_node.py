@@ -1,8 +1,9 @@
 """ROS 2 node ``live_view``: the instrument over the Foxglove WebSocket protocol (foxglove-sdk).
 
 A WebSocket server in this process (``address``:``port``, 127.0.0.1:8765 by default; the protocol
-has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every topic of the node's namespace (plus ``/diagnostics`` and
-``/rosout``) as a Foxglove channel under its full ROS name, as foxglove_bridge does: the ROS 2
+has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every
+topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxglove channel under
+its full ROS name, as foxglove_bridge does: the ROS 2
 message bytes (CDR) with the ``ros2msg`` definition the recorder writes, except the scanner's
 images, which go out as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s
 deflection and force, of which one chunk in ``deflection_decimation`` is forwarded
