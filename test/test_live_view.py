@@ -339,6 +339,92 @@ def test_parameter_writes_go_through_the_nodes_validation_and_services_work(inst
     assert calls[2]["value"]["message"].startswith("scan stopped")
 
 
+class _Viewer:
+    """The client as a separate process whose JSON events are read while it runs."""
+
+    def __init__(self, foxglove_client, plan: dict):
+        self.events: list[dict] = []
+        self.process = subprocess.Popen([*foxglove_client.command, json.dumps(plan)], stdout=subprocess.PIPE,
+                                        text=True)
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            if line.startswith("{"):
+                self.events.append(json.loads(line))
+
+    def wait_for(self, kind: str, timeout: float = 30.0, **match) -> dict:
+        found = lambda: [e for e in self.events if e["event"] == kind and all(e.get(k) == v for k, v in match.items())]
+        assert _wait(lambda: found() or self.process.poll() is not None and not self.thread.is_alive(), timeout) \
+            and found(), (kind, match, self.events[-5:])
+        return found()[0]
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        self.thread.join(5.0)
+
+
+def test_each_parameter_change_is_pushed_once_to_each_subscribed_viewer(instrument, foxglove_client):
+    """A viewer subscribed to a parameter gets one update per change: from a write through the live
+    view (by another viewer or itself) and from a write elsewhere (here over the node's set_parameters
+    service, as ``ros2 param set`` does). The SDK publishes a set handler's answer to the subscribed
+    viewers, so echoing the node's parameter event as well sent every live-view write twice."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    ns = instrument.namespace
+    name = f"{ns}/z_controller.setpoint"
+    elsewhere = AsyncParameterClient(instrument.probe.node, f"{ns}/z_controller")
+    assert elsewhere.wait_for_services(20.0)
+
+    def set_elsewhere(value: float) -> None:
+        future = elsewhere.set_parameters([Parameter("setpoint", value=value)])
+        assert _wait(future.done, 20.0) and future.result().results[0].successful
+
+    changes = [4.6e-8, 4.5e-8, 4.7e-8]  # elsewhere, by the writer viewer, elsewhere again
+    watch_ms = 1500  # a second copy of a push follows the first within milliseconds
+    watcher = _Viewer(foxglove_client, {"url": instrument.url, "subscribeParameters": [name], "timeoutMs": 60000,
+                                        "awaitAfter": [{"name": name, "value": v} for v in changes],
+                                        "watchMs": watch_ms})
+    writer = _Viewer(foxglove_client, {"url": instrument.url, "subscribeParameters": [name], "timeoutMs": 60000,
+                                       "awaitBefore": [{"name": name, "value": changes[0]}],
+                                       "setParameters": [[{"name": name, "value": changes[1], "type": "float64"}]],
+                                       "awaitAfter": [{"name": name, "value": changes[2]}], "watchMs": watch_ms})
+    try:
+        watcher.wait_for("parametersSubscribed")
+        writer.wait_for("parametersSubscribed")
+        set_elsewhere(changes[0])
+        reply = writer.wait_for("parameters", id="set0")  # the writer's own write, answered
+        assert reply["parameters"] == [{"name": name, "type": "float64", "value": changes[1]}]
+        assert not reply["statuses"]
+        set_elsewhere(changes[2])
+        for viewer in (watcher, writer):
+            pushes = [p["value"] for p in viewer.wait_for("pushes")["pushes"] if p["name"] == name]
+            assert pushes == changes, pushes
+    finally:
+        watcher.close()
+        writer.close()
+        set_elsewhere(4.8e-8)  # the default, which the other tests read
+
+
+def test_a_viewer_offering_only_the_old_subprotocol_is_refused(instrument, foxglove_client):
+    """foxglove-sdk accepts only the WebSocket subprotocol foxglove.sdk.v1 (fixed in its handshake):
+    a client offering only foxglove.websocket.v1, the protocol's older name (@foxglove/ws-protocol's
+    FoxgloveClient.SUPPORTED_SUBPROTOCOL, Lichtblick up to 1.21), gets HTTP 400 before any protocol
+    message; the server goes on serving, and a client offering foxglove.sdk.v1 (alone, or both names
+    as the Foxglove app and current Lichtblick do) connects."""
+    refused = _one(foxglove_client({"url": instrument.url, "subprotocols": ["foxglove.websocket.v1"],
+                                    "expectRefusal": True}), "refused")
+    assert refused["status"] == 400 and "sec-websocket-protocol" in refused["body"]
+    for offered in (["foxglove.sdk.v1"], ["foxglove.websocket.v1", "foxglove.sdk.v1"]):
+        events = foxglove_client({"url": instrument.url, "subprotocols": offered, "listOnly": True,
+                                  "topics": [instrument.namespace + "/cantilever/deflection"]})
+        assert _one(events, "channels")["protocol"] == "foxglove.sdk.v1"
+
+
 def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(instrument, foxglove_client):
     from rclpy.parameter import Parameter
 
@@ -408,6 +494,47 @@ def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglo
         executor.shutdown(timeout_sec=1.0)
 
 
+def test_a_parameter_node_that_leaves_is_forgotten_and_reloaded_when_it_returns(ros_context, ros_namespace):
+    """A node of the namespace that stops (a scanner started and stopped separately) is forgotten:
+    its parameters are no longer offered and its parameter clients are destroyed; the live view goes
+    on serving (rclpy 7.1's AsyncParameterClient has no destroy(): calling it raised AttributeError
+    out of the discovery timer and stopped the node), and the node's parameters return with it."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from afm_ros.nodes.live_view_node import LiveViewNode
+    from afm_ros.nodes.node_main import make_executor
+
+    live = LiveViewNode(context=ros_context, namespace=ros_namespace,
+                        parameter_overrides=[Parameter("port", value=0), Parameter("discovery_period", value=0.1)])
+    executor = make_executor("events", ros_context)
+    executor.add_node(live)
+    clients_alone = len(list(live.clients))
+    fqn = ros_namespace + "/scanner"
+
+    def spin_until(condition, timeout: float = 20.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not condition():
+            executor.spin_once(timeout_sec=0.1)
+        return condition()
+
+    try:
+        for _ in range(2):  # it comes, goes, and comes back
+            scanner = rclpy.create_node("scanner", context=ros_context, namespace=ros_namespace,
+                                        parameter_overrides=[Parameter("lines", value=64)],
+                                        automatically_declare_parameters_from_overrides=True)
+            executor.add_node(scanner)
+            assert spin_until(lambda: live._get_parameters([fqn + ".lines"])), list(live._params)
+            executor.remove_node(scanner)
+            scanner.destroy_node()
+            assert spin_until(lambda: fqn not in live._params and fqn not in live._param_clients)
+            assert len(list(live.clients)) == clients_alone  # its parameter service clients are gone too
+    finally:
+        executor.remove_node(live)
+        live.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+
+
 def test_standalone_executable_serves_and_stops_on_sigint(foxglove_client):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF", ROS_DOMAIN_ID="73", PYTHONUNBUFFERED="1")
     child = subprocess.Popen([sys.executable, "-m", "afm_ros.nodes.live_view_node", "--ros-args", "-p", "port:=0",
@@ -422,7 +549,7 @@ def test_standalone_executable_serves_and_stops_on_sigint(foxglove_client):
             if not line:
                 break
             lines.append(line)
-            m = re.search(r"ws://127\.0\.0\.1:(\d+) \(no authentication\)", line)
+            m = re.search(r"ws://127\.0\.0\.1:(\d+) \(no authentication; subprotocol foxglove\.sdk\.v1 only", line)
             port = int(m.group(1)) if m else None
         assert port, lines
         events = foxglove_client({"url": f"ws://127.0.0.1:{port}", "services": ["/standalone/scanner/stop"]})

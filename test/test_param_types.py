@@ -8,6 +8,7 @@ the node's services from a second node; futures are waited on with generous time
 """
 from __future__ import annotations
 
+import re
 import sys
 
 import pytest
@@ -78,6 +79,13 @@ class Ros2Param:
         from rclpy.parameter import get_parameter_value
         msg = ParameterMsg(name=name, value=get_parameter_value(string_value=text))
         results = self._wait(self._client(node_name).set_parameters([msg])).results
+        assert len(results) == 1
+        return results[0]
+
+    def delete(self, node_name, name):
+        # ros2cli, branch jazzy (0.32.2), ros2param/api/__init__.py: call_delete_parameters uses
+        # AsyncParameterClient.delete_parameters (a NOT_SET value through set_parameters)
+        results = self._wait(self._client(node_name).delete_parameters([name])).results
         assert len(results) == 1
         return results[0]
 
@@ -223,6 +231,49 @@ def test_refused_values_name_field_and_range_and_change_nothing(afm_nodes, short
     assert descriptor_after.type == descriptor_before.type == TYPE_OF_KIND[spec.kind]
 
 
+@pytest.mark.parametrize("short,name,best", [
+    ("z_controller", "setpont", "setpoint"),                   # the issue's typo
+    ("cantilever", "quality_factr", "quality_factor"),
+    ("scanner", "pixel_per_line", "pixels_per_line"),
+    ("lockin", "zzz", None),                                   # nothing close: every name is listed
+])
+def test_an_unknown_name_is_refused_naming_it_the_node_and_the_close_matches(afm_nodes, short, name, best):
+    nodes, cli = afm_nodes
+    node = _full(nodes, short)
+    specs = node_specs()[short]
+    result = cli.set(node, name, "4e-8")
+    assert not result.successful
+    reason = result.reason
+    assert reason.startswith(f"unknown parameter '{name}' for node {node}; "), reason
+    assert "Invalid access to undeclared" not in reason
+    if best:  # the closest first; every suggestion is a parameter of the node
+        suggested = re.fullmatch(r".*; did you mean (.*)\?", reason).group(1).split(" or ")
+        assert suggested[0] == repr(best) and all(n.strip("'") in specs for n in suggested), reason
+    else:
+        assert reason.endswith("its parameters: " + ", ".join(specs)), reason
+    # the same words for the atomic service (ros2 param load uses set_parameters; a launch file may not)
+    from rclpy.parameter import Parameter
+    atomic = cli._wait(cli._client(node).set_parameters_atomically([Parameter(name, value=4e-8)])).result
+    assert not atomic.successful and atomic.reason == reason
+    assert not nodes[node].has_parameter(name)
+
+
+@pytest.mark.parametrize("short,name", [("z_controller", "setpoint"), ("cantilever", "z_base"),
+                                        ("scanner", "lines"), ("replay", "rate")])
+def test_a_not_set_value_is_refused_naming_field_and_node_and_the_value_stays(afm_nodes, short, name):
+    """`ros2 param delete` sends a NOT_SET value; a parameter of these nodes always has one."""
+    nodes, cli = afm_nodes
+    node = _full(nodes, short)
+    spec = node_specs()[short][name]
+    before = cli.get(node, name)
+    result = cli.delete(node, name)
+    assert not result.successful
+    assert result.reason == (f"{name} of node {node} cannot be unset (a NOT_SET value, as `ros2 param delete` "
+                             f"sends): it always has a value; allowed {spec.range_text()}"), result.reason
+    assert cli.get(node, name) == before
+    assert nodes[node].has_parameter(name)
+
+
 def test_out_of_range_reads_the_same_from_the_service_and_the_node(afm_nodes):
     """The node's stored descriptors carry no range, so the spec (not rclpy) words every refusal."""
     from rclpy.parameter import Parameter
@@ -345,7 +396,8 @@ def test_ros_args_p_and_params_file_values_are_typed(ros_context, ros_namespace,
     finally:
         node.destroy_node()
     err = capfd.readouterr().err
-    assert f"unknown parameter 'quality_factr' for node {ros_namespace}/cantilever" in err, err
+    assert re.search(f"unknown parameter 'quality_factr' for node {ros_namespace}/cantilever; did you mean "
+                     r"'quality_factor'.*\? \(from -p, --params-file or parameter_overrides: ignored\)", err), err
     bad = tmp_path / "bad.yaml"
     bad.write_text("/**/cantilever:\n  ros__parameters:\n    quality_factor: 0.2\n")
     with pytest.raises(ValueError, match=r"^quality_factor=0\.2 is out of range; allowed range \(0\.5, 1e\+06\]$"):

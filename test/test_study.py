@@ -229,3 +229,46 @@ def test_noisy_sweep_averages_to_the_deterministic_answer_with_the_predicted_sta
     assert [r["amplitude_m"] for r in again] == [float(r["amplitude_m"]) for r in rows]  # a seed reproduces a run
     other = study.sweep([200e-9], temperature=300, detector_density=1e-13, noise_seed=4, progress=False)
     assert other[0]["amplitude_m"] != again[0]["amplitude_m"]
+
+
+# --- issue 16.17: numeric flags that would fill the memory are refused before any work ----------------
+@pytest.mark.parametrize("args,hint", [
+    (["convergence", "--periods", "1000000000"], "--periods <= 1562"),        # 12800 steps per period (Euler)
+    (["convergence", "--methods", "rk4", "--periods", "1000000000"], "--periods <= 44642"),
+    (["convergence", "--periods", "5", "--window-periods", "10"], "--window-periods=10 must be at most --periods=5"),
+    (["sweep", "--z-base", "40e-9", "--temperature", "300", "--average-periods", "1000000000"],
+     "--average-periods <= 90909"),
+    (["sweep", "--z-base", "40e-9", "--steps-per-period", "100000", "--quality-factor", "1e6"],
+     "--quality-factor <= 628 at this step count, or fewer --steps-per-period"),
+    (["trajectory", "--periods", "1000000000"], "--periods <= 4545"),
+    (["trajectory", "--from-rest", "1000000000"], "--from-rest <= 90909"),
+    (["trajectory", "--steps-per-period", "100000", "--quality-factor", "1e6"], "--quality-factor <= 628"),
+    (["notebook", "--quality-factor", "1e6"], "--quality-factor <= 19634"),
+])
+def test_flags_that_would_fill_the_memory_are_refused_before_any_work(tmp_path, capsys, args, hint):
+    """Each run keeps the samples it records (24 bytes per step); the bounds are fixed (2e7 steps,
+    480 MB; the trajectory's CSV 1e6 rows), so the refusal is the same on every machine. Expected
+    limits, from the module's bounds and the step counts: convergence 2e7 // 12800 (Euler's finest) =
+    1562 periods, // 448 (RK4's) = 44642; the sweep's average and the trajectory's warm-up 2e7 // 220 =
+    90909; the trajectory's CSV 1e6 // 220 = 4545; a steady-state window is Q/pi periods: Q <= pi *
+    (2e7 // 1e5) = 628 at 1e5 steps per period, pi * (2e7 // 3200) = 19634 for the notebook's
+    reference runs. Before, each of these died with a MemoryError traceback (or worse, started)."""
+    import time
+    out = tmp_path / "o"
+    t0 = time.monotonic()
+    assert study.main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"afm_study {args[0]}: error: ") and hint in err, err
+    if "must be at most" not in hint:
+        assert "integration steps in memory" in err and "allowed" in err
+    assert time.monotonic() - t0 < 20
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_flags_at_the_bounds_are_accepted():
+    """The largest allowed values pass the checks (the checks alone: the runs would take minutes)."""
+    from afm_ros.core.physics import Cantilever
+    study.check_recorded_steps("x", study.MAX_RECORDED_STEPS, "")
+    assert study.steady_window_steps(Cantilever(quality_factor=628.0), 100_000) <= study.MAX_RECORDED_STEPS
+    assert study.steady_window_steps(Cantilever(quality_factor=629.0), 100_000) > study.MAX_RECORDED_STEPS
+    assert study.steady_window_steps(Cantilever(), 220) == 8 * 220  # Q = 25: ceil(25 / pi) = 8 periods

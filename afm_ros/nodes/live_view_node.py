@@ -1,8 +1,9 @@
 """ROS 2 node ``live_view``: the instrument over the Foxglove WebSocket protocol (foxglove-sdk).
 
 A WebSocket server in this process (``address``:``port``, 127.0.0.1:8765 by default; the protocol
-has no authentication) advertises every topic of the node's namespace (plus ``/diagnostics`` and
-``/rosout``) as a Foxglove channel under its full ROS name, as foxglove_bridge does: the ROS 2
+has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every
+topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxglove channel under
+its full ROS name, as foxglove_bridge does: the ROS 2
 message bytes (CDR) with the ``ros2msg`` definition the recorder writes, except the scanner's
 images, which go out as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s
 deflection and force, of which one chunk in ``deflection_decimation`` is forwarded
@@ -16,9 +17,10 @@ drops the oldest view frames beyond that.
 
 Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``scanner`` and
 ``recorder`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>`` (foxglove_bridge's
-names), read from the nodes and kept current from ``/parameter_events``; a write goes to the node's
-``set_parameters`` service, so the node validates it, and a refusal is sent to the viewer as a
-warning status with the node's reason (the panel keeps the node's value). The scanner's
+names), read from the nodes and kept current from ``/parameter_events`` (each change is pushed once
+to the viewers subscribed to it); a write goes to the node's ``set_parameters`` service, so the node
+validates it, and a refusal is sent to the viewer as a warning status with the node's reason (the
+panel keeps the node's value). The scanner's
 ``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` (std_srvs/Trigger) are Foxglove
 services under their full names.
 """
@@ -29,6 +31,7 @@ import time
 
 import numpy as np
 from rcl_interfaces.msg import ParameterEvent
+from rclpy.client import Client
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
@@ -57,6 +60,10 @@ STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4, reliability=Re
 STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RECONCILE_PERIOD_S = 0.1  # how soon a viewer's (un)subscription creates / removes the ROS subscription
+# the WebSocket subprotocol foxglove-sdk accepts (fixed in its Rust handshake, not configurable), and the
+# older name of the same protocol that it refuses with HTTP 400 (docs/live_view.md, "Which viewers connect")
+SUBPROTOCOL = "foxglove.sdk.v1"
+OLD_SUBPROTOCOL = "foxglove.websocket.v1"
 
 
 def _trigger_definitions() -> tuple[str, str]:
@@ -126,6 +133,9 @@ class LiveViewNode(Node):
         self._param_clients: dict[str, AsyncParameterClient] = {}
         self._param_pending: set[str] = set()
         self._params: dict[str, dict] = {}  # node fqn -> {name: value}, loaded nodes only
+        # (node fqn, name) -> viewer writes in flight: their parameter events are not pushed, the SDK
+        # pushes the set handler's answer to the subscribed viewers instead (one update per change)
+        self._writing: dict[tuple[str, str], int] = {}
         self.forwarded: dict[str, int] = {}  # full topic -> messages handed to the SDK (diagnostics, tests)
         namespace = self.get_namespace()
         self._scope = "/" if namespace == "/" else namespace.rstrip("/") + "/"
@@ -160,8 +170,9 @@ class LiveViewNode(Node):
         self.create_timer(RECONCILE_PERIOD_S, self._reconcile, clock=self._steady)
         self._discover()
         self.get_logger().info(
-            f"ready: Foxglove WebSocket server on ws://{self._values['address']}:{self.port} (no authentication); "
-            f"deflection: one chunk in {self._values['deflection_decimation']}")
+            f"ready: Foxglove WebSocket server on ws://{self._values['address']}:{self.port} (no authentication; "
+            f"subprotocol {SUBPROTOCOL} only: a viewer offering only {OLD_SUBPROTOCOL} gets HTTP 400, see "
+            f"docs/live_view.md); deflection: one chunk in {self._values['deflection_decimation']}")
 
     # --- channels ------------------------------------------------------------------------------
     def _in_scope(self, topic: str) -> bool:
@@ -285,7 +296,7 @@ class LiveViewNode(Node):
                 present.add(self._scope + name)
         for fqn in list(self._param_clients):
             if fqn not in present:  # the node left: forget it (reloaded if it comes back)
-                self._param_clients.pop(fqn).destroy()
+                self._destroy_parameter_client(self._param_clients.pop(fqn))
                 self._param_pending.discard(fqn)
                 with self._lock:
                     self._params.pop(fqn, None)
@@ -299,6 +310,12 @@ class LiveViewNode(Node):
                 continue
             self._param_pending.add(fqn)
             client.list_parameters().add_done_callback(lambda f, fqn=fqn: self._on_listed(fqn, f))
+
+    def _destroy_parameter_client(self, client: AsyncParameterClient) -> None:
+        # rclpy 7.1's AsyncParameterClient has no destroy(): its service clients are its attributes
+        for value in vars(client).values():
+            if isinstance(value, Client):
+                self.destroy_client(value)
 
     def _on_listed(self, fqn: str, future) -> None:
         client = self._param_clients.get(fqn)
@@ -322,14 +339,24 @@ class LiveViewNode(Node):
                 self._params[fqn] = dict(zip(names, values))
 
     def _on_parameter_event(self, event: ParameterEvent) -> None:
+        """Keep the values current and push each change to the subscribed viewers once.
+
+        A change written by a viewer through this node is not pushed here: the SDK publishes the
+        set handler's answer to every subscribed viewer (foxglove ServerListener.on_set_parameters),
+        so pushing the event too would send it twice. The answer carries the value read back after
+        the write, so an event that arrives after it finds that value in place and is not pushed
+        again either."""
         changed = []
         with self._lock:
             values = self._params.get(event.node)
             if values is None:
                 return
             for p in list(event.new_parameters) + list(event.changed_parameters):
-                values[p.name] = parameter_value_to_python(p.value)
-                changed.append(_foxglove_parameter(self._fg, parameter_name(event.node, p.name), values[p.name]))
+                value = parameter_value_to_python(p.value)
+                unchanged = p.name in values and values[p.name] == value
+                values[p.name] = value
+                if not unchanged and not self._writing.get((event.node, p.name)):
+                    changed.append(_foxglove_parameter(self._fg, parameter_name(event.node, p.name), value))
             for p in event.deleted_parameters:
                 values.pop(p.name, None)
         if changed:
@@ -375,6 +402,10 @@ class LiveViewNode(Node):
             by_node.setdefault(fqn, []).append((name, value))
         for fqn, items in by_node.items():
             client = self._param_clients.get(fqn)
+            keys = [(fqn, name) for name, _ in items]
+            with self._lock:
+                for key in keys:
+                    self._writing[key] = self._writing.get(key, 0) + 1
             try:
                 response = self._wait(client.set_parameters([Parameter(n, value=v) for n, v in items]),
                                       f"setting parameters of {fqn}")
@@ -388,6 +419,12 @@ class LiveViewNode(Node):
                         values[name] = parameter_value_to_python(v)
             except (TimeoutError, RuntimeError, TypeError, ValueError) as exc:
                 problems.append(f"{fqn}: {exc}")
+            finally:
+                with self._lock:
+                    for key in keys:
+                        self._writing[key] -= 1
+                        if not self._writing[key]:
+                            del self._writing[key]
         for text in problems:
             self.get_logger().warning(f"viewer parameter write: {text}")
             # from another thread: the SDK is inside its set-parameters handler right now

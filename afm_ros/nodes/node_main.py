@@ -166,12 +166,77 @@ def teardown_within(teardown: Callable[[], None], program: str, status: int,
         os._exit(status)
 
 
-def run_node(make_node: Callable[[], Node], program: str, args=None) -> int:
+HELP_FLAGS = ("-h", "--help")
+
+
+def help_text(program: str, node: str, doc: str | None) -> str:
+    """``program --help``: what the node does (the first paragraph of its module docstring), how
+    to pass parameters, and its parameter table from the specs (:mod:`afm_ros.tools.config_gen`)."""
+    import textwrap
+
+    from afm_ros.tools.config_gen import NODE_SPECS, node_key, node_specs, spec_cells
+
+    wrap = lambda text, indent="": textwrap.fill(" ".join(text.split()), 100, initial_indent=indent,
+                                                  subsequent_indent=indent)
+    summary = (doc or "").strip().split("\n\n")[0].replace("``", "")
+    lines = [f"usage: {program} [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NAMESPACE]]",
+             "", wrap(summary), "",
+             wrap(f"Parameters (SI units) are ROS 2 parameters, given after --ros-args: -p NAME:=VALUE (repeatable) "
+                  f"or --params-file FILE, a YAML file whose key {node_key(node)} applies in every namespace "
+                  f"(config/afm.yaml has them all). Those marked live can also be changed while the node runs "
+                  f"(ros2 param set /{node} NAME VALUE); a refused value keeps the old one and says why. "
+                  f"-r __ns:=/afm1 runs the node in a namespace.")]
+    specs = node_specs().get(node) if node in NODE_SPECS else None
+    if specs:
+        width = max(len(name) for name in specs)
+        lines += ["", f"parameters of {node}:"]
+        for name, spec in specs.items():
+            default, unit, allowed, live = spec_cells(spec)
+            default = repr(spec.default) if isinstance(spec.default, str) else default
+            unit = "" if unit in ("-", "1") else " " + unit
+            lines.append(f"  {name:<{width}}  {default}{unit}; allowed {allowed}"
+                         f"{'; live' if live == 'yes' else '; at start only'}")
+            lines.append(wrap(spec.description, " " * 6))
+    return "\n".join(lines)
+
+
+def command_line(program: str, node: str, doc: str | None, args=None) -> int | None:
+    """Handle the arguments outside ``--ros-args`` before anything starts: ``-h``/``--help`` prints
+    :func:`help_text` and returns 0; any other one prints a one-line usage error and returns 2;
+    None (nothing to handle) means start the node. Creates no node, file or DDS participant."""
+    from rclpy.utilities import remove_ros_args
+
+    try:
+        plain = remove_ros_args(list(sys.argv if args is None else args))[1:]
+    except Exception:  # noqa: BLE001 - malformed ROS arguments: init() reports them in one line
+        return None
+    if any(a in HELP_FLAGS for a in plain):
+        try:
+            print(help_text(program, node, doc), flush=True)
+        except BrokenPipeError:  # `--help | head`: the reader has gone, which is fine
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    if plain:
+        print(f"{program}: error: unrecognized argument{'s' if len(plain) > 1 else ''}: {' '.join(plain)} "
+              f"(parameters go after --ros-args: {program} --ros-args -p NAME:=VALUE; {program} --help "
+              f"lists them)", file=sys.stderr, flush=True)
+        return 2
+    return None
+
+
+def run_node(make_node: Callable[[], Node], program: str, args=None, node: str | None = None,
+             doc: str | None = None) -> int:
     """Init rclpy, spin the node on the EventsExecutor until Ctrl-C / SIGTERM; return the exit status.
 
-    A bad start value (e.g. from ``--params-file``) prints one line naming the field and
-    returns 1.
+    ``--help`` and unknown arguments are handled first (:func:`command_line`; ``node`` defaults to
+    ``program`` without ``_node``, ``doc`` to the docstring of ``make_node``'s module). A bad start
+    value (e.g. from ``--params-file``) prints one line naming the field and returns 1.
     """
+    if doc is None:
+        doc = getattr(sys.modules.get(getattr(make_node, "__module__", "")), "__doc__", None)
+    handled = command_line(program, node or program.removesuffix("_node"), doc, args)
+    if handled is not None:
+        return handled
     failed = exit_on_startup_error(program, args)
     if failed is not None:
         return failed

@@ -456,6 +456,9 @@ class RecorderNode(Node):
 def main(args=None):
     # SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
     # with its summary and index.
+    handled = node_main.command_line("recorder_node", "recorder", __doc__, args)  # --help, stray arguments
+    if handled is not None:
+        return handled
     failed = node_main.exit_on_startup_error("recorder", args)
     if failed is not None:
         return failed

@@ -217,6 +217,9 @@ class ReplayNode(Node):
 
 
 def main(args=None):
+    handled = node_main.command_line("replay_node", "replay", __doc__, args)  # --help, stray arguments
+    if handled is not None:
+        return handled
     failed = node_main.exit_on_startup_error("replay", args)
     if failed is not None:
         return failed

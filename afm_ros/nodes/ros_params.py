@@ -28,9 +28,14 @@ FloatingPointRange / IntegerRange. ROS ranges are closed: an open bound, e.g. ``
 reported as the closed range plus "allowed (0, 1e-06]" in the description and the additional
 constraints.
 
+A name the node does not have (``ros2 param set /z_controller setpont 4e-8``) is refused with the
+node and the close matches among its parameters (difflib), and a NOT_SET value (``ros2 param
+delete``) with the field, the node and the reason (a parameter always has a value), instead of
+rclpy's "Invalid access to undeclared parameter(s)" and "Static parameter cannot be undeclared".
+
 Start values (``-p name:=value``, ``--params-file``, ``parameter_overrides``) go through the same
 :func:`coerce` and ``spec.validate``; a bad one raises ValueError naming the field and the range.
-Overrides for names this node does not declare are logged as a warning naming key and node.
+Overrides for names this node does not declare are logged as a warning worded the same way.
 """
 from __future__ import annotations
 
@@ -40,6 +45,7 @@ from typing import Any, Callable
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
+from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -144,18 +150,46 @@ def descriptor(spec: ParamSpec, with_range: bool = True) -> ParameterDescriptor:
     return d
 
 
-def _pre_set_callback(specs: dict[str, ParamSpec]):
+class UnknownParameterError(ParameterNotDeclaredException):
+    """A parameter the node does not have, worded with the node and the names it does have. A
+    ParameterNotDeclaredException, which rclpy's parameter services answer with its text."""
+
+    def __init__(self, text: str):
+        Exception.__init__(self, text)
+
+
+def unknown_text(name: str, node_fqn: str, names) -> str:
+    """'<name>' is not a parameter of <node>, with the close matches among ``names`` (difflib)
+    or, without any, all of them."""
+    import difflib
+
+    names = list(names)
+    close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)
+    hint = (f"did you mean {' or '.join(repr(n) for n in close)}?" if close
+            else f"its parameters: {', '.join(names)}")
+    return f"unknown parameter {name!r} for node {node_fqn}; {hint}"
+
+
+def _pre_set_callback(node: Node, specs: dict[str, ParamSpec]):
     def pre_set(params: list[Parameter]) -> list[Parameter]:
         out = []
         for p in params:
             spec = specs.get(p.name)
-            if spec is None or p.type_ == Parameter.Type.NOT_SET or isinstance(p, RefusedParameter):
-                out.append(p)  # not ours (e.g. use_sim_time), or an undeclare request: rclpy decides
-                continue
-            try:
-                out.append(Parameter(p.name, value=coerce(spec, p.value)))
-            except ValueError as exc:
-                out.append(RefusedParameter(p.name, spec.kind, str(exc), p.value))
+            if spec is None and not node.has_parameter(p.name):
+                # rclpy would refuse it next with "Invalid access to undeclared parameter(s): [...]"
+                raise UnknownParameterError(unknown_text(p.name, node.get_fully_qualified_name(), specs))
+            if spec is None or isinstance(p, RefusedParameter):
+                out.append(p)  # not ours (e.g. use_sim_time): rclpy decides
+            elif p.type_ == Parameter.Type.NOT_SET:  # e.g. `ros2 param delete`; rclpy: "Static parameter ..."
+                out.append(RefusedParameter(
+                    p.name, spec.kind, f"{p.name} of node {node.get_fully_qualified_name()} cannot be unset (a "
+                    f"NOT_SET value, as `ros2 param delete` sends): it always has a value; allowed "
+                    f"{spec.range_text()}", None))
+            else:
+                try:
+                    out.append(Parameter(p.name, value=coerce(spec, p.value)))
+                except ValueError as exc:
+                    out.append(RefusedParameter(p.name, spec.kind, str(exc), p.value))
         return out
     return pre_set
 
@@ -232,9 +266,8 @@ def _warn_unknown(node: Node, specs: dict[str, ParamSpec], overrides: dict[str, 
             node.get_logger().debug(f"parameter '{name}' (a parameter of {others[name]}) is not a "
                                     f"parameter of node {where}; ignored here")
         else:
-            node.get_logger().warning(f"unknown parameter '{name}' for node {where} (from -p, --params-file or "
-                                      f"parameter_overrides) is ignored; this node's parameters: "
-                                      f"{', '.join(specs)}")
+            node.get_logger().warning(f"{unknown_text(name, where, specs)} (from -p, --params-file or "
+                                      f"parameter_overrides: ignored)")
 
 
 def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
@@ -255,7 +288,7 @@ def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
         value = coerce(spec, value)  # ValueError names the field and the range
         declared = node.declare_parameter(name, value, descriptor(spec, with_range=False), ignore_override=True)
         values[name] = declared.value
-    node.add_pre_set_parameters_callback(_pre_set_callback(specs))
+    node.add_pre_set_parameters_callback(_pre_set_callback(node, specs))
     node.add_on_set_parameters_callback(_fallback_on_set_callback(specs))
     _install_describe(node, specs)
     return values

@@ -78,15 +78,20 @@ def yaml_text(nodes: dict | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def spec_cells(spec) -> tuple[str, str, str, str]:
+    """(default, unit, range, live) of a spec as the parameter tables show them (README, ``--help``)."""
+    default = yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
+    return default, spec.unit or "-", spec.range_text(), "yes" if spec.live else "no"
+
+
 def table_text(nodes: dict | None = None) -> str:
     nodes = node_specs() if nodes is None else nodes
     rows = ["| node | name | default | unit | range | live | description |",
             "|---|---|---|---|---|---|---|"]
     for node, specs in nodes.items():
         for name, spec in specs.items():
-            default = yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
-            rows.append(f"| {node} | `{name}` | {default} | {spec.unit or '-'} | {spec.range_text()} | "
-                        f"{'yes' if spec.live else 'no'} | {spec.description} |")
+            default, unit, allowed, live = spec_cells(spec)
+            rows.append(f"| {node} | `{name}` | {default} | {unit} | {allowed} | {live} | {spec.description} |")
     return "\n".join(rows) + "\n"
 
 

@@ -129,6 +129,40 @@ def parse_z_bases(text: str) -> list[float]:
     return values
 
 
+# --- memory bounds of the command line ---------------------------------------------------------
+# A run keeps z, v and the force of every step it records (24 bytes per step; the noisy average and
+# the trajectory's CSV rows more). The bounds are fixed, the same on every machine (a command that
+# works on one works on all), and fit the free memory of a small laptop: 2e7 steps = 480 MB, e.g.
+# 90 000 drive periods at the default 220 steps. trajectory.csv has one row per step and the figure
+# one point per step: 1e6 steps (4500 periods at 220 steps, ~80 MB of CSV) is more than a plot shows.
+MAX_RECORDED_STEPS = 20_000_000
+MAX_TRAJECTORY_STEPS = 1_000_000
+
+
+def check_recorded_steps(what: str, steps: int, hint: str, limit: int = MAX_RECORDED_STEPS) -> None:
+    """ValueError (one line: what would be kept, the limit, and ``hint``: the flag and its largest
+    value) if ``steps`` recorded integration steps exceed ``limit``."""
+    if steps > limit:
+        raise ValueError(f"{what} would keep {steps:.3g} integration steps in memory ({steps * 24 / 2 ** 30:.3g} "
+                         f"GiB); at most {limit:.3g} allowed: {hint}")
+
+
+def steady_window_steps(cantilever: Cantilever, steps_per_period: int) -> int:
+    """Steps recorded per window by :func:`afm_ros.core.physics.steady_state` (its default window:
+    max(5, ceil(Q / pi)) periods)."""
+    return max(5, int(math.ceil(cantilever.quality_factor / math.pi))) * int(steps_per_period)
+
+
+def _check_steady_state(cantilever: Cantilever, steps_per_period: int, source: str = "") -> None:
+    periods = steady_window_steps(cantilever, steps_per_period) // steps_per_period
+    q_max = math.floor(math.pi * (MAX_RECORDED_STEPS // steps_per_period))
+    check_recorded_steps(f"a steady-state window of Q/pi = {periods} periods (--quality-factor="
+                         f"{cantilever.quality_factor:g}) at {steps_per_period} steps per period{source}",
+                         periods * steps_per_period,
+                         f"--quality-factor <= {q_max}" + ("" if source else " at this step count, or fewer "
+                                                                              "--steps-per-period"))
+
+
 # --- reusable study logic ------------------------------------------------------------------
 DEFAULT_CONVERGENCE_SPP = {
     # Euler is unstable below ~160 steps per period for Q = 25 (its growth factor per step exceeds
@@ -336,6 +370,11 @@ def cmd_convergence(ns, out: Path) -> int:
     spps = {m: DEFAULT_CONVERGENCE_SPP[m] for m in ns.methods}
     if ns.quick:
         spps = {m: v[:3] for m, v in spps.items()}
+    if ns.window_periods > ns.periods:
+        raise ValueError(f"--window-periods={ns.window_periods} must be at most --periods={ns.periods}")
+    finest = max(max(v) for v in spps.values())
+    check_recorded_steps(f"--periods={ns.periods} at up to {finest} steps per period", ns.periods * finest,
+                         f"--periods <= {MAX_RECORDED_STEPS // finest}")
     rows = convergence_study(cantilever, drive, spps, ns.periods, ns.window_periods)
     write_csv(out / "convergence.csv", ["method", "steps_per_period", "dt_s", "l1_error_m"], rows)
     orders = {m: fit_order(rows, m) for m in spps}
@@ -371,6 +410,15 @@ def cmd_sweep(ns, out: Path) -> int:
     ns.detector_noise = DETECTOR_NOISE_SPEC.validate(ns.detector_noise)
     ns.noise_seed = NOISE_SPECS["noise_seed"].validate(ns.noise_seed)
     model = make_force_model(ns.force_model, sample, **ns.dissipation)
+    if ns.temperature > 0 or ns.detector_noise > 0:  # noisy_average: settling, then the average, recorded
+        settle = int(math.ceil(10.0 * cantilever.quality_factor / math.pi))
+        check_recorded_steps(f"--average-periods={ns.average_periods} at {spp} steps per period",
+                             ns.average_periods * spp, f"--average-periods <= {MAX_RECORDED_STEPS // spp}")
+        check_recorded_steps(f"settling 10 Q/pi = {settle} periods (--quality-factor={cantilever.quality_factor:g}) "
+                             f"at {spp} steps per period", settle * spp,
+                             f"--quality-factor <= {math.floor(math.pi * (MAX_RECORDED_STEPS // spp) / 10)}")
+    else:
+        _check_steady_state(cantilever, spp)
     rows = sweep(z_bases, cantilever, drive, model, spp, ns.method, ns.retract,
                  progress=None if not ns.no_progress else False, temperature=ns.temperature,
                  detector_density=ns.detector_noise, noise_seed=ns.noise_seed, average_periods=ns.average_periods)
@@ -410,6 +458,13 @@ def cmd_trajectory(ns, out: Path) -> int:
     cantilever, drive, sample, spp = physics_from_args(ns)
     z_base = CANTILEVER_SPECS["z_base"].validate(_number(ns.z_base))
     model = make_force_model(ns.force_model, sample, **ns.dissipation)
+    check_recorded_steps(f"--periods={ns.periods} at {spp} steps per period (one CSV row per step)", ns.periods * spp,
+                         f"--periods <= {MAX_TRAJECTORY_STEPS // spp}", MAX_TRAJECTORY_STEPS)
+    if ns.from_rest is None:
+        _check_steady_state(cantilever, spp)
+    else:
+        check_recorded_steps(f"--from-rest={ns.from_rest} at {spp} steps per period", ns.from_rest * spp,
+                             f"--from-rest <= {MAX_RECORDED_STEPS // spp}")
     cols, analysis = trajectory(z_base, cantilever, drive, model, spp, ns.method, ns.periods,
                                 None if ns.from_rest is None else ns.from_rest)
     write_csv(out / "trajectory.csv", TRAJECTORY_COLUMNS, _columns_to_rows(cols))
@@ -446,6 +501,7 @@ def cmd_bench(ns, out: Path) -> int:
 
 def cmd_notebook(ns, out: Path) -> int:
     cantilever, drive, sample, _ = physics_from_args(ns)
+    _check_steady_state(cantilever, 800 if ns.quick else 3200, " (the notebook's reference runs)")
     written = make_notebook(out, cantilever, drive, sample, quick=ns.quick)
     for path in written:
         print(f"wrote {path}")

@@ -22,29 +22,51 @@ The equipartition estimate ``k = kB T / <z^2>`` (Hutter and Bechhoefer 1993, Rev
 ``<z^2>``. A real optical-lever instrument measures the slope of the first flexural mode, not the
 deflection of a point mass, and needs the mode-shape correction (0.817 for the deflection,
 0.764 for the optical-lever slope; Butt and Jaschke 1995); it does not apply to this point-mass model.
+
+The simulated record is never held whole: it is simulated and reduced to its Welch spectrum and
+moments block by block (:class:`WelchAccumulator`), so memory stays ~30 MB for any ``--seconds``
+(at most ``MAX_SECONDS``: the bound is CPU time). The defaults are the instrument's: the cantilever
+node's temperature (295 K) and detector floor (100 fm/sqrt(Hz)), from
+:data:`afm_ros.core.cantilever_params.INSTRUMENT_NOISE_SPECS`.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from afm_ros.core.cantilever_params import INSTRUMENT_NOISE_SPECS
 from afm_ros.core.physics.noise import BOLTZMANN
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever
 from afm_ros.core.physics.parameters import parse_number as _number
 
 DEFAULT_SECONDS = 1.0  # [s] of simulated record: ~0.5 s of CPU, f0 to ~0.03 %, Q and k to ~1.5 %
+# The tune emulates tuning the instrument, so its defaults are the cantilever node's (room
+# temperature and a typical optical-beam-deflection floor), from the one place that defines them.
+INSTRUMENT_TEMPERATURE = INSTRUMENT_NOISE_SPECS["temperature"].default  # [K]
+INSTRUMENT_DETECTOR_NOISE = INSTRUMENT_NOISE_SPECS["detector_noise_density"].default  # [m/sqrt(Hz)]
 SAMPLES_PER_PERIOD = 20  # output samples per resonance period: fs = 20 f0 (Nyquist 10 f0)
 STEPS_PER_PERIOD = 220  # RK4 steps per resonance period (the project default), decimation 11
 BINS_PER_LINEWIDTH = 16  # Welch resolution: the peak's full width f0/Q spans 16 bins
 SETTLE_TAU = 20  # amplitude decay times tau = 2 Q / w0 discarded before recording (start at rest)
 BAND = (1.0 / 3.0, 3.0)  # fit band in units of the initial peak estimate
 MIN_SEGMENTS = 16  # Welch averages needed for a meaningful weighted fit
+SEGMENTS_PER_BATCH = 64  # Welch segments computed at once (a streamed record's memory: one batch)
+BLOCK_SAMPLES = 2 ** 18  # deflection samples simulated at once (2 MB; ~0.3 s of record at the defaults)
+# Memory no longer grows with --seconds (the record is streamed); the bound is the time: 1e4 s of
+# record takes ~80 min of CPU (CPU_PER_SECOND, measured on the project's 2-core machine) and gives Q
+# and k to ~0.013 %, far below any calibration's other errors; beyond it a typo (1e9) would run for years.
+MAX_SECONDS = 1e4  # [s]
+CPU_PER_SECOND = 0.48  # [s of CPU per s of record] measured: 1 s record 0.47-0.49 s
+PROGRESS_SECONDS = 30.0  # [s] records longer than this show a progress bar
 
 
 # --- model --------------------------------------------------------------------------------------
@@ -60,18 +82,151 @@ def tune_model(f, f0: float, q: float, k: float, white: float, temperature: floa
     return white + sho_thermal_psd(f, f0, q, k, temperature)
 
 
+# --- spectrum -------------------------------------------------------------------------------------
+@dataclass
+class Spectrum:
+    f: np.ndarray  # [Hz]
+    psd: np.ndarray  # one-sided [m^2/Hz]
+    segments: int  # Welch segments averaged
+    effective_averages: float  # segments corrected for the 50 % overlap (1/K_eff: relative variance)
+    bin_correlation: np.ndarray  # correlation of bins 0, 1, 2, 3 apart (Hann: 1, 4/9, 1/36, 0)
+
+
+class WelchAccumulator:
+    """Welch PSD (Hann, 50 % overlap, mean detrended, one-sided density, as ``scipy.signal.welch``)
+    and the mean and variance of a record fed in pieces of any size.
+
+    Segments are computed in batches of ``SEGMENTS_PER_BATCH`` and each sample enters the moments
+    once, in pieces fixed by the record alone, so the result does not depend on how the record was
+    fed; memory is one batch (about 2 MB of samples at the defaults), whatever the record's length.
+    """
+
+    def __init__(self, sample_rate: float, nperseg: int):
+        self.sample_rate = float(sample_rate)
+        self.nperseg = int(nperseg)
+        self.step = self.nperseg - self.nperseg // 2
+        self._pending = np.empty(0)  # samples from the start of the next segment on
+        self._psd_sum = None
+        self.segments = 0
+        self._moments = (0, 0.0, 0.0)  # samples before _pending: count, mean [m], squared deviations [m^2]
+
+    def add(self, z) -> None:
+        z = np.asarray(z, dtype=float)
+        self._pending = z if self._pending.size == 0 else np.concatenate([self._pending, z])
+        while self._complete_segments() >= SEGMENTS_PER_BATCH:
+            self._batch(SEGMENTS_PER_BATCH)
+
+    def _complete_segments(self) -> int:
+        n = self._pending.size
+        return (n - self.nperseg) // self.step + 1 if n >= self.nperseg else 0
+
+    def _batch(self, count: int) -> None:
+        from scipy.signal import welch
+
+        _, psd = welch(self._pending[:(count - 1) * self.step + self.nperseg], fs=self.sample_rate,
+                       window="hann", nperseg=self.nperseg, noverlap=self.nperseg // 2)
+        self._psd_sum = psd * count if self._psd_sum is None else self._psd_sum + psd * count
+        self.segments += count
+        self._moments = _combine(self._moments, self._pending[:count * self.step])
+        self._pending = self._pending[count * self.step:]
+
+    @property
+    def samples(self) -> int:
+        return self._moments[0] + self._pending.size
+
+    @property
+    def available_segments(self) -> int:
+        """Welch segments complete so far (those :meth:`spectrum` averages)."""
+        return self.segments + self._complete_segments()
+
+    @property
+    def variance(self) -> float:
+        """<(z - <z>)^2> [m^2] of every sample added."""
+        n, _, m2 = _combine(self._moments, self._pending)
+        return m2 / n if n else float("nan")
+
+    def spectrum(self) -> Spectrum:
+        """The Welch spectrum of every complete segment so far, with its averaging statistics;
+        ValueError (naming --seconds) below ``MIN_SEGMENTS`` segments."""
+        from scipy.signal import get_window
+
+        nperseg, step = self.nperseg, self.step
+        segments = self.available_segments
+        if segments < MIN_SEGMENTS:
+            need = ((MIN_SEGMENTS - 1) * step + nperseg) / self.sample_rate
+            raise ValueError(f"--seconds={self.samples / self.sample_rate:g} s is too short for the thermal tune: "
+                             f"{segments} Welch segments of {nperseg} samples; at least {need:.3g} s needed "
+                             f"for {MIN_SEGMENTS}")
+        if self._complete_segments():
+            self._batch(self._complete_segments())
+        f = np.fft.rfftfreq(nperseg, 1.0 / self.sample_rate)
+        psd = self._psd_sum / segments
+        w = get_window("hann", nperseg)
+        w2 = np.sum(w * w)
+        # variance of the average of overlapping segments (Welch 1967): 1/K * (1 + 2 sum (1 - j/K) c_j^2)
+        c = [np.sum(w[: nperseg - j * step] * w[j * step:]) / w2 for j in range(1, nperseg // step + 1)]
+        factor = 1.0 + 2.0 * sum((1.0 - j / segments) * cj * cj for j, cj in enumerate(c, 1) if j < segments)
+        # correlation of periodogram bins m apart (Gaussian data): |sum w^2 exp(-2 pi i m n / N)|^2 / (sum w^2)^2
+        n = np.arange(nperseg)
+        rho = np.array([abs(np.sum(w * w * np.exp(-2j * np.pi * m * n / nperseg))) ** 2 / w2 ** 2
+                        for m in range(4)])
+        return Spectrum(f, psd, segments, segments / factor, rho)
+
+
+def _combine(moments: tuple, z: np.ndarray) -> tuple:
+    """(count, mean, sum of squared deviations) of ``moments`` and the samples ``z`` together
+    (Chan, Golub and LeVeque's pairwise update)."""
+    n_a, mean_a, m2_a = moments
+    n_b = z.size
+    if n_b == 0:
+        return moments
+    mean_b = float(np.mean(z))
+    m2_b = float(np.sum((z - mean_b) ** 2))
+    n = n_a + n_b
+    delta = mean_b - mean_a
+    return n, mean_a + delta * n_b / n, m2_a + m2_b + delta * delta * n_a * n_b / n
+
+
+def welch_psd(z, sample_rate: float, nperseg: int) -> Spectrum:
+    """One-sided PSD by Welch (Hann, 50 % overlap, mean detrended) with its averaging statistics."""
+    acc = WelchAccumulator(sample_rate, nperseg)
+    acc.add(z)
+    return acc.spectrum()
+
+
+def default_nperseg(cantilever: Cantilever, sample_rate: float) -> int:
+    """Segment length giving ``BINS_PER_LINEWIDTH`` bins across the peak's full width f0/Q."""
+    linewidth = cantilever.resonance_frequency / cantilever.quality_factor
+    return int(round(sample_rate * BINS_PER_LINEWIDTH / linewidth))
+
+
 # --- simulated record -----------------------------------------------------------------------------
 @dataclass
 class ThermalRecord:
-    z: np.ndarray  # measured deflection samples [m] (thermal motion + detector noise)
+    """A deflection record (thermal motion + detector noise) reduced to what the tune uses."""
+
+    spectrum: Spectrum  # Welch PSD of the whole record
+    samples: int  # deflection samples in the record
+    variance: float  # <(z - <z>)^2> [m^2]
     sample_rate: float  # [Hz]
     temperature: float  # [K]
     detector_density: float  # [m/sqrt(Hz)]
     cantilever: Cantilever
+    z: np.ndarray | None = None  # the samples, kept for a record read from a session (None: simulated)
+    requested_seconds: float | None = None  # set when Ctrl-C ended a simulated record early
 
     @property
     def seconds(self) -> float:
-        return self.z.size / self.sample_rate
+        return self.samples / self.sample_rate
+
+    @classmethod
+    def of(cls, z, sample_rate: float, temperature: float, detector_density: float, cantilever: Cantilever,
+           nperseg: int | None = None) -> "ThermalRecord":
+        """The record of the samples ``z`` [m] (kept as ``z``)."""
+        acc = WelchAccumulator(sample_rate, nperseg or default_nperseg(cantilever, sample_rate))
+        acc.add(z)
+        return cls(acc.spectrum(), acc.samples, acc.variance, sample_rate, temperature, detector_density,
+                   cantilever, np.asarray(z))
 
 
 def _check_positive(value, flag: str, unit: str, allow_zero: bool = False) -> float:
@@ -84,14 +239,22 @@ def _check_positive(value, flag: str, unit: str, allow_zero: bool = False) -> fl
 
 def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float, seed: int = 0,
                      detector_density: float = 0.0, samples_per_period: int = SAMPLES_PER_PERIOD,
-                     steps_per_period: int = STEPS_PER_PERIOD) -> ThermalRecord:
+                     steps_per_period: int = STEPS_PER_PERIOD, nperseg: int | None = None,
+                     interactive: bool = False) -> ThermalRecord:
     """Deflection record of the undriven cantilever at ``temperature`` [K], ``seconds`` [s] long.
 
     RK4 at ``steps_per_period`` steps per resonance period, one output sample every
     ``steps_per_period // samples_per_period`` steps; the first ``SETTLE_TAU`` decay times from
     rest are discarded. Detector noise of density ``detector_density`` [m/sqrt(Hz)] is added to the
-    samples from the seed's detector stream (by output sample index).
+    samples from the seed's detector stream (by output sample index). The record is simulated and
+    reduced (:class:`WelchAccumulator`) in blocks of ``BLOCK_SAMPLES``, so memory does not grow with
+    ``seconds`` (at most ``MAX_SECONDS``); the noise is counter-based, so the samples are those of
+    one long run. ``interactive`` (the command line): a progress bar on stderr for records of more
+    than ``PROGRESS_SECONDS``, and Ctrl-C ends the record at the next block (``requested_seconds``
+    says so; KeyboardInterrupt if it holds fewer than ``MIN_SEGMENTS`` Welch segments).
     """
+    from tqdm import tqdm
+
     from afm_ros.core.physics.forces import NoForce
     from afm_ros.core.physics.noise import detector_noise
     from afm_ros.core.physics.parameters import Drive
@@ -99,23 +262,56 @@ def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float,
 
     temperature = _check_positive(temperature, "--temperature", "K")
     seconds = _check_positive(seconds, "--seconds", "s")
+    if seconds > MAX_SECONDS:
+        tau = 2.0 * cantilever.quality_factor / cantilever.omega0
+        raise ValueError(f"--seconds={seconds:g} s is too long: at most {MAX_SECONDS:g} s (about "
+                         f"{MAX_SECONDS * CPU_PER_SECOND / 60:.0f} min of CPU; the uncertainties of Q and k shrink "
+                         f"only as 1/sqrt(seconds), to {100 * math.sqrt(tau / MAX_SECONDS):.2g} % there)")
     detector_density = _check_positive(detector_density, "--detector-noise", "m/sqrt(Hz)", allow_zero=True)
     if steps_per_period % samples_per_period:
         raise ValueError(f"steps_per_period={steps_per_period} must be a multiple of "
                          f"samples_per_period={samples_per_period}")
     f0 = cantilever.resonance_frequency
+    fs = f0 * samples_per_period
+    acc = WelchAccumulator(fs, nperseg or default_nperseg(cantilever, fs))
     sim = Simulation(cantilever, Drive(f0, 0.0), NoForce(), 0.0, steps_per_period)
     sim.set_thermal(temperature, seed)
     tau = 2.0 * cantilever.quality_factor / cantilever.omega0
     sim.advance(int(math.ceil(SETTLE_TAU * tau / sim.dt)), record=False)
     decimation = steps_per_period // samples_per_period
-    count = int(round(seconds * f0 * samples_per_period))
-    z = sim.advance(count * decimation, decimation).z
-    z = z[:count]
-    fs = f0 * samples_per_period
-    if detector_density > 0.0:
-        z = z + detector_noise(seed, 0, z.size, detector_density, 1.0 / fs)
-    return ThermalRecord(z, fs, temperature, detector_density, cantilever)
+    count = int(round(seconds * fs))
+    with _ctrl_c_stops(interactive) as stop, \
+            tqdm(total=count, unit="S", unit_scale=True, desc="thermal tune", file=sys.stderr,
+                 disable=not interactive or seconds <= PROGRESS_SECONDS) as bar:
+        for first in range(0, count, BLOCK_SAMPLES):
+            if stop.is_set():
+                break
+            n = min(BLOCK_SAMPLES, count - first)
+            z = sim.advance(n * decimation, decimation).z  # n samples: every decimation-th step
+            if detector_density > 0.0:
+                z = z + detector_noise(seed, first, n, detector_density, 1.0 / fs)
+            acc.add(z)
+            bar.update(n)
+    interrupted = acc.samples < count
+    if interrupted and acc.available_segments < MIN_SEGMENTS:
+        raise KeyboardInterrupt  # nothing worth tuning on yet
+    return ThermalRecord(acc.spectrum(), acc.samples, acc.variance, fs, temperature, detector_density, cantilever,
+                         requested_seconds=seconds if interrupted else None)
+
+
+@contextmanager
+def _ctrl_c_stops(enabled: bool):
+    """An Event that Ctrl-C sets (instead of raising KeyboardInterrupt at any line) while enabled,
+    in the main thread; elsewhere, or disabled, an Event nobody sets."""
+    stop = threading.Event()
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # --- recorded session ----------------------------------------------------------------------------
@@ -206,49 +402,8 @@ def record_from_session(path, namespace: str | None = None) -> ThermalRecord:
         raise ValueError(f"{p}: {(z.size - skip) * interval:.3g} s of contiguous deflection after settling "
                          f"is too short for a thermal tune; record at least "
                          f"{(needed * interval + max(0.0, SETTLE_TAU * tau - t0)):.2g} s")
-    return ThermalRecord(z[skip:].copy(), 1.0 / interval, temperature,
-                         _session_value(params, "detector_noise_density", p), cantilever)
-
-
-# --- spectrum -------------------------------------------------------------------------------------
-@dataclass
-class Spectrum:
-    f: np.ndarray  # [Hz]
-    psd: np.ndarray  # one-sided [m^2/Hz]
-    segments: int  # Welch segments averaged
-    effective_averages: float  # segments corrected for the 50 % overlap (1/K_eff: relative variance)
-    bin_correlation: np.ndarray  # correlation of bins 0, 1, 2, 3 apart (Hann: 1, 4/9, 1/36, 0)
-
-
-def welch_psd(z, sample_rate: float, nperseg: int) -> Spectrum:
-    """One-sided PSD by Welch (Hann, 50 % overlap, mean detrended) with its averaging statistics."""
-    from scipy.signal import get_window, welch
-
-    z = np.asarray(z, dtype=float)
-    nperseg = int(nperseg)
-    step = nperseg - nperseg // 2
-    segments = (z.size - nperseg) // step + 1 if z.size >= nperseg else 0
-    if segments < MIN_SEGMENTS:
-        need = ((MIN_SEGMENTS - 1) * step + nperseg) / sample_rate
-        raise ValueError(f"--seconds={z.size / sample_rate:g} s is too short for the thermal tune: "
-                         f"{segments} Welch segments of {nperseg} samples; at least {need:.3g} s needed "
-                         f"for {MIN_SEGMENTS}")
-    f, psd = welch(z, fs=sample_rate, window="hann", nperseg=nperseg, noverlap=nperseg // 2)
-    w = get_window("hann", nperseg)
-    w2 = np.sum(w * w)
-    # variance of the average of overlapping segments (Welch 1967): 1/K * (1 + 2 sum (1 - j/K) c_j^2)
-    c = [np.sum(w[: nperseg - j * step] * w[j * step:]) / w2 for j in range(1, nperseg // step + 1)]
-    factor = 1.0 + 2.0 * sum((1.0 - j / segments) * cj * cj for j, cj in enumerate(c, 1) if j < segments)
-    # correlation of periodogram bins m apart (Gaussian data): |sum w^2 exp(-2 pi i m n / N)|^2 / (sum w^2)^2
-    n = np.arange(nperseg)
-    rho = np.array([abs(np.sum(w * w * np.exp(-2j * np.pi * m * n / nperseg))) ** 2 / w2 ** 2 for m in range(4)])
-    return Spectrum(f, psd, segments, segments / factor, rho)
-
-
-def default_nperseg(cantilever: Cantilever, sample_rate: float) -> int:
-    """Segment length giving ``BINS_PER_LINEWIDTH`` bins across the peak's full width f0/Q."""
-    linewidth = cantilever.resonance_frequency / cantilever.quality_factor
-    return int(round(sample_rate * BINS_PER_LINEWIDTH / linewidth))
+    return ThermalRecord.of(z[skip:].copy(), 1.0 / interval, temperature,
+                            _session_value(params, "detector_noise_density", p), cantilever)
 
 
 # --- fit ------------------------------------------------------------------------------------------
@@ -340,11 +495,10 @@ def fit_thermal_tune(spectrum: Spectrum, temperature: float, band=BAND, iteratio
                    temperature)
 
 
-def equipartition_k(z, temperature: float, white: float = 0.0, sample_rate: float = 0.0) -> float:
-    """Hutter-Bechhoefer ``k = kB T / <z^2>`` [N/m], with the white floor's variance
-    ``white * sample_rate / 2`` removed from the mean square (0: none)."""
-    z = np.asarray(z, dtype=float)
-    var = float(np.mean((z - z.mean()) ** 2)) - white * sample_rate / 2.0
+def equipartition_k(variance: float, temperature: float, white: float = 0.0, sample_rate: float = 0.0) -> float:
+    """Hutter-Bechhoefer ``k = kB T / <z^2>`` [N/m] from the record's variance [m^2], with the white
+    floor's variance ``white * sample_rate / 2`` removed (0: none)."""
+    var = float(variance) - white * sample_rate / 2.0
     return BOLTZMANN * temperature / var if var > 0 else float("inf")
 
 
@@ -356,6 +510,7 @@ class TuneResult:
     fit: TuneFit
     k_equipartition: float  # [N/m]
     k_equipartition_rel_err: float  # sqrt(tau / T_rec), tau = 2 Q / w0 (fitted Q, f0)
+    notes: tuple = ()  # lines printed under the first (defaults used, an interruption)
 
     def summary(self) -> dict:
         c, fit = self.record.cantilever, self.fit
@@ -373,6 +528,7 @@ class TuneResult:
                     "white_floor_m2_per_Hz": fit.white, "white_floor_err_m2_per_Hz": fit.white_err},
             "equipartition": {"spring_constant_N_per_m": self.k_equipartition,
                               "spring_constant_err_N_per_m": self.k_equipartition * self.k_equipartition_rel_err},
+            "interrupted": self.record.requested_seconds is not None, "notes": list(self.notes),
         }
 
     def text(self) -> str:
@@ -382,6 +538,7 @@ class TuneResult:
             f"thermal tune: T = {self.record.temperature:g} K, record {self.record.seconds:g} s at "
             f"{self.record.sample_rate:g} Hz, detector noise {self.record.detector_density:g} m/sqrt(Hz), "
             f"{self.spectrum.segments} Welch segments",
+            *self.notes,
             f"f0 = {fit.f0:.2f} +- {fit.f0_err:.2f} Hz   (true {c.resonance_frequency:g})",
             f"Q  = {fit.q:.3f} +- {fit.q_err:.3f}   (true {c.quality_factor:g})",
             f"k  = {fit.k:.4f} +- {fit.k_err:.4f} N/m   (true {c.spring_constant:g})",
@@ -391,20 +548,23 @@ class TuneResult:
         ])
 
 
-def thermal_tune(cantilever: Cantilever, temperature: float = 300.0, seconds: float = DEFAULT_SECONDS,
-                 seed: int = 0, detector_density: float = 0.0, nperseg: int | None = None) -> TuneResult:
-    """Simulate, estimate the PSD, fit it and compute the equipartition estimate."""
-    return tune_record(simulate_thermal(cantilever, temperature, seconds, seed, detector_density), nperseg)
+def thermal_tune(cantilever: Cantilever, temperature: float = INSTRUMENT_TEMPERATURE,
+                 seconds: float = DEFAULT_SECONDS, seed: int = 0,
+                 detector_density: float = INSTRUMENT_DETECTOR_NOISE, nperseg: int | None = None) -> TuneResult:
+    """Simulate (streamed, :func:`simulate_thermal`), fit the spectrum and compute the equipartition
+    estimate. The defaults are the instrument's (the cantilever node's temperature and detector floor)."""
+    record = simulate_thermal(cantilever, temperature, seconds, seed, detector_density, nperseg=nperseg)
+    return tune_record(record)
 
 
-def tune_record(record: ThermalRecord, nperseg: int | None = None) -> TuneResult:
-    """PSD, fit and equipartition estimate of a deflection record (simulated or recorded)."""
-    cantilever, temperature = record.cantilever, record.temperature
-    spectrum = welch_psd(record.z, record.sample_rate,
-                         nperseg or default_nperseg(cantilever, record.sample_rate))
-    fit = fit_thermal_tune(spectrum, temperature)
-    k_eq = equipartition_k(record.z, temperature, fit.white, record.sample_rate)
-    return TuneResult(record, spectrum, fit, k_eq, equipartition_rel_err(record, fit))
+def tune_record(record: ThermalRecord, notes: tuple = ()) -> TuneResult:
+    """Fit and equipartition estimate of a deflection record (simulated or recorded)."""
+    fit = fit_thermal_tune(record.spectrum, record.temperature)
+    k_eq = equipartition_k(record.variance, record.temperature, fit.white, record.sample_rate)
+    if record.requested_seconds is not None:
+        notes = (f"interrupted (Ctrl-C) after {record.seconds:g} s of the {record.requested_seconds:g} s "
+                 f"requested: tuned on the record simulated so far", *notes)
+    return TuneResult(record, record.spectrum, fit, k_eq, equipartition_rel_err(record, fit), tuple(notes))
 
 
 def equipartition_rel_err(record: ThermalRecord, fit: TuneFit) -> float:
@@ -414,7 +574,7 @@ def equipartition_rel_err(record: ThermalRecord, fit: TuneFit) -> float:
     tau = 2.0 * fit.q / (2.0 * math.pi * fit.f0)
     var_x = BOLTZMANN * record.temperature / fit.k  # thermal mean square (fitted)
     var_d = max(fit.white, 0.0) * record.sample_rate / 2.0
-    n = record.z.size
+    n = record.samples
     rel2 = (tau / record.seconds + (2.0 * var_d ** 2 + 4.0 * var_x * var_d) / (n * var_x ** 2)
             + (fit.white_err * record.sample_rate / 2.0 / var_x) ** 2)
     return math.sqrt(rel2)
@@ -466,18 +626,22 @@ HELP = "thermal tune: PSD of the undriven cantilever's Brownian motion, SHO fit 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="study_out", help="output folder (default ./study_out)")
-    p.add_argument("--temperature", type=_number, default=300.0, metavar="K",
-                   help="temperature [K] of the thermal force, > 0 (default 300)")
+    p.add_argument("--temperature", type=_number, default=None, metavar="K",
+                   help=f"temperature [K] of the thermal force, > 0 (default {INSTRUMENT_TEMPERATURE:g}: the "
+                        f"instrument's, the cantilever node's temperature)")
     p.add_argument("--seconds", type=_number, default=DEFAULT_SECONDS, metavar="S",
-                   help=f"simulated record length [s], > 0 (default {DEFAULT_SECONDS:g})")
+                   help=f"simulated record length [s], > 0, at most {MAX_SECONDS:g} (default {DEFAULT_SECONDS:g}; "
+                        f"about {CPU_PER_SECOND:g} s of CPU per second of record, memory independent of it)")
     p.add_argument("--seed", type=_number, default=0, help="noise seed, integer in [0, 2^63) (default 0)")
     p.add_argument("--session", default=None, metavar="FILE.mcap",
                    help="tune on a recorded session instead of a simulation: its cantilever/deflection, "
                         "recorded with free_amplitude 0 and temperature > 0 (temperature and cantilever from "
                         "its recorded parameters; the simulation flags are then ignored)")
     p.add_argument("--namespace", default=None, help="with --session: the namespace whose cantilever to use")
-    p.add_argument("--detector-noise", dest="detector_noise", type=_number, default=0.0, metavar="D",
-                   help="white detector noise density [m/sqrt(Hz)] added to the samples, >= 0 (default 0)")
+    p.add_argument("--detector-noise", dest="detector_noise", type=_number, default=None, metavar="D",
+                   help=f"white detector noise density [m/sqrt(Hz)] added to the samples, >= 0 (default "
+                        f"{INSTRUMENT_DETECTOR_NOISE:g}: the instrument's, the cantilever node's "
+                        f"detector_noise_density; 0 = none)")
     group = p.add_argument_group("cantilever parameters (SI units)")
     for name in ("spring_constant", "resonance_frequency", "quality_factor"):
         spec = CANTILEVER_SPECS[name]
@@ -495,7 +659,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args, prog: str = "afm_study thermal") -> int:
-    """Run the thermal tune from parsed flags; 0 on success, 2 (one line on stderr) for a bad value."""
+    """Run the thermal tune from parsed flags; 0 on success, 2 (one line on stderr) for a bad value,
+    130 after Ctrl-C (the tune of the record simulated so far is written if it is long enough)."""
+    defaults = []
+    if args.temperature is None:
+        args.temperature = INSTRUMENT_TEMPERATURE
+        defaults.append(f"--temperature {INSTRUMENT_TEMPERATURE:g} K")
+    if args.detector_noise is None:
+        args.detector_noise = INSTRUMENT_DETECTOR_NOISE
+        defaults.append(f"--detector-noise {INSTRUMENT_DETECTOR_NOISE:g} m/sqrt(Hz)")
+    notes = () if args.session or not defaults else (
+        f"defaults used: {' and '.join(defaults)} (the instrument's: the cantilever node's "
+        f"temperature and detector_noise_density)",)
     try:
         cantilever = Cantilever(args.spring_constant, args.resonance_frequency, args.quality_factor)
         seed = args.seed
@@ -508,14 +683,19 @@ def run(args, prog: str = "afm_study thermal") -> int:
         if args.session:
             result = tune_record(record_from_session(args.session, args.namespace))
         else:
-            result = thermal_tune(cantilever, args.temperature, args.seconds, seed, args.detector_noise)
+            record = simulate_thermal(cantilever, args.temperature, args.seconds, seed, args.detector_noise,
+                                      interactive=True)
+            result = tune_record(record, notes)
         paths = write_outputs(result, Path(args.out))
     except ValueError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted (Ctrl-C); nothing written", file=sys.stderr)
+        return 130
     print(result.text())
     print("wrote " + ", ".join(str(p) for p in paths))
-    return 0
+    return 130 if result.record.requested_seconds is not None else 0
 
 
 def main(argv=None) -> int:

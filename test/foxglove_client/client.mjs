@@ -4,6 +4,11 @@
 // plan: {url, topics: [full topic names], count, timeoutMs, getParameters: [names],
 //        setParameters: [[{name, value, type?}], ...], services: [names], stallMs, listOnly,
 //        quiet (decode every message, print none),
+//        subprotocols: [names offered in the WebSocket handshake] (default: both names, as the Foxglove app),
+//        expectRefusal (the server is expected to refuse the handshake: print its HTTP status and body),
+//        subscribeParameters: [names] (subscribe to their updates), awaitBefore / awaitAfter:
+//        [{name, value}] (pushed updates to wait for before / after setParameters), watchMs (then print
+//        every pushed update: parameterValues without a request id),
 //        scripts: [{source, namespace}] (Foxglove user scripts of a layout: each is transpiled with the
 //        TypeScript compiler and run on the first `count` messages of its inputs, as a viewer would)}
 import { createRequire } from "node:module";
@@ -31,7 +36,19 @@ const fail = (text) => {
 setTimeout(() => fail(`timed out after ${timeoutMs} ms`), timeoutMs).unref?.();
 
 // the Foxglove app offers both names of the protocol; foxglove-sdk servers accept foxglove.sdk.v1
-const ws = new WebSocket(plan.url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
+const ws = new WebSocket(plan.url, plan.subprotocols ?? ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
+if (plan.expectRefusal) {
+  // with this listener `ws` reports the refused upgrade here instead of as an error
+  ws.on("unexpected-response", (req, res) => {
+    let body = "";
+    res.on("data", (d) => (body += d));
+    res.on("end", () => {
+      out({ event: "refused", status: res.statusCode, body });
+      req.destroy();
+      finish(0);
+    });
+  });
+}
 const client = new FoxgloveClient({ ws });
 const channels = new Map(); // topic -> channel
 const services = new Map(); // name -> service
@@ -63,10 +80,13 @@ client.on("status", (s) => {
   notify();
 });
 const parameterReplies = new Map();
+const pushes = []; // parameter updates the server pushed (no request id), in arrival order
 client.on("parameterValues", (m) => {
-  parameterReplies.set(m.id ?? "", m.parameters);
+  if (m.id === undefined) pushes.push(...m.parameters.map((p) => ({ name: p.name, value: p.value })));
+  else parameterReplies.set(m.id, m.parameters);
   notify();
 });
+const pushed = (list) => (list ?? []).every((w) => pushes.some((p) => p.name === w.name && p.value === w.value));
 const serviceReplies = new Map();
 client.on("serviceCallResponse", (m) => {
   serviceReplies.set(m.callId, { ok: true, m });
@@ -115,10 +135,11 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
 });
 
 await until(() => ws.readyState === WebSocket.OPEN);
+if (plan.expectRefusal) fail(`the server accepted the handshake (subprotocol ${ws.protocol})`);
 client.on("open", notify);
 const topics = plan.topics ?? [];
 await until(() => topics.every((t) => channels.has(t)) && (plan.services ?? []).every((s) => services.has(s)));
-out({ event: "channels", channels: [...channels.values()].map((c) => ({ topic: c.topic, encoding: c.encoding,
+out({ event: "channels", protocol: ws.protocol, channels: [...channels.values()].map((c) => ({ topic: c.topic, encoding: c.encoding,
       schemaName: c.schemaName, schemaEncoding: c.schemaEncoding })),
       services: [...services.values()].map((s) => ({ name: s.name, type: s.type })) });
 
@@ -154,6 +175,14 @@ for (const { source, namespace } of plan.scripts ?? []) {
   }
 }
 
+if (plan.subscribeParameters) {
+  client.subscribeParameterUpdates(plan.subscribeParameters);
+  // the server handles a client's messages in order: once this is answered, the subscription holds
+  client.getParameters(plan.subscribeParameters, "subscribed");
+  await until(() => parameterReplies.has("subscribed"));
+  out({ event: "parametersSubscribed" });
+}
+await until(() => pushed(plan.awaitBefore));
 if (plan.getParameters) {
   client.getParameters(plan.getParameters, "get");
   await until(() => parameterReplies.has("get"));
@@ -167,6 +196,11 @@ for (const params of plan.setParameters ?? []) {
   await until(() => parameterReplies.has(id));
   await sleep(500); // a refusal's status follows the reply
   out({ event: "parameters", id, parameters: parameterReplies.get(id), statuses: statuses.slice(before) });
+}
+await until(() => pushed(plan.awaitAfter));
+if (plan.watchMs !== undefined) {
+  await sleep(plan.watchMs); // anything pushed twice arrives within this
+  out({ event: "pushes", pushes });
 }
 let callId = 1;
 for (const name of plan.services ?? []) {
