@@ -184,7 +184,8 @@ def help_text(program: str, node: str, doc: str | None) -> str:
              wrap(f"Parameters (SI units) are ROS 2 parameters, given after --ros-args: -p NAME:=VALUE (repeatable) "
                   f"or --params-file FILE, a YAML file whose key {node_key(node)} applies in every namespace "
                   f"(config/afm.yaml has them all). Those marked live can also be changed while the node runs "
-                  f"(ros2 param set /{node} NAME VALUE); a refused value keeps the old one and says why. "
+                  f"(afm_ctl set {node} NAME VALUE, no ROS install needed; or ros2 param set /{node} NAME VALUE); "
+                  f"a refused value keeps the old one and says why. "
                   f"-r __ns:=/afm1 runs the node in a namespace.")]
     specs = node_specs().get(node) if node in NODE_SPECS else None
     if specs:

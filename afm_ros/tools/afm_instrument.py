@@ -1073,8 +1073,8 @@ def main(args=None):
             print(note, flush=True)
         if "live_view" in instrument.nodes:
             live = instrument.nodes["live_view"]
-            print(f"live view: ws://{live.get_parameter('address').value}:{live.port} (Foxglove; no authentication)",
-                  flush=True)
+            print(f"live view: ws://{live.get_parameter('address').value}:{live.port} (Foxglove, subprotocol "
+                  f"foxglove.sdk.v1; no authentication)", flush=True)
         if "recorder" in instrument.nodes:
             print(recording_line(instrument.nodes["recorder"], options.record_raw), flush=True)
         if options.image:
