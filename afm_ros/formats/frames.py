@@ -156,28 +156,36 @@ def write_text_atomically(path, text: str) -> Path:
     return path
 
 
-def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelled: bool) -> None:
-    # the object-oriented API without pyplot: no global figure state, so a writer thread (the
-    # scanner node writes its frames in one) cannot interfere with another user of matplotlib
-    from matplotlib.figure import Figure
-
+def display_image(image: np.ndarray, unit: str, levelled: bool = False) -> tuple[np.ndarray, tuple, str]:
+    """What a preview shows of ``image`` (SI ``unit``): (values / display factor, colour range in the
+    same scaled unit, unit text such as "nm"). ``levelled``: plane-levelled (:func:`plane_level`) and
+    shifted so the colour range starts at 0. The colour range is :func:`display_range` (a unit-wide
+    span around a constant image)."""
     shown = plane_level(image) if levelled else np.asarray(image, dtype=np.float64)
     span = display_range(shown)
     if levelled and span is not None:  # heights from the bottom of the colour range
         shown, span = shown - span[0], (0.0, span[1] - span[0])
     factor, unit_text = _display_scale(shown if span is None else np.asarray(span), unit)
     if span is None:
-        value = float(np.nanmean(shown)) if np.isfinite(shown).any() else 0.0
-        span = (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0))
-    lo, hi = span
+        value = float(np.nanmean(shown)) / factor if np.isfinite(shown).any() else 0.0
+        return shown / factor, (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0)), unit_text
+    return shown / factor, (span[0] / factor, span[1] / factor), unit_text
+
+
+def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelled: bool) -> None:
+    # the object-oriented API without pyplot: no global figure state, so a writer thread (the
+    # scanner node writes its frames in one) cannot interfere with another user of matplotlib
+    from matplotlib.figure import Figure
+
+    shown, (lo, hi), unit_text = display_image(image, unit, levelled)
     x0, y0 = plan.x_left * 1e6, plan.y_low * 1e6
     x1, y1 = x0 + plan.size_x * 1e6, y0 + plan.size_y * 1e6
     aspect_w = 5.6
     fig = Figure(figsize=(aspect_w, max(2.5, min(8.0, aspect_w * plan.size_y / plan.size_x * 0.9 + 0.8))))
     ax = fig.add_subplot()
     # row 0 (lowest y) at the top, as Gwyddion shows it: its y axis points down the rows
-    im = ax.imshow(shown / factor, origin="upper", extent=(x0, x1, y1, y0), cmap="afmhot", interpolation="nearest",
-                   aspect="equal", vmin=lo / factor, vmax=hi / factor)
+    im = ax.imshow(shown, origin="upper", extent=(x0, x1, y1, y0), cmap="afmhot", interpolation="nearest",
+                   aspect="equal", vmin=lo, vmax=hi)
     ax.set_xlabel("x [um]")
     ax.set_ylabel("y [um]")
     ax.set_title(title, fontsize=10)
