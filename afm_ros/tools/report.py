@@ -1903,7 +1903,7 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images=Non
         for e in errors:
             when = (f"t = {e['time_s']:.6g} s" if e["time_from_status"]
                     else f"received at {e['time_s']:.6g} s ({data.time_axis})")
-            lines.append(f"- **{e['name']}**: {e['message']} ({when}; reported {e['count']} times)")
+            lines.append(f"- **{e['name']}**: {e['message']} ({when}; {e['count']} status message{'s' if e['count'] != 1 else ''})")
             if "blowup_parameters" in e["values"]:
                 lines.append(f"  - parameters in force: {e['values']['blowup_parameters']}")
         if data.diagnostics.dropped:
@@ -2096,6 +2096,14 @@ def _image_lines(data: SessionData) -> list[str]:
                       f"{_nth(it.stats['display_step'])} row and column ({it.stats['rows']} x {it.stats['columns']}); "
                       "the table is over every pixel."]
     return lines
+
+
+def last_images(path) -> tuple[dict, dict | None]:
+    """The last recorded frame of an imaging session: {(channel, direction): float32 array} (the
+    last well-formed ``scanner/image/<channel>/<direction>`` message of each topic; at full size up
+    to DISPLAY_MAX_PIXELS per side) and the checked ``scanner/geometry`` or None."""
+    data = load_session(path)
+    return {(it.channel, it.direction): it.array for it in _shown_images(data)}, data.geometry
 
 
 def write_image_figure(data: SessionData, out: Path) -> Path | None:
