@@ -5,28 +5,45 @@
 
 - ``deflection_force.png``: deflection and tip-sample force vs simulated time (whole session as
   a min/max envelope, and the last few drive periods in full);
-- ``lockin_z.png``: lock-in amplitude (with the setpoint and the settling band), phase and z piezo
-  vs simulated time (every sample while a series is short, a min/max envelope beyond);
+- ``lockin_z.png``: lock-in amplitude (with the setpoint in force, a step at every change, and the
+  settling band), phase, z piezo and error vs simulated time (every sample while a series is short,
+  a min/max envelope beyond). From the loop's batches (``lockin/outputs``: t, X, Y of every output,
+  amplitude = hypot(X, Y), phase = atan2(-Y, X); ``z_controller/trace``: t, z, error) when they are
+  recorded (complete, in time order, exact simulated times), else from the per-output copies
+  (``lockin/amplitude`` ...), placed by their receive times;
 - ``force_distance.png``: tip-sample force vs gap, reconstructed sample by sample: gap =
   z_offset (chunk preamble) + deflection, force from the tip_sample_force chunk with the same
   sample index (at most :data:`MAX_SCATTER_POINTS` exact pairs, evenly spaced in the sample index);
-- ``report.md``: file status, topics, stream completeness, every node's parameters at start and
-  every change, the setpoint-tracking numbers (free amplitude, setpoint, reached amplitude,
-  settling time, phase and z piezo in contact) and the force-distance extremes (over all pairs).
+- ``images.png`` (imaging sessions): the last well-formed ``scanner/image/<channel>/<direction>``
+  of each topic in display units, heights plane-levelled, colour range 2-98 % of the pixels;
+- ``report.md``: file status, ERROR statuses recorded on /diagnostics (a blow-up with the parameters
+  in force) at the top, topics, stream completeness, the setpoint-tracking numbers (free amplitude,
+  settling after engaging, every setpoint change with its own settling time, the state at the end),
+  the force-distance extremes (over all pairs), the images, what was skipped and why, every node's
+  parameters at start and every change.
+
+Setpoint history: the setpoint in force at every lock-in output is amplitude + error (the z trace's
+error = setpoint - amplitude at the same output times), so a change is placed at the exact simulated
+time of the first output computed with it (its value from the matching /parameter_events change).
+Without the batches the changes come from /parameter_events, placed by their receive time. The
+settling after engaging ends at the first change (or the scan start); each change's settling is into
++-SETTLING_BAND of its own setpoint; the final state is the last 20 % of the last segment.
 
 Memory does not grow with the session (peak RSS < :data:`PEAK_RSS_BOUND_MB` for one instrument's
 recording of any length): the file is streamed twice and never held.
 
-- Pass 1 (nothing but the chunk preambles and the small messages is parsed): topics, their types
-  and counts, the /clock table (receive time -> simulated time), the sample-index continuity and
-  time range of every chunk stream, parameters and their changes, first/last receive times of
-  every series and a table of the sample times of each series.
-- Between the passes: topic per role, the time mapping, engage time, setpoint and the averaging
-  windows of the tracking numbers (today's definitions, e.g. the last 20 % after engaging).
+- Pass 1 (nothing but the chunk preambles, the batches and the small messages is parsed): topics,
+  their types and counts, the /clock table (receive time -> simulated time), the sample-index
+  continuity and time range of every chunk and batch stream, the setpoint at every output (paired
+  batches, O(1) state), parameters and their changes, ERROR statuses, the header of every image
+  message, first/last receive times of every series and a table of the sample times of each series.
+- Between the passes: topic per role, the time mapping, engage time, setpoint segments and the
+  averaging windows of the tracking numbers (e.g. the last 20 % of the last segment).
 - Pass 2: the chunks one at a time and the series in batches feed fixed-size accumulators:
   min/max envelopes with :data:`ENVELOPE_BINS` bins over the time range known from pass 1, the
-  last :data:`ZOOM_PERIODS` drive periods, running sums over the windows, an O(1) settling tracker,
-  the force-distance extremes over all pairs and an evenly spaced subset of them.
+  last :data:`ZOOM_PERIODS` drive periods, running sums over the windows, an O(1) settling tracker
+  per segment, the force-distance extremes over all pairs and an evenly spaced subset of them; the
+  chosen image of each topic is decoded alone (at most :data:`DISPLAY_MAX_PIXELS` per side kept).
 
 Tables hold at most :data:`TABLE_CAP` rows. Until then everything is exact (the numbers equal those
 of the former in-memory report bit for bit). Beyond, the time map becomes a polyline within a
@@ -36,11 +53,10 @@ bounds stay exact), and the setpoint-from-error median is taken over every k-th 
 
 Works on truncated and damaged files (reads the intact part, says so) and on files with only some
 topics (figures and numbers whose inputs are missing are skipped with a note). A file from another
-tool (a role's topic with another message type, a message that does not deserialise, a chunk not in
-the afm_ros layout) stops with :class:`ReportError`, one line naming the topic and the problem.
-Times: samples carry their exact simulated time; the unstamped Float64 topics (amplitude, phase, z
-piezo, error) are placed on the simulated time axis through their receive time and the receive
-times of the recorded /clock messages (or deflection chunks), i.e. to within the delivery latency.
+tool (a role's topic with another message type, a message that does not deserialise, a chunk or
+batch not in the afm_ros layout) stops with :class:`ReportError`, one line naming the topic and the
+problem. Images, the scan geometry and /diagnostics are never fatal: a malformed one is skipped with
+a one-line reason (report.md and stderr) and the rest is reported.
 """
 from __future__ import annotations
 
@@ -178,7 +194,8 @@ def _cdr_batch(role: str, data) -> tuple[int | None, int, float, np.ndarray, np.
             first, end, end_time, t, u, v = None, b.input_end_index, b.input_end_time, b.t, b.z, b.error
     except (ValueError, OverflowError) as exc:  # a wrong length, a NaN index
         raise ChunkLayoutError(str(exc)) from None
-    if not (math.isfinite(end_time) and (t.shape[0] == 0 or (np.isfinite(t).all() and (np.diff(t) > 0).all()))):
+    times = t.tolist()  # a few outputs per batch: cheaper in Python than in numpy
+    if not (math.isfinite(end_time) and all(map(math.isfinite, times)) and all(map(float.__lt__, times, times[1:]))):
         raise ChunkLayoutError("output times not finite and increasing")
     return first, end, end_time, t, u, v
 
@@ -1597,6 +1614,8 @@ def _series_from_batches(data: SessionData, survey: _Survey) -> None:
         if stream is None or not stream.outputs:
             continue
         data.batches[batch_role] = stream
+        if batch_role == "outputs" and "xy" in data.series:  # its stamps place the copies only
+            data.unused.append(data.series.pop("xy").topic)
         for role in roles:
             old = data.series.get(role)
             if old is not None:
@@ -2057,18 +2076,21 @@ def _image_unit(data: SessionData, channel: str) -> str:
 
 
 def _shown_images(data: SessionData) -> list[ImageTopic]:
+    shown = [it for it in data.images.values() if it.array is not None]
+    if not shown:
+        return shown  # (and no import of the imaging core: numba costs ~50 MB)
     from afm_ros.core.imaging import CHANNELS, DIRECTIONS
     order = {c: i for i, c in enumerate(CHANNELS)}
     rank = {d: i for i, d in enumerate(DIRECTIONS)}
-    return sorted((it for it in data.images.values() if it.array is not None),
-                  key=lambda it: (order.get(it.channel, len(order)), it.channel, rank.get(it.direction, 9), it.direction))
+    return sorted(shown, key=lambda it: (order.get(it.channel, len(order)), it.channel, rank.get(it.direction, 9),
+                                         it.direction))
 
 
 def _image_lines(data: SessionData) -> list[str]:
-    from afm_ros.formats.frames import RANGE_TEXT, _display_scale
     shown = _shown_images(data)
     if not shown:
         return []
+    from afm_ros.formats.frames import RANGE_TEXT, _display_scale
     g = data.geometry
     lines = ["", "## Images (the last recorded frame)", ""]
     if g:
@@ -2110,16 +2132,15 @@ def write_image_figure(data: SessionData, out: Path) -> Path | None:
     """``images.png``: the last recorded frame, one panel per channel (columns) and direction (rows), in
     display units (nm, deg, aJ, ...), colour range :func:`afm_ros.formats.frames.display_range`, heights
     plane-levelled, axes in µm when the scan geometry is known."""
+    shown = _shown_images(data)
+    if not shown:
+        return None
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import ScalarFormatter
 
     from afm_ros.formats.frames import RANGE_TEXT, display_image
-
-    shown = _shown_images(data)
-    if not shown:
-        return None
     channels = list(dict.fromkeys(it.channel for it in shown))
     directions = list(dict.fromkeys(it.direction for it in sorted(shown, key=lambda it: it.direction != "trace")))
     fig, axes = plt.subplots(len(directions), len(channels), figsize=(3.3 * len(channels), 3.1 * len(directions)),
