@@ -7,7 +7,9 @@ Layout written by :func:`write_gwy` (channel ``n`` = 0, 1, ... in the order give
 - ``/n/data/title``: the channel title;
 - ``/n/meta``: a ``GwyContainer`` of strings, Gwyddion's "Metadata browser" (every channel
   gets the same metadata); numbers are stored as their shortest round-trip text;
-- ``/0/data/visible``: true, so Gwyddion opens the first channel in a window.
+- ``/0/data/visible``: true, so Gwyddion opens the first channel in a window;
+- ``/n/base/range-type`` (int32 1 = fixed), ``/n/base/min``, ``/n/base/max`` (doubles, the channel's
+  unit): the colour range Gwyddion (and its thumbnailer) shows, when ``display_ranges`` gives one.
 
 The values are written raw (SI units, no levelling or scaling). See ``docs/gwyddion.md``.
 """

@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 
 from afm_ros.formats import chunk_layout
-from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, ChunkHeader, ChunkLayoutError, cdr_chunk
+from afm_ros.formats.chunk_layout import ChunkHeader, ChunkLayoutError, cdr_chunk
 from afm_ros.formats.chunk_layout import cdr_byte_order, cdr_float64_array
 from afm_ros.formats.mcap_io import SessionFileError, SessionScan, parameter_metadata, read_session
 
