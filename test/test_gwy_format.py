@@ -178,3 +178,53 @@ def test_write_into_a_missing_directory_is_an_oserror_naming_the_file(tmp_path):
     path = tmp_path / "no" / "such" / "dir" / "x.gwy"
     with pytest.raises(OSError, match="x.gwy"):
         write_gwy(path, {"H": (np.zeros((2, 2)), "m")}, 1e-6, 1e-6)
+
+
+# --- the display range of a frame (afm_ros.formats.frames.write_frame) ---------------------------
+def island_frame(pixels=64, film=40e-9, island=1e-9, spike=30e-9):
+    """A frame whose height is a film with a 1 nm high central island (radius pixels/4) and, as a scan
+    over a soft island gives them, a few parachuting spikes of +-30 nm on the island's edge (0.6 % of the
+    pixels); the other channels are copies scaled to their units. Returns (frame, island mask)."""
+    from afm_ros.core.imaging import CHANNELS, DIRECTIONS, Frame
+    from afm_ros.core.scanner import ScanPlan
+    plan = ScanPlan(size_x=5e-6, size_y=5e-6, center_x=5e-6, center_y=5e-6, pixels=pixels, lines=pixels,
+                    line_rate=1.0)
+    rows, cols = np.indices((pixels, pixels)) - (pixels - 1) / 2
+    r = np.hypot(rows, cols)
+    inside = r < pixels / 4
+    height = np.where(inside, film + island, film)
+    edge = np.flatnonzero(np.abs(r - pixels / 4).ravel() < 0.5)
+    spikes = edge[:: max(1, edge.size // 24)][:24]
+    height.ravel()[spikes[::2]] += spike
+    height.ravel()[spikes[1::2]] -= spike
+    scale = {"height": 1.0, "amplitude": 1.0, "phase": 1e9, "amplitude_error": 0.1, "dissipation": 1e-8}
+    frame = Frame(plan, 0, {d: {c: (height * scale[c]).astype(np.float32) for c in CHANNELS} for d in DIRECTIONS},
+                  lines_done=pixels)
+    return frame, inside
+
+
+@pytest.mark.skipif(shutil.which("gwyddion-thumbnailer") is None,
+                    reason="gwyddion-thumbnailer not installed (Debian package gwyddion)")
+def test_frame_thumbnail_shows_the_island_despite_edge_spikes(tmp_path):
+    """Gwyddion's thumbnail of a written frame: the 1 nm island against the film must be a clear grey
+    step although +-30 nm edge spikes span 60 times that (with the full data range as the colour range
+    the island is 1/60 of the grey scale, ~4 of 255 levels); the file's data stay raw."""
+    from PIL import Image
+
+    from afm_ros.formats.frames import write_frame
+    frame, inside = island_frame()
+    gwy = write_frame(frame, tmp_path / "frame", previews=False)[0]
+    obj = gwyfile.load(str(gwy))
+    np.testing.assert_array_equal(obj["/0/data"].data, frame.images["trace"]["height"].astype(np.float64))
+    png = tmp_path / "thumb.png"
+    run = subprocess.run(["gwyddion-thumbnailer", "-c", "0", "gnome2", "128", str(gwy), str(png)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    grey = np.asarray(Image.open(png).convert("L"), dtype=float)
+    assert grey.shape == inside.shape
+    # medians (the spikes are 0.6 % of the pixels): at least half the grey scale between island and film
+    assert abs(np.median(grey[inside]) - np.median(grey[~inside])) > 128
+    # Gwyddion's fixed colour range: the film and the island level, the spikes clipped
+    assert obj["/0/base/range-type"] == 1
+    assert obj["/0/base/min"] == pytest.approx(40e-9, abs=1e-15)
+    assert obj["/0/base/max"] == pytest.approx(41e-9, abs=1e-15)

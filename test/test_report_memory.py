@@ -167,6 +167,48 @@ def test_setpoint_rebuilt_from_the_error_when_no_parameter_was_recorded(tmp_path
     assert b.tracking == a.tracking
 
 
+def test_batches_give_the_numbers_of_the_per_output_copies(tmp_path):
+    """The same session recorded as per-output copies, as the loop's batches (what --image records) and
+    as both: the same tracking numbers (amplitude = hypot(X, Y) of the written X, Y: equal to the
+    written amplitude to an ulp), from the batches whenever they are there."""
+    numbers = {}
+    for kind in ("copies", "batches", "both"):
+        path = tmp_path / f"{kind}.mcap"
+        info = write_synthetic_session(path, 4.0, series=kind)
+        data = report.load_session(path)
+        assert ("outputs" in data.batches) == (kind != "copies")
+        numbers[kind] = data.tracking
+    exp = info["expected"]
+    for kind, got in numbers.items():
+        for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m",
+                    "setpoint_from_error_m", "setpoint_m", "settling_time_s"):
+            assert got[key] == pytest.approx(exp[key], rel=1e-12, abs=1e-15), (kind, key)
+        assert got["engage_time_s"] == pytest.approx(exp["engage_time_s"], abs=1e-6)
+    assert numbers["batches"] == numbers["both"]
+
+
+def test_ten_minute_session_of_batches_in_bounded_memory(tmp_path):
+    """600 s recorded as --image records it (batches, 300 000 outputs: more than report.TABLE_CAP, so
+    the output-time table is decimated) plus the raw chunks: under the bound, exact counts and numbers."""
+    path = tmp_path / "long.mcap"
+    info = write_synthetic_session(path, 600.0, series_rate=500.0, series="batches")
+    assert info["series_samples"] > report.TABLE_CAP
+    status, out, err, peak_mb = _run_measured(path, "--out", tmp_path / "rep", "--json")
+    assert status == 0 and "Traceback" not in err, err
+    assert peak_mb < report.PEAK_RSS_BOUND_MB, f"peak RSS {peak_mb:.0f} MB"
+    numbers = json.loads(out.strip().splitlines()[-1])
+    exp = info["expected"]
+    assert numbers["series_source"] == "batches"
+    assert numbers["outputs_outputs"] == numbers["z_trace_outputs"] == info["series_samples"]
+    for key in ("reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m", "setpoint_from_error_m"):
+        assert numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+    # the free-amplitude window may start up to one kept stride late (the table keeps every 2nd time);
+    # the free amplitude is constant: exact anyway
+    assert numbers["free_amplitude_m"] == pytest.approx(exp["free_amplitude_m"], rel=1e-12)
+    assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
+    assert (tmp_path / "rep" / "lockin_z.png").stat().st_size > 5000
+
+
 def math_finite(x) -> bool:
     return x is not None and np.isfinite(x)
 
@@ -200,6 +242,8 @@ FOREIGN = {
                            ["/x/cantilever/deflection", "does not deserialise"]),
     "not_a_chunk": ("/x/cantilever/tip_sample_force", "std_msgs/msg/Float64MultiArray", _not_a_chunk(),
                     ["/x/cantilever/tip_sample_force", "not a sample chunk in the afm_ros layout"]),
+    "not_a_batch": ("/x/lockin/outputs", "std_msgs/msg/Float64MultiArray", _not_a_chunk(),
+                    ["/x/lockin/outputs", "not a lock-in output batch in the afm_ros layout"]),
     "garbage_amplitude": ("/x/lockin/amplitude", "std_msgs/msg/Float64", b"\x00\x01\x00",
                           ["/x/lockin/amplitude", "does not deserialise as std_msgs/msg/Float64"]),
     "clock_of_other_type": ("/clock", "std_msgs/msg/Float64", b"\x00\x01\x00\x00" + bytes(8),

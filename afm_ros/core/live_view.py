@@ -150,21 +150,29 @@ def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:
     return (first_index // samples) % decimation == 0
 
 
-def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """``image`` (float, NaN = no data) scaled to uint8 between its tail-cut limits (0 and 255); NaN -> 0.
-
-    The limits are the finite values of rank ``k`` from either end, ``k = floor(IMAGE_TAIL_CUT * n)``
-    for ``n`` finite pixels (``k = 0``, the plain minimum and maximum, below 50 pixels); pixels
-    beyond them are clipped to 0 or 255. Returns (pixels, low, high); a constant image is all 128,
-    an image without data all 0."""
-    finite = np.isfinite(image)
-    values = image[finite]
+def tail_cut_limits(values: np.ndarray, fraction: float = IMAGE_TAIL_CUT) -> tuple[float, float]:
+    """(low, high): the finite values of rank ``k`` from either end of ``values``, ``k = floor(fraction
+    * n)`` for ``n`` finite values (the plain minimum and maximum below 1 / fraction values), so a
+    few spikes do not set a grey or colour scale; (nan, nan) without a finite value."""
+    values = np.asarray(values).ravel()
+    values = values[np.isfinite(values)]
     n = values.size
     if n == 0:
-        return np.zeros(image.shape, np.uint8), float("nan"), float("nan")
-    k = int(IMAGE_TAIL_CUT * n)
+        return float("nan"), float("nan")
+    k = int(fraction * n)
     ordered = np.partition(values, (k, n - 1 - k))
-    low, high = float(ordered[k]), float(ordered[n - 1 - k])
+    return float(ordered[k]), float(ordered[n - 1 - k])
+
+
+def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """``image`` (float, NaN = no data) scaled to uint8 between its :func:`tail_cut_limits` (0 and
+    255); NaN -> 0, pixels beyond the limits are clipped to 0 or 255. Returns (pixels, low, high); a
+    constant image is all 128, an image without data all 0."""
+    finite = np.isfinite(image)
+    values = image[finite]
+    if values.size == 0:
+        return np.zeros(image.shape, np.uint8), float("nan"), float("nan")
+    low, high = tail_cut_limits(values)
     out = np.zeros(image.shape, np.uint8)
     if high > low:
         out[finite] = np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)

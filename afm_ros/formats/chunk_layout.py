@@ -193,13 +193,10 @@ def cdr_byte_order(data) -> str:
     return "<" if data[1] == 1 else ">"
 
 
-def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
-    """Header and samples (a read-only view, no copy for little-endian data) of a chunk from its
-    serialized std_msgs/Float64MultiArray (CDR, as a raw subscription or a recording holds it).
-
-    ValueError if the bytes are not a Float64MultiArray; ChunkLayoutError if it is one but not a
-    chunk of this layout.
-    """
+def cdr_float64_array(data) -> tuple[int, np.ndarray]:
+    """(``layout.data_offset``, values) of a serialized std_msgs/Float64MultiArray (CDR, as a raw
+    subscription or a recording holds it); the values are a read-only view (no copy for
+    little-endian data). ValueError if the bytes are not a Float64MultiArray."""
     mv = memoryview(data)
     order = cdr_byte_order(mv)
     u32 = struct.Struct(order + "I")
@@ -211,33 +208,41 @@ def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
         return u32.unpack_from(mv, p)[0], p + 4
 
     ndim, pos = take(4)
+    offset = count = None
     if ndim == 1 and len(mv) >= 12:  # the usual layout: one dimension, read in one go
         length = u32.unpack_from(mv, 8)[0]
         p = 4 + ((12 + length - 4 + 3) & ~3)
         if p + 16 <= len(mv):
             _, _, offset, count = struct.unpack_from(order + "IIII", mv, p)
-            return _chunk_values(mv, order, offset, count, 4 + ((p + 16 - 4 + 7) & ~7))
-    if ndim > 16:
-        raise ValueError(f"{ndim} layout dimensions: not a Float64MultiArray of this kind")
-    for _ in range(ndim):
-        length, pos = take(pos)
-        pos += length
-        _, pos = take(pos)
-        _, pos = take(pos)
-    offset, pos = take(pos)
-    count, pos = take(pos)
-    return _chunk_values(mv, order, offset, count, 4 + ((pos - 4 + 7) & ~7))
-
-
-def _chunk_values(mv, order: str, offset: int, count: int, pos: int) -> tuple[ChunkHeader, np.ndarray]:
+            pos = 4 + ((p + 16 - 4 + 7) & ~7)
+    if offset is None:
+        if ndim > 16:
+            raise ValueError(f"{ndim} layout dimensions: not a Float64MultiArray of this kind")
+        for _ in range(ndim):
+            length, pos = take(pos)
+            pos += length
+            _, pos = take(pos)
+            _, pos = take(pos)
+        offset, pos = take(pos)
+        count, pos = take(pos)
+        pos = 4 + ((pos - 4 + 7) & ~7)
     if pos + 8 * count > len(mv):
         raise ValueError(f"{count} values announced, the message holds fewer")
-    if offset != PREAMBLE_LENGTH or count < PREAMBLE_LENGTH:
-        raise ChunkLayoutError(f"layout.data_offset {offset} and {count} values (the afm_ros chunk layout has a "
-                               f"{PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})")
     arr = np.frombuffer(mv[pos:pos + 8 * count], dtype=order + "f8")
-    if order == ">":
-        arr = arr.astype(np.float64)
+    return offset, (arr.astype(np.float64) if order == ">" else arr)
+
+
+def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
+    """Header and samples (a read-only view, no copy for little-endian data) of a chunk from its
+    serialized std_msgs/Float64MultiArray (see :func:`cdr_float64_array`).
+
+    ValueError if the bytes are not a Float64MultiArray; ChunkLayoutError if it is one but not a
+    chunk of this layout.
+    """
+    offset, arr = cdr_float64_array(data)
+    if offset != PREAMBLE_LENGTH or arr.shape[0] < PREAMBLE_LENGTH:
+        raise ChunkLayoutError(f"layout.data_offset {offset} and {arr.shape[0]} values (the afm_ros chunk layout "
+                               f"has a {PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})")
     p = arr[:PREAMBLE_LENGTH].tolist()
     if not (math.isfinite(p[0]) and p[0] >= 0 and p[0] == int(p[0]) and math.isfinite(p[1])
             and math.isfinite(p[2]) and p[2] > 0):

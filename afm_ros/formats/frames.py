@@ -9,9 +9,14 @@
   lowest y, which Gwyddion shows at the top, its y axis pointing down the rows), and the
   metadata flattened to strings (``section.name [unit]`` -> text) in every channel;
 - ``<stem>_<channel>_<direction>.png``: a matplotlib preview of each channel with a colour bar in
-  its unit (SI prefix chosen for display, colour range the 0.5-99.5 percentiles). The height
-  previews are plane-levelled (least-squares plane removed) and say so in their title; the other
-  channels are shown raw. The ``.gwy`` file always holds the raw data.
+  its unit (SI prefix chosen for display). The height previews are plane-levelled (least-squares
+  plane removed) and say so in their title; the other channels are shown raw. The ``.gwy`` file
+  always holds the raw data.
+
+Colour range (:func:`display_range`): 2 % of the pixels clipped at each end (the live view's tail
+cut), so edge spikes do not squeeze the contrast. The previews use it, and the ``.gwy`` file stores
+it per channel as Gwyddion's fixed colour range, so Gwyddion and its thumbnailer show the contrast
+too (the range is a display setting; the data are untouched).
 
 Every file is written to a temporary file in the target directory and renamed over the target,
 so it appears complete or not at all. A frame with pixels that were never acquired (NaN: an
@@ -28,6 +33,7 @@ from typing import Mapping
 import numpy as np
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
+from afm_ros.core.live_view import IMAGE_TAIL_CUT, tail_cut_limits
 
 CHANNEL_TITLES = {"height": "Height", "amplitude": "Amplitude", "phase": "Phase",
                   "amplitude_error": "Amplitude error", "dissipation": "Dissipation"}
@@ -101,6 +107,18 @@ def plane_level(image: np.ndarray) -> np.ndarray:
     return z - (coef[0] + coef[1] * cols + coef[2] * rows)
 
 
+def display_range(image: np.ndarray) -> tuple[float, float] | None:
+    """(low, high) colour range of ``image`` in its unit: :data:`IMAGE_TAIL_CUT` of the finite pixels
+    clipped at each end (:func:`tail_cut_limits`); None for an image without two distinct values."""
+    lo, hi = tail_cut_limits(image)
+    if not hi > lo:  # constant after the cut (or no data): fall back to the plain extremes
+        lo, hi = tail_cut_limits(image, 0.0)
+    return (lo, hi) if hi > lo else None
+
+
+RANGE_TEXT = f"colour range: {100 * IMAGE_TAIL_CUT:g}-{100 - 100 * IMAGE_TAIL_CUT:g} % of the pixels"
+
+
 def _display_scale(values: np.ndarray, unit: str) -> tuple[float, str]:
     """(factor to divide by, unit text) so the values' range reads in 1..1000 of the unit."""
     if unit in ("deg", ""):
@@ -138,33 +156,41 @@ def write_text_atomically(path, text: str) -> Path:
     return path
 
 
+def display_image(image: np.ndarray, unit: str, levelled: bool = False) -> tuple[np.ndarray, tuple, str]:
+    """What a preview shows of ``image`` (SI ``unit``): (values / display factor, colour range in the
+    same scaled unit, unit text such as "nm"). ``levelled``: plane-levelled (:func:`plane_level`) and
+    shifted so the colour range starts at 0. The colour range is :func:`display_range` (a unit-wide
+    span around a constant image)."""
+    shown = plane_level(image) if levelled else np.asarray(image, dtype=np.float64)
+    span = display_range(shown)
+    if levelled and span is not None:  # heights from the bottom of the colour range
+        shown, span = shown - span[0], (0.0, span[1] - span[0])
+    factor, unit_text = _display_scale(shown if span is None else np.asarray(span), unit)
+    if span is None:
+        value = float(np.nanmean(shown)) / factor if np.isfinite(shown).any() else 0.0
+        return shown / factor, (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0)), unit_text
+    return shown / factor, (span[0] / factor, span[1] / factor), unit_text
+
+
 def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelled: bool) -> None:
     # the object-oriented API without pyplot: no global figure state, so a writer thread (the
     # scanner node writes its frames in one) cannot interfere with another user of matplotlib
     from matplotlib.figure import Figure
 
-    shown = plane_level(image) if levelled else np.asarray(image, dtype=np.float64)
-    if levelled:
-        shown = shown - np.nanmin(shown)
-    factor, unit_text = _display_scale(shown, unit)
-    finite = shown[np.isfinite(shown)]
-    # colour range: 0.5 .. 99.5 percentile, so a few edge spikes do not wash out the contrast
-    lo, hi = (np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0))
-    if not hi > lo:
-        lo, hi = lo - 0.5 * (abs(lo) or 1.0), hi + 0.5 * (abs(hi) or 1.0)
+    shown, (lo, hi), unit_text = display_image(image, unit, levelled)
     x0, y0 = plan.x_left * 1e6, plan.y_low * 1e6
     x1, y1 = x0 + plan.size_x * 1e6, y0 + plan.size_y * 1e6
     aspect_w = 5.6
     fig = Figure(figsize=(aspect_w, max(2.5, min(8.0, aspect_w * plan.size_y / plan.size_x * 0.9 + 0.8))))
     ax = fig.add_subplot()
     # row 0 (lowest y) at the top, as Gwyddion shows it: its y axis points down the rows
-    im = ax.imshow(shown / factor, origin="upper", extent=(x0, x1, y1, y0), cmap="afmhot", interpolation="nearest",
-                   aspect="equal", vmin=lo / factor, vmax=hi / factor)
+    im = ax.imshow(shown, origin="upper", extent=(x0, x1, y1, y0), cmap="afmhot", interpolation="nearest",
+                   aspect="equal", vmin=lo, vmax=hi)
     ax.set_xlabel("x [um]")
     ax.set_ylabel("y [um]")
     ax.set_title(title, fontsize=10)
     bar = fig.colorbar(im, ax=ax, extend="both")
-    bar.set_label(f"{unit_text} (colour range: 0.5-99.5 percentile)")
+    bar.set_label(f"{unit_text} ({RANGE_TEXT})")
     fig.tight_layout()
 
     def write(tmp: Path) -> None:
@@ -175,8 +201,8 @@ def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelle
 
 def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = True,
                 units: Mapping | None = None) -> list[Path]:
-    """Write ``<stem>.gwy`` (every channel, raw SI values) and, if ``previews``, one PNG per
-    channel and direction (``<stem>_<channel>_<direction>.png``); return the paths written.
+    """Write ``<stem>.gwy`` (every channel, raw SI values, with its :func:`display_range` as Gwyddion's
+    colour range) and, if ``previews``, one PNG per channel and direction (``<stem>_<channel>_<direction>.png``); return the paths written.
 
     ``metadata``: flat or nested mapping (e.g. ``{"scan": {...}, "feedback": {...},
     "cantilever": {...}, "sample": {...}}``), stored flattened to strings in every channel
@@ -197,8 +223,9 @@ def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = T
     stem.parent.mkdir(parents=True, exist_ok=True)
     gwy = stem.with_name(stem.name + ".gwy")
     meta = flatten_metadata(metadata, units)
+    ranges = {title: span for title, (values, _) in channels.items() if (span := display_range(values)) is not None}
     write_gwy(gwy, channels, xreal=plan.size_x, yreal=plan.size_y, xoff=plan.x_left, yoff=plan.y_low,
-              metadata=meta)
+              metadata=meta, display_ranges=ranges)
     written = [gwy]
     if previews:
         for channel in CHANNELS:

@@ -7,7 +7,9 @@ Layout written by :func:`write_gwy` (channel ``n`` = 0, 1, ... in the order give
 - ``/n/data/title``: the channel title;
 - ``/n/meta``: a ``GwyContainer`` of strings, Gwyddion's "Metadata browser" (every channel
   gets the same metadata); numbers are stored as their shortest round-trip text;
-- ``/0/data/visible``: true, so Gwyddion opens the first channel in a window.
+- ``/0/data/visible``: true, so Gwyddion opens the first channel in a window;
+- ``/n/base/range-type`` (int32 1 = fixed), ``/n/base/min``, ``/n/base/max`` (doubles, the channel's
+  unit): the colour range Gwyddion (and its thumbnailer) shows, when ``display_ranges`` gives one.
 
 The values are written raw (SI units, no levelling or scaling). See ``docs/gwyddion.md``.
 """
@@ -67,12 +69,15 @@ def _finite(name: str, value) -> float:
 
 
 def write_gwy(path, channels: Mapping[str, tuple], xreal: float, yreal: float,
-              xoff: float = 0.0, yoff: float = 0.0, metadata: Mapping | None = None) -> None:
+              xoff: float = 0.0, yoff: float = 0.0, metadata: Mapping | None = None,
+              display_ranges: Mapping[str, tuple] | None = None) -> None:
     """Write ``channels`` (title -> (2D array [rows, cols] in SI, z unit)) to ``path`` atomically.
 
     ``xreal``, ``yreal`` [m]: physical width and height of every channel; ``xoff``, ``yoff`` [m]:
     position of the top-left corner. ``metadata``: flat str -> str/number dict, stored in every
-    channel's ``/n/meta``. The file appears complete or not at all (temporary file + rename).
+    channel's ``/n/meta``. ``display_ranges``: title -> (min, max) in the channel's unit, stored as
+    Gwyddion's fixed colour range (``/n/base/range-type`` = 1, ``/n/base/min``, ``/n/base/max``); the
+    data stay as they are. The file appears complete or not at all (temporary file + rename).
     """
     path = os.fspath(path)
     xreal, yreal = _positive("xreal", xreal), _positive("yreal", yreal)
@@ -107,6 +112,15 @@ def write_gwy(path, channels: Mapping[str, tuple], xreal: float, yreal: float,
                                                si_unit_z=GwySIUnit(unitstr=unit))
         container[f"/{n}/data/title"] = title
         container.typecodes[f"/{n}/data/title"] = "s"  # gwyfile would store a 1-letter title as a char
+        span = (display_ranges or {}).get(title)
+        if span is not None:
+            lo, hi = (float(v) for v in span)
+            if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+                raise ValueError(f"{path}: display range of {title!r} ({lo!r}, {hi!r}) must be finite with max > min")
+            container[f"/{n}/base/range-type"] = 1  # GWY_LAYER_BASIC_RANGE_FIXED (an enum: int32)
+            container[f"/{n}/base/min"], container[f"/{n}/base/max"] = lo, hi
+            container.typecodes.update({f"/{n}/base/range-type": "i", f"/{n}/base/min": "d",
+                                        f"/{n}/base/max": "d"})
         if n == 0:
             container["/0/data/visible"] = True
             container.typecodes["/0/data/visible"] = "b"

@@ -9,6 +9,11 @@ temporary directory (removed afterwards unless ``--keep``) and runs, each in a f
 - ``report``: ``afm_report SESSION --out DIR --json`` (two passes over the file); ``numbers_exact``
   says whether its counts and tracking numbers are those the session was built with.
 
+``--series copies`` (default) writes the lock-in and z controller outputs as the per-output Float64
+copies (``lockin/amplitude`` ...), ``batches`` as the loop's batches (``lockin/outputs``,
+``z_controller/trace``: what ``afm_instrument --image`` records), ``both`` as both (the report then
+reads the batches).
+
 Reported per run: wall time [s] and peak resident set size [MB] of each process (the kernel's
 ``ru_maxrss``, see :func:`run_measured`), file size, messages and samples. The synthetic session has the instrument's message pattern (2 ms
 chunks of deflection and tip-sample force with a /clock message each, lock-in amplitude, phase and
@@ -79,10 +84,20 @@ def _parameter_event(node: str, new: dict | None = None, changed: dict | None = 
                                           changed_parameters=[msg(k, v) for k, v in (changed or {}).items()]))
 
 
+def _batch(preamble: tuple, t: list, u: list, v: list) -> bytes:
+    """CDR of a std_msgs/Float64MultiArray in the batch layout: ``preamble``, then t, u, v blocks."""
+    label = b"outputs\x00"
+    n, p = len(t), len(preamble)
+    head = (b"\x00\x01\x00\x00" + struct.pack("<II", 1, len(label)) + label
+            + struct.pack("<IIII", n, 3 * n, p, p + 3 * n))
+    head += b"\x00" * ((-(len(head) - 4)) % 8)
+    return head + np.array([*preamble, *t, *u, *v], dtype="<f8").tobytes()
+
+
 def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chunk_s: float = 0.002,
                             series_rate: float = 100.0, samples_per_period: int = 20,
                             compression: str = "zstd", non_finite_chunks=(), non_finite_amplitudes=(),
-                            record_setpoint: bool = True) -> dict:
+                            record_setpoint: bool = True, series: str = "copies") -> dict:
     """Write a session of ``seconds`` simulated seconds into ``path`` and return what it holds.
 
     Deflection: ``A_d sin(2 pi i / P - pi/2)`` (P = ``samples_per_period``, every chunk holds whole
@@ -94,7 +109,10 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     z_controller's ``enabled`` switches on at ``engage_time_s`` (a /parameter_events change).
     ``non_finite_chunks``: chunk numbers whose deflection sample 1 is NaN; ``non_finite_amplitudes``:
     series sample numbers whose amplitude is NaN. ``record_setpoint`` False: the z_controller's
-    parameters lack ``setpoint`` (the report must rebuild it from the error).
+    parameters lack ``setpoint`` (the report must rebuild it from the error). ``series``: "copies"
+    (one Float64 message per output and quantity), "batches" (per chunk one lockin/outputs batch with
+    the chunk's outputs t, X, Y and one z_controller/trace with t, z, error = setpoint - amplitude, as
+    the z controller computes it also before engaging) or "both".
 
     Returns the expected report numbers (``expected``) and the construction constants.
     """
@@ -115,14 +133,20 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
     phase_free, phase_contact, z_free, z_contact = 90.0, 45.0, 0.0, -15e-9
     engage = (round(0.1 * seconds / series_dt) + 0.5) * series_dt  # half way between two series samples
 
+    if series not in ("copies", "batches", "both"):
+        raise ValueError(f"series={series!r} must be copies, batches or both")
+    copies, batches = series in ("copies", "both"), series in ("batches", "both")
     w = SessionWriter(path, compression=compression)
     ch = {name: w.add_channel(f"{NS}/{name}" if name != "/parameter_events" else name, typ) for name, typ in (
         ("cantilever/deflection", "std_msgs/msg/Float64MultiArray"),
         ("cantilever/tip_sample_force", "std_msgs/msg/Float64MultiArray"),
         ("clock", "rosgraph_msgs/msg/Clock"),
-        ("lockin/amplitude", "std_msgs/msg/Float64"), ("lockin/phase", "std_msgs/msg/Float64"),
-        ("lockin/xy", "geometry_msgs/msg/Vector3Stamped"),
-        ("z_controller/z_piezo", "std_msgs/msg/Float64"), ("z_controller/error", "std_msgs/msg/Float64"),
+        *((("lockin/amplitude", "std_msgs/msg/Float64"), ("lockin/phase", "std_msgs/msg/Float64"),
+           ("lockin/xy", "geometry_msgs/msg/Vector3Stamped"),
+           ("z_controller/z_piezo", "std_msgs/msg/Float64"), ("z_controller/error", "std_msgs/msg/Float64"))
+          if copies else ()),
+        *((("lockin/outputs", "std_msgs/msg/Float64MultiArray"), ("z_controller/trace", "std_msgs/msg/Float64MultiArray"))
+          if batches else ()),
         ("/parameter_events", "rcl_interfaces/msg/ParameterEvent"))}
     z_params = {"setpoint": setpoint, "enabled": False} if record_setpoint else {"enabled": False}
     w.write(ch["/parameter_events"], _parameter_event(f"{NS}/z_controller", new=z_params), WALL_START_NS)
@@ -151,7 +175,8 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
         t_end = sec + 1e-9 * nsec  # what a reader makes of the stamp
         chunk_log = WALL_START_NS + sec * 10**9 + nsec
         # in receive-time order: the series samples up to the chunk's end (the engage event at its
-        # time among them), then the chunk and its /clock
+        # time among them), then the chunk's batches, the chunk and its /clock
+        batch = ([], [], [], [], [])  # t, X, Y, z, error of the chunk's outputs
         while (len(series_times) + 1) * series_dt <= (k + 1) * chunk_s * (1 + 1e-12):
             sec_s, nsec_s = _stamp((len(series_times) + 1) * series_dt)
             t_s = sec_s + 1e-9 * nsec_s
@@ -164,15 +189,22 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
             series_times.append(t_s)
             amplitudes.append(a_written)
             ph = phase_contact if contact else phase_free
-            w.write(ch["lockin/amplitude"], _float64(a_written), log)
-            w.write(ch["lockin/phase"], _float64(ph), log)
-            w.write(ch["lockin/xy"], _vector3_stamped(sec_s, nsec_s, a * math.cos(math.radians(ph)),
-                                                      -a * math.sin(math.radians(ph))), log)
-            w.write(ch["z_controller/z_piezo"], _float64(z_contact if contact else z_free), log)
-            if contact:
-                w.write(ch["z_controller/error"], _float64(setpoint - a), log)
+            x, y = a_written * math.cos(math.radians(ph)), -a_written * math.sin(math.radians(ph))
+            if copies:
+                w.write(ch["lockin/amplitude"], _float64(a_written), log)
+                w.write(ch["lockin/phase"], _float64(ph), log)
+                w.write(ch["lockin/xy"], _vector3_stamped(sec_s, nsec_s, a * math.cos(math.radians(ph)),
+                                                          -a * math.sin(math.radians(ph))), log)
+                w.write(ch["z_controller/z_piezo"], _float64(z_contact if contact else z_free), log)
+                if contact:
+                    w.write(ch["z_controller/error"], _float64(setpoint - a), log)
+            for column, value in zip(batch, (t_s, x, y, z_contact if contact else z_free, setpoint - a_written)):
+                column.append(value)
         if not engaged and t_end >= engage:
             engaged = _engage()
+        if batches:
+            w.write(ch["lockin/outputs"], _batch((k * n, (k + 1) * n, t_end), *batch[:3]), chunk_log)
+            w.write(ch["z_controller/trace"], _batch(((k + 1) * n, t_end), batch[0], *batch[3:]), chunk_log)
         head = prefix + pre.tobytes()
         w.write(ch["cantilever/deflection"], head + (bad_d_bytes if k in non_finite_chunks else d_bytes), chunk_log)
         w.write(ch["cantilever/tip_sample_force"], head + f_bytes, chunk_log)
@@ -200,6 +232,8 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
         "min_gap_m": float(gap.min()), "max_force_n": float(force.max()), "min_force_n": float(force.min()),
         "force_distance_pairs": chunks * n,
     }
+    if batches:
+        expected["outputs_outputs"] = expected["z_trace_outputs"] = len(series_times)
     return {"path": str(path), "seconds": chunks * chunk_s, "sample_rate": sample_rate, "chunk_samples": n,
             "chunks": chunks, "series_samples": len(series_times), "z_offset_m": z_offset,
             "deflection_amplitude_m": amp_d, "samples_per_period": samples_per_period,
@@ -268,6 +302,8 @@ def main(argv=None) -> int:
                         help="simulated lengths of the synthetic sessions [s]")
     parser.add_argument("--rate", type=float, default=90e3, help="sample rate [S/s] (instrument: 900e3)")
     parser.add_argument("--series-rate", type=float, default=1000.0, help="lock-in/z rate [Hz] (instrument: 1000)")
+    parser.add_argument("--series", choices=("copies", "batches", "both"), default="copies",
+                        help="how the lock-in and z outputs are recorded (see the module doc)")
     parser.add_argument("--keep", help="write the sessions and reports here instead of a removed temp dir")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="afm_bench_report_") as tmp:
@@ -280,13 +316,15 @@ def main(argv=None) -> int:
                 path.unlink()
             start = time.perf_counter()
             info = write_synthetic_session(path, seconds, sample_rate=args.rate, series_rate=args.series_rate,
-                                           samples_per_period=_period(int(round(args.rate * 0.002))))
+                                           samples_per_period=_period(int(round(args.rate * 0.002))),
+                                           series=args.series)
             write_s = time.perf_counter() - start
             baseline, _ = _run_child([sys.executable, "-c", _BASELINE, str(path)])
             out = base / f"report_{seconds:g}s"
             rep, stdout = _run_child(report_command(path, out))
             numbers = json.loads(stdout.strip().splitlines()[-1])
             runs.append({"simulated_s": info["seconds"], "sample_rate": args.rate, "series_rate": args.series_rate,
+                         "series": args.series, "series_source": numbers.get("series_source"),
                          "samples_per_stream": info["expected"]["deflection_samples"],
                          "messages": info["messages"], "file_mb": round(info["bytes"] / 1e6, 1),
                          "write_s": round(write_s, 1), "baseline_read_session": baseline, "report": rep,

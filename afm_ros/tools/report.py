@@ -5,28 +5,45 @@
 
 - ``deflection_force.png``: deflection and tip-sample force vs simulated time (whole session as
   a min/max envelope, and the last few drive periods in full);
-- ``lockin_z.png``: lock-in amplitude (with the setpoint and the settling band), phase and z piezo
-  vs simulated time (every sample while a series is short, a min/max envelope beyond);
+- ``lockin_z.png``: lock-in amplitude (with the setpoint in force, a step at every change, and the
+  settling band), phase, z piezo and error vs simulated time (every sample while a series is short,
+  a min/max envelope beyond). From the loop's batches (``lockin/outputs``: t, X, Y of every output,
+  amplitude = hypot(X, Y), phase = atan2(-Y, X); ``z_controller/trace``: t, z, error) when they are
+  recorded (complete, in time order, exact simulated times), else from the per-output copies
+  (``lockin/amplitude`` ...), placed by their receive times;
 - ``force_distance.png``: tip-sample force vs gap, reconstructed sample by sample: gap =
   z_offset (chunk preamble) + deflection, force from the tip_sample_force chunk with the same
   sample index (at most :data:`MAX_SCATTER_POINTS` exact pairs, evenly spaced in the sample index);
-- ``report.md``: file status, topics, stream completeness, every node's parameters at start and
-  every change, the setpoint-tracking numbers (free amplitude, setpoint, reached amplitude,
-  settling time, phase and z piezo in contact) and the force-distance extremes (over all pairs).
+- ``images.png`` (imaging sessions): the last well-formed ``scanner/image/<channel>/<direction>``
+  of each topic in display units, heights plane-levelled, colour range 2-98 % of the pixels;
+- ``report.md``: file status, ERROR statuses recorded on /diagnostics (a blow-up with the parameters
+  in force) at the top, topics, stream completeness, the setpoint-tracking numbers (free amplitude,
+  settling after engaging, every setpoint change with its own settling time, the state at the end),
+  the force-distance extremes (over all pairs), the images, what was skipped and why, every node's
+  parameters at start and every change.
+
+Setpoint history: the setpoint in force at every lock-in output is amplitude + error (the z trace's
+error = setpoint - amplitude at the same output times), so a change is placed at the exact simulated
+time of the first output computed with it (its value from the matching /parameter_events change).
+Without the batches the changes come from /parameter_events, placed by their receive time. The
+settling after engaging ends at the first change (or the scan start); each change's settling is into
++-SETTLING_BAND of its own setpoint; the final state is the last 20 % of the last segment.
 
 Memory does not grow with the session (peak RSS < :data:`PEAK_RSS_BOUND_MB` for one instrument's
 recording of any length): the file is streamed twice and never held.
 
-- Pass 1 (nothing but the chunk preambles and the small messages is parsed): topics, their types
-  and counts, the /clock table (receive time -> simulated time), the sample-index continuity and
-  time range of every chunk stream, parameters and their changes, first/last receive times of
-  every series and a table of the sample times of each series.
-- Between the passes: topic per role, the time mapping, engage time, setpoint and the averaging
-  windows of the tracking numbers (today's definitions, e.g. the last 20 % after engaging).
+- Pass 1 (nothing but the chunk preambles, the batches and the small messages is parsed): topics,
+  their types and counts, the /clock table (receive time -> simulated time), the sample-index
+  continuity and time range of every chunk and batch stream, the setpoint at every output (paired
+  batches, O(1) state), parameters and their changes, ERROR statuses, the header of every image
+  message, first/last receive times of every series and a table of the sample times of each series.
+- Between the passes: topic per role, the time mapping, engage time, setpoint segments and the
+  averaging windows of the tracking numbers (e.g. the last 20 % of the last segment).
 - Pass 2: the chunks one at a time and the series in batches feed fixed-size accumulators:
   min/max envelopes with :data:`ENVELOPE_BINS` bins over the time range known from pass 1, the
-  last :data:`ZOOM_PERIODS` drive periods, running sums over the windows, an O(1) settling tracker,
-  the force-distance extremes over all pairs and an evenly spaced subset of them.
+  last :data:`ZOOM_PERIODS` drive periods, running sums over the windows, an O(1) settling tracker
+  per segment, the force-distance extremes over all pairs and an evenly spaced subset of them; the
+  chosen image of each topic is decoded alone (at most :data:`DISPLAY_MAX_PIXELS` per side kept).
 
 Tables hold at most :data:`TABLE_CAP` rows. Until then everything is exact (the numbers equal those
 of the former in-memory report bit for bit). Beyond, the time map becomes a polyline within a
@@ -36,11 +53,10 @@ bounds stay exact), and the setpoint-from-error median is taken over every k-th 
 
 Works on truncated and damaged files (reads the intact part, says so) and on files with only some
 topics (figures and numbers whose inputs are missing are skipped with a note). A file from another
-tool (a role's topic with another message type, a message that does not deserialise, a chunk not in
-the afm_ros layout) stops with :class:`ReportError`, one line naming the topic and the problem.
-Times: samples carry their exact simulated time; the unstamped Float64 topics (amplitude, phase, z
-piezo, error) are placed on the simulated time axis through their receive time and the receive
-times of the recorded /clock messages (or deflection chunks), i.e. to within the delivery latency.
+tool (a role's topic with another message type, a message that does not deserialise, a chunk or
+batch not in the afm_ros layout) stops with :class:`ReportError`, one line naming the topic and the
+problem. Images, the scan geometry and /diagnostics are never fatal: a malformed one is skipped with
+a one-line reason (report.md and stderr) and the rest is reported.
 """
 from __future__ import annotations
 
@@ -54,8 +70,9 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, ChunkHeader, ChunkLayoutError, cdr_chunk
-from afm_ros.formats.chunk_layout import cdr_byte_order
+from afm_ros.formats import chunk_layout
+from afm_ros.formats.chunk_layout import ChunkHeader, ChunkLayoutError, cdr_chunk
+from afm_ros.formats.chunk_layout import cdr_byte_order, cdr_float64_array
 from afm_ros.formats.mcap_io import SessionFileError, SessionScan, parameter_metadata, read_session
 
 PEAK_RSS_BOUND_MB = 300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
@@ -78,6 +95,8 @@ ROLES = {
     "xy": "lockin/xy",
     "z_piezo": "z_controller/z_piezo",
     "error": "z_controller/error",
+    "outputs": "lockin/outputs",  # the batches: every lock-in output (t, X, Y) of one input chunk
+    "z_trace": "z_controller/trace",  # every z controller output (t, z piezo, error) of one lock-in batch
     "clock": "clock",  # /clock, or /<ns>/clock of an instrument in a namespace
     "parameter_events": "/parameter_events",
 }
@@ -89,11 +108,20 @@ EXPECTED_TYPES = {
     "z_piezo": "std_msgs/msg/Float64",
     "error": "std_msgs/msg/Float64",
     "xy": "geometry_msgs/msg/Vector3Stamped",
+    "outputs": "std_msgs/msg/Float64MultiArray",
+    "z_trace": "std_msgs/msg/Float64MultiArray",
     "clock": "rosgraph_msgs/msg/Clock",
     "parameter_events": "rcl_interfaces/msg/ParameterEvent",
 }
 CHUNK_ROLES = ("deflection", "force")
 SCALAR_ROLES = ("amplitude", "phase", "z_piezo", "error")
+BATCH_ROLES = {"outputs": ("amplitude", "phase"), "z_trace": ("z_piezo", "error")}  # batch -> series it holds
+LAYOUT_NAMES = {"deflection": "sample chunk", "force": "sample chunk", "outputs": "lock-in output batch",
+                "z_trace": "z controller trace"}
+SETPOINT_REL_TOL = 1e-9  # amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
+SETPOINT_ABS_TOL = 1e-18  # [m]
+CHANGES_CAP = 10_000  # setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
+DIAGNOSTIC_ERRORS_CAP = 100  # distinct (status name, message) ERROR entries kept
 
 
 class ReportError(RuntimeError):
@@ -147,6 +175,37 @@ def _cdr_vector3_stamped(data) -> tuple[float, float, float]:
 
 
 _cdr_chunk = cdr_chunk  # the chunk parser lives with the layout (afm_ros.formats.chunk_layout)
+
+
+def _cdr_batch(role: str, data) -> tuple[int | None, int, float, np.ndarray, np.ndarray, np.ndarray]:
+    """A serialized lockin/outputs (``role`` "outputs") or z_controller/trace ("z_trace") batch:
+    (input_first_index or None, input_end_index, input_end_time [s], t [s], X or z [m], Y or error [m]).
+    ValueError if not a Float64MultiArray, ChunkLayoutError if not in the afm_ros layout."""
+    offset, arr = cdr_float64_array(data)
+    want = chunk_layout.OUTPUTS_PREAMBLE_LENGTH if role == "outputs" else chunk_layout.Z_TRACE_PREAMBLE_LENGTH
+    if offset != want:
+        raise ChunkLayoutError(f"layout.data_offset {offset} (the afm_ros {LAYOUT_NAMES[role]} has {want})")
+    try:
+        if role == "outputs":
+            b = chunk_layout.unpack_outputs(arr)
+            first, end, end_time, t, u, v = b.input_first_index, b.input_end_index, b.input_end_time, b.t, b.x, b.y
+        else:
+            b = chunk_layout.unpack_z_trace(arr)
+            first, end, end_time, t, u, v = None, b.input_end_index, b.input_end_time, b.t, b.z, b.error
+    except (ValueError, OverflowError) as exc:  # a wrong length, a NaN index
+        raise ChunkLayoutError(str(exc)) from None
+    times = t.tolist()  # a few outputs per batch: cheaper in Python than in numpy
+    if not (math.isfinite(end_time) and all(map(math.isfinite, times)) and all(map(float.__lt__, times, times[1:]))):
+        raise ChunkLayoutError("output times not finite and increasing")
+    return first, end, end_time, t, u, v
+
+
+def amplitude_phase(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Lock-in amplitude [m] and phase [deg] of outputs (X, Y), computed as the lock-in publishes them on
+    lockin/amplitude and lockin/phase and the z controller uses them (math.hypot, atan2(-Y, X)): bit for bit."""
+    xs, ys = x.tolist(), y.tolist()
+    return (np.fromiter(map(math.hypot, xs, ys), float, len(xs)),
+            np.fromiter((math.degrees(math.atan2(-v, u)) for u, v in zip(xs, ys)), float, len(xs)))
 
 
 def _param_value(v):
@@ -484,6 +543,142 @@ class ChunkStream:
 
 
 @dataclass
+class BatchStream:
+    """What the report knows about lockin/outputs or z_controller/trace (one message per input chunk,
+    every output with its exact simulated time), without its values."""
+
+    topic: str
+    role: str
+    messages: int = 0
+    outputs: int = 0
+    lost: int = 0  # input samples without outputs: gaps between the batches' input ranges (outputs only)
+    gaps: int = 0
+    repeats: int = 0  # batches that end at or before the previous one
+    t_first: float = float("nan")  # [s] simulated, first output in file order
+    t_last: float = float("nan")
+    t_min: float = float("inf")
+    t_max: float = float("-inf")
+    times: StrideTable | None = None  # simulated time of the outputs (lock-in batches only)
+    receive: TimeMapTable | None = None  # (log_time ns, input end time s)
+    _prev_end: int | None = None
+
+    def survey(self, first: int | None, end: int, end_time: float, t: np.ndarray, log_time: int) -> None:
+        self.messages += 1
+        self.receive.add(log_time, end_time)
+        if self._prev_end is not None:
+            if end <= self._prev_end:
+                self.repeats += 1
+            elif first is not None and first > self._prev_end:
+                self.lost += first - self._prev_end
+                self.gaps += 1
+        self._prev_end = end
+        n = t.shape[0]
+        if n == 0:
+            return
+        if not self.outputs:
+            self.t_first = float(t[0])
+        self.outputs += n
+        self.t_last = float(t[-1])
+        self.t_min, self.t_max = min(self.t_min, float(t[0])), max(self.t_max, float(t[-1]))
+        if self.times is not None:
+            for ti in t.tolist():
+                self.times.add(ti)
+
+
+class SetpointFromData:
+    """The setpoint in force at every lock-in output, rebuilt as amplitude + error: z_controller/trace
+    holds error = setpoint - amplitude for the outputs of the lock-in batch with the same input end
+    index, at the same times. Gives every setpoint change at the exact simulated time of the first
+    output computed with the new value. Pending batches wait for their partner (both topics are in
+    order, so a batch older than a matched one never gets one)."""
+
+    def __init__(self):
+        self.pending = {"outputs": OrderedDict(), "z_trace": OrderedDict()}
+        self.value = None  # setpoint [m] in force at the latest paired output
+        self.first = None  # (t, value) of the first paired output
+        self.last_t = None
+        self.changes: list = []  # (t [s] first output with the new value, old, new)
+        self.pairs = 0  # outputs paired
+        self.mismatched = 0  # batch pairs whose output times differ (not used)
+        self.unpaired = 0  # batches whose partner never came
+        self.too_many = False
+
+    def add(self, role: str, end: int, t: list, values: list) -> None:
+        other = "z_trace" if role == "outputs" else "outputs"
+        partner = self.pending[other].pop(end, None)
+        if partner is None:
+            self.pending[role][end] = (t, values)
+            if len(self.pending[role]) > STAMP_LAG_CAP:
+                self.pending[role].popitem(last=False)
+                self.unpaired += 1
+            return
+        for side in self.pending.values():  # older batches of either topic have no partner any more
+            while side and next(iter(side)) < end:
+                side.popitem(last=False)
+                self.unpaired += 1
+        (ta, amp), (te, err) = (t, values), partner
+        if role == "z_trace":
+            (ta, amp), (te, err) = partner, (t, values)
+        if ta != te:
+            self.mismatched += 1
+            return
+        self.pairs += len(ta)
+        for ti, a, e in zip(ta, amp, err):
+            sp = a + e
+            if not math.isfinite(sp):
+                continue
+            if self.value is None:
+                self.value, self.first = sp, (ti, sp)
+            elif abs(sp - self.value) > SETPOINT_REL_TOL * abs(self.value) + SETPOINT_ABS_TOL and not self.too_many:
+                if len(self.changes) >= CHANGES_CAP:
+                    self.too_many = True
+                else:
+                    self.changes.append((ti, self.value, sp))
+                self.value = sp
+            self.last_t = ti
+
+    def finish(self) -> None:
+        self.unpaired += sum(len(side) for side in self.pending.values())
+        self.pending = {"outputs": OrderedDict(), "z_trace": OrderedDict()}
+
+
+@dataclass
+class DiagnosticErrors:
+    """ERROR-level statuses on /diagnostics: one entry per (status name, message), at most
+    DIAGNOSTIC_ERRORS_CAP of them (the rest counted)."""
+
+    entries: dict = field(default_factory=dict)  # (name, message) -> {first/last log time, count, values}
+    dropped: int = 0
+    unreadable: int = 0  # messages that did not deserialise
+
+    def add(self, log_time: int, name: str, message: str, values: dict) -> None:
+        e = self.entries.get((name, message))
+        if e is None:
+            if len(self.entries) >= DIAGNOSTIC_ERRORS_CAP:
+                self.dropped += 1
+                return
+            e = self.entries[(name, message)] = {"first_log": log_time, "count": 0, "values": values}
+        e["count"] += 1
+        e["last_log"] = log_time
+
+
+@dataclass
+class ImageTopic:
+    """One scanner/image/<channel>/<direction> topic: the number of its last well-formed 32FC1 image
+    (pass 1 reads the message header only) and why the others were not."""
+
+    topic: str
+    channel: str
+    direction: str
+    count: int = 0
+    last_good: int = 0  # 1-based message number, 0: none
+    shape: tuple = ()
+    problem: str = ""  # the latest message's problem, if it had one
+    array: np.ndarray | None = None  # pass 2: the image (reduced to DISPLAY_MAX_PIXELS per side for display)
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass
 class Series:
     """One scalar series (amplitude, phase, z piezo, error, xy or clock) as surveyed and plotted."""
 
@@ -499,7 +694,8 @@ class Series:
     stamp_last: float = float("nan")
     stamp_min: float = float("inf")
     stamp_max: float = float("-inf")
-    stamped: bool = False  # times are xy header stamps (amplitude/phase published with xy)
+    stamped: bool = False  # times are xy header stamps (amplitude/phase published with xy) or batch times
+    batch: BatchStream | None = None  # the values come from this batch topic (exact simulated times)
     t_first: float = float("nan")  # [s] on the report's time axis
     t_last: float = float("nan")
     non_finite: int = 0
@@ -548,50 +744,233 @@ class SessionData:
     tracking: dict = field(default_factory=dict)  # the setpoint-tracking numbers
     notes: list = field(default_factory=list)  # sentences on skipped samples / approximations
     passes: int = 0
+    batches: dict = field(default_factory=dict)  # "outputs" / "z_trace" -> BatchStream
+    unused: list = field(default_factory=list)  # per-output copies recorded beside the batches, not read
+    setpoint_data: SetpointFromData | None = None  # setpoint rebuilt from outputs + trace
+    setpoints: list = field(default_factory=list)  # the setpoint history, see _setpoint_history
+    setpoint_source: str = ""
+    diagnostics: DiagnosticErrors | None = None
+    plan: object = None  # the _Plan (time map, windows)
+    images: dict = field(default_factory=dict)  # topic -> ImageTopic (the last well-formed image of each)
+    geometry: dict | None = None  # the last scanner/geometry, checked
+    skipped: dict = field(default_factory=dict)  # topic -> why it was left out (one line each)
 
 
 # --- pass 1: survey -----------------------------------------------------------------------
 
 
-def _survey(path) -> tuple[SessionScan, dict, dict, dict, list, list]:
-    """Read the file once: chunk preambles and small messages only."""
-    scan = SessionScan(Path(path))
+IMAGE_TOPIC = "/scanner/image/"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+IMAGE_ENCODING = "32FC1"
+GEOMETRY_TOPIC = "/scanner/geometry"
+EXTRA_ROLES = ("image", "geometry", "diagnostics")  # read when present and well-formed, skipped with a note if not
+DISPLAY_MAX_PIXELS = 1024  # an image is reduced to at most this many pixels per side for the figure
+
+
+def _extra_role(topic: str, type_name: str) -> str | None:
+    if IMAGE_TOPIC in topic:
+        return "image"
+    if topic.endswith(GEOMETRY_TOPIC):
+        return "geometry"
+    if topic == "/diagnostics" or topic.endswith("/diagnostics"):
+        return "diagnostics"
+    return None
+
+
+def _cdr_image(data) -> tuple[int, int, bool, int, int]:
+    """(height, width, big-endian, step, offset of the pixel data) of a serialized sensor_msgs/Image
+    with encoding 32FC1 whose data hold height rows of step bytes; ValueError saying what is wrong."""
+    mv = memoryview(data)
+    order = cdr_byte_order(mv)
+    pos = 4
+
+    def u32() -> int:
+        nonlocal pos
+        pos = 4 + ((pos - 4 + 3) & ~3)
+        if pos + 4 > len(mv):
+            raise ValueError("the message ends inside its header")
+        value = struct.unpack_from(order + "I", mv, pos)[0]
+        pos += 4
+        return value
+
+    def text() -> str:
+        nonlocal pos
+        n = u32()
+        if n == 0 or pos + n > len(mv):
+            raise ValueError("a string runs past the end of the message")
+        pos += n
+        return bytes(mv[pos - n:pos - 1]).decode("utf-8", "replace")
+
+    u32(), u32()  # stamp
+    text()  # frame_id
+    height, width = u32(), u32()
+    encoding = text()
+    if pos + 1 > len(mv):
+        raise ValueError("the message ends inside its header")
+    big = mv[pos] != 0
+    pos += 1
+    step = u32()
+    size = u32()
+    if encoding != IMAGE_ENCODING:
+        raise ValueError(f"encoding {encoding[:40]!r}, not {IMAGE_ENCODING}")
+    if height == 0 or width == 0:
+        raise ValueError(f"{width} x {height} pixels")
+    if step < 4 * width:
+        raise ValueError(f"row step {step} B is shorter than {width} float32 pixels")
+    if size < step * (height - 1) + 4 * width or pos + size > len(mv):
+        raise ValueError(f"{width} x {height} pixels with a row step of {step} B need {step * height} B, "
+                         f"the message holds {min(size, len(mv) - pos)}")
+    return height, width, big, step, pos
+
+
+def _decode_image(data) -> np.ndarray:
+    """The float32 pixels [rows, columns] of a message :func:`_cdr_image` accepts (a copy)."""
+    height, width, big, step, pos = _cdr_image(data)
+    rows = np.ndarray((height, width), dtype=(">f4" if big else "<f4"), buffer=memoryview(data), offset=pos,
+                      strides=(step, 4))
+    return rows.astype(np.float32)
+
+
+def _keep_image(it: ImageTopic, data) -> None:
+    """Pass 2: decode the chosen image of ``it``, keep its statistics (over every pixel) and the image
+    itself reduced to at most DISPLAY_MAX_PIXELS per side (every k-th row and column)."""
+    arr = _decode_image(data)
+    finite = np.isfinite(arr)
+    values = arr[finite]
+    it.stats = {"lines_acquired": int(finite.all(axis=1).sum()), "rows": arr.shape[0], "columns": arr.shape[1],
+                "finite": int(values.size)}
+    if values.size:
+        it.stats.update(min=float(values.min()), median=float(np.median(values)), max=float(values.max()))
+    step = -(-max(arr.shape) // DISPLAY_MAX_PIXELS)
+    it.stats["display_step"] = step
+    it.array = arr[::step, ::step].copy() if step > 1 else arr
+
+
+def _survey_extra(survey: "_Survey", role: str, m, k: int) -> None:
+    """Images, scan geometry and diagnostics: never fatal; what cannot be read is skipped with a reason."""
+    if m.topic in survey.skipped:
+        return
+    if role == "image":
+        it = survey.images.get(m.topic)
+        if it is None:
+            it = _image_topic(m.topic, m.type_name, survey)
+            if it is None:
+                return
+            survey.images[m.topic] = it
+        it.count = k
+        try:
+            height, width, *_ = _cdr_image(m.data)
+        except ValueError as exc:
+            it.problem = f"message {k}: {exc}"
+            return
+        it.last_good, it.shape, it.problem = k, (height, width), ""
+    elif role == "geometry":
+        if m.type_name != "std_msgs/msg/String":
+            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
+            return
+        survey.geometry = (m.topic, k, bytes(m.data))
+    else:
+        if m.type_name != "diagnostic_msgs/msg/DiagnosticArray":
+            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
+            return
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+        from rclpy.serialization import deserialize_message
+        try:
+            msg = deserialize_message(m.data, DiagnosticArray)
+        except Exception:  # noqa: BLE001 - a damaged status message: counted, never fatal
+            survey.diagnostics.unreadable += 1
+            return
+        for status in msg.status:
+            if status.level == DiagnosticStatus.ERROR:
+                survey.diagnostics.add(m.log_time, status.name, status.message,
+                                       {kv.key: kv.value for kv in status.values})
+
+
+@dataclass
+class _Survey:
+    """What pass 1 found."""
+
+    scan: SessionScan
+    chunks: dict = field(default_factory=dict)  # topic -> ChunkStream
+    series: dict = field(default_factory=dict)  # topic -> Series
+    batches: dict = field(default_factory=dict)  # topic -> BatchStream
+    wrong: dict = field(default_factory=dict)  # role -> {topic: type}
+    events: list = field(default_factory=list)  # (log_time, ParameterEvent)
+    counts: dict = field(default_factory=dict)  # topic -> messages of a role's topic
+    setpoints: dict = field(default_factory=dict)  # namespace prefix -> SetpointFromData
+    diagnostics: DiagnosticErrors = field(default_factory=DiagnosticErrors)
+    images: dict = field(default_factory=dict)  # topic -> ImageTopic
+    geometry: tuple | None = None  # (topic, message number, CDR bytes) of the last scanner/geometry
+    skipped: dict = field(default_factory=dict)  # topic -> why it is left out (one line)
+
+
+def _image_topic(topic: str, type_name: str, survey: _Survey) -> ImageTopic | None:
+    """The ImageTopic of a scanner/image/<channel>/<direction> topic, or None (and why, in ``skipped``)."""
+    parts = topic.split(IMAGE_TOPIC, 1)[1].split("/")
+    if len(parts) != 2 or not all(parts):
+        survey.skipped[topic] = "not scanner/image/<channel>/<direction>"
+        return None
+    if type_name != IMAGE_TYPE:
+        survey.skipped[topic] = f"type {type_name or '(no schema)'}, not {IMAGE_TYPE}"
+        return None
+    return ImageTopic(topic, parts[0], parts[1])
+
+
+def _survey(path) -> _Survey:
+    """Read the file once: chunk preambles, batches and small messages (no sample array)."""
+    survey = _Survey(SessionScan(Path(path)))
     roles: dict[int, tuple[str | None, bool]] = {}  # channel id -> (role, type as expected)
-    chunks: dict[str, ChunkStream] = {}
-    series: dict[str, Series] = {}
-    wrong: dict[str, dict[str, str]] = {}  # role -> {topic: type}
-    events: list = []
-    counts: dict[str, int] = {}
-    for m in read_session(path, scan):
+    counts = survey.counts
+    for m in read_session(path, survey.scan):
         info = roles.get(m.channel_id)
         if info is None:
             role = _role_of(m.topic)
             ok = role is not None and m.type_name == EXPECTED_TYPES[role]
             if role is not None and not ok:
-                wrong.setdefault(role, {})[m.topic] = m.type_name or "(no schema)"
+                survey.wrong.setdefault(role, {})[m.topic] = m.type_name or "(no schema)"
+            if role is None:
+                role = _extra_role(m.topic, m.type_name)
+                ok = role is not None
             info = roles[m.channel_id] = (role, ok)
         role, ok = info
         if not ok:
             continue
         k = counts[m.topic] = counts.get(m.topic, 0) + 1
+        if role in EXTRA_ROLES:
+            _survey_extra(survey, role, m, k)
+            continue
         try:
             if role in CHUNK_ROLES:
                 header, samples = _cdr_chunk(m.data)
-                s = chunks.get(m.topic)
+                s = survey.chunks.get(m.topic)
                 if s is None:
-                    s = chunks[m.topic] = ChunkStream(m.topic, receive=TimeMapTable())
+                    s = survey.chunks[m.topic] = ChunkStream(m.topic, receive=TimeMapTable())
                 s.survey(header, samples.shape[0], m.log_time)
+            elif role in BATCH_ROLES:
+                first, end, end_time, t, u, v = _cdr_batch(role, m.data)
+                s = survey.batches.get(m.topic)
+                if s is None:
+                    s = survey.batches[m.topic] = BatchStream(
+                        m.topic, role, receive=TimeMapTable(),
+                        times=StrideTable((np.float64,)) if role == "outputs" else None)
+                s.survey(first, end, end_time, t, m.log_time)
+                prefix = m.topic[: -len(ROLES[role])]  # the instrument's namespace: pair its own topics
+                pairing = survey.setpoints.get(prefix)
+                if pairing is None:
+                    pairing = survey.setpoints[prefix] = SetpointFromData()
+                pairing.add(role, end, t.tolist(), amplitude_phase(u, v)[0].tolist() if role == "outputs"
+                            else v.tolist())
             elif role == "parameter_events":
                 from rclpy.serialization import deserialize_message
                 from rcl_interfaces.msg import ParameterEvent
-                events.append((m.log_time, deserialize_message(m.data, ParameterEvent)))
+                survey.events.append((m.log_time, deserialize_message(m.data, ParameterEvent)))
             else:
-                s = series.get(m.topic)
+                s = survey.series.get(m.topic)
                 if s is None:
                     # sample times are needed for the time map (clock) and the amplitude's windows
                     times = {"clock": TimeMapTable, "xy": lambda: StrideTable((np.int64, np.float64)),
                              "amplitude": lambda: StrideTable((np.int64,))}.get(role, lambda: None)()
-                    s = series[m.topic] = Series(m.topic, role, times=times)
+                    s = survey.series[m.topic] = Series(m.topic, role, times=times)
                 if role == "xy":
                     stamp = _cdr_vector3_stamped(m.data)[0]
                     s.survey(m.log_time, stamp)
@@ -608,10 +987,12 @@ def _survey(path) -> tuple[SessionScan, dict, dict, dict, list, list]:
             raise
         except Exception as exc:  # noqa: BLE001 - any parser error: the file is not what the role needs
             if isinstance(exc, _LayoutError):
-                raise ReportError(f"topic {m.topic}: message {k} is not a sample chunk in the afm_ros "
+                raise ReportError(f"topic {m.topic}: message {k} is not a {LAYOUT_NAMES[role]} in the afm_ros "
                                   f"layout ({exc})") from None
             raise _bad_message(m.topic, m.type_name, k, exc) from None
-    return scan, chunks, series, wrong, events, counts
+    for pairing in survey.setpoints.values():
+        pairing.finish()
+    return survey
 
 
 def _pick(scan: SessionScan, wrong: dict, counts: dict, data: SessionData) -> None:
@@ -636,9 +1017,12 @@ class _Plan:
     ref: tuple | None  # (sorted log_time ns, simulated s) for the time mapping, None: wall time
     t0: int  # [ns] origin of the wall-time axis
     engage: float | None = None
-    setpoint: float | None = None
+    engage_log: int | None = None  # receive time of the parameter event that enabled the feedback
+    setpoint: float | None = None  # in force at the end
+    segments: list = field(default_factory=list)  # (start [s], setpoint [m], kind): "engage", "change", "scan"
+    scan_start: float | None = None  # simulated start of the (last) recorded scan
     free_lo: float | None = None  # free amplitude window [free_lo, engage)
-    tail_lo_est: float | None = None  # reached-amplitude window: t >= tail_lo (after engaging)
+    tail_lo_est: float | None = None  # reached-amplitude window: t >= tail_lo (in the last segment)
     tail_last: float | None = None  # last amplitude time after engaging (ta[-1])
     error_lo: float | None = None  # setpoint-from-error window: error t >= error_lo
     exact_bounds: bool = True
@@ -670,6 +1054,65 @@ def _current(data: SessionData, node_suffix: str, name: str, at: float | None = 
     return value
 
 
+def _same_setpoint(a: float, b: float) -> bool:
+    return abs(a - b) <= SETPOINT_REL_TOL * max(abs(a), abs(b)) + SETPOINT_ABS_TOL
+
+
+def _setpoint_history(data: SessionData, plan: _Plan) -> float | None:
+    """Fill ``data.setpoints`` with every setpoint change ({time_s, old_m, new_m, engaged, exact_time});
+    return the setpoint in force at the start (None if unknown).
+
+    From the data when the lock-in batches and the z trace are recorded: amplitude + error at every
+    output, a change at the exact simulated time of the first output computed with the new value (the
+    value itself from the matching /parameter_events change, exact, when there is one). Otherwise from
+    the /parameter_events changes, placed by their receive time (to within the delivery latency)."""
+    events = [(lt, t, float(v)) for (lt, node, name, v), t in zip(data.changes, data.change_times)
+              if node.endswith("z_controller") and name == "setpoint" and isinstance(v, (int, float))
+              and not isinstance(v, bool)]
+    initial = None
+    for node, values in data.initial_parameters.items():
+        if node.endswith("z_controller") and "setpoint" in values:
+            initial = _parse_float(values["setpoint"])
+    sd = data.setpoint_data
+    history = data.setpoints
+    if sd is not None and sd.first is not None and not sd.too_many:
+        data.setpoint_source = "data"
+        start = sd.first[1]
+        exact = [v for v in ([initial] if initial is not None else []) + [e[2] for e in events]
+                 if _same_setpoint(v, start)]
+        start = current = exact[0] if exact else start
+        k = 0
+        for t, _, new in sd.changes:
+            match = next((j for j in range(k, len(events)) if _same_setpoint(events[j][2], new)), None)
+            log_time = None
+            if match is not None:
+                new, log_time, k = events[match][2], events[match][0], match + 1
+            history.append({"time_s": t, "old_m": current, "new_m": new, "exact_time": True, "log_time": log_time})
+            current = new
+        silent = len(events) - sum(1 for c in history if c["log_time"] is not None)
+        if silent > 0:
+            data.notes.append(f"{silent} setpoint parameter change(s) on /parameter_events left the value the "
+                              "lock-in outputs were controlled to as it was (set to the value in force, or no "
+                              "output after them).")
+    else:
+        if sd is not None and sd.too_many:
+            data.notes.append(f"amplitude + error changes more than {CHANGES_CAP} times: not a setpoint; the "
+                              "setpoint history is taken from /parameter_events.")
+        data.setpoint_source = "events" if events else ""
+        start = current = initial
+        for lt, t, value in events:
+            history.append({"time_s": t, "old_m": current, "new_m": value, "exact_time": False, "log_time": lt})
+            current = value
+    for c in history:
+        if plan.engage is None:
+            c["engaged"] = True
+        elif c["log_time"] is not None and plan.engage_log is not None:
+            c["engaged"] = c["log_time"] > plan.engage_log  # receive order: exact, unlike mapped times
+        else:
+            c["engaged"] = c["time_s"] >= plan.engage
+    return start
+
+
 def _plan(data: SessionData, events: list) -> _Plan:
     # parameters: snapshots (metadata records, else initial ParameterEvents) and later changes
     data.initial_parameters = {n: dict(v) for n, v in parameter_metadata(data.scan).items()}
@@ -687,9 +1130,9 @@ def _plan(data: SessionData, events: list) -> _Plan:
     if clock is not None and clock.count >= 2:
         table, what = clock.times, "/clock"
     else:
-        for s in (data.deflection, data.force):
+        for s in (data.deflection, data.force, data.batches.get("outputs"), data.batches.get("z_trace")):
             if s is not None and s.messages >= 2:
-                table, what = s.receive, s.topic + " chunks"
+                table, what = s.receive, s.topic + " messages"
                 break
     if table is not None:
         lt, t = table.arrays()
@@ -702,13 +1145,15 @@ def _plan(data: SessionData, events: list) -> _Plan:
                               f"is a polyline of {lt.size} points, {bound} "
                               "the one through all of them.")
     t0 = min((s.min_log for s in data.series.values() if s.min_log is not None), default=0)
-    if ref is None and data.deflection is None:
+    if ref is None and data.deflection is None and not data.batches:
         data.time_axis = "wall time since first message [s]"
     plan = _Plan(ref, t0)
     data.change_times = [float(plan.map(lt)) for lt, *_ in data.changes]
 
     xy = data.series.get("xy")
     for role, s in data.series.items():
+        if s.batch is not None:
+            continue  # exact simulated times, set from the batches
         if role == "xy":
             s.stamped = True
             s.t_first, s.t_last = s.stamp_first, s.stamp_last
@@ -721,26 +1166,46 @@ def _plan(data: SessionData, events: list) -> _Plan:
     # engagement: the z_controller's `enabled` switched on, else the first error sample
     for (lt, node, name, v), tc in zip(data.changes, data.change_times):
         if node.endswith("z_controller") and name == "enabled" and v is True:
-            plan.engage = tc
+            plan.engage, plan.engage_log = tc, lt
     err = data.series.get("error")
     if plan.engage is None and _current(data, "z_controller", "enabled") is True and err is not None:
         plan.engage = err.t_first
-    setpoint = _current(data, "z_controller", "setpoint")
-    plan.setpoint = float(setpoint) if setpoint is not None else None
+    start = _setpoint_history(data, plan)
+    final = data.setpoints[-1]["new_m"] if data.setpoints else start
+    plan.setpoint = float(final) if final is not None else None
+    if plan.setpoint is not None:
+        at_engage = start
+        for c in data.setpoints:
+            if not c["engaged"]:
+                at_engage = c["new_m"]
+        plan.segments = [(plan.engage if plan.engage is not None else -math.inf, at_engage, "engage")] + [
+            (c["time_s"] if plan.engage is None else max(c["time_s"], plan.engage), c["new_m"], "change")
+            for c in data.setpoints if c["engaged"]]
+        scan = (data.geometry or {}).get("start_time_s")
+        if isinstance(scan, (int, float)) and not isinstance(scan, bool) and math.isfinite(scan) \
+                and scan > plan.segments[0][0]:
+            # the settling after engaging (or a change) is measured up to the scan: from then on the
+            # amplitude follows the topography
+            plan.scan_start = float(scan)
+            k = sum(1 for seg in plan.segments if seg[0] <= scan)
+            plan.segments.insert(k, (float(scan), plan.segments[k - 1][1], "scan"))
     if err is not None:
         plan.error_lo = err.t_last - 0.2 * (err.t_last - err.t_first)
 
     amp = data.series.get("amplitude")
     if amp is not None and amp.count:
-        t = xy.times.arrays()[1] if amp.stamped else plan.map(amp.times.arrays()[0])
-        plan.exact_bounds = amp.times.stride == 1
+        if amp.batch is not None:
+            t = amp.batch.times.arrays()[0]
+            plan.exact_bounds = amp.batch.times.stride == 1
+        else:
+            t = xy.times.arrays()[1] if amp.stamped else plan.map(amp.times.arrays()[0])
+            plan.exact_bounds = amp.times.stride == 1
         if plan.engage is not None:
             before = t[t < plan.engage]
             if before.size:
                 plan.free_lo = before[-1] - 0.2 * (before[-1] - before[0])
-            after = t[t >= plan.engage]
-        else:
-            after = t
+        last_start = plan.segments[-1][0] if plan.segments else (plan.engage if plan.engage is not None else -math.inf)
+        after = t[t >= last_start]
         if after.size:
             plan.tail_last = float(after[-1])
             plan.tail_lo_est = after[-1] - 0.2 * (after[-1] - after[0])
@@ -764,13 +1229,18 @@ class _Collector:
         self.after_n = 0
         self.ta0 = None
         self.tail_lo = plan.tail_lo_est
-        self.settling = SettlingTracker(sp, self.band) if sp is not None else None
+        # one settling tracker per segment: from engaging, and from every later setpoint change
+        self.seg_starts = np.array([t for t, _, _ in plan.segments])
+        self.settling = [SettlingTracker(v, SETTLING_BAND * abs(v)) for _, v, _ in plan.segments]
+        self.seg_first: list = [None] * len(plan.segments)  # first amplitude time in each segment
         self.contact = {"phase": WindowMean(), "z_piezo": WindowMean()}
         self.median = StrideTable((np.float64,))
         self.pending: dict[str, list] = {r: [] for r in SCALAR_ROLES}  # (log_time, value) not yet handled
+        self.batched: dict[str, list] = {r: [] for r in SCALAR_ROLES}  # (t, values) from batches not yet handled
         self.stamps: dict[str, deque] = {r: deque() for r in (("amplitude",) if tracking_only else
                                                               ("amplitude", "phase"))
-                                         if r in data.series and data.series[r].stamped}
+                                         if r in data.series and data.series[r].stamped
+                                         and data.series[r].batch is None}
         self.amp_hist = (np.empty(0), np.empty(0))  # recent amplitude (t, a) for the error interpolation
         self.err_wait: list = []  # (t, value) of error samples in the window, waiting for amplitude
         self.err_wait_n = 0
@@ -790,8 +1260,12 @@ class _Collector:
                     self.zoom[s.topic] = (s.t_last - span, deque(), [0])
             for role, s in data.series.items():
                 if role in SCALAR_ROLES and s.count:
-                    lo, hi = (data.series["xy"].stamp_min, data.series["xy"].stamp_max) if s.stamped else \
-                        (float(plan.map(s.min_log)), float(plan.map(s.max_log)))  # the mapping is monotonic
+                    if s.batch is not None:
+                        lo, hi = s.batch.t_min, s.batch.t_max
+                    elif s.stamped:
+                        lo, hi = data.series["xy"].stamp_min, data.series["xy"].stamp_max
+                    else:
+                        lo, hi = float(plan.map(s.min_log)), float(plan.map(s.max_log))  # the mapping is monotonic
                     s.envelope = Envelope(lo, hi, raw_cap=SERIES_RAW_POINTS)
 
     # chunks
@@ -880,6 +1354,32 @@ class _Collector:
             self._kept_n = b
 
     # series
+    def batch(self, role: str, data: bytes) -> None:
+        """A lockin/outputs or z_controller/trace batch: its series with their exact times."""
+        _, _, _, t, u, v = _cdr_batch(role, data)
+        if t.shape[0] == 0:
+            return
+        if role == "outputs":
+            a, p = amplitude_phase(u, v)
+            pairs = (("amplitude", a), ("phase", p))
+        else:
+            pairs = (("z_piezo", np.array(u)), ("error", np.array(v)))
+        for name, values in pairs:
+            s = self.data.series.get(name)
+            if s is None or s.batch is None or (self.tracking_only and name != "amplitude"):
+                continue
+            queue = self.batched[name]
+            queue.append((np.array(t), values))
+            if len(queue) * t.shape[0] >= SERIES_BATCH:
+                self.flush_batched(name)
+
+    def flush_batched(self, role: str) -> None:
+        queue = self.batched[role]
+        if queue:
+            t, v = np.concatenate([q[0] for q in queue]), np.concatenate([q[1] for q in queue])
+            queue.clear()
+            self._series(role, t, v)
+
     def scalar(self, role: str, log_time: int, data: bytes) -> None:
         self.pending[role].append((log_time, _cdr_float64(data)))
         if len(self.pending[role]) >= SERIES_BATCH:
@@ -934,7 +1434,7 @@ class _Collector:
             lo = self.tail_lo if self.tail_lo is not None else self.plan.tail_lo_est
             self.contact[role].add(v[ok & (t >= lo)])
         elif role == "error" and not self.tracking_only:
-            if self.plan.error_lo is None:
+            if self.plan.error_lo is None or s.batch is not None:  # batches: the setpoint is known exactly
                 return
             sel = ok & (t >= self.plan.error_lo)
             if sel.any():
@@ -952,16 +1452,24 @@ class _Collector:
             after = t >= plan.engage
         else:
             after = np.ones(t.shape[0], dtype=bool)
-        if self.ta0 is None and after.any():
-            self.ta0 = float(t[after][0])
+        if self.settling:
+            seg = np.searchsorted(self.seg_starts, t, side="right") - 1
+            for k in np.unique(seg[after & (seg >= 0)]).tolist():
+                in_seg = after & (seg == k)
+                if self.seg_first[k] is None:
+                    self.seg_first[k] = float(t[in_seg][0])
+                self.settling[k].add(t[in_seg & ok], a[in_seg & ok])
+            last = after & (seg == len(self.settling) - 1)
+        else:
+            last = after
+        if self.ta0 is None and last.any():  # first sample of the last segment: the final state's window
+            self.ta0 = float(t[last][0])
             if plan.tail_last is not None:
                 self.tail_lo = plan.tail_last - 0.2 * (plan.tail_last - self.ta0)
         sel = after & ok
         self.after_n += int(sel.sum())
         if self.tail_lo is not None:
-            self.tail.add(a[sel & (t >= self.tail_lo)])
-        if self.settling is not None:
-            self.settling.add(t[sel], a[sel])
+            self.tail.add(a[sel & last & (t >= self.tail_lo)])
         if not self.tracking_only and "error" in self.data.series:
             ht, ha = self.amp_hist
             keep = max(0, ht.shape[0] + t.shape[0] - 65536)
@@ -988,7 +1496,10 @@ class _Collector:
     def finish(self) -> None:
         for role in SCALAR_ROLES:
             if role in self.data.series:
-                self.flush(role, final=True)
+                if self.data.series[role].batch is not None:
+                    self.flush_batched(role)
+                else:
+                    self.flush(role, final=True)
         if self.tracking_only:
             return
         self._resolve_errors(final=True)
@@ -1008,16 +1519,24 @@ class _Collector:
         saw: a file that grows meanwhile, e.g. one still being recorded, is reported as surveyed)."""
         self._kept, self._kept_n = None, 0
         topics = {self.data.topics[r]: r for r in roles if r in self.data.topics}
+        images = {} if self.tracking_only else {t: it for t, it in self.data.images.items() if it.last_good}
         streams = {"deflection": self.data.deflection, "force": self.data.force}
-        counts = dict.fromkeys(topics, 0)
-        for m in read_session(path, SessionScan(Path(path)), set(topics)):
-            role = topics[m.topic]
+        counts = dict.fromkeys([*topics, *images], 0)
+        for m in read_session(path, SessionScan(Path(path)), set(counts)):
             counts[m.topic] += 1
+            it = images.get(m.topic)
+            if it is not None:
+                if counts[m.topic] == it.last_good:
+                    _keep_image(it, m.data)
+                continue
+            role = topics[m.topic]
             if counts[m.topic] > limits.get(m.topic, 0):
                 continue
             try:
                 if role in CHUNK_ROLES:
                     self.chunk(role, streams[role], m.data)
+                elif role in BATCH_ROLES:
+                    self.batch(role, m.data)
                 elif role == "xy":
                     self.xy(m.data)
                 else:
@@ -1030,13 +1549,18 @@ class _Collector:
 
 
 def _tracking(data: SessionData, plan: _Plan, c: _Collector) -> dict:
-    """The setpoint-tracking numbers from the pass-2 accumulators (today's definitions)."""
+    """The setpoint-tracking numbers from the pass-2 accumulators: the settling after engaging and
+    after every later setpoint change (each into +-SETTLING_BAND of its own setpoint), and the final
+    state over the last 20 % of the last segment (after engaging, or after the last change)."""
     out: dict = {}
     amp = data.series.get("amplitude")
     if amp is None or amp.count == 0:
         return out
     setpoint = plan.setpoint
-    if c.median.seen:
+    sd = data.setpoint_data
+    if data.setpoint_source == "data":
+        out["setpoint_from_error_m"] = sd.value  # amplitude + error at the last output
+    elif c.median.seen:
         est = float(np.median(c.median.arrays()[0]))
         out["setpoint_from_error_m"] = est
         if c.median.stride > 1:
@@ -1048,46 +1572,137 @@ def _tracking(data: SessionData, plan: _Plan, c: _Collector) -> dict:
         out["engage_time_s"] = float(plan.engage)
     if setpoint is not None:
         out["setpoint_m"] = float(setpoint)
+
+    def settled(k: int):
+        return c.settling[k].result(c.seg_first[k]) if c.seg_first[k] is not None else None
+
+    change_segments = [k for k, seg in enumerate(plan.segments) if seg[2] == "change"]
+    if data.setpoints:
+        changes = []
+        for change in data.setpoints:
+            entry = {"time_s": change["time_s"], "old_m": change["old_m"], "new_m": change["new_m"],
+                     "engaged": change["engaged"], "exact_time": change["exact_time"]}
+            if change["engaged"] and change_segments:
+                k = change_segments.pop(0)
+                entry["settling_time_s"] = settled(k)
+                entry["outputs_after"] = c.seg_first[k] is not None
+                entry["during_scan"] = plan.scan_start is not None and plan.segments[k][0] >= plan.scan_start
+            changes.append(entry)
+        out["setpoint_changes"] = changes
+    if plan.scan_start is not None:
+        out["scan_start_s"] = plan.scan_start
     if c.after_n >= 2 and setpoint is not None and c.tail.n:
         out["reached_amplitude_m"] = c.tail.mean()
         out["rms_tracking_error_m"] = c.tail.rms_about(setpoint)
-        out["settling_time_s"] = c.settling.result(c.ta0)
-        out["settling_band_m"] = SETTLING_BAND * abs(setpoint)
+        out["settling_time_s"] = settled(0)
+        out["settling_band_m"] = SETTLING_BAND * abs(plan.segments[0][1])
+        scanning = plan.scan_start is not None and plan.segments[-1][0] >= plan.scan_start
+        # while scanning the amplitude follows the topography: no "settled" state at the end
+        out["settled_at_end"] = None if scanning else (c.seg_first[-1] is not None and not c.settling[-1].last_outside)
+        out["final_window_s"] = [c.tail_lo, plan.tail_last]
         for role, key in (("phase", "contact_phase_deg"), ("z_piezo", "contact_z_piezo_m")):
             if role in data.series and c.contact[role].n:
                 out[key] = c.contact[role].mean()
     return out
 
 
+def _series_from_batches(data: SessionData, survey: _Survey) -> None:
+    """Amplitude and phase from lockin/outputs, z piezo and error from z_controller/trace, when recorded:
+    complete, in time order, with exact simulated times (preferred over the per-output copies)."""
+    for batch_role, roles in BATCH_ROLES.items():
+        stream = survey.batches.get(data.topics.get(batch_role))
+        if stream is None or not stream.outputs:
+            continue
+        data.batches[batch_role] = stream
+        if batch_role == "outputs" and "xy" in data.series:  # its stamps place the copies only
+            data.unused.append(data.series.pop("xy").topic)
+        for role in roles:
+            old = data.series.get(role)
+            if old is not None:
+                data.unused.append(old.topic)
+            data.series[role] = Series(stream.topic, role, count=stream.outputs, stamped=True, batch=stream,
+                                       t_first=stream.t_first, t_last=stream.t_last)
+    outputs, trace = data.batches.get("outputs"), data.batches.get("z_trace")
+    if outputs is not None and trace is not None:
+        prefix = outputs.topic[: -len(ROLES["outputs"])]
+        if trace.topic[: -len(ROLES["z_trace"])] == prefix:
+            data.setpoint_data = survey.setpoints.get(prefix)
+
+
+def _geometry(survey: _Survey, data: SessionData) -> None:
+    """The last scanner/geometry, if it is a JSON object whose extent fields are numbers (else a note)."""
+    if survey.geometry is None:
+        return
+    import json
+    topic, k, raw = survey.geometry
+    try:
+        order = cdr_byte_order(raw)
+        n = struct.unpack_from(order + "I", raw, 4)[0]
+        if n == 0 or 8 + n > len(raw):
+            raise ValueError("the string runs past the end of the message")
+        g = json.loads(raw[8:8 + n - 1].decode("utf-8"))
+    except (ValueError, struct.error) as exc:
+        data.skipped[topic] = f"message {k} is not a JSON text ({str(exc)[:120]})"
+        return
+    if not isinstance(g, dict):
+        data.skipped[topic] = f"message {k} is a JSON {type(g).__name__}, not an object"
+        return
+    bad = [key for key in ("x_offset_m", "y_offset_m", "size_x_m", "size_y_m")
+           if isinstance(g.get(key), bool) or not isinstance(g.get(key), (int, float))
+           or not math.isfinite(g[key]) or (key.startswith("size") and g[key] <= 0)]
+    if bad:
+        data.skipped[topic] = (f"message {k}: {', '.join(bad)} missing or not a finite number (sizes > 0); "
+                               "images drawn in pixels")
+        return
+    if not isinstance(g.get("channels"), dict):
+        g["channels"] = {}
+    data.geometry = g
+
+
 def load_session(path) -> SessionData:
     """Read ``path`` twice (survey, then samples) into bounded summaries (see the module doc)."""
     path = Path(path)
-    scan, chunks, series, wrong, events, counts = _survey(path)
-    data = SessionData(path, scan)
-    _pick(scan, wrong, counts, data)
-    data.deflection = chunks.get(data.topics.get("deflection"))
-    data.force = chunks.get(data.topics.get("force"))
-    data.series = {role: series[data.topics[role]] for role in ("amplitude", "phase", "xy", "z_piezo", "error",
-                                                                 "clock")
-                   if role in data.topics and data.topics[role] in series}
-    plan = _plan(data, events)
+    survey = _survey(path)
+    data = SessionData(path, survey.scan)
+    _pick(survey.scan, survey.wrong, survey.counts, data)
+    data.deflection = survey.chunks.get(data.topics.get("deflection"))
+    data.force = survey.chunks.get(data.topics.get("force"))
+    data.series = {role: survey.series[data.topics[role]] for role in ("amplitude", "phase", "xy", "z_piezo",
+                                                                        "error", "clock")
+                   if role in data.topics and data.topics[role] in survey.series}
+    _series_from_batches(data, survey)
+    data.diagnostics, data.images, data.skipped = survey.diagnostics, survey.images, dict(survey.skipped)
+    _geometry(survey, data)
+    plan = data.plan = _plan(data, survey.events)
     collector = _Collector(data, plan)
-    collector.run(path, ["deflection", "force", "xy", *SCALAR_ROLES], counts)
+    roles = ["deflection", "force", *(r for r in BATCH_ROLES if r in data.batches),
+             *(r for r in ("xy", *SCALAR_ROLES) if r in data.series and data.series[r].batch is None)]
+    collector.run(path, roles, survey.counts)
     data.passes = 2
     if plan.setpoint is None and collector.median.seen and "amplitude" in data.series:
         # no setpoint parameter recorded: the setpoint is rebuilt from the error, and the tracking
         # numbers that compare with it need the amplitude once more
         plan.setpoint = float(np.median(collector.median.arrays()[0]))
+        plan.segments = [(plan.engage if plan.engage is not None else -math.inf, plan.setpoint, "engage")]
         again = _Collector(data, plan, tracking_only=True)
-        again.run(path, ["xy", "amplitude"], counts)
+        again.run(path, ["outputs"] if data.series["amplitude"].batch is not None else ["xy", "amplitude"],
+                  survey.counts)
         data.passes = 3
         collector.tail, collector.after_n, collector.settling, collector.ta0 = \
             again.tail, again.after_n, again.settling, again.ta0
+        collector.seg_first, collector.tail_lo = again.seg_first, again.tail_lo
     data.tracking = _tracking(data, plan, collector)
     if not plan.exact_bounds and "free_amplitude_m" in data.tracking:
-        stride = data.series["amplitude"].times.stride
+        amp = data.series["amplitude"]
+        stride = (amp.batch.times if amp.batch is not None else amp.times).stride
         data.notes.append(f"The free-amplitude window starts within {stride} amplitude samples of its "
                           f"definition (the amplitude's sample times are kept for every {_nth(stride)} sample).")
+    for it in data.images.values():
+        if not it.last_good:
+            data.skipped[it.topic] = f"none of its {it.count} messages is a {IMAGE_ENCODING} image ({it.problem})"
+        elif it.problem:
+            data.skipped[it.topic + f" (message {it.count})"] = (f"{it.problem}; the image of message "
+                                                                 f"{it.last_good} is shown")
     return data
 
 
@@ -1122,6 +1737,27 @@ def _plot_trace(ax_full, ax_zoom, stream: ChunkStream, scale, label, color):
     ax_zoom.set_ylabel(label)
 
 
+def _plot_setpoint(ax, data: SessionData, env: Envelope, scale: float) -> None:
+    """The setpoint in force over time (a step at every change) with the settling band."""
+    numbers = data.tracking
+    t_lo, t_hi = env.t_lo, env.t_lo + env.bins * env.width
+    start = numbers["setpoint_changes"][0]["old_m"] if numbers.get("setpoint_changes") else numbers["setpoint_m"]
+    if start is None:
+        start = numbers["setpoint_m"]
+    edges, values = [t_lo], [start]
+    for c in numbers.get("setpoint_changes", []):
+        edges.append(min(max(c["time_s"], t_lo), t_hi))
+        values.append(c["new_m"])
+    edges.append(t_hi)
+    values = np.array(values + [values[-1]], dtype=float)
+    ax.step(edges, values * scale, where="post", color="k", ls="--", lw=0.8, label="setpoint")
+    ax.fill_between(edges, values * (1 - SETTLING_BAND) * scale, values * (1 + SETTLING_BAND) * scale, step="post",
+                    color="k", alpha=0.08, lw=0, label=f"±{SETTLING_BAND * 100:g} %")
+    for c in numbers.get("setpoint_changes", []):
+        ax.axvline(c["time_s"], color="C1", ls=":", lw=0.8)
+    ax.legend(loc="best", fontsize=8)
+
+
 def write_figures(data: SessionData, out: Path) -> list[Path]:
     import matplotlib
     matplotlib.use("Agg")
@@ -1145,11 +1781,12 @@ def write_figures(data: SessionData, out: Path) -> list[Path]:
         plt.close(fig)
 
     rows = [(r, sc, lab) for r, sc, lab in (("amplitude", 1e9, "amplitude [nm]"), ("phase", 1.0, "phase [deg]"),
-                                             ("z_piezo", 1e9, "z piezo [nm]"))
+                                             ("z_piezo", 1e9, "z piezo [nm]"),
+                                             ("error", 1e9, "error = setpoint - amplitude [nm]"))
             if r in data.series and data.series[r].envelope is not None]
     if rows:
         numbers = data.tracking
-        fig, axes = plt.subplots(len(rows), 1, figsize=(9, 2.6 * len(rows)), sharex=True, squeeze=False)
+        fig, axes = plt.subplots(len(rows), 1, figsize=(9, 2.4 * len(rows)), sharex=True, squeeze=False)
         for ax, (role, sc, lab) in zip(axes[:, 0], rows):
             env = data.series[role].envelope
             if env.is_raw:
@@ -1158,16 +1795,16 @@ def write_figures(data: SessionData, out: Path) -> list[Path]:
             else:
                 tb, lo, hi = env.bands()
                 ax.fill_between(tb, lo * sc, hi * sc, color="C0", alpha=0.8, lw=0.3, edgecolor="C0")
-            ax.set_ylabel(lab)
+            ax.set_ylabel(lab, fontsize=8 if role == "error" else None)
             if role == "amplitude" and "setpoint_m" in numbers:
-                ax.axhline(numbers["setpoint_m"] * sc, color="k", ls="--", lw=0.8, label="setpoint")
-                band = numbers.get("settling_band_m")
-                if band:
-                    ax.axhspan((numbers["setpoint_m"] - band) * sc, (numbers["setpoint_m"] + band) * sc,
-                               color="k", alpha=0.08, lw=0)
-                ax.legend(loc="best")
+                _plot_setpoint(ax, data, env, sc)
             if "engage_time_s" in numbers:
                 ax.axvline(numbers["engage_time_s"], color="C2", ls=":", lw=0.8)
+            if "scan_start_s" in numbers:
+                ax.axvline(numbers["scan_start_s"], color="C4", ls=":", lw=0.8)
+        axes[0, 0].set_title(f"from {data.series[rows[0][0]].topic}"
+                             + (" (every lock-in output, exact simulated time)"
+                                if data.series[rows[0][0]].batch is not None else ""), fontsize=9)
         axes[-1, 0].set_xlabel(data.time_axis)
         fig.tight_layout()
         figures.append(out / "lockin_z.png")
@@ -1221,8 +1858,57 @@ def _fmt(value, unit="", scale=1.0):
     return f"{value}{(' ' + unit) if unit else ''}"
 
 
-def write_markdown(data: SessionData, figures: list[Path], out: Path, images: dict | None = None,
-                   geometry: dict | None = None) -> Path:
+def _sim_time_of(data: SessionData, values: dict, log_time: int) -> tuple[float, bool]:
+    """(time on the report's axis, exact) of a diagnostic status: its ``simulated_time_s`` value if it
+    has one, else its receive time mapped onto the axis."""
+    t = _parse_float(values.get("simulated_time_s"))
+    if t is not None and math.isfinite(t) and data.time_axis.startswith("simulated"):
+        return t, True
+    return float(data.plan.map(log_time)), False
+
+
+def diagnostic_errors(data: SessionData) -> list[dict]:
+    """Every distinct ERROR status recorded on /diagnostics: name, message, first time, count, values."""
+    out = []
+    if data.diagnostics is None:
+        return out
+    for (name, message), e in data.diagnostics.entries.items():
+        t, exact = _sim_time_of(data, e["values"], e["first_log"])
+        out.append({"name": name, "message": message, "time_s": t, "time_from_status": exact,
+                    "count": e["count"], "values": e["values"]})
+    return out
+
+
+def _setpoint_lines(data: SessionData) -> list[str]:
+    numbers = data.tracking
+    changes = numbers.get("setpoint_changes", [])
+    if not changes:
+        return []
+    exact = all(c["exact_time"] for c in changes)
+    lines = ["", "### Setpoint changes", "",
+             ("Times: the first lock-in output computed with the new setpoint (amplitude + error of every output; "
+              "exact simulated time)." if exact else
+              "Times: the receive time of the parameter change on /parameter_events, placed on the time axis "
+              "through the recorded clock (good to the delivery latency, a few ms)."),
+             "", f"| {data.time_axis} | setpoint old → new | settling (into ±{SETTLING_BAND * 100:g} % of the new "
+                 "setpoint) |", "|---|---|---|"]
+    for c in changes:
+        if not c["engaged"]:
+            settle = "before engaging (no feedback)"
+        elif not c.get("outputs_after"):
+            settle = "no lock-in output after it"
+        elif c.get("settling_time_s") is None:
+            settle = "**not settled** (outside the band at the next change or at the end)"
+        else:
+            settle = f"{c['settling_time_s']:.4g} s"
+        if c.get("during_scan"):
+            settle += " (while scanning)"
+        old = "—" if c["old_m"] is None else f"{c['old_m'] * 1e9:.6g}"
+        lines.append(f"| {c['time_s']:.6g} | {old} → {c['new_m'] * 1e9:.6g} nm | {settle} |")
+    return lines
+
+
+def write_markdown(data: SessionData, figures: list[Path], out: Path, images=None, geometry=None) -> Path:
     scan = data.scan
     lines = [f"# AFM session report: `{data.path.name}`", ""]
     if scan.complete:
@@ -1230,35 +1916,97 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images: di
     else:
         lines.append(f"**File incomplete**: {scan.truncated_reason}. This report covers the intact part "
                      f"({scan.bytes_read} of {scan.file_size} bytes).")
+    errors = diagnostic_errors(data)
+    if errors:
+        lines += ["", "## ERRORS reported during the session", ""]
+        for e in errors:
+            when = (f"t = {e['time_s']:.6g} s" if e["time_from_status"]
+                    else f"received at {e['time_s']:.6g} s ({data.time_axis})")
+            lines.append(f"- **{e['name']}**: {e['message']} ({when}; {e['count']} status message{'s' if e['count'] != 1 else ''})")
+            if "blowup_parameters" in e["values"]:
+                lines.append(f"  - parameters in force: {e['values']['blowup_parameters']}")
+        if data.diagnostics.dropped:
+            lines.append(f"- and {data.diagnostics.dropped} more ERROR statuses with other messages (not listed)")
+        lines.append("")
+        lines.append("The numbers below cover what was recorded; after such an error they describe a stopped "
+                     "or restarted instrument.")
+    if data.diagnostics is not None and data.diagnostics.unreadable:
+        lines += ["", f"{data.diagnostics.unreadable} /diagnostics messages did not deserialise (skipped)."]
     lines += ["", "## Topics", "", "| topic | type | messages |", "|---|---|---|"]
     for topic, type_name in sorted(scan.topics.items()):
         lines.append(f"| `{topic}` | `{type_name}` | {scan.message_counts.get(topic, 0)} |")
-    missing = [role for role in ("deflection", "force", "amplitude", "phase", "z_piezo") if role not in data.topics]
+    missing = [role for role in ("deflection", "force") if role not in data.topics] + [
+        role for role in ("amplitude", "phase", "z_piezo", "error") if role not in data.series]
     if missing:
         lines += ["", f"Not recorded (figures/numbers skipped): {', '.join(missing)}."]
     for topic, type_name, expected in data.ignored:
         lines += ["", f"Ignored `{topic}`: type `{type_name}`, not `{expected}`."]
+    if data.unused:
+        lines += ["", f"Also recorded, not read: {', '.join(f'`{t}`' for t in data.unused)} (the per-output copies of "
+                      "the batches the report reads: same values, the batches complete and in time order)."]
 
     for name, s in (("Deflection", data.deflection), ("Tip-sample force", data.force)):
         if s is not None:
             span = (f", simulated {s.t_first:.6g} s to {s.t_last:.6g} s" if name == "Deflection" and s.samples
                     else "")
             lines += ["", f"{name}: {s.samples} samples{span}; {stream_completeness(s)}."]
+    for role, b in data.batches.items():
+        what = "Lock-in outputs" if role == "outputs" else "z controller outputs"
+        text = f"{what} (`{b.topic}`): {b.outputs} outputs in {b.messages} batches, simulated {b.t_first:.6g} s to " \
+               f"{b.t_last:.6g} s"
+        if role == "outputs":
+            text += ("; complete: every input sample has its outputs" if b.lost == 0 else
+                     f"; {b.lost} input samples without outputs in {b.gaps} gaps")
+        if b.repeats:
+            text += f", {b.repeats} repeated batches"
+        lines += ["", text + "."]
+    sd = data.setpoint_data
+    if sd is not None and (sd.unpaired or sd.mismatched):
+        lines += ["", f"Setpoint from the data: {sd.unpaired} batch(es) without a partner on the other topic (e.g. "
+                      f"the last lock-in batch, recorded before its answer), {sd.mismatched} pairs with other output "
+                      "times (not used)."]
 
     numbers = data.tracking
     lines += ["", "## Setpoint tracking", ""]
     if numbers:
+        settle = numbers.get("settling_time_s")
+        changes = numbers.get("setpoint_changes", [])
+        engaged_changes = any(c["engaged"] for c in changes)
+        final = numbers.get("final_window_s") or [None, None]
+        scan = numbers.get("scan_start_s")
+        first_end = [f"before the scan started at {scan:.6g} s"] if scan is not None else []
+        if engaged_changes:
+            first_end.insert(0, "before the first change")
+        if numbers.get("settled_at_end", False) is None:
+            window = "last 20 % of the scan" + (" since the last change" if engaged_changes and any(
+                c.get("during_scan") for c in changes) else "")
+        else:
+            window = "last 20 %" + (" since the last change" if engaged_changes else "")
+        settle_text = ("—" if "settling_time_s" not in numbers else "not settled" if settle is None
+                       else _fmt(settle, "s"))
         lines += ["| quantity | value |", "|---|---|",
                   f"| free amplitude | {_fmt(numbers.get('free_amplitude_m'), 'nm', 1e9)} |",
-                  f"| setpoint | {_fmt(numbers.get('setpoint_m'), 'nm', 1e9)} |",
+                  f"| setpoint{' at the end' if changes else ''} | {_fmt(numbers.get('setpoint_m'), 'nm', 1e9)} |",
                   f"| engaged at | {_fmt(numbers.get('engage_time_s'), 's')} |",
-                  f"| reached amplitude (last 20 %) | {_fmt(numbers.get('reached_amplitude_m'), 'nm', 1e9)} |",
-                  f"| rms tracking error (last 20 %) | {_fmt(numbers.get('rms_tracking_error_m'), 'nm', 1e9)} |",
-                  f"| settling time (into ±{SETTLING_BAND * 100:g} % of the setpoint) | "
-                  f"{_fmt(numbers.get('settling_time_s'), 's') if 'settling_time_s' in numbers else '—'}"
-                  f"{' (not settled)' if 'settling_time_s' in numbers and numbers['settling_time_s'] is None else ''} |",
-                  f"| phase in contact | {_fmt(numbers.get('contact_phase_deg'), 'deg')} |",
-                  f"| z piezo in contact | {_fmt(numbers.get('contact_z_piezo_m'), 'nm', 1e9)} |"]
+                  f"| settling time after engaging (into ±{SETTLING_BAND * 100:g} % of the setpoint then in force"
+                  f"{', ' + ' and '.join(first_end) if first_end else ''}) | {settle_text} |",
+                  f"| reached amplitude ({window}) | {_fmt(numbers.get('reached_amplitude_m'), 'nm', 1e9)} |",
+                  f"| rms tracking error (same window) | {_fmt(numbers.get('rms_tracking_error_m'), 'nm', 1e9)} |",
+                  f"| phase in contact (same window) | {_fmt(numbers.get('contact_phase_deg'), 'deg')} |",
+                  f"| z piezo in contact (same window) | {_fmt(numbers.get('contact_z_piezo_m'), 'nm', 1e9)} |"]
+        if "setpoint_from_error_m" in numbers:
+            how = "amplitude + error of every output" if data.setpoint_source == "data" else \
+                "median of amplitude + error over the last 20 %"
+            lines.append(f"| setpoint from the data ({how}) | {_fmt(numbers['setpoint_from_error_m'], 'nm', 1e9)} |")
+        lines += _setpoint_lines(data)
+        if "settled_at_end" in numbers:
+            span = f" ({window}: {final[0]:.6g} s to {final[1]:.6g} s)" if None not in final else ""
+            state = {None: f"scanning (the amplitude follows the topography; rms error "
+                           f"{_fmt(numbers.get('rms_tracking_error_m'), 'nm', 1e9)}).",
+                     True: "settled (inside the band at the end).",
+                     False: "**not settled** (outside the band at the end)."}[numbers["settled_at_end"]]
+            lines += ["", f"State at the end{span}: setpoint {_fmt(numbers.get('setpoint_m'), 'nm', 1e9)}, amplitude "
+                          f"{_fmt(numbers.get('reached_amplitude_m'), 'nm', 1e9)}, {state}"]
     else:
         lines.append("No lock-in amplitude recorded.")
     skipped = [f"{s.non_finite} non-finite {role.replace('_', ' ')} samples" for role, s in data.series.items()
@@ -1282,6 +2030,9 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images: di
             lines.append(f"{fd.non_finite} non-finite pairs left out.")
         if kept < fd.pairs - fd.non_finite:
             lines.append(f"The figure shows {kept} of them, evenly spaced in the sample index.")
+    lines += _image_lines(data)
+    if data.skipped:
+        lines += ["", "## Skipped", ""] + [f"- `{topic}`: {why}" for topic, why in sorted(data.skipped.items())]
     lines += ["", "## Parameters at start", ""]
     if data.initial_parameters:
         for node in sorted(data.initial_parameters):
@@ -1298,24 +2049,6 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images: di
             lines.append(f"| {t:.6g} | `{node}` | `{name}` | `{value!r}` |")
     else:
         lines.append("None.")
-    if images:
-        g = geometry or {}
-        lines += ["", "## Images (the last recorded frame)", ""]
-        if g:
-            lines.append(f"{g.get('pixels')} x {g.get('lines')} pixels over {g.get('size_x_m', 0) * 1e6:.3g} x "
-                         f"{g.get('size_y_m', 0) * 1e6:.3g} um at {g.get('line_rate_Hz')} lines/s from "
-                         f"x = {g.get('x_offset_m', 0) * 1e6:.4g} um, y = {g.get('y_offset_m', 0) * 1e6:.4g} um "
-                         f"(row 0 = lowest y), sample `{g.get('sample') or '?'}`; scan started "
-                         f"at t = {g.get('start_time_s', 0):.6g} s. Raw values, no levelling.")
-            lines.append("")
-        lines += ["| channel | direction | unit | lines acquired | min | median | max |", "|---|---|---|---|---|---|---|"]
-        units = g.get("channels", {})
-        for (c, d), arr in sorted(images.items()):
-            done = int(np.isfinite(arr).all(axis=1).sum())
-            finite = arr[np.isfinite(arr)]
-            stats = (f"{finite.min():.4g} | {np.median(finite):.4g} | {finite.max():.4g}" if finite.size
-                     else "- | - | -")
-            lines.append(f"| {c} | {d} | {units.get(c, '')} | {done} of {arr.shape[0]} | {stats} |")
     if figures:
         lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     path = out / "report.md"
@@ -1331,74 +2064,123 @@ class Report:
     data: SessionData
 
 
-IMAGE_TOPIC = "/scanner/image/"
+def _num(g: dict, key: str, scale: float = 1.0, fmt: str = ".4g") -> str:
+    v = g.get(key)
+    return format(v * scale, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) else "?"
+
+
+def _image_unit(data: SessionData, channel: str) -> str:
+    from afm_ros.core.imaging import UNITS
+    unit = (data.geometry or {}).get("channels", {}).get(channel)
+    return unit if isinstance(unit, str) else UNITS.get(channel, "")
+
+
+def _shown_images(data: SessionData) -> list[ImageTopic]:
+    shown = [it for it in data.images.values() if it.array is not None]
+    if not shown:
+        return shown  # (and no import of the imaging core: numba costs ~50 MB)
+    from afm_ros.core.imaging import CHANNELS, DIRECTIONS
+    order = {c: i for i, c in enumerate(CHANNELS)}
+    rank = {d: i for i, d in enumerate(DIRECTIONS)}
+    return sorted(shown, key=lambda it: (order.get(it.channel, len(order)), it.channel, rank.get(it.direction, 9),
+                                         it.direction))
+
+
+def _image_lines(data: SessionData) -> list[str]:
+    shown = _shown_images(data)
+    if not shown:
+        return []
+    from afm_ros.formats.frames import RANGE_TEXT, _display_scale
+    g = data.geometry
+    lines = ["", "## Images (the last recorded frame)", ""]
+    if g:
+        sample = g.get("sample") if isinstance(g.get("sample"), str) else "?"
+        lines += [f"{_num(g, 'pixels', fmt='g')} x {_num(g, 'lines', fmt='g')} pixels over "
+                  f"{_num(g, 'size_x_m', 1e6, '.3g')} x {_num(g, 'size_y_m', 1e6, '.3g')} µm at "
+                  f"{_num(g, 'line_rate_Hz', fmt='g')} lines/s from x = {_num(g, 'x_offset_m', 1e6)} µm, "
+                  f"y = {_num(g, 'y_offset_m', 1e6)} µm (row 0 = lowest y, shown at the top as in Gwyddion), sample "
+                  f"`{sample}`; scan started at t = {_num(g, 'start_time_s', fmt='.6g')} s.", ""]
+    lines += [f"`images.png`: heights plane-levelled (least-squares plane removed) and shown from the bottom of "
+              f"their colour range; {RANGE_TEXT}, each channel on its own. The table gives the raw values.", "",
+              "| channel | direction | lines acquired | min | median | max |", "|---|---|---|---|---|---|"]
+    for it in shown:
+        st = it.stats
+        if "min" in st:
+            factor, unit_text = _display_scale(np.array([st["min"], st["max"]]), _image_unit(data, it.channel))
+            values = " | ".join(f"{st[k] / factor:.4g} {unit_text}" for k in ("min", "median", "max"))
+        else:
+            values = "- | - | -"
+        lines.append(f"| {it.channel} | {it.direction} | {st['lines_acquired']} of {st['rows']} | {values} |")
+    reduced = [it for it in shown if it.stats.get("display_step", 1) > 1]
+    if reduced:
+        it = reduced[0]
+        lines += ["", f"Images larger than {DISPLAY_MAX_PIXELS} pixels per side are drawn with every "
+                      f"{_nth(it.stats['display_step'])} row and column ({it.stats['rows']} x {it.stats['columns']}); "
+                      "the table is over every pixel."]
+    return lines
 
 
 def last_images(path) -> tuple[dict, dict | None]:
-    """The last recorded frame of an imaging session: {(channel, direction): float32 array} from the
-    latest ``scanner/image/<channel>/<direction>`` messages (sensor_msgs/Image 32FC1), and the last
-    ``scanner/geometry`` (JSON) or None. Empty if the session has no images."""
-    import json
-
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import Image
-    from std_msgs.msg import String
-
-    last, geometry = {}, None
-    for m in read_session(path):
-        if IMAGE_TOPIC in m.topic and m.type_name == "sensor_msgs/msg/Image":
-            last[m.topic] = m.data
-        elif m.topic.endswith("/scanner/geometry") and m.type_name == "std_msgs/msg/String":
-            try:
-                geometry = json.loads(deserialize_message(m.data, String).data)
-            except ValueError:
-                geometry = None
-    images = {}
-    for topic, data in last.items():
-        msg = deserialize_message(data, Image)
-        if msg.encoding != "32FC1":
-            continue
-        dtype = ">f4" if msg.is_bigendian else "<f4"
-        arr = np.frombuffer(bytes(msg.data), dtype=dtype).reshape(msg.height, msg.step // 4)[:, :msg.width]
-        channel, direction = topic.split(IMAGE_TOPIC, 1)[1].split("/")[:2]
-        images[(channel, direction)] = arr.astype(np.float32)
-    return images, geometry
+    """The last recorded frame of an imaging session: {(channel, direction): float32 array} (the
+    last well-formed ``scanner/image/<channel>/<direction>`` message of each topic; at full size up
+    to DISPLAY_MAX_PIXELS per side) and the checked ``scanner/geometry`` or None."""
+    data = load_session(path)
+    return {(it.channel, it.direction): it.array for it in _shown_images(data)}, data.geometry
 
 
-def write_image_figure(images: dict, geometry: dict | None, out: Path) -> Path:
-    """One figure of the frame's channels (rows: trace, retrace); raw values, no levelling."""
+def write_image_figure(data: SessionData, out: Path) -> Path | None:
+    """``images.png``: the last recorded frame, one panel per channel (columns) and direction (rows), in
+    display units (nm, deg, aJ, ...), colour range :func:`afm_ros.formats.frames.display_range`, heights
+    plane-levelled, axes in µm when the scan geometry is known."""
+    shown = _shown_images(data)
+    if not shown:
+        return None
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import ScalarFormatter
 
-    channels = sorted({c for c, _ in images}, key=lambda c: ("height", "amplitude", "phase", "amplitude_error",
-                                                             "dissipation").index(c) if c in (
-        "height", "amplitude", "phase", "amplitude_error", "dissipation") else 9)
-    directions = [d for d in ("trace", "retrace") if any(k[1] == d for k in images)]
-    units = (geometry or {}).get("channels", {})
-    fig, axes = plt.subplots(len(directions), len(channels), figsize=(3.2 * len(channels), 3.0 * len(directions)),
+    from afm_ros.formats.frames import RANGE_TEXT, display_image
+    channels = list(dict.fromkeys(it.channel for it in shown))
+    directions = list(dict.fromkeys(it.direction for it in sorted(shown, key=lambda it: it.direction != "trace")))
+    fig, axes = plt.subplots(len(directions), len(channels), figsize=(3.3 * len(channels), 3.1 * len(directions)),
                              squeeze=False)
-    extent = None
-    if geometry:
-        x0, y0 = geometry["x_offset_m"] * 1e6, geometry["y_offset_m"] * 1e6
-        extent = (x0, x0 + geometry["size_x_m"] * 1e6, y0 + geometry["size_y_m"] * 1e6, y0)
-    for i, d in enumerate(directions):
-        for j, c in enumerate(channels):
-            ax = axes[i][j]
-            arr = images.get((c, d))
-            if arr is None:
-                ax.axis("off")
-                continue
-            shown = np.where(np.isfinite(arr), arr, np.nan)
-            im = ax.imshow(shown, cmap="afmhot", extent=extent, interpolation="nearest")
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).set_label(units.get(c, ""))
-            ax.set_title(f"{c} ({d}), raw", fontsize=9)
-            if extent:
-                ax.set_xlabel("x [um]", fontsize=8)
-                ax.set_ylabel("y [um]", fontsize=8)
+    for ax in axes.ravel():
+        ax.axis("off")
+    g = data.geometry
+    for it in shown:
+        ax = axes[directions.index(it.direction)][channels.index(it.channel)]
+        ax.axis("on")
+        levelled = it.channel == "height"
+        values, (lo, hi), unit_text = display_image(it.array, _image_unit(data, it.channel), levelled)
+        extent = None
+        if g:
+            x0, y0 = g["x_offset_m"] * 1e6, g["y_offset_m"] * 1e6
+            extent = (x0, x0 + g["size_x_m"] * 1e6, y0 + g["size_y_m"] * 1e6, y0)  # row 0 (lowest y) on top
+            ax.set_xlabel("x [µm]", fontsize=8)
+            ax.set_ylabel("y [µm]", fontsize=8)
+        else:
+            ax.set_xlabel("pixel", fontsize=8)
+            ax.set_ylabel("line", fontsize=8)
+        im = ax.imshow(values, cmap="afmhot", extent=extent, interpolation="nearest", vmin=lo, vmax=hi)
+        ax.tick_params(labelsize=7)
+        bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, extend="both")
+        formatter = ScalarFormatter(useOffset=False)
+        formatter.set_scientific(False)
+        bar.formatter = formatter
+        bar.update_ticks()
+        bar.ax.tick_params(labelsize=7)
+        bar.set_label(f"{it.channel.replace('_', ' ')} [{unit_text}]", fontsize=8)
+        ax.set_title(f"{it.channel.replace('_', ' ')} ({it.direction})" + (", plane-levelled" if levelled else ""),
+                     fontsize=9)
+    if g:
+        size = f"{_num(g, 'size_x_m', 1e6, '.3g')} x {_num(g, 'size_y_m', 1e6, '.3g')} µm, "
+    else:
+        size = "scan geometry unknown, "
+    fig.suptitle(f"last recorded frame: {size}{RANGE_TEXT} (spikes clipped)", fontsize=10)
     fig.tight_layout()
     path = out / "images.png"
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
@@ -1410,10 +2192,10 @@ def make_report(session, out_dir=None) -> Report:
     data = load_session(session)
     out.mkdir(parents=True, exist_ok=True)
     figures = write_figures(data, out)
-    images, geometry = last_images(session) if any(IMAGE_TOPIC in t for t in data.scan.topics) else ({}, None)
-    if images:
-        figures.append(write_image_figure(images, geometry, out))
-    md = write_markdown(data, figures, out, images, geometry)
+    image_figure = write_image_figure(data, out)
+    if image_figure is not None:
+        figures.append(image_figure)
+    md = write_markdown(data, figures, out)
     numbers = tracking_numbers(data)
     for role, stream in (("deflection", data.deflection), ("force", data.force)):
         if stream is not None:
@@ -1427,6 +2209,15 @@ def make_report(session, out_dir=None) -> Report:
         numbers.update(force_distance_pairs=data.fd.pairs, force_distance_kept=int(data.fd.gap.size))
         if data.fd.pairs > data.fd.non_finite:
             numbers.update(min_gap_m=data.fd.min_gap, max_force_n=data.fd.max_force, min_force_n=data.fd.min_force)
+    for role, b in data.batches.items():
+        numbers[f"{role}_outputs"] = b.outputs
+        if role == "outputs":
+            numbers["outputs_lost_input_samples"] = b.lost
+    numbers["series_source"] = "batches" if data.batches else ("copies" if data.series else None)
+    numbers["setpoint_history_from"] = data.setpoint_source or None
+    numbers["errors"] = diagnostic_errors(data)
+    numbers["images"] = {f"{it.channel}/{it.direction}": it.stats for it in _shown_images(data)}
+    numbers["skipped"] = dict(data.skipped)
     return Report(md, figures, numbers, data)
 
 
@@ -1449,6 +2240,10 @@ def main(argv=None) -> int:
     if not report.data.scan.complete:
         print(f"afm_report: warning: {report.data.path} is incomplete ({report.data.scan.truncated_reason}); "
               "reported the intact part", file=sys.stderr)
+    for e in report.numbers["errors"]:
+        print(f"afm_report: warning: the session reported an ERROR: {e['name']}: {e['message']}", file=sys.stderr)
+    for topic, why in sorted(report.data.skipped.items()):
+        print(f"afm_report: note: skipped {topic}: {why}", file=sys.stderr)
     print(f"wrote {report.markdown} and {len(report.figures)} figures")
     if args.json:
         import json
