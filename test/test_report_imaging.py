@@ -21,7 +21,7 @@ import pytest
 from conftest import EXACT_PHYSICS
 from afm_ros.nodes import node_main
 from afm_ros.tools import report
-from afm_ros.tools.afm_instrument import IMAGE_RECORD_EXCLUDE, BlowUpError, Instrument
+from afm_ros.tools.afm_instrument import RAW_EXCLUDE, BlowUpError, Instrument
 
 FAST = {**EXACT_PHYSICS, "real_time_factor": 0.0, "output_sample_rate": 450e3}  # 10 samples per drive period
 
@@ -31,7 +31,7 @@ def test_imaging_session_report_draws_the_time_traces_from_the_batches(ros_conte
     instrument = Instrument(
         context=ros_context, namespace=ros_namespace, record=True, scanner=True,
         cantilever_overrides={**FAST, "sample": "ps_ldpe_blend", "force_model": "viscoelastic_dmt"},
-        recorder_overrides={"output": str(path), "exclude": IMAGE_RECORD_EXCLUDE},
+        recorder_overrides={"output": str(path), "exclude": RAW_EXCLUDE},
         scanner_overrides={"pixels_per_line": 16, "lines": 8, "line_rate": 10.0, "output_directory": str(tmp_path)})
     try:
         live = instrument.run_image_job(0.1, 0.03, None, band_fraction=report.SETTLING_BAND, predict=False)
