@@ -432,3 +432,30 @@ def test_min_free_space_above_the_free_space_refuses_to_start(ros_context, tmp_p
     ours = [line for line in result.stderr.splitlines() if line.startswith("recorder:")]
     assert len(ours) == 1 and "min_free_space" in ours[0] and "B free" in ours[0], result.stderr
     assert not path.exists()
+
+
+def test_min_free_space_raised_live_stops_a_running_recording(ros_context, ros_executor, ros_namespace, tmp_path):
+    """The budget is live: min_free_space set to 4 MB below the free space of the disk stops the
+    recording (file complete) after at most that much more (less if others write on the disk)."""
+    ns = ros_namespace
+    path = tmp_path / "free.mcap"
+    cantilever = CantileverNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter("output_sample_rate", value=OUTPUT_RATE)])
+    rec = RecorderNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter("output", value=str(path)), Parameter("flush_interval", value=0.1)])
+    sink = DiagnosticsSink(ros_context, ns)
+    for n in (cantilever, rec, sink):
+        ros_executor.add_node(n)
+    defl = f"{ns}/cantilever/deflection"
+    spin_until(ros_executor, lambda: defl in rec.streams and rec.streams[defl].chunks > 50, what="recording")
+    client = AsyncParameterClient(sink, f"{ns}/recorder")
+    assert client.wait_for_services(10.0)
+    before = path.stat().st_size
+    limit = mcap_io.free_space(tmp_path) - 4e6
+    future = client.set_parameters([Parameter("min_free_space", value=float(limit))])
+    spin_until(ros_executor, future.done, timeout=10)
+    assert future.result().results[0].successful, future.result().results[0].reason
+    spin_until(ros_executor, lambda: rec.budget_reached, timeout=120, what="min_free_space reached")
+    assert "min_free_space" in rec.stopped_reason and "free disk space" in rec.stopped_reason
+    assert scan_session(path).complete and path.stat().st_size - before < 4e6
+    assert not gaps(chunk_indices(path, "cantilever/deflection"))

@@ -15,8 +15,11 @@ testable without DDS. Layout written (the rosbag2 MCAP storage plugin's, ROS 2 J
 Crash safety: the writer closes the current chunk and hands everything to the OS every
 ``flush_interval`` seconds, so a SIGKILL loses at most that much. A file is *complete* only
 when it ends with the footer and the closing magic, which are written by :meth:`SessionWriter.close`
-alone and never after a failed write. :func:`read_session` reads complete and truncated files;
-:func:`recover` rewrites a truncated file into a complete one.
+alone and never after a failed write. :func:`read_session` reads complete, truncated and damaged
+files, taking the schemas and channels from the summary section when it is intact (so a damaged
+first chunk loses only its own messages); :func:`recover` rewrites such a file into a complete one.
+Budget: :class:`SessionWriter` keeps a file within ``max_size`` and the file system above
+``min_free_space`` (:class:`BudgetReached`, the file can still be closed complete).
 
 Command line: ``python -m afm_ros.formats.mcap_io info FILE`` and ``python -m afm_ros.formats.mcap_io recover IN OUT``.
 """
@@ -418,7 +421,7 @@ class SessionWriter:
     def _over_budget(self, extra: int, outside: bool = False) -> BudgetReached | None:
         bound = self.size_bound(extra, outside)
         if self.max_size and bound > self.max_size:
-            return BudgetReached("max_size", f"max_size {self.max_size:.3g} B reached ({self.path} would exceed it)")
+            return BudgetReached("max_size", f"max_size {self.max_size:.3g} B reached")
         if self.min_free_space:
             if self._free_checked is None or self._free_checked[1] != self.bytes_written:
                 self._free_checked = (free_space(self.path.parent), self.bytes_written)
@@ -426,7 +429,7 @@ class SessionWriter:
             left = free - (bound - at)  # free space once everything up to the footer is written
             if left < self.min_free_space:
                 return BudgetReached("min_free_space", f"min_free_space {self.min_free_space:.3g} B reached (the file "
-                                     f"system of {self.path} has {free - (self.bytes_written - at):.3g} B free)")
+                                     f"system has {free - (self.bytes_written - at):.3g} B free)")
         return None
 
     def write(self, channel_id: int, data: bytes, log_time: int, publish_time: int | None = None,
@@ -442,8 +445,7 @@ class SessionWriter:
             stop = self._over_budget(size)
             if stop is None and self.max_size and self.max_size - self.size_bound(size) < self.max_size // 100:
                 # within 1 % of max_size: stop rather than close ever smaller chunks
-                stop = BudgetReached("max_size", f"max_size {self.max_size:.3g} B reached ({self.path} is within "
-                                     "1 % of it)")
+                stop = BudgetReached("max_size", f"max_size {self.max_size:.3g} B reached (within 1 %)")
             if stop is not None:
                 raise stop
         try:

@@ -7,6 +7,11 @@ full parameter set of every node is stored when the node is first seen, both as 
 ``new_parameters``) and as an MCAP metadata record ``afm_ros.parameters:<node>``; later
 changes arrive on ``/parameter_events``, which is always recorded.
 
+A recorder that joins a running instrument holds it until the publishers' history is written (so
+the recording starts contiguous); a taken file name gets ``_2``, ``_3``...; at ``max_size`` or
+``min_free_space`` the file is closed complete and the recorder leaves the stream (see
+docs/recording.md).
+
 Clocks: ``log_time`` = wall-clock receive time, ``publish_time`` = the publisher's source
 timestamp (wall clock) from the middleware (= ``log_time`` under rclpy's EventsExecutor, which
 cannot deliver message info), both ns since the epoch (see docs/recording.md).
@@ -268,25 +273,30 @@ class RecorderNode(Node):
         """Topics subscribed (being recorded)."""
         return sorted(t for t, sub in self._subs.items() if sub is not None)
 
-    def _held(self) -> bool:
-        """Subscriptions wait until the cantilever has matched the hold (acknowledgement 0), so no
-        history chunk is pushed out before it reaches the recorder; at most ACK_MATCH_WAIT_S (a
-        stream without a cantilever, e.g. a replay, has nobody to hold)."""
+    def _held(self, present: set[str]) -> bool:
+        """Once the acknowledged stream is in the graph, subscriptions (but the global topics) wait
+        until the cantilever has matched the hold (acknowledgement 0), so no history chunk is pushed
+        out before it reaches the recorder; at most ACK_MATCH_WAIT_S (a stream without a
+        cantilever, e.g. a replay, has nobody to hold)."""
         if self._ack is None or self._ack.matched():
             return False
-        now = time.monotonic()
         if self._subscribe_after is None:
-            self._subscribe_after = now + ACK_MATCH_WAIT_S
-        return now < self._subscribe_after
+            stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
+            if stream not in present:
+                return False
+            self._subscribe_after = time.monotonic() + ACK_MATCH_WAIT_S
+        return time.monotonic() < self._subscribe_after
 
     def _discover(self) -> None:
         if not self.active:
             return
         try:
-            for topic, types in self.get_topic_names_and_types():
+            graph = self.get_topic_names_and_types()
+            held = self._held({topic for topic, _ in graph})
+            for topic, types in graph:
                 if topic in self._subs or not self._wanted(topic):
                     continue
-                if topic != PARAMETER_EVENTS and self._held():
+                if held and topic not in GLOBAL_TOPICS and topic != PARAMETER_EVENTS:
                     continue
                 if len(types) != 1:
                     self.get_logger().warn(f"not recording {topic}: it has several types {types}")
