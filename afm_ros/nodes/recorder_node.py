@@ -395,7 +395,6 @@ class RecorderNode(Node):
 
     def _stop_on_budget(self, exc: BudgetReached) -> None:
         """Writer thread (lock held): close the file complete, stop being waited for, say why."""
-        self._budget = exc
         when = f" at t={self.sim_time:.3f} s (simulated)" if self.sim_time is not None else ""
         try:
             self.writer.close()
@@ -404,6 +403,7 @@ class RecorderNode(Node):
                                    f"{BUDGET_ADVICE[exc.limit]}")
         except RecordingError as err:
             self._thread_error = err
+        self._budget = exc  # last: readers of budget_reached find stopped_reason set
         if self._ack is not None:
             self._ack.leave()  # the instrument goes on without the recorder
 
