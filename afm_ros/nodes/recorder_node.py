@@ -19,6 +19,7 @@ cannot deliver message info), both ns since the epoch (see docs/recording.md).
 from __future__ import annotations
 
 import fnmatch
+from collections import deque
 import os
 import queue
 import sys
@@ -55,7 +56,7 @@ FAST_DISCOVERY_PERIOD_S = 0.05
 DRAIN_QUIET_S = 0.25
 DRAIN_LIMIT_S = 3.0
 FAST_DISCOVERY_FOR_S = 3.0
-ACK_MATCH_WAIT_S = 2.0  # longest wait for the cantilever to see the recorder's hold before subscribing (wall s)
+HOLD_WAIT_S = 3.0  # longest wait for the cantilever to confirm the recorder's hold before subscribing (wall s)
 CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
 DIAGNOSTICS_PERIOD_S = 1.0
 RATE_WINDOW_S = 10.0  # the write rate is measured over the last this many wall seconds
@@ -170,7 +171,7 @@ class RecorderNode(Node):
         self._budget: BudgetReached | None = None  # set by the writer thread when the budget is reached
         self._budget_reported = False
         self.sim_time: float | None = None  # newest simulated time [s] seen in the recorded streams
-        self._rate_samples: list[tuple[float, float | None, int]] = []  # (wall s, simulated s, bytes)
+        self._rate_samples: deque[tuple[float, float | None, int]] = deque()  # (wall s, simulated s, bytes)
         # Messages are handed to a writer thread (MCAP framing, compression, file writes), so the
         # executor thread only queues raw bytes; the thread acknowledges a deflection chunk once it
         # is written, so a slow disk slows the instrument down instead of growing the queue.
@@ -192,6 +193,10 @@ class RecorderNode(Node):
         # (which left holes at the start of the recording); a recorder that starts with the
         # instrument is not held (the stream is at 0). A recorder of neither stream is no consumer.
         acks = self._wanted(self._own_deflection) or self._ack_by_outputs
+        # the cantilever's /diagnostics list its consumers: the hold is in force once they list the recorder
+        self._hold_confirmed = not acks
+        self._hold_sub = self.create_subscription(DiagnosticArray, "/diagnostics", self._on_hold_diagnostics,
+                                                  10) if acks else None
         self._ack = topics.Acknowledger(self, first_index=0) if acks else None
         self._subscribe_after: float | None = None  # wall time after which topics are subscribed unheld
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -273,19 +278,28 @@ class RecorderNode(Node):
         """Topics subscribed (being recorded)."""
         return sorted(t for t, sub in self._subs.items() if sub is not None)
 
+    def _on_hold_diagnostics(self, msg: DiagnosticArray) -> None:
+        me = self.get_fully_qualified_name()
+        if any(kv.key == "consumers" and me in kv.value.split(",") for st in msg.status for kv in st.values):
+            self._hold_confirmed = True
+
     def _held(self, present: set[str]) -> bool:
         """Once the acknowledged stream is in the graph, subscriptions (but the global topics) wait
-        until the cantilever has matched the hold (acknowledgement 0), so no history chunk is pushed
-        out before it reaches the recorder; at most ACK_MATCH_WAIT_S (a stream without a
-        cantilever, e.g. a replay, has nobody to hold)."""
-        if self._ack is None or self._ack.matched():
+        until the cantilever's /diagnostics list the recorder as a consumer, i.e. until the hold
+        (acknowledgement 0) is in force, so no history chunk is pushed out before it reaches the
+        recorder; at most HOLD_WAIT_S (a stream without a cantilever, e.g. a replay, has nobody
+        to hold)."""
+        if self._hold_confirmed or (self._subscribe_after is not None and time.monotonic() >= self._subscribe_after):
+            if self._hold_sub is not None:
+                self.destroy_subscription(self._hold_sub)
+                self._hold_sub = None
             return False
         if self._subscribe_after is None:
             stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
             if stream not in present:
                 return False
-            self._subscribe_after = time.monotonic() + ACK_MATCH_WAIT_S
-        return time.monotonic() < self._subscribe_after
+            self._subscribe_after = time.monotonic() + HOLD_WAIT_S
+        return True
 
     def _discover(self) -> None:
         if not self.active:
@@ -446,7 +460,7 @@ class RecorderNode(Node):
         """(bytes per wall second, bytes per simulated second) over the last RATE_WINDOW_S wall
         seconds; None until measured (the simulated rate needs a recorded clock, chunk or lock-in
         batch stream)."""
-        samples = self._rate_samples
+        samples = list(self._rate_samples)  # appended by the writer thread
         if len(samples) < 2:
             return None, None
         (w0, s0, b0), (w1, s1, b1) = samples[0], samples[-1]
@@ -458,7 +472,7 @@ class RecorderNode(Node):
         now = time.monotonic()
         self._rate_samples.append((now, self.sim_time, self.writer.bytes_written))
         while len(self._rate_samples) > 2 and now - self._rate_samples[1][0] >= RATE_WINDOW_S:
-            self._rate_samples.pop(0)
+            self._rate_samples.popleft()
 
     def stream_report(self) -> dict:
         """Per chunk topic: chunks, first index, lost (gap) and repeated samples."""
@@ -565,8 +579,13 @@ class RecorderNode(Node):
     # --- file -----------------------------------------------------------------------------
     def _flush(self) -> None:
         if not self._check_writer():
-            self._queue.put(self.writer.flush)
-            self._sample_rate()
+            self._queue.put(self._flush_and_sample)
+
+    def _flush_and_sample(self) -> None:
+        """Writer thread: close the chunk, then note (wall, simulated time, file size) for the rate:
+        after a flush the file holds every message up to that simulated time."""
+        self.writer.flush()
+        self._sample_rate()
 
     def _fail(self, exc: RecordingError) -> None:
         if self.error is not None:

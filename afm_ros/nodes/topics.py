@@ -71,10 +71,6 @@ class Acknowledger:
             self._msg.data = [self.next_index]
             self._pub.publish(self._msg)
 
-    def matched(self) -> bool:
-        """A subscriber (the cantilever) has matched the acknowledgement publisher."""
-        return self._pub.get_subscription_count() > 0
-
     def leave(self) -> None:
         """Stop being waited for (closing, or the consumer's output failed); final."""
         with self._lock:
