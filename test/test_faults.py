@@ -273,6 +273,8 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
     result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--record-raw", "--ros-args",
                              "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25",
+                             # the disk is far below the default min_free_space (the recorder would not start)
+                             "-p", "recorder:min_free_space:=0.0",
                              # noise-free: noise does not compress, and the byte budget above assumes it does
                              "-p", "cantilever:temperature:=0.0", "-p", "cantilever:detector_noise_density:=0.0"],
                             env=env, capture_output=True, text=True, timeout=300, cwd=small_disk)

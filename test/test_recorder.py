@@ -306,9 +306,10 @@ def test_bad_output_paths(ros_context, tmp_path):
 
     existing = tmp_path / "existing.mcap"
     existing.write_bytes(b"precious")
-    with pytest.raises(RecordingError, match="already exists"):
-        RecorderNode(context=ros_context, parameter_overrides=[Parameter("output", value=str(existing))])
+    recorder = RecorderNode(context=ros_context, parameter_overrides=[Parameter("output", value=str(existing))])
+    recorder.destroy_node()
     assert existing.read_bytes() == b"precious", "an existing file must never be overwritten"
+    assert recorder.output_path == str(tmp_path / "existing_2.mcap") and scan_session(recorder.output_path).complete
 
     with pytest.raises(Exception, match="compression"):
         RecorderNode(context=ros_context, parameter_overrides=[

@@ -7,6 +7,11 @@ full parameter set of every node is stored when the node is first seen, both as 
 ``new_parameters``) and as an MCAP metadata record ``afm_ros.parameters:<node>``; later
 changes arrive on ``/parameter_events``, which is always recorded.
 
+A recorder that joins a running instrument holds it until the publishers' history is written (so
+the recording starts contiguous); a taken file name gets ``_2``, ``_3``...; at ``max_size`` or
+``min_free_space`` the file is closed complete and the recorder leaves the stream (see
+docs/recording.md).
+
 Clocks: ``log_time`` = wall-clock receive time, ``publish_time`` = the publisher's source
 timestamp (wall clock) from the middleware (= ``log_time`` under rclpy's EventsExecutor, which
 cannot deliver message info), both ns since the epoch (see docs/recording.md).
@@ -14,6 +19,7 @@ cannot deliver message info), both ns since the epoch (see docs/recording.md).
 from __future__ import annotations
 
 import fnmatch
+from collections import deque
 import os
 import queue
 import sys
@@ -32,13 +38,14 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
                        qos_profile_parameter_events)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray
 
 from afm_ros.nodes import ros_params, topics
-from afm_ros.formats.chunk_layout import cdr_chunk_index
-from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, RecordingError, SessionWriter,
-                      default_output_path, message_class, qos_profiles_yaml,
-                      serialize_exact)
+from afm_ros.formats.chunk_layout import cdr_chunk
+from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, BudgetReached, RecordingError,
+                                    SessionWriter, default_output_path, message_class, qos_profiles_yaml,
+                                    serialize_exact)
 from afm_ros.nodes import node_main
 
 PARAMETER_EVENTS = "/parameter_events"
@@ -49,8 +56,16 @@ FAST_DISCOVERY_PERIOD_S = 0.05
 DRAIN_QUIET_S = 0.25
 DRAIN_LIMIT_S = 3.0
 FAST_DISCOVERY_FOR_S = 3.0
+HOLD_WAIT_S = 3.0  # longest wait for the cantilever to confirm the recorder's hold before subscribing (wall s)
 CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
 DIAGNOSTICS_PERIOD_S = 1.0
+RATE_WINDOW_S = 10.0  # the write rate is measured over the last this many wall seconds
+BUDGET_ADVICE = {
+    "max_size": "to record longer, raise max_size (0 = unlimited), exclude topics (the raw cantilever/* "
+                "streams take most of the bytes) or free disk space",
+    "min_free_space": "to record longer, free disk space, record to another file system (output) or lower "
+                      "min_free_space",
+}
 
 
 class StreamCheck:
@@ -59,6 +74,7 @@ class StreamCheck:
     def __init__(self):
         self.next_index: int | None = None
         self.first_index: int | None = None
+        self.end_time: float | None = None  # simulated time at the end of the newest chunk [s]
         self.chunks = 0
         self.gap_events = 0
         self.missing_samples = 0
@@ -68,10 +84,12 @@ class StreamCheck:
     def add(self, data: bytes) -> int | None:
         """Account for one chunk; return the index after it (None if unreadable)."""
         try:
-            first, count = cdr_chunk_index(data)
+            header, samples = cdr_chunk(data)
         except ValueError:
             self.unreadable += 1
             return None
+        first, count = header.first_sample_index, samples.shape[0]
+        self.end_time = header.t_start + count * header.sample_interval
         if self.next_index is None:
             self.first_index = first
         elif first > self.next_index:
@@ -95,10 +113,19 @@ def split_patterns(text: str, namespace: str) -> list[str]:
     return out
 
 
-def outputs_end_index(data: bytes) -> int:
-    """input_end_index of a serialized lockin/outputs batch (see afm_ros.formats.chunk_layout)."""
+def outputs_end(data: bytes) -> tuple[int, float]:
+    """(input_end_index, input_end_time_s) of a serialized lockin/outputs batch (see
+    afm_ros.formats.chunk_layout)."""
     from rclpy.serialization import deserialize_message
-    return int(deserialize_message(data, Float64MultiArray).data[1])
+    values = deserialize_message(data, Float64MultiArray).data
+    return int(values[1]), float(values[2])
+
+
+def clock_seconds(data: bytes) -> float:
+    """Simulated time [s] of a serialized rosgraph_msgs/Clock."""
+    from rclpy.serialization import deserialize_message
+    t = deserialize_message(data, ClockMsg).clock
+    return t.sec + 1e-9 * t.nanosec
 
 
 def matches(topic: str, patterns: list[str]) -> bool:
@@ -125,13 +152,26 @@ class RecorderNode(Node):
     def __init__(self, **kwargs):
         super().__init__("recorder", **kwargs)
         self._values = ros_params.declare(self, RECORDER_SPECS)
+        self.add_on_set_parameters_callback(ros_params.make_set_callback(
+            RECORDER_SPECS, lambda: dict(self._values), self._check_budget_change, self._apply))
         v = self._values
-        self.output_path = os.path.abspath(v["output"]) if v["output"] else str(default_output_path())
-        self.error: RecordingError | None = None
         ns = self.get_namespace()
+        requested = os.path.abspath(v["output"]) if v["output"] else str(default_output_path(namespace=ns))
+        self.error: RecordingError | None = None
         self._include = split_patterns(v["topics"], ns)
         self._exclude = split_patterns(v["exclude"], ns)
-        self.writer = SessionWriter(self.output_path, compression=v["compression"], chunk_size=v["chunk_size"])
+        # exclusive creation: never overwrite, never collide with another recorder (a _2, _3... name)
+        self.writer = SessionWriter(requested, compression=v["compression"], chunk_size=v["chunk_size"],
+                                    unique=True, max_size=v["max_size"], min_free_space=v["min_free_space"])
+        self.output_path = str(self.writer.path)
+        if self.output_path != requested:
+            self.get_logger().warning(f"{requested} exists: recording to {self.output_path} instead")
+        # a budget stop (max_size, min_free_space) closes the file complete and ends the recording
+        self.stopped_reason = ""  # one line on why recording stopped early ('' while recording)
+        self._budget: BudgetReached | None = None  # set by the writer thread when the budget is reached
+        self._budget_reported = False
+        self.sim_time: float | None = None  # newest simulated time [s] seen in the recorded streams
+        self._rate_samples: deque[tuple[float, float | None, int]] = deque()  # (wall s, simulated s, bytes)
         # Messages are handed to a writer thread (MCAP framing, compression, file writes), so the
         # executor thread only queues raw bytes; the thread acknowledges a deflection chunk once it
         # is written, so a slow disk slows the instrument down instead of growing the queue.
@@ -145,8 +185,20 @@ class RecorderNode(Node):
         # (each names the deflection samples it came from)
         self._own_outputs = self.resolve_topic_name(topics.LOCKIN_OUTPUTS)
         self._ack_by_outputs = not self._wanted(self._own_deflection) and self._wanted(self._own_outputs)
+        self._own_clock = self.resolve_topic_name("clock")
         self.streams: dict[str, StreamCheck] = {}
-        self._ack = topics.Acknowledger(self)
+        # A recorder that joins a running instrument first acknowledges sample 0: the cantilever holds
+        # (flow window) until the recorder has written the chunks of the publishers' transient-local
+        # history, so that history is not pushed out by new chunks before it reached the recorder
+        # (which left holes at the start of the recording); a recorder that starts with the
+        # instrument is not held (the stream is at 0). A recorder of neither stream is no consumer.
+        acks = self._wanted(self._own_deflection) or self._ack_by_outputs
+        # the cantilever's /diagnostics list its consumers: the hold is in force once they list the recorder
+        self._hold_confirmed = not acks
+        self._hold_sub = self.create_subscription(DiagnosticArray, "/diagnostics", self._on_hold_diagnostics,
+                                                  10) if acks else None
+        self._ack = topics.Acknowledger(self, first_index=0) if acks else None
+        self._subscribe_after: float | None = None  # wall time after which topics are subscribed unheld
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs: dict[str, object] = {}
         self._channel: dict[str, int] = {}
@@ -226,12 +278,39 @@ class RecorderNode(Node):
         """Topics subscribed (being recorded)."""
         return sorted(t for t, sub in self._subs.items() if sub is not None)
 
+    def _on_hold_diagnostics(self, msg: DiagnosticArray) -> None:
+        me = self.get_fully_qualified_name()
+        if any(kv.key == "consumers" and me in kv.value.split(",") for st in msg.status for kv in st.values):
+            self._hold_confirmed = True
+
+    def _held(self, present: set[str]) -> bool:
+        """Once the acknowledged stream is in the graph, subscriptions (but the global topics) wait
+        until the cantilever's /diagnostics list the recorder as a consumer, i.e. until the hold
+        (acknowledgement 0) is in force, so no history chunk is pushed out before it reaches the
+        recorder; at most HOLD_WAIT_S (a stream without a cantilever, e.g. a replay, has nobody
+        to hold)."""
+        if self._hold_confirmed or (self._subscribe_after is not None and time.monotonic() >= self._subscribe_after):
+            if self._hold_sub is not None:
+                self.destroy_subscription(self._hold_sub)
+                self._hold_sub = None
+            return False
+        if self._subscribe_after is None:
+            stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
+            if stream not in present:
+                return False
+            self._subscribe_after = time.monotonic() + HOLD_WAIT_S
+        return True
+
     def _discover(self) -> None:
-        if self.error is not None:
+        if not self.active:
             return
         try:
-            for topic, types in self.get_topic_names_and_types():
+            graph = self.get_topic_names_and_types()
+            held = self._held({topic for topic, _ in graph})
+            for topic, types in graph:
                 if topic in self._subs or not self._wanted(topic):
+                    continue
+                if held and topic not in GLOBAL_TOPICS and topic != PARAMETER_EVENTS:
                     continue
                 if len(types) != 1:
                     self.get_logger().warn(f"not recording {topic}: it has several types {types}")
@@ -290,14 +369,17 @@ class RecorderNode(Node):
                 for item in items:
                     if item is None:
                         return
-                    if self._thread_error is not None:
-                        continue  # a write failed: drop the rest (the node reports it)
+                    if self._thread_error is not None or self._budget is not None:
+                        continue  # a write failed or the budget is used up: drop the rest (the node reports it)
                     try:
                         if callable(item):
                             item()
                             continue
                         topic, cid, data, log_time, publish_time, seq = item
                         self.writer.write(cid, data, log_time, publish_time, seq)
+                    except BudgetReached as exc:
+                        self._stop_on_budget(exc)
+                        continue
                     except RecordingError as exc:
                         self._thread_error = exc
                         continue
@@ -305,15 +387,39 @@ class RecorderNode(Node):
                         self._thread_error = RecordingError(f"writing {self.output_path} failed: {exc!r}; "
                                                             "recording stopped, the file is incomplete")
                         continue
-                    check = self.streams.get(topic)
-                    if check is not None:
-                        end = check.add(data)
-                        if end is not None and topic == self._own_deflection:
-                            acks = end
-                    elif self._ack_by_outputs and topic == self._own_outputs:
-                        acks = outputs_end_index(data)
-            if acks is not None and self._thread_error is None:
+                    acks = self._follow(topic, data, acks)
+            if acks is not None and self._thread_error is None and self._budget is None:
                 self._ack.send(acks)
+
+    def _follow(self, topic: str, data: bytes, acks: int | None) -> int | None:
+        """After writing: sample-index continuity, simulated time, and what to acknowledge."""
+        check = self.streams.get(topic)
+        if check is not None:
+            end = check.add(data)
+            if end is not None:
+                self.sim_time = check.end_time if self.sim_time is None else max(self.sim_time, check.end_time)
+                if topic == self._own_deflection:
+                    return end
+        elif self._ack_by_outputs and topic == self._own_outputs:
+            end, self.sim_time = outputs_end(data)
+            return end
+        elif topic == self._own_clock:
+            self.sim_time = clock_seconds(data)
+        return acks
+
+    def _stop_on_budget(self, exc: BudgetReached) -> None:
+        """Writer thread (lock held): close the file complete, stop being waited for, say why."""
+        when = f" at t={self.sim_time:.3f} s (simulated)" if self.sim_time is not None else ""
+        try:
+            self.writer.close()
+            self.stopped_reason = (f"recording stopped{when}: {exc}; {self.output_path} is complete up to there "
+                                   f"({self.writer.bytes_written} B, {self.writer.message_count} messages); "
+                                   f"{BUDGET_ADVICE[exc.limit]}")
+        except RecordingError as err:
+            self._thread_error = err
+        self._budget = exc  # last: readers of budget_reached find stopped_reason set
+        if self._ack is not None:
+            self._ack.leave()  # the instrument goes on without the recorder
 
     def drain(self, executor, quiet: float = DRAIN_QUIET_S, limit: float = DRAIN_LIMIT_S) -> None:
         """Take what the middleware still holds for the recorder: spin until nothing arrived for
@@ -324,10 +430,49 @@ class RecorderNode(Node):
             node_main.spin_for(executor, 0.02)
 
     def _check_writer(self) -> bool:
-        """Move a failure of the writer thread into the node (error, log, subscriptions dropped)."""
+        """Move a failure or a budget stop of the writer thread into the node (error or stop reason,
+        one log line, subscriptions dropped); True once the recorder takes no more messages."""
         if self._thread_error is not None and self.error is None:
             self._fail(self._thread_error)
-        return self.error is not None
+        if self._budget is not None and not self._budget_reported and self.error is None:
+            self._budget_reported = True
+            self.get_logger().warning(self.stopped_reason)
+            self._drop_subscriptions()
+            self._publish_diagnostics()
+        return self.error is not None or self._budget is not None
+
+    @property
+    def active(self) -> bool:
+        """Still recording: no write error, budget not reached, file not closed."""
+        return self.error is None and self._budget is None and not self.writer.closed
+
+    @property
+    def budget_reached(self) -> bool:
+        """The recording stopped at max_size or min_free_space (the file is complete up to there)."""
+        return self._budget is not None
+
+    @property
+    def bytes_written(self) -> int:
+        """Size of the file so far [B] (the summary joins it when the file is closed)."""
+        return self.writer.bytes_written
+
+    def write_rate(self) -> tuple[float | None, float | None]:
+        """(bytes per wall second, bytes per simulated second) over the last RATE_WINDOW_S wall
+        seconds; None until measured (the simulated rate needs a recorded clock, chunk or lock-in
+        batch stream)."""
+        samples = list(self._rate_samples)  # appended by the writer thread
+        if len(samples) < 2:
+            return None, None
+        (w0, s0, b0), (w1, s1, b1) = samples[0], samples[-1]
+        per_wall = (b1 - b0) / (w1 - w0) if w1 > w0 else None
+        per_sim = (b1 - b0) / (s1 - s0) if s0 is not None and s1 is not None and s1 > s0 else None
+        return per_wall, per_sim
+
+    def _sample_rate(self) -> None:
+        now = time.monotonic()
+        self._rate_samples.append((now, self.sim_time, self.writer.bytes_written))
+        while len(self._rate_samples) > 2 and now - self._rate_samples[1][0] >= RATE_WINDOW_S:
+            self._rate_samples.popleft()
 
     def stream_report(self) -> dict:
         """Per chunk topic: chunks, first index, lost (gap) and repeated samples."""
@@ -339,15 +484,25 @@ class RecorderNode(Node):
     def _publish_diagnostics(self) -> None:
         lost = sum(c.missing_samples for c in self.streams.values())
         failed = self.error is not None
+        per_wall, per_sim = self.write_rate()
         status = DiagnosticStatus(
-            level=DiagnosticStatus.ERROR if failed else (DiagnosticStatus.WARN if lost else DiagnosticStatus.OK),
+            level=DiagnosticStatus.ERROR if failed else
+            (DiagnosticStatus.WARN if lost or self._budget is not None else DiagnosticStatus.OK),
             name=f"{self.get_fully_qualified_name()}: recording", hardware_id="afm_ros",
             message=(f"recording stopped: {self.error}" if failed else
-                     f"{lost} samples lost" if lost else "ok"),
+                     self.stopped_reason + (f"; {lost} samples lost" if lost else "") if self._budget is not None
+                     else f"{lost} samples lost" if lost else "ok"),
             values=[KeyValue(key="file", value=self.output_path),
                     KeyValue(key="topics", value=",".join(self.topics)),
                     KeyValue(key="messages", value=str(self.writer.message_count)),
-                    KeyValue(key="lost_samples", value=str(lost))] +
+                    KeyValue(key="lost_samples", value=str(lost)),
+                    KeyValue(key="bytes_written", value=str(self.writer.bytes_written)),
+                    KeyValue(key="rate_B_per_wall_s", value="" if per_wall is None else f"{per_wall:.4g}"),
+                    KeyValue(key="rate_B_per_simulated_s", value="" if per_sim is None else f"{per_sim:.4g}"),
+                    KeyValue(key="simulated_time_s", value="" if self.sim_time is None else f"{self.sim_time:.6g}"),
+                    KeyValue(key="max_size_B", value=f"{self.writer.max_size:.4g}"),
+                    KeyValue(key="min_free_space_B", value=f"{self.writer.min_free_space:.4g}"),
+                    KeyValue(key="stopped", value=self.stopped_reason)] +
                    [KeyValue(key=f"{t}: missing_samples", value=str(c.missing_samples))
                     for t, c in self.streams.items()])
         msg = DiagnosticArray(status=[status])
@@ -357,7 +512,13 @@ class RecorderNode(Node):
     # --- parameters -----------------------------------------------------------------------
     def _write_snapshot(self, node_name: str, params: list[ParameterMsg]) -> None:
         with self._writer_lock:
-            self._write_snapshot_locked(node_name, params)
+            if self._budget is not None:
+                return
+            try:
+                self._write_snapshot_locked(node_name, params)
+            except BudgetReached as exc:
+                self._stop_on_budget(exc)
+        self._check_writer()
 
     def _write_snapshot_locked(self, node_name: str, params: list[ParameterMsg]) -> None:
         if PARAMETER_EVENTS not in self._channel:
@@ -407,7 +568,7 @@ class RecorderNode(Node):
     def _on_values(self, fqn: str, names: list[str], future) -> None:
         self._pending.discard(fqn)
         result = future.result()
-        if result is None or self.error is not None:
+        if result is None or not self.active:
             return
         params = [ParameterMsg(name=n, value=v) for n, v in zip(names, result.values)]
         try:
@@ -418,29 +579,52 @@ class RecorderNode(Node):
     # --- file -----------------------------------------------------------------------------
     def _flush(self) -> None:
         if not self._check_writer():
-            self._queue.put(self.writer.flush)
+            self._queue.put(self._flush_and_sample)
+
+    def _flush_and_sample(self) -> None:
+        """Writer thread: close the chunk, then note (wall, simulated time, file size) for the rate:
+        after a flush the file holds every message up to that simulated time."""
+        self.writer.flush()
+        self._sample_rate()
 
     def _fail(self, exc: RecordingError) -> None:
         if self.error is not None:
             return
         self.error = exc
-        self._ack.leave()  # the instrument must not wait for a recorder that cannot write
+        if self._ack is not None:
+            self._ack.leave()  # the instrument must not wait for a recorder that cannot write
         self.get_logger().error(str(exc))
+        self._drop_subscriptions()
+
+    def _drop_subscriptions(self) -> None:
         for sub in self._subs.values():
             if sub is not None:
                 self.destroy_subscription(sub)
         self._subs = {t: None for t in self._subs}
+
+    def _check_budget_change(self, values: dict) -> None:
+        if not self.active:
+            raise ValueError(f"the recording has stopped ({self.stopped_reason or self.error}); a new "
+                             "max_size or min_free_space applies to the next recording")
+
+    def _apply(self, changed: dict) -> None:
+        with self._writer_lock:
+            if "max_size" in changed:
+                self.writer.max_size = int(changed["max_size"])
+            if "min_free_space" in changed:
+                self.writer.min_free_space = int(changed["min_free_space"])
+        self._values.update(changed)
 
     def close(self) -> None:
         """Write what is queued, then summary and footer (complete file) unless a write failed."""
         if self._writer_thread.is_alive():
             self._queue.put(None)
             self._writer_thread.join()
-        if self.context.ok():
+        if self.context.ok() and self._ack is not None:
             self._ack.leave()
         self._check_writer()
         if self.writer.closed or self.error is not None:
-            return
+            return  # closed at a budget stop, or failed (never a footer then)
         try:
             self.writer.close()
             if self.context.ok():  # after a signal the context is gone and rosout with it
@@ -454,8 +638,9 @@ class RecorderNode(Node):
 
 
 def main(args=None):
-    # SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
-    # with its summary and index.
+    """SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
+    with its summary and index. Exit status 0: the file is complete (also after a budget stop, which
+    the last line reports); 1: an error (bad start value, unwritable path, failed write)."""
     handled = node_main.command_line("recorder_node", "recorder", __doc__, args)  # --help, stray arguments
     if handled is not None:
         return handled
@@ -470,9 +655,8 @@ def main(args=None):
         print(f"recorder: recording to {node.output_path}", flush=True)
         executor = node_main.make_executor("events")
         executor.add_node(node)
-        node_main.serve(executor, node_main.stop_future(), poll=0.5,
-                        done=lambda: node.error is not None or node._check_writer())
-        if node.error is None:
+        node_main.serve(executor, node_main.stop_future(), poll=0.5, done=node._check_writer)
+        if node.active:
             node.drain(executor)  # what was published before the stop is still recorded
         if node.error is not None:
             code = 1
@@ -489,7 +673,8 @@ def main(args=None):
             if node.error is None:
                 lost = sum(c.missing_samples for c in node.streams.values())
                 print(f"recorder: closed {node.output_path} ({node.writer.message_count} messages, "
-                      f"{lost} samples lost)", flush=True)
+                      f"{lost} samples lost)" + (f"; {node.stopped_reason}" if node.stopped_reason else ""),
+                      flush=True)
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()

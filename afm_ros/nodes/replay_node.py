@@ -8,8 +8,10 @@ time of every replayed deflection chunk (from its preamble). So a lock-in or z-c
 run again on recorded deflection data.
 
 Files: a missing, empty or non-MCAP file and an unknown schema raise
-:class:`~afm_ros.formats.mcap_io.SessionFileError` naming the file and the problem. A truncated file
-(killed recorder, no footer) is played as far as it is intact, with a warning saying so.
+:class:`~afm_ros.formats.mcap_io.SessionFileError` naming the file and the problem. Topics come from
+the file's summary section when it has an intact one, so a damaged chunk loses only its own
+messages. A truncated or damaged file (killed recorder, flipped bits) is played as far as it is
+intact, with a warning saying what was lost; the executable then exits with status 2.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from std_msgs.msg import Float64MultiArray
 from afm_ros.nodes import ros_params
 from afm_ros.formats.chunk_layout import unpack
 from afm_ros.formats.mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan, check_mcap_file, message_class,
-                      read_session)
+                                    read_session, read_summary)
 from afm_ros.nodes.recorder_node import matches, split_patterns
 from afm_ros.nodes import node_main
 
@@ -61,25 +63,21 @@ def _time_msg(t: float) -> TimeMsg:
 
 
 def session_channels(path) -> SessionScan:
-    """Channels and schemas of a session: from the summary if complete, else by reading it once."""
+    """Channels and schemas of a session: from its summary section if it has an intact one (so a
+    damaged first chunk loses no topic), else by reading the file once (the counts then say how
+    many messages are intact)."""
     p = check_mcap_file(path)
-    from mcap.reader import make_reader
-    try:
-        with open(p, "rb") as f:
-            summary = make_reader(f).get_summary()
-    except Exception:  # no/damaged footer: fall back to a full tolerant read
-        summary = None
+    summary = read_summary(p)
     scan = SessionScan(p)
-    if summary is not None:
-        scan.channels = dict(summary.channels)
-        scan.schemas = dict(summary.schemas)
-        scan.complete = True
-        if summary.statistics is not None:
-            counts = summary.statistics.channel_message_counts
-            scan.message_counts = {c.topic: counts.get(cid, 0) for cid, c in summary.channels.items()}
+    if summary is None:
+        for _ in read_session(p, scan):
+            pass
         return scan
-    for _ in read_session(p, scan):
-        pass
+    scan.summary = summary
+    scan.channels = dict(summary.channels)
+    scan.schemas = dict(summary.schemas)
+    scan.complete = True  # as far as known before reading: playback finds any damage
+    scan.message_counts = scan.expected_counts()
     return scan
 
 
@@ -136,7 +134,11 @@ class ReplayNode(Node):
         # derived clock: relative, like the cantilever's (/clock in the root namespace)
         self._clock_pub = self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
         self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
+        # messages of the replayed topics the file should hold (its summary's statistics, or what
+        # the tolerant read of a file without a summary found intact)
+        self.expected: dict[str, int] = {t: scan.message_counts.get(t, 0) for t in self._replay_pubs}
         self.damage = ""  # what damage playback met (empty: none)
+        self.scan: SessionScan = scan  # of the last pass through the file
         self.done = threading.Event()
         self.error: Exception | None = None
         self._stop = threading.Event()
@@ -179,20 +181,37 @@ class ReplayNode(Node):
                 self._play_once()
                 if not self._values["loop"]:
                     break
-            self.get_logger().info(f"replay of {self.path} finished: {sum(self.published.values())} messages"
-                                   + (f" ({self.damage})" if self.damage else ""))
+            if self.complete:
+                self.get_logger().info(self.outcome())
+            else:
+                self.get_logger().warning(self.outcome())
         except Exception as exc:  # reported to main; the node stays inspectable
             self.error = exc
-            self.get_logger().error(f"replay of {self.path} failed: {exc}")
+            self.get_logger().error(f"replay failed: {exc}" if isinstance(exc, SessionFileError)
+                                    else f"replay of {self.path} failed: {exc}")
         finally:
             self.done.set()
+
+    def outcome(self) -> str:
+        """One line: how much was replayed and, if the file is not complete, what was lost and why."""
+        n = sum(self.published.values())
+        if self.complete:
+            return f"replay of {self.path} finished: {n} messages"
+        if self.scan.all_read:
+            return (f"replay of {self.path} finished: {n} messages, every one in the file, but the file is not "
+                    f"complete: {self.scan.truncated_reason}")
+        expected = sum(self.expected.values())
+        of = f" of {expected}" if self.scan.summary is not None and expected != n else ""
+        return (f"replay of {self.path} finished: {n}{of} messages replayed; the file is not complete: "
+                f"{self.scan.truncated_reason}")
 
     def _play_once(self) -> None:
         with self._rate_lock:
             self._anchor = (time.monotonic(), 0.0)
         first = None
-        scan = SessionScan(self.path)
+        scan = self.scan = SessionScan(self.path)
         damaged = 0
+        replayed = 0
         for m in read_session(self.path, scan, topics=set(self._replay_pubs)):
             if len(scan.damaged) > damaged:  # met damage on the way: say so now, and what is skipped
                 damaged = len(scan.damaged)
@@ -204,10 +223,17 @@ class ReplayNode(Node):
                 return
             self._replay_pubs[m.topic].publish(m.data)
             self.published[m.topic] += 1
+            replayed += 1
             if self._derive_clock and m.type_name == CHUNK_TYPE and m.topic.endswith("deflection"):
                 header, samples = unpack(deserialize_message(m.data, Float64MultiArray).data)
                 end = header.t_start + samples.shape[0] * header.sample_interval
                 self._clock_pub.publish(ClockMsg(clock=_time_msg(end)))
+        self.complete = scan.complete
+        if scan.damaged or scan.orphan_messages:
+            self.damage = scan.damage_text
+        if not replayed and any(self.expected.values()):
+            raise SessionFileError(f"{self.path}: no message of the replayed topics could be read "
+                                   f"({scan.truncated_reason or 'none is intact'})")
 
     def destroy_node(self):
         self._stop.set()
@@ -217,6 +243,9 @@ class ReplayNode(Node):
 
 
 def main(args=None):
+    """Exit status: 0 = every message of the file replayed; 1 = nothing replayed (the error names the
+    file); 2 = the file is damaged or truncated: its intact part was replayed, some messages were
+    lost (the last line says how many and where)."""
     handled = node_main.command_line("replay_node", "replay", __doc__, args)  # --help, stray arguments
     if handled is not None:
         return handled
@@ -229,8 +258,10 @@ def main(args=None):
         node = ReplayNode()
         while node_main.running() and not node.done.is_set():
             rclpy.spin_once(node, timeout_sec=0.1)
-        if node.error is not None:
+        if node.error is not None:  # logged by the node, naming the file
             code = 1
+        elif node.done.is_set() and not (node.complete or node.scan.all_read):
+            code = 2  # the node's last line says what was lost
     except (SessionFileError, ValueError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr, flush=True)
         code = 1

@@ -51,14 +51,16 @@ class Acknowledger:
     more is sent, so a consumer that left cannot sign up again by a late acknowledgement.
     """
 
-    def __init__(self, node, topic: str = ACK):
+    def __init__(self, node, topic: str = ACK, first_index: int = ACK_READY):
+        """``first_index``: the first acknowledgement (ACK_READY: waited for from the chunk the
+        cantilever is at; 0: the cantilever holds until the consumer has caught up from its history)."""
         self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
         self._msg = Int64MultiArray()
         self._msg.layout.dim = [MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)]
         self._lock = threading.Lock()
         self.left = False
-        self.next_index = ACK_READY
-        self.send(ACK_READY)
+        self.next_index = first_index
+        self.send(first_index)
 
     def send(self, next_index: int) -> None:
         """Every deflection sample before ``next_index`` has been handled (ACK_READY: none yet)."""
