@@ -45,6 +45,7 @@ from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
+from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
 from afm_ros.tools.run_setup import RosArgs, make_run_folder, session_path
 from afm_ros.formats import chunk_layout
@@ -66,6 +67,12 @@ IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}
 # per-output scalar copies of the batches (unless --record-raw): a session a person can leave on
 RAW_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
                         "z_controller/z_piezo", "z_controller/error"))
+# measured recording sizes (zstd, default noise): the raw streams 28.6 MB for 2.03 s simulated; the batches,
+# parameters and diagnostics 1.64 MB for 16 s (--interactive); the images of a 64 x 64 frame 2.4 MB of the
+# 10.5 MB published (10 channels x the whole frame after every line)
+RAW_BYTES_PER_S = 14.1e6
+BATCH_BYTES_PER_S = 0.10e6
+IMAGE_BYTES_PER_PIXEL_LINE = 10.0  # x pixels x lines^2 per frame
 IMAGE_FORCE_MODEL = "viscoelastic_dmt"  # --image: PS and LDPE differ in dissipation, hence in phase
 INTERRUPTED_STATUS = 130  # the shell's convention for a job ended by Ctrl-C (128 + SIGINT)
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second
@@ -354,11 +361,12 @@ class Summary:
         ]
         if self.recording:
             r = self.recording
-            state = ("complete" if r.get("complete") else
-                     f"STOPPED ({r['stopped']})" if r.get("stopped") else "INCOMPLETE")
+            state = ("complete" if r.get("complete") else "STOPPED at its budget" if r.get("stopped") else "INCOMPLETE")
             size = f"{r['bytes'] / 1e6:.1f} MB, " if r.get("bytes") else ""
             lines.append(f"  recording           {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
+            if r.get("stopped"):
+                lines.append(f"                      {r['stopped']}")
         if self.image:
             from afm_ros.tools.frame_report import frame_lines
             im = self.image
@@ -672,13 +680,16 @@ class Instrument:
             lost = int(v.get("lost_samples", "-1"))
             status = self.monitor.diagnostics.get(f"{self.attached_recorder}: recording")
             failed = status is not None and status.level == DiagnosticStatus.ERROR
-            return {"file": v.get("file", "?"), "complete": lost == 0 and not failed, "lost_samples": lost,
-                    "error": status.message if failed else ""}
+            stopped = v.get("stopped", "")
+            return {"file": v.get("file", "?"), "complete": lost == 0 and not failed and not stopped,
+                    "lost_samples": lost, "error": status.message if failed else "", "stopped": stopped,
+                    "bytes": int(v.get("bytes_written", "0") or 0)}
         if rec is None:
             return {}
         lost = sum(c.missing_samples for c in rec.streams.values())
-        return {"file": rec.output_path, "complete": rec.error is None and lost == 0,
+        return {"file": rec.output_path, "complete": rec.error is None and lost == 0 and not rec.budget_reached,
                 "lost_samples": lost, "error": str(rec.error) if rec.error is not None else "",
+                "stopped": rec.stopped_reason if rec.budget_reached else "", "bytes": rec.bytes_written,
                 "streams": rec.stream_report()}
 
     def run_job(self, duration: float, free_time: float, setpoint_ratio: float | None,
@@ -883,6 +894,32 @@ class Instrument:
                 else "no line was complete: nothing kept")
         return f"at t={self.monitor.answer_time:.3f} s simulated, while scanning: {kept}"
 
+    def check_recording(self, simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> None:
+        """Before a job of ``simulated_s`` simulated seconds: the session it records fits in the
+        recorder's max_size and in the file system's free space above min_free_space (estimate:
+        :func:`expected_recording_bytes`); ValueError with what to do."""
+        import shutil
+
+        rec = self.nodes.get("recorder")
+        if rec is None or not rec.active:
+            return
+        need = expected_recording_bytes(simulated_s, raw, frame)
+        budget = rec.get_parameter("max_size").value
+        what = (f"this job records about {_mb(need)} ({simulated_s:.3g} s simulated"
+                + (", the raw streams" if raw else "") + (f", the images of {frame[0]} x {frame[1]} pixels, "
+                                                         f"published whole after every line" if frame else "") + ")")
+        if 0 < budget < need:
+            raise ValueError(f"{what}, over the recorder's max_size {_mb(budget)}: raise it (-p recorder:max_size:=...), "
+                             f"record less (" + ("leave out --record-raw, " if raw else "")
+                             + ("-p recorder:exclude:=... with /scanner/image/*, the frame file holds the images; "
+                                if frame else "") + "or --no-record)")
+        folder = Path(rec.output_path).parent
+        free = shutil.disk_usage(folder).free
+        keep = rec.get_parameter("min_free_space").value
+        if free - keep < need:
+            raise ValueError(f"{what}, but {folder} has {_mb(free)} free and the recorder keeps min_free_space "
+                             f"{_mb(keep)} free: free disk space, record elsewhere (--out) or record less")
+
     def check_scan(self) -> None:
         """Before the image job engages: the scan can be completed and its files written
         (:func:`afm_ros.core.scanner.check_scan`, :func:`afm_ros.formats.folders.check_output_directory`);
@@ -903,6 +940,7 @@ class Instrument:
               f"'afm_ctl{self._ns_flag()} set z_controller setpoint 40e-9', 'afm_ctl{self._ns_flag()} list', "
               f"'afm_ctl{self._ns_flag()} watch' (with ROS 2: ros2 param set)", flush=True)
         last = time.monotonic()
+        rate_said = False
         stop = node_main.stop_future()
         try:
             while self.context_ok():
@@ -910,9 +948,25 @@ class Instrument:
                 if time.monotonic() - last >= STATUS_PERIOD_S:
                     last = time.monotonic()
                     print(self.status_line(), flush=True)
+                    if not rate_said:
+                        rate_said = self._say_recording_rate()
         finally:
             if not self.attached:
                 self.cantilever.stop()
+
+    def _say_recording_rate(self) -> bool:
+        """Once the recorder has measured it: the recording's rate and how long its budget lasts; True if said."""
+        rec = self.nodes.get("recorder")
+        if rec is None or not rec.active:
+            return True
+        _, per_sim = rec.write_rate()
+        if not per_sim:
+            return False
+        budget = rec.get_parameter("max_size").value
+        left = (f"; max_size {_mb(budget)} is reached in about {(budget - rec.bytes_written) / per_sim / 3600:.3g} h "
+                f"simulated" if budget > 0 else "")
+        print(f"recording at {_mb(per_sim)} per simulated second{left}", flush=True)
+        return True
 
     def _ns_flag(self) -> str:
         return f" --ns {self.namespace}" if self.namespace else ""
@@ -1049,10 +1103,11 @@ def main(args=None):
         return failed
     instrument = None
     status = 0
+    refused = False  # by the checks before the job: the run folder made for it goes again
+    run_folder = None
     try:
         record = not (options.no_record or options.attach)
         scanner = options.image or options.live_view
-        run_folder = None
         if (record or scanner) and not options.attach:
             try:
                 run_folder = make_run_folder(options.out, ros.namespace)
@@ -1077,6 +1132,18 @@ def main(args=None):
                   f"foxglove.sdk.v1; no authentication)", flush=True)
         if "recorder" in instrument.nodes:
             print(recording_line(instrument.nodes["recorder"], options.record_raw), flush=True)
+        try:  # what the job needs, checked before it starts
+            frame_time, frame = 0.0, None
+            if options.image:
+                instrument.check_scan()
+                plan = ScanPlan.from_values(instrument.nodes["scanner"]._values)
+                frame_time, frame = plan.frame_time, (plan.pixels, plan.lines)
+            if not options.interactive:  # a bounded job: its session must fit
+                instrument.check_recording(options.free_time + options.duration + frame_time, options.record_raw,
+                                           frame)
+        except ValueError:
+            refused = True
+            raise
         if options.image:
             summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
                                                options.band)
@@ -1111,17 +1178,46 @@ def main(args=None):
                 instrument.destroy()
             rclpy.try_shutdown()
         node_main.teardown_within(teardown, "afm_instrument", status)
+        if refused and run_folder is not None and options.out is None:
+            _remove_unused_run_folder(run_folder)
     return status
 
 
+def _remove_unused_run_folder(folder: Path) -> None:
+    """A run refused before its job started leaves nothing: its new folder holds only the session file
+    the recorder opened (no data yet)."""
+    files = list(folder.iterdir())
+    if all(f.name.startswith("afm_session_") and f.suffix == ".mcap" for f in files):
+        for f in files:
+            f.unlink()
+        folder.rmdir()
+
+
+def expected_recording_bytes(simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> float:
+    """About how many bytes [B] a session of ``simulated_s`` simulated seconds records (zstd, default
+    noise), with the raw streams or not, and the images of a ``(pixels, lines)`` frame: every line
+    publishes all ten images whole, 40 x pixels x lines^2 bytes over a frame, about a quarter of it
+    left after compression (measured, see the constants)."""
+    images = IMAGE_BYTES_PER_PIXEL_LINE * frame[0] * frame[1] ** 2 if frame is not None else 0.0
+    return simulated_s * (BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)) + images
+
+
+def _mb(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e9 else f"{n / 1e6:.3g} MB"
+
+
 def recording_line(recorder, raw: bool) -> str:
-    """The start line of the recording: the file, what is recorded and what it costs."""
-    what = ("every stream, the raw 900 kS/s deflection and force included (about 14 MB per simulated second "
-            "with the default noise)" if raw else
-            "the loop's batches (every lock-in output, z and error), images, parameters and diagnostics; the raw "
-            "900 kS/s deflection and force streams are off (--record-raw adds them: about 14 MB per simulated "
-            "second with the default noise)")
-    return f"recording to {recorder.output_path}: {what}"
+    """The start line of the recording: the file, what is recorded, what it costs and its budget."""
+    what = (f"every stream, the raw 900 kS/s deflection and force included (about {_mb(RAW_BYTES_PER_S)} per "
+            f"simulated second with the default noise)" if raw else
+            f"the loop's batches (every lock-in output, z and error), images, parameters and diagnostics, about "
+            f"{_mb(BATCH_BYTES_PER_S)} per simulated second plus the images; the raw 900 kS/s deflection and force "
+            f"streams are off (--record-raw adds about {_mb(RAW_BYTES_PER_S)} per simulated second)")
+    budget = recorder.get_parameter("max_size").value
+    rate = BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)
+    limit = (f"; max_size {_mb(budget)} (about {budget / rate / 3600:.3g} h simulated at that rate), then the file "
+             f"is closed complete and recording stops" if budget > 0 else "; no size limit (max_size 0)")
+    return f"recording to {recorder.output_path}: {what}{limit}"
 
 
 if __name__ == "__main__":
