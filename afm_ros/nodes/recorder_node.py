@@ -19,12 +19,12 @@ cannot deliver message info), both ns since the epoch (see docs/recording.md).
 from __future__ import annotations
 
 import fnmatch
-from collections import deque
 import os
 import queue
 import sys
 import threading
 import time
+from collections import deque
 
 import rclpy
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -190,8 +190,9 @@ class RecorderNode(Node):
         # A recorder that joins a running instrument first acknowledges sample 0: the cantilever holds
         # (flow window) until the recorder has written the chunks of the publishers' transient-local
         # history, so that history is not pushed out by new chunks before it reached the recorder
-        # (which left holes at the start of the recording); a recorder that starts with the
-        # instrument is not held (the stream is at 0). A recorder of neither stream is no consumer.
+        # (which left holes at the start of the recording); for a recorder that starts with the
+        # instrument (stream at 0) this is the ordinary flow window. A recorder of neither stream is
+        # no consumer.
         acks = self._wanted(self._own_deflection) or self._ack_by_outputs
         # the cantilever's /diagnostics list its consumers: the hold is in force once they list the recorder
         self._hold_confirmed = not acks
@@ -199,7 +200,7 @@ class RecorderNode(Node):
                                                   10) if acks else None
         self._ack = topics.Acknowledger(self, first_index=0) if acks else None
         self._acked_stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
-        self._subscribe_after: float | None = None  # wall time after which topics are subscribed unheld
+        self._subscribe_after: float | None = None  # wall time after which the stream is subscribed unheld
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs: dict[str, object] = {}
         self._channel: dict[str, int] = {}
