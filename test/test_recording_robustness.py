@@ -275,6 +275,10 @@ def test_recorder_joining_a_running_instrument_starts_clean(localhost_context, t
             diag = values(sink.last[name])
             ex.remove_node(rec)
             rec.destroy_node()
+            # the next recorder has the same name: start it once the cantilever has let this one go
+            spin_until(ex, lambda: f"{ns}/recorder" not in next(
+                (values(st)["consumers"].split(",") for st in sink.last.values() if "consumers" in values(st)),
+                [f"{ns}/recorder"]), timeout=30, what="the cantilever letting the recorder go")
             assert diag["lost_samples"] == "0", [f"{k}={v}" for k, v in diag.items() if "missing" in k]
             chunks = chunk_indices(path, "cantilever/deflection")
             assert not gaps(chunks), f"join {k}: holes after the first recorded chunk: {gaps(chunks)[:5]}"

@@ -331,7 +331,7 @@ class SessionWriter:
         for n in range(2, 10_000):
             try:
                 stream = open(candidate, "xb")
-                self.requested_path, self.path = self.path, candidate
+                self.path = candidate
                 return stream
             except FileExistsError:
                 if not unique:

@@ -19,12 +19,12 @@ cannot deliver message info), both ns since the epoch (see docs/recording.md).
 from __future__ import annotations
 
 import fnmatch
-from collections import deque
 import os
 import queue
 import sys
 import threading
 import time
+from collections import deque
 
 import rclpy
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -190,15 +190,17 @@ class RecorderNode(Node):
         # A recorder that joins a running instrument first acknowledges sample 0: the cantilever holds
         # (flow window) until the recorder has written the chunks of the publishers' transient-local
         # history, so that history is not pushed out by new chunks before it reached the recorder
-        # (which left holes at the start of the recording); a recorder that starts with the
-        # instrument is not held (the stream is at 0). A recorder of neither stream is no consumer.
+        # (which left holes at the start of the recording); for a recorder that starts with the
+        # instrument (stream at 0) this is the ordinary flow window. A recorder of neither stream is
+        # no consumer.
         acks = self._wanted(self._own_deflection) or self._ack_by_outputs
         # the cantilever's /diagnostics list its consumers: the hold is in force once they list the recorder
         self._hold_confirmed = not acks
         self._hold_sub = self.create_subscription(DiagnosticArray, "/diagnostics", self._on_hold_diagnostics,
                                                   10) if acks else None
         self._ack = topics.Acknowledger(self, first_index=0) if acks else None
-        self._subscribe_after: float | None = None  # wall time after which topics are subscribed unheld
+        self._acked_stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
+        self._subscribe_after: float | None = None  # wall time after which the stream is subscribed unheld
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs: dict[str, object] = {}
         self._channel: dict[str, int] = {}
@@ -284,19 +286,19 @@ class RecorderNode(Node):
             self._hold_confirmed = True
 
     def _held(self, present: set[str]) -> bool:
-        """Once the acknowledged stream is in the graph, subscriptions (but the global topics) wait
-        until the cantilever's /diagnostics list the recorder as a consumer, i.e. until the hold
+        """Once the acknowledged stream is in the graph, its subscription waits until the
+        cantilever's /diagnostics list the recorder as a consumer, i.e. until the hold
         (acknowledgement 0) is in force, so no history chunk is pushed out before it reaches the
         recorder; at most HOLD_WAIT_S (a stream without a cantilever, e.g. a replay, has nobody
-        to hold)."""
+        to hold). Other topics are subscribed at once: those published only while subscribed
+        (force, the per-output copies) start with the subscription."""
         if self._hold_confirmed or (self._subscribe_after is not None and time.monotonic() >= self._subscribe_after):
             if self._hold_sub is not None:
                 self.destroy_subscription(self._hold_sub)
                 self._hold_sub = None
             return False
         if self._subscribe_after is None:
-            stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
-            if stream not in present:
+            if self._acked_stream not in present:
                 return False
             self._subscribe_after = time.monotonic() + HOLD_WAIT_S
         return True
@@ -310,7 +312,7 @@ class RecorderNode(Node):
             for topic, types in graph:
                 if topic in self._subs or not self._wanted(topic):
                     continue
-                if held and topic not in GLOBAL_TOPICS and topic != PARAMETER_EVENTS:
+                if held and topic == self._acked_stream:
                     continue
                 if len(types) != 1:
                     self.get_logger().warn(f"not recording {topic}: it has several types {types}")
