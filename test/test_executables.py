@@ -273,3 +273,35 @@ def test_afm_instrument_interactive_runs_until_ctrl_c_then_prints_the_summary(tm
     assert summary["simulated_time_s"] > 1.0 and summary["hold_window"] == "the last second before Ctrl-C"
     assert summary["reached_amplitude_m"] == pytest.approx(summary["setpoint_m"], rel=1e-3)
     assert summary["lost_samples"] == 0 and summary["recording"]["complete"]
+
+
+def test_afm_instrument_at_its_recording_budget_goes_on_and_says_so(tmp_path):
+    """--interactive with a 300 kB max_size: the recorder closes the file complete when the next
+    message would exceed it (batches at ~0.1 MB per simulated second: a few simulated seconds), the
+    loop goes on (the job does not wait for a recorder that stopped), the summary says STOPPED with
+    the recorder's reason, the file is complete and within the budget, and the exit status is 1 (not
+    everything was recorded)."""
+    from mcap.reader import make_reader
+    proc = subprocess.Popen([str(VENV / "bin" / "afm_instrument"), "--interactive", "--json", "--ros-args",
+                             "-p", "recorder:max_size:=300000.0", "-p", "real_time_factor:=0.0"],
+                            env=child_env(None, "OFF"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    lines = []
+    deadline = time.monotonic() + 300
+    # status lines every 5 s of wall time; the budget goes after ~3 simulated seconds, as fast as possible
+    while sum(line.startswith("t=") for line in lines) < 2:
+        line = proc.stdout.readline()
+        assert (line or proc.poll() is None) and time.monotonic() < deadline, proc.communicate()[1]
+        lines.append(line)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err
+    summary = json.loads(out.strip().splitlines()[-1])
+    rec = summary["recording"]
+    assert not rec["complete"] and "max_size" in rec["stopped"], rec
+    assert "recording           STOPPED at its budget" in out
+    assert summary["simulated_time_s"] > 5.0  # the loop went on well past the stop
+    with open(rec["file"], "rb") as f:
+        assert make_reader(f).get_summary() is not None  # closed complete
+    assert os.path.getsize(rec["file"]) <= 300000

@@ -650,10 +650,10 @@ class Instrument:
         topic = rec.resolve_topic_name(topics.DEFLECTION)
         end = self.cantilever.samples_submitted
         if rec._ack_by_outputs:  # the raw streams are not recorded: the lock-in batches of every chunk are
-            self.spin_until(lambda: rec.error is not None or rec._ack.next_index >= end,
+            self.spin_until(lambda: not rec.active or rec._ack.next_index >= end,
                             "waiting for the recorder to write the last lock-in batches")
         else:
-            self.spin_until(lambda: rec.error is not None or (topic in rec.streams
+            self.spin_until(lambda: not rec.active or (topic in rec.streams
                                                                and rec.streams[topic].next_index == end),
                             "waiting for the recorder to write the last chunks")
         # the per-output copies (lockin/amplitude, z_controller/z_piezo, ...) are not ordered with the
@@ -662,7 +662,7 @@ class Instrument:
         # recorder that subscribed after more than a history's worth of them
         expected = {pub.topic_name: count for pub, count in self._copy_publishers() if pub.topic_name in rec.received}
         deadline = time.monotonic() + COPIES_WAIT_S
-        self.spin_until(lambda: rec.error is not None or time.monotonic() > deadline
+        self.spin_until(lambda: not rec.active or time.monotonic() > deadline
                         or all(rec.received[t] >= n for t, n in expected.items()),
                         "waiting for the recorder to take the last per-output messages")
         rec.drain(self.executor)
