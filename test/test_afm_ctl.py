@@ -311,9 +311,10 @@ def test_scan_frame_wait_and_watch_against_a_running_instrument(monkeypatch, ctl
 
 @pytest.fixture
 def separate_processes(ctl_env, tmp_path):
-    """z_controller_node and scanner_node as separate processes in the root namespace."""
+    """z_controller_node, lockin_node and scanner_node as separate processes in the root namespace
+    (the scanner checks a scan against the lock-in's output_rate, so it needs the lock-in)."""
     procs = []
-    for exe in ("z_controller_node", "scanner_node"):
+    for exe in ("z_controller_node", "lockin_node", "scanner_node"):
         log = open(tmp_path / f"{exe}.log", "wb")
         procs.append((subprocess.Popen([str(VENV_BIN / exe)], env=ctl_env, stdout=log, stderr=subprocess.STDOUT,
                                        cwd=tmp_path), log))
@@ -334,7 +335,12 @@ def test_separate_processes_in_the_root_namespace(separate_processes, ctl_env):
     assert r.returncode == 0 and r.stdout == "/z_controller setpoint: 4.8e-08 -> 4e-08 m (40 nm)\n", r.stderr
     r = ctl(ctl_env, "get", "/z_controller", "setpoint", "--value-only")
     assert (r.returncode, r.stdout) == (0, "4e-08\n"), r.stderr
-    r = ctl(ctl_env, "scan", "frame")
+    # the scanner refuses until it has learned the lock-in's output_rate (discovery, then its answer)
+    deadline = time.monotonic() + 120
+    while True:
+        r = ctl(ctl_env, "scan", "frame")
+        if r.returncode == 0 or "not known yet" not in r.stderr or time.monotonic() > deadline:
+            break
     assert r.returncode == 0 and r.stdout.startswith("scan 1 requested"), r.stderr
     assert ctl(ctl_env, "scan", "stop").returncode == 0
     # nodes of separate processes are discovered one by one: nodes gathers them (a very busy
