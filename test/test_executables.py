@@ -305,3 +305,15 @@ def test_afm_instrument_at_its_recording_budget_goes_on_and_says_so(tmp_path):
     with open(rec["file"], "rb") as f:
         assert make_reader(f).get_summary() is not None  # closed complete
     assert os.path.getsize(rec["file"]) <= 300000
+
+
+def test_afm_instrument_refuses_a_job_whose_session_cannot_fit_before_it_starts(tmp_path):
+    """10 simulated seconds with the raw streams record ~140 MB (14.1 MB per simulated second, measured):
+    with a 50 MB max_size the job is refused at once with what to do, and leaves no run folder."""
+    result = subprocess.run([str(VENV / "bin" / "afm_instrument"), "--duration", "10", "--record-raw",
+                             "--ros-args", "-p", "recorder:max_size:=5e7"],
+                            env=child_env(None, "OFF"), capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr and "afm_instrument summary" not in result.stdout
+    assert "over the recorder's max_size 50 MB" in result.stderr and "--record-raw" in result.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing made for a job that never started

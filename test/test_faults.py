@@ -268,20 +268,31 @@ def small_disk(tmp_path):
 
 
 def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file_readable(small_disk):
+    """A disk that fills during a session (an unbounded --interactive one: a bounded job whose session
+    cannot fit is refused before it starts, tested in test_image_job and test_executables)."""
+    import signal
     from afm_ros.formats.mcap_io import SessionScan, read_session
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
-    result = subprocess.run([str(BIN / "afm_instrument"), "--duration", "8", "--record-raw", "--ros-args",
+    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--interactive", "--record-raw", "--ros-args",
                              "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25",
                              # the disk is far below the default min_free_space (the recorder would not start)
                              "-p", "recorder:min_free_space:=0.0",
                              # noise-free: noise does not compress, and the byte budget above assumes it does
                              "-p", "cantilever:temperature:=0.0", "-p", "cantilever:detector_noise_density:=0.0"],
-                            env=env, capture_output=True, text=True, timeout=300, cwd=small_disk)
-    assert result.returncode == 1
-    assert "Traceback" not in result.stderr
-    assert "No space left on device" in result.stderr and "the recording is incomplete" in result.stderr
-    assert "recording           INCOMPLETE" in result.stdout
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=small_disk)
+    err_lines = []
+    for line in proc.stderr:  # the recorder's error, then the loop goes on until Ctrl-C
+        err_lines.append(line)
+        if "No space left on device" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    err = "".join(err_lines) + err
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err
+    assert "No space left on device" in err and "the recording is incomplete" in err
+    assert "recording           INCOMPLETE" in out
     # the partial file is readable up to the failure: chunks flushed before it are intact
     path = next(small_disk.glob("afm_runs/*/afm_session_*.mcap"))
     scan = SessionScan(path)

@@ -47,7 +47,7 @@ from std_msgs.msg import Float64MultiArray
 
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
-from afm_ros.tools.run_setup import RosArgs, make_run_folder, session_path
+from afm_ros.tools.run_setup import RUNS_DIR, RosArgs, make_run_folder, session_path
 from afm_ros.formats import chunk_layout
 
 from afm_ros.nodes import node_main, topics
@@ -1191,6 +1191,8 @@ def _remove_unused_run_folder(folder: Path) -> None:
         for f in files:
             f.unlink()
         folder.rmdir()
+        if folder.parent.name == RUNS_DIR and not any(folder.parent.iterdir()):
+            folder.parent.rmdir()
 
 
 def expected_recording_bytes(simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> float:
