@@ -308,7 +308,7 @@ class CantileverNode(Node):
             self.scan_plan = None
             self._sim.set_scan(parked_plan(x, y))
             applied = {"park": [x, y], "time": t0}
-        v, s = self._values, self._setup
+        v = self._values
         applied.update({
             "id": self._plan_id, "request_id": request.get("id"),
             "spring_constant_N_per_m": v["spring_constant"], "quality_factor": v["quality_factor"],

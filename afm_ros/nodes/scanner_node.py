@@ -41,7 +41,7 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
-from afm_ros.core.scanner import (SCAN_SPECS, SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values,
+from afm_ros.core.scanner import (SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values,
                                   max_pixels)
 from afm_ros.formats.folders import check_output_directory
 from afm_ros.formats import chunk_layout

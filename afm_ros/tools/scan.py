@@ -34,7 +34,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS

@@ -1,0 +1,207 @@
+"""What ``afm_instrument`` tells its user: the summary of a job, its progress and what recording costs.
+
+:class:`Summary` is the job's result (SI units, simulated seconds; ``text()`` the printed summary,
+``asdict`` the ``--json`` line); :class:`JobState` what the job knows so far, so an interrupted job
+is summarised too; :class:`ScanProgress` the image job's progress line; the recording estimates
+(:func:`expected_recording_bytes`) are measured constants, checked against the recorder's budget
+before a bounded job starts.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+from afm_ros.core.session_stats import RollingStats, WindowStats
+
+MAX_SUMMARY_CHANGES = 10  # changes printed in the summary text (the newest; the JSON has all kept)
+# measured recording sizes (zstd, default noise): the raw streams 28.6 MB for 2.03 s simulated; the batches,
+# parameters and diagnostics 1.64 MB for 16 s (--interactive); the images of a 64 x 64 frame 2.4 MB of the
+# 10.5 MB published (10 channels x the whole frame after every line)
+RAW_BYTES_PER_S = 14.1e6
+BATCH_BYTES_PER_S = 0.10e6
+IMAGE_BYTES_PER_PIXEL_LINE = 10.0  # x pixels x lines^2 per frame
+
+
+@dataclass
+class Summary:
+    free_amplitude_m: float
+    free_phase_deg: float
+    setpoint_m: float  # in force at the end (after any live change)
+    reached_amplitude_m: float
+    amplitude_std_m: float
+    contact_phase_deg: float
+    z_piezo_m: float
+    z_base_m: float
+    settling_time_s: float | None  # simulated, from enabling to entering and staying in the band
+    settling_band_m: float
+    engage_time_s: float  # simulated time the feedback was enabled
+    simulated_time_s: float
+    feedback_latency_chunks: int
+    lockin_outputs: int
+    lost_samples: int  # lock-in input samples that never produced outputs (index gaps)
+    non_finite_outputs: int
+    recording: dict = field(default_factory=dict)  # file, complete, lost samples (when recording)
+    hold_window: str = "the last quarter of the hold"
+    wall_time_s: float = 0.0
+    real_time_factor: float = 0.0
+    image: dict = field(default_factory=dict)  # --image: the frame's numbers and files
+    engage_setpoint_m: float = math.nan  # the setpoint the feedback was enabled at
+    setpoint_changes: list = field(default_factory=list)  # live changes: time_s, old_m, new_m, settling_time_s, band_m
+    parameter_changes: list = field(default_factory=list)  # changes by others: time_s (approx.), node, name, value
+    interrupted: str = ""  # what Ctrl-C / SIGTERM interrupted ('' = the job ran to its end)
+    run_folder: str = ""
+
+    def deterministic_part(self) -> dict:
+        """Everything that must repeat exactly between runs (not wall time, not the file name)."""
+        d = asdict(self)
+        for k in ("wall_time_s", "real_time_factor", "recording", "hold_window", "run_folder"):
+            d.pop(k)
+        for k in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor"):
+            d.get("image", {}).pop(k, None)
+        return d
+
+    def text(self) -> str:
+        nm = 1e9
+
+        def settled(t):
+            return "not settled" if t is None else f"{t * 1e3:.3f} ms (simulated)"
+
+        ratio = (f"{100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free"
+                 if self.free_amplitude_m > 0 else "free amplitude not measured")
+        title = "afm_instrument summary"
+        if self.interrupted:
+            title += f" -- INTERRUPTED {self.interrupted}"
+        lines = [title]
+        if self.run_folder:
+            lines.append(f"  run folder          {self.run_folder}")
+        lines += [
+            f"  free amplitude      {self.free_amplitude_m * nm:9.3f} nm",
+            f"  free phase          {self.free_phase_deg:9.3f} deg (lag behind drive)",
+            f"  setpoint            {self.setpoint_m * nm:9.3f} nm ({ratio})"
+            + (" at the end" if self.setpoint_changes else ""),
+        ]
+        if not math.isfinite(self.engage_time_s):
+            lines.append("  (interrupted before the feedback was enabled: no contact numbers)")
+        else:
+            lines += [
+                f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
+                f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
+                f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
+                f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
+                f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
+                f"  settling time       {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
+                f"around the {'engage ' if self.setpoint_changes else ''}setpoint"
+                + (f" {self.engage_setpoint_m * nm:.3f} nm" if self.setpoint_changes else ""),
+            ]
+        for c in self.setpoint_changes[-MAX_SUMMARY_CHANGES:]:
+            lines.append(f"  setpoint change     t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> {c['new_m'] * nm:.3f} nm, "
+                         f"settling {settled(c['settling_time_s'])}"
+                         + (" (by the end)" if c['settling_time_s'] is None else "")
+                         + f", band +-{c['band_m'] * nm:.3f} nm")
+        if len(self.setpoint_changes) > MAX_SUMMARY_CHANGES:
+            lines.append(f"  ... and {len(self.setpoint_changes) - MAX_SUMMARY_CHANGES} earlier setpoint changes")
+        others = [c for c in self.parameter_changes if (c["node"], c["name"]) != ("z_controller", "setpoint")]
+        for c in others[-MAX_SUMMARY_CHANGES:]:  # (setpoint changes: above, placed exactly from the data)
+            lines.append(f"  parameter change    t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = {c['value']!r}")
+        if len(others) > MAX_SUMMARY_CHANGES:
+            lines.append(f"  ... and {len(others) - MAX_SUMMARY_CHANGES} earlier parameter changes")
+        lines += [
+            f"  feedback latency    {self.feedback_latency_chunks} chunk(s), lockstep (deterministic)",
+            f"  lost samples        {self.lost_samples} (lock-in outputs: {self.lockin_outputs}, "
+            f"non-finite: {self.non_finite_outputs})",
+        ]
+        if self.recording:
+            r = self.recording
+            state = ("complete" if r.get("complete") else "STOPPED at its budget" if r.get("stopped") else "INCOMPLETE")
+            size = f"{r['bytes'] / 1e6:.1f} MB, " if r.get("bytes") else ""
+            lines.append(f"  recording           {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
+                         + (f"; {r['error']}" if r.get("error") else "") + ")")
+            if r.get("stopped"):
+                lines.append(f"                      {r['stopped']}")
+        if self.image:
+            from afm_ros.tools.frame_report import frame_lines
+            im = self.image
+            partial = (f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines" if im.get("partial") else "")
+            lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
+                         f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
+                         f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
+            if "report" in im:
+                lines += frame_lines(im["report"])
+            for f in im.get("files", [])[:1]:
+                lines.append(f"  frame file          {f} (+ PNG previews beside it)")
+        lines.append(f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
+                     f"(real-time factor {self.real_time_factor:.2f})")
+        return "\n".join(lines)
+
+
+@dataclass
+class JobState:
+    """What the job knows so far (simulated s, m, deg); the summary is built from it, also after Ctrl-C."""
+
+    wall0: float
+    duration: float = math.nan
+    interactive: bool = False
+    phase: str = "starting"
+    t_start: float = math.nan
+    t_enable: float = math.nan
+    t_end: float = math.nan
+    free: WindowStats | None = None
+    recent: RollingStats | None = None  # the last second, whatever the phase
+    hold: object = None  # WindowStats (scripted hold) or RollingStats (interactive)
+    hold_since: tuple = (math.nan, "")  # the hold statistics restarted then [s], and why (a setpoint change)
+    setpoint: float = math.nan  # engage setpoint [m]
+    band_fraction: float = 0.01
+    latency: int = 0
+    z_base: float = math.nan
+
+
+class ScanProgress:
+    """The image job's progress line: at every tenth of the frame and at least every 15 s of wall time."""
+
+    def __init__(self, plan, scanner, monitor, every_wall_s: float = 15.0):
+        self.plan, self.scanner, self.monitor, self.every = plan, scanner, monitor, every_wall_s
+        self.wall0 = self.last = time.monotonic()
+        self.marks = sorted({max(1, round(plan.lines * k / 10)) for k in range(1, 11)})
+        self.shown = 0
+
+    def __call__(self) -> None:
+        done = min(self.scanner.lines_done, self.plan.lines)
+        now = time.monotonic()
+        mark = next((m for m in reversed(self.marks) if m <= done), 0)
+        if mark > self.shown or (now - self.last >= self.every and done < self.plan.lines):
+            self.shown = max(self.shown, mark)
+            self.last = now
+            sim = max(self.monitor.answer_time - self.plan.start_time, 0.0)
+            wall = now - self.wall0
+            rate = sim / wall if wall > 0 else 0.0
+            left = max(self.plan.frame_time - sim, 0.0) / rate if rate > 0 else math.inf
+            print(f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), {sim:.1f} of "
+                  f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left", flush=True)
+
+
+def expected_recording_bytes(simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> float:
+    """About how many bytes [B] a session of ``simulated_s`` simulated seconds records (zstd, default
+    noise), with the raw streams or not, and the images of a ``(pixels, lines)`` frame: every line
+    publishes all ten images whole, 40 x pixels x lines^2 bytes over a frame, about a quarter of it
+    left after compression (measured, see the constants)."""
+    images = IMAGE_BYTES_PER_PIXEL_LINE * frame[0] * frame[1] ** 2 if frame is not None else 0.0
+    return simulated_s * (BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)) + images
+
+
+def megabytes(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e9 else f"{n / 1e6:.3g} MB"
+
+
+def recording_line(recorder, raw: bool) -> str:
+    """The start line of the recording: the file, what is recorded, what it costs and its budget."""
+    what = (f"every stream, the raw 900 kS/s deflection and force included (about {megabytes(RAW_BYTES_PER_S)} per "
+            f"simulated second with the default noise)" if raw else
+            f"the loop's batches (every lock-in output, z and error), images, parameters and diagnostics, about "
+            f"{megabytes(BATCH_BYTES_PER_S)} per simulated second plus the images; the raw 900 kS/s deflection and force "
+            f"streams are off (--record-raw adds about {megabytes(RAW_BYTES_PER_S)} per simulated second)")
+    budget = recorder.get_parameter("max_size").value
+    rate = BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)
+    limit = (f"; max_size {megabytes(budget)} (about {budget / rate / 3600:.3g} h simulated at that rate), then the file "
+             f"is closed complete and recording stops" if budget > 0 else "; no size limit (max_size 0)")
+    return f"recording to {recorder.output_path}: {what}{limit}"
