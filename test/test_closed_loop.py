@@ -99,5 +99,5 @@ def test_a_setpoint_change_is_placed_and_settled_in_the_summary(instrument):
     assert change["settling_time_s"] is not None and change["settling_time_s"] < 0.2
     assert change["band_m"] == pytest.approx(0.01 * 40e-9)
     assert s.reached_amplitude_m == pytest.approx(40e-9, rel=1e-3)
-    assert "setpoint change     t=" in s.text() and "48.000 -> 40.000 nm" in s.text()
+    assert "setpoint change      t=" in s.text() and "48.000 -> 40.000 nm" in s.text()
     assert s.parameter_changes == []  # the job's own steps are not listed as changes by others

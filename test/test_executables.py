@@ -300,7 +300,7 @@ def test_afm_instrument_at_its_recording_budget_goes_on_and_says_so(tmp_path):
     summary = json.loads(out.strip().splitlines()[-1])
     rec = summary["recording"]
     assert not rec["complete"] and "max_size" in rec["stopped"], rec
-    assert "recording           STOPPED at its budget" in out
+    assert "recording            STOPPED at its budget" in out
     assert summary["simulated_time_s"] > 5.0  # the loop went on well past the stop
     with open(rec["file"], "rb") as f:
         assert make_reader(f).get_summary() is not None  # closed complete

@@ -292,7 +292,7 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     assert proc.returncode == 1, err
     assert "Traceback" not in err
     assert "No space left on device" in err and "the recording is incomplete" in err
-    assert "recording           INCOMPLETE" in out
+    assert "recording            INCOMPLETE" in out
     # the partial file is readable up to the failure: chunks flushed before it are intact
     path = next(small_disk.glob("afm_runs/*/afm_session_*.mcap"))
     scan = SessionScan(path)

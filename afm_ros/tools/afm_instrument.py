@@ -908,12 +908,14 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
             switched.append(f"sample {IMAGE_SAMPLE}")
         if not ros.given("cantilever", "force_model"):
             cantilever["force_model"] = IMAGE_FORCE_MODEL
-            switched.append(f"force_model {IMAGE_FORCE_MODEL} (the parameter's default is dmt, which dissipates "
-                            "nothing: the phase contrast between PS and LDPE comes from dissipation)")
+            switched.append(f"force_model {IMAGE_FORCE_MODEL} (not the parameter's default dmt: the PS/LDPE phase "
+                            "contrast comes from dissipation)")
         plan = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in IMAGE_SCAN.items()}
+        rate = plan["line_rate"]
+        rate = f"{rate:g}" if isinstance(rate, (int, float)) else rate  # (a bad value: the scanner says why)
         notes.append("imaging: " + ", ".join(switched + [
-            f"{plan['pixels_per_line']} x {plan['lines']} pixels at {plan['line_rate']} lines/s"])
-            + "; change any with -p cantilever:<name>:=... or -p scanner:<name>:=...")
+            f"{plan['pixels_per_line']} x {plan['lines']} pixels at {rate} lines/s"])
+            + " (-p cantilever:<name>:=... and -p scanner:<name>:=... change them)")
     if run_folder is not None:
         # '' (the parameters' own default, e.g. from a dumped config) means: the run folder
         if not ros.value("recorder", "output"):

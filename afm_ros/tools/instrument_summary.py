@@ -74,28 +74,28 @@ class Summary:
             title += f" -- INTERRUPTED {self.interrupted}"
         lines = [title]
         if self.run_folder:
-            lines.append(f"  run folder          {self.run_folder}")
+            lines.append(f"  run folder           {self.run_folder}")
         lines += [
-            f"  free amplitude      {self.free_amplitude_m * nm:9.3f} nm",
-            f"  free phase          {self.free_phase_deg:9.3f} deg (lag behind drive)",
-            f"  setpoint            {self.setpoint_m * nm:9.3f} nm ({ratio})"
+            f"  free amplitude       {self.free_amplitude_m * nm:9.3f} nm",
+            f"  free phase           {self.free_phase_deg:9.3f} deg (lag behind drive)",
+            f"  setpoint             {self.setpoint_m * nm:9.3f} nm ({ratio})"
             + (" at the end" if self.setpoint_changes else ""),
         ]
         if not math.isfinite(self.engage_time_s):
             lines.append("  (interrupted before the feedback was enabled: no contact numbers)")
         else:
             lines += [
-                f"  reached amplitude   {self.reached_amplitude_m * nm:9.3f} nm "
+                f"  reached amplitude    {self.reached_amplitude_m * nm:9.3f} nm "
                 f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
-                f"  phase in contact    {self.contact_phase_deg:9.3f} deg",
-                f"  z piezo             {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
+                f"  phase in contact     {self.contact_phase_deg:9.3f} deg",
+                f"  z piezo              {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
                 f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
-                f"  settling time       {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
+                f"  settling time        {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
                 f"around the {'engage ' if self.setpoint_changes else ''}setpoint"
                 + (f" {self.engage_setpoint_m * nm:.3f} nm" if self.setpoint_changes else ""),
             ]
         for c in self.setpoint_changes[-MAX_SUMMARY_CHANGES:]:
-            lines.append(f"  setpoint change     t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> {c['new_m'] * nm:.3f} nm, "
+            lines.append(f"  setpoint change      t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> {c['new_m'] * nm:.3f} nm, "
                          f"settling {settled(c['settling_time_s'])}"
                          + (" (by the end)" if c['settling_time_s'] is None else "")
                          + f", band +-{c['band_m'] * nm:.3f} nm")
@@ -103,34 +103,34 @@ class Summary:
             lines.append(f"  ... and {len(self.setpoint_changes) - MAX_SUMMARY_CHANGES} earlier setpoint changes")
         others = [c for c in self.parameter_changes if (c["node"], c["name"]) != ("z_controller", "setpoint")]
         for c in others[-MAX_SUMMARY_CHANGES:]:  # (setpoint changes: above, placed exactly from the data)
-            lines.append(f"  parameter change    t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = {c['value']!r}")
+            lines.append(f"  parameter change     t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = {c['value']!r}")
         if len(others) > MAX_SUMMARY_CHANGES:
             lines.append(f"  ... and {len(others) - MAX_SUMMARY_CHANGES} earlier parameter changes")
         lines += [
-            f"  feedback latency    {self.feedback_latency_chunks} chunk(s), lockstep (deterministic)",
-            f"  lost samples        {self.lost_samples} (lock-in outputs: {self.lockin_outputs}, "
+            f"  feedback latency     {self.feedback_latency_chunks} chunk(s), lockstep (deterministic)",
+            f"  lost samples         {self.lost_samples} (lock-in outputs: {self.lockin_outputs}, "
             f"non-finite: {self.non_finite_outputs})",
         ]
         if self.recording:
             r = self.recording
             state = ("complete" if r.get("complete") else "STOPPED at its budget" if r.get("stopped") else "INCOMPLETE")
             size = f"{r['bytes'] / 1e6:.1f} MB, " if r.get("bytes") else ""
-            lines.append(f"  recording           {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
+            lines.append(f"  recording            {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
             if r.get("stopped"):
-                lines.append(f"                      {r['stopped']}")
+                lines.append(f"                       {r['stopped']}")
         if self.image:
             from afm_ros.tools.frame_report import frame_lines
             im = self.image
             partial = (f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines" if im.get("partial") else "")
-            lines.append(f"  image               {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
+            lines.append(f"  image                {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
                          f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
                          f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
             if "report" in im:
                 lines += frame_lines(im["report"])
             for f in im.get("files", [])[:1]:
-                lines.append(f"  frame file          {f} (+ PNG previews beside it)")
-        lines.append(f"  simulated / wall    {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
+                lines.append(f"  frame file           {f} (+ PNG previews beside it)")
+        lines.append(f"  simulated / wall     {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
                      f"(real-time factor {self.real_time_factor:.2f})")
         return "\n".join(lines)
 
@@ -194,14 +194,14 @@ def megabytes(n: float) -> str:
 
 
 def recording_line(recorder, raw: bool) -> str:
-    """The start line of the recording: the file, what is recorded, what it costs and its budget."""
-    what = (f"every stream, the raw 900 kS/s deflection and force included (about {megabytes(RAW_BYTES_PER_S)} per "
-            f"simulated second with the default noise)" if raw else
-            f"the loop's batches (every lock-in output, z and error), images, parameters and diagnostics, about "
-            f"{megabytes(BATCH_BYTES_PER_S)} per simulated second plus the images; the raw 900 kS/s deflection and force "
-            f"streams are off (--record-raw adds about {megabytes(RAW_BYTES_PER_S)} per simulated second)")
-    budget = recorder.get_parameter("max_size").value
+    """The start lines of the recording: the file; what is recorded, what it costs and its budget."""
     rate = BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)
-    limit = (f"; max_size {megabytes(budget)} (about {budget / rate / 3600:.3g} h simulated at that rate), then the file "
-             f"is closed complete and recording stops" if budget > 0 else "; no size limit (max_size 0)")
-    return f"recording to {recorder.output_path}: {what}{limit}"
+    what = (f"every stream, the raw 900 kS/s deflection and force included: ~{megabytes(rate)} per simulated second"
+            if raw else
+            f"the loop's batches (every lock-in output, z and error), images, parameters, diagnostics: "
+            f"~{megabytes(rate)} per simulated second + the images; raw streams off (--record-raw: "
+            f"+{megabytes(RAW_BYTES_PER_S)}/s)")
+    budget = recorder.get_parameter("max_size").value
+    limit = (f"; stops cleanly at max_size {megabytes(budget)} (~{budget / rate / 3600:.3g} h simulated)"
+             if budget > 0 else "; no size limit (max_size 0)")
+    return f"recording to {recorder.output_path}\n  {what}{limit}"
