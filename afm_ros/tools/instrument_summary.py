@@ -114,7 +114,7 @@ class Summary:
         if self.recording:
             r = self.recording
             state = ("complete" if r.get("complete") else "STOPPED at its budget" if r.get("stopped") else "INCOMPLETE")
-            size = f"{r['bytes'] / 1e6:.1f} MB, " if r.get("bytes") else ""
+            size = f"{megabytes(r['bytes'])}, " if r.get("bytes") else ""
             lines.append(f"  recording            {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
                          + (f"; {r['error']}" if r.get("error") else "") + ")")
             if r.get("stopped"):
