@@ -281,14 +281,20 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
                              # noise-free: noise does not compress, and the byte budget above assumes it does
                              "-p", "cantilever:temperature:=0.0", "-p", "cantilever:detector_noise_density:=0.0"],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=small_disk)
+    import threading
+    import time
     err_lines = []
-    for line in proc.stderr:  # the recorder's error, then the loop goes on until Ctrl-C
-        err_lines.append(line)
-        if "No space left on device" in line:
-            break
+    reader = threading.Thread(target=lambda: err_lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 240  # the disk fills after a few simulated seconds, as fast as possible
+    while not any("No space left on device" in line for line in list(err_lines)):  # then the loop goes on
+        assert time.monotonic() < deadline and proc.poll() is None, "".join(err_lines)[-2000:]
+        time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    err = "".join(err_lines) + err
+    out = proc.stdout.read()
+    proc.wait(timeout=120)
+    reader.join(timeout=30)
+    err = "".join(err_lines)
     assert proc.returncode == 1, err
     assert "Traceback" not in err
     assert "No space left on device" in err and "the recording is incomplete" in err

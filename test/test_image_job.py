@@ -110,12 +110,14 @@ def test_ctrl_c_during_the_scan_keeps_the_lines_done_as_a_partial_frame(tmp_path
     """Ctrl-C while scanning: the job finishes the current line, writes the lines done as
     ``*_partial.gwy`` (only those rows, marked partial), prints the summary marked INTERRUPTED with
     the frame's numbers over those lines, closes the session and exits 130 (before: exit 0 in 0.4 s,
-    no summary, no frame). 64 lines at 10 lines/s as fast as possible leave seconds of scanning after
-    the progress line of the first lines, whatever the machine."""
+    no summary, no frame). 64 lines at 5 lines/s paced at real time take 12.8 s of scanning after the
+    progress line of the first lines, whatever the machine."""
     import signal
     import time
 
-    args = [a if a != "scanner:lines:=16" else "scanner:lines:=64" for a in ARGS]
+    swap = {"scanner:lines:=16": "scanner:lines:=64", "scanner:line_rate:=10.0": "scanner:line_rate:=5.0",
+            "cantilever:real_time_factor:=0.0": "cantilever:real_time_factor:=1.0"}
+    args = [swap.get(a, a) for a in ARGS]
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     proc = subprocess.Popen([str(BIN / "afm_instrument"), *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)

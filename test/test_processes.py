@@ -124,7 +124,7 @@ def test_two_namespaced_instruments_side_by_side(tmp_path):
         assert s["reached_amplitude_m"] == pytest.approx(setpoint, rel=1e-3)
         assert s["lost_samples"] == 0 and s["recording"]["complete"]
         # each run its own folder, named after its namespace
-        recording = next(cwd.glob(f"afm_runs/*_{ns.strip('/')}/afm_session_*_{ns.strip('/')}.mcap"))
+        recording = next(cwd.glob(f"afm_runs/*_{ns.strip('/')}/afm_session_{ns.strip('/')}_*.mcap"))
         topics = {m.topic for m in read_session(recording)}
         other = "/afm2" if ns == "/afm1" else "/afm1"
         # each recorder keeps to its instrument (global /parameter_events, /diagnostics, /rosout aside)

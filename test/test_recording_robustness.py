@@ -324,8 +324,9 @@ def test_default_names_carry_the_namespace_and_never_collide(ros_context, tmp_pa
     and a name already taken gets _2 (never overwritten, never an error)."""
     monkeypatch.chdir(tmp_path)
     now = dt.datetime.now()
-    # a file of this name exists for the next few seconds: the /afm1 recorder must take _2
-    for s in range(5):
+    # a file of this name exists for the next two minutes (however slowly the recorders start): the
+    # /afm1 recorder must take _2
+    for s in range(120):
         mcap_io.default_output_path(now + dt.timedelta(seconds=s), namespace="/afm1").write_bytes(b"precious")
     recs = [RecorderNode(context=ros_context, namespace=ns) for ns in ("/afm1", "/afm2", "/lab/afm3")]
     try:
@@ -338,7 +339,7 @@ def test_default_names_carry_the_namespace_and_never_collide(ros_context, tmp_pa
             r.destroy_node()
     assert all(scan_session(r.output_path).complete for r in recs)
     taken = [p for p in tmp_path.glob("afm_session_afm1_*.mcap") if not p.name.endswith("_2.mcap")]
-    assert len(taken) == 5 and all(p.read_bytes() == b"precious" for p in taken)
+    assert len(taken) == 120 and all(p.read_bytes() == b"precious" for p in taken)
 
 
 def test_output_of_a_namespaced_recorder_from_the_command_line(tmp_path):

@@ -293,7 +293,9 @@ def test_ctrl_c_tunes_on_the_record_so_far_and_says_so(tmp_path):
             time.sleep(0.05)
         assert simulated() >= 1e6, "".join(err)[-500:]  # > 1 s of record: enough segments to tune on
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=120)
+        out = proc.stdout.read()  # until it exits; stderr is the reader thread's alone
+        proc.wait(timeout=120)
+        reader.join(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()

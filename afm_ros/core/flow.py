@@ -189,7 +189,6 @@ class SlowdownReporter:
         self._given_up = 0.0
         self._mark: tuple[float, float, dict] | None = None  # (wall, simulated, waits) the next report measures from
         self._last_report = -float("inf")
-        self.reports = 0
 
     def update(self, now: float, sim_time: float, given_up: float, requested: float,
                waits: dict[str, float], reasons: dict[str, str]) -> str | None:
@@ -216,7 +215,6 @@ class SlowdownReporter:
             kind = None
         self._mark = (now, sim_time, dict(waits))
         self._last_report = now
-        self.reports += 1
         suggest = float(f"{max(achieved * 0.9, 0.01):.1g}")
         return (f"running at {achieved:.2f}x real time instead of the requested {requested:g}x: "
                 f"{slowdown_bottleneck(kind, reasons.get(kind, ''))} cannot keep up on this machine. Nothing is "

@@ -254,3 +254,12 @@ def cdr_chunk_index(data) -> tuple[int, int]:
     """(first_sample_index, sample count) of a serialized chunk (see :func:`cdr_chunk`)."""
     header, samples = cdr_chunk(data)
     return header.first_sample_index, samples.shape[0]
+
+
+def cdr_clock_seconds(data) -> float:
+    """Simulated time [s] of a serialized rosgraph_msgs/Clock (CDR); ValueError if too short."""
+    order = cdr_byte_order(data)
+    if len(data) < 12:
+        raise ValueError(f"{len(data)} bytes, a Clock needs 12")
+    sec, nanosec = struct.unpack_from(order + "iI", data, 4)
+    return sec + 1e-9 * nanosec

@@ -614,7 +614,8 @@ _OPCODES = {o.value for o in Opcode}
 _RECORD_CLASSES = {Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
                    Opcode.CHUNK: Chunk, Opcode.MESSAGE_INDEX: MessageIndex, Opcode.METADATA: Metadata}
 _RESYNC_WINDOW = 64 << 20  # how far past a damaged record header to look for the next record [B]
-_SUMMARY_LIMIT = 1 << 30  # largest summary section read [B]
+_SUMMARY_LIMIT = 64 << 20  # largest summary section read [B]: an hour of 1 s chunks needs ~8 MB; a flipped bit in
+# the footer must not make every reader allocate its claim before the CRC can refute it
 
 
 def _parse(opcode: int, body: bytes):

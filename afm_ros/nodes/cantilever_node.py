@@ -221,21 +221,27 @@ class CantileverNode(Node):
         height map above afm_ros.core.samples' size bound is refused before it is read. Only the
         samples and surfaces of the values in force, pending and being checked are kept."""
         spec = values["sample"]
-        keep = [self._values, self._requested_values()] if hasattr(self, "_values") else []
+        checked = False
         try:
             if spec not in self._samples:
                 self._samples[spec] = resolve_sample(spec)
             key = self._surface_key(values)
             if key is not None and key not in self._surfaces:
                 self._surfaces[key] = surface_map(self._samples[spec], values["force_model"], self._tip(values))
-            keep.append(values)
+            checked = True
         except (ValueError, OSError) as exc:
             text = str(exc)
             raise ValueError(text if text.startswith("sample=") else f"sample={spec!r}: {text}") from None
         finally:
-            keys = {self._surface_key(v) for v in keep}
-            self._surfaces = {k: v for k, v in self._surfaces.items() if k in keys}
-            self._samples = {k: v for k, v in self._samples.items() if k in {v["sample"] for v in keep}}
+            # what to keep is decided now, under the lock the worker takes to move pending values into
+            # force (a check takes seconds: values applied meanwhile must not be dropped)
+            with self._lock:
+                keep = [self._values, {**self._values, **self._pending}] if hasattr(self, "_values") else []
+                if checked:
+                    keep.append(values)
+                keys = {self._surface_key(v) for v in keep}
+                self._surfaces = {k: v for k, v in self._surfaces.items() if k in keys}
+                self._samples = {k: v for k, v in self._samples.items() if k in {v["sample"] for v in keep}}
 
     @staticmethod
     def _tip(values: dict) -> DMTSample:
@@ -251,9 +257,7 @@ class CantileverNode(Node):
 
     def _apply_sample(self, values: dict) -> None:
         """Put the sample map (tip-dilated, per-material force constants) under the tip, or none."""
-        if values["sample"] not in self._samples:  # dropped by a check that ran meanwhile: load it again
-            self._samples[values["sample"]] = resolve_sample(values["sample"])
-        sample = self._samples[values["sample"]]
+        sample = self._samples[values["sample"]]  # checked at set time and kept while in force or pending
         if sample is None:
             self._sim.set_surface(None)
             self._surface_info = {"sample": values["sample"] or "flat"}
@@ -352,8 +356,8 @@ class CantileverNode(Node):
             if not self._pending:
                 return
             changed, self._pending = self._pending, {}
+            self._values = {**self._values, **changed}  # with the pending ones: a sample check keeps them
         old = self._setup
-        self._values = {**self._values, **changed}
         v = self._values
         new = build(v)
         self._setup = new
@@ -688,8 +692,10 @@ class CantileverNode(Node):
             else:
                 self._lag = 0.0
         if lag is not None:
-            warning = self._slowdown.update(now, self._t_end, self.forgiven_lag_s, rtf, self.wait_wall_s,
-                                            self._wait_reasons)
+            waits = dict(self.wait_wall_s)  # with the wait going on now (counted when it ends)
+            if self._waiting_since is not None:
+                waits[self._wait_kind] += now - self._waiting_since
+            warning = self._slowdown.update(now, self._t_end, self.forgiven_lag_s, rtf, waits, self._wait_reasons)
             if warning is not None:
                 self.get_logger().warning(warning)
         if self._idle_waiting() and self._timer.timer_period_ns != int(IDLE_TIMER_PERIOD_S * 1e9):

@@ -38,11 +38,9 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
                        qos_profile_parameter_events)
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray
 
 from afm_ros.nodes import ros_params, topics
-from afm_ros.formats.chunk_layout import cdr_chunk
+from afm_ros.formats.chunk_layout import cdr_chunk, cdr_clock_seconds, cdr_float64_array
 from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, BudgetReached, RecordingError,
                                     SessionWriter, default_output_path, message_class, qos_profiles_yaml,
                                     serialize_exact)
@@ -115,17 +113,9 @@ def split_patterns(text: str, namespace: str) -> list[str]:
 
 def outputs_end(data: bytes) -> tuple[int, float]:
     """(input_end_index, input_end_time_s) of a serialized lockin/outputs batch (see
-    afm_ros.formats.chunk_layout)."""
-    from rclpy.serialization import deserialize_message
-    values = deserialize_message(data, Float64MultiArray).data
+    afm_ros.formats.chunk_layout), read from the CDR bytes without deserialising the message."""
+    _, values = cdr_float64_array(data)
     return int(values[1]), float(values[2])
-
-
-def clock_seconds(data: bytes) -> float:
-    """Simulated time [s] of a serialized rosgraph_msgs/Clock."""
-    from rclpy.serialization import deserialize_message
-    t = deserialize_message(data, ClockMsg).clock
-    return t.sec + 1e-9 * t.nanosec
 
 
 def matches(topic: str, patterns: list[str]) -> bool:
@@ -406,7 +396,7 @@ class RecorderNode(Node):
             end, self.sim_time = outputs_end(data)
             return end
         elif topic == self._own_clock:
-            self.sim_time = clock_seconds(data)
+            self.sim_time = cdr_clock_seconds(data)
         return acks
 
     def _stop_on_budget(self, exc: BudgetReached) -> None:

@@ -207,15 +207,16 @@ class ScannerNode(Node):
                                f"partial frame" if frame is not None else ""))
         return response
 
-    def stop_scan(self, write_partial: bool = True, timeout: float = 120.0) -> list[Path] | None:
-        """Stop the scan and park the tip at its start; with ``write_partial`` (and ``write_files``)
+    def stop_scan(self, write_partial: bool | None = None, timeout: float = 120.0) -> list[Path] | None:
+        """Stop the scan and park the tip at its start; with ``write_partial`` (default: the
+        ``write_partial_frames`` parameter; and ``write_files``)
         write the lines of the current frame completed so far as a partial frame
         (:meth:`afm_ros.core.imaging.Frame.completed`: only those rows, marked ``frame.partial`` in
         the metadata, ``<prefix>_<date>_<time>_<frame>_partial.gwy`` + previews) and wait for it.
         Returns the paths written ([] if none: no line completed, or the write failed and
         :attr:`write_error` says why), or None if no scan was running; :attr:`partial_frame` is
         the frame of the completed lines (also when nothing is written)."""
-        result = self._stop_scan(write_partial)
+        result = self._stop_scan(self._values["write_partial_frames"] if write_partial is None else write_partial)
         if result is None:
             return None
         _, _, writer = result
@@ -373,7 +374,7 @@ class ScannerNode(Node):
             self.get_logger().error(f"malformed lock-in output batch ignored: {exc}", throttle_duration_sec=5.0)
             return
         last_index, last_time = self._lockin_end
-        if b.input_first_index == last_index and b.input_end_index > last_index:
+        if b.input_first_index == last_index and b.input_end_index > last_index and math.isfinite(last_time):
             self.sample_interval = (b.input_end_time - last_time) / (b.input_end_index - last_index)
         self._lockin_end = (b.input_end_index, b.input_end_time)
         if not record_only and self.accumulator is not None and b.t.shape[0]:

@@ -49,8 +49,9 @@ from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
 from afm_ros.tools.instrument_summary import (JobState, ScanProgress, Summary, megabytes, expected_recording_bytes,
                                               recording_line)
-from afm_ros.tools.run_setup import RUNS_DIR, RosArgs, make_run_folder, session_path
+from afm_ros.tools.run_setup import RUNS_DIR, RosArgs, make_run_folder
 from afm_ros.formats import chunk_layout
+from afm_ros.formats.mcap_io import default_output_path, free_space
 
 from afm_ros.nodes import node_main, topics
 from afm_ros.nodes.cantilever_node import PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS, CantileverNode
@@ -210,10 +211,9 @@ class Monitor(Node):
             self.paired_end_time = end_time
 
     def _on_parameter_event(self, event: ParameterEvent) -> None:
-        ns = self.get_namespace().rstrip("/")
-        if not event.node.startswith(ns + "/") or event.node == self.get_fully_qualified_name():
-            return
-        role = event.node[len(ns) + 1:]
+        ns, _, role = event.node.rpartition("/")
+        if ns != self.get_namespace().rstrip("/") or event.node == self.get_fully_qualified_name():
+            return  # another instrument's node, or the monitor itself
         for param in event.changed_parameters:  # new_parameters are declarations
             value = parameter_value_to_python(param.value)
             own = self.own_changes.get((role, param.name))
@@ -642,12 +642,13 @@ class Instrument:
         scanner's settings; the summary gets the frame's numbers (tools/frame_report.py) and files.
 
         Ctrl-C during the scan finishes the current line, writes the lines done as a partial frame
-        (``*_partial.gwy``) and returns the summary marked interrupted (a second Ctrl-C stops at once)."""
+        (``*_partial.gwy``) and returns the summary marked interrupted (a second Ctrl-C stops at once).
+        Call :meth:`check_scan` first to refuse a scan that cannot be completed before engaging (the
+        scanner refuses it too, but only once engaged)."""
         from std_srvs.srv import Trigger
 
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
-        self.check_scan()  # before anything long starts
         engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)  # contact numbers: the hold
         job = self.job
         scanner, cantilever = self.nodes["scanner"], self.cantilever
@@ -690,7 +691,9 @@ class Instrument:
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
                  "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
-                 "scan_wall_s": wall_scan, "scan_real_time_factor": plan.frame_time / wall_scan,
+                 "scan_wall_s": wall_scan,
+                 "scan_real_time_factor": (min(self.monitor.answer_time, plan.start_time + plan.frame_time)
+                                           - plan.start_time) / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
         if not complete:
             image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
@@ -702,11 +705,11 @@ class Instrument:
                         self.get("z_controller", "i_gain"), job.free.amplitude, latency, values["tip_radius"])
             image["report"] = analyse_frame(frame, sample, loop, values["force_model"], setup.cantilever, setup.drive,
                                             predict=predict)
-        t_end = self.monitor.answer_time if interrupted else self.t_paused
+        simulated = (self.monitor.answer_time if interrupted else self.t_paused) - job.t_start
         wall = time.monotonic() - job.wall0
-        return dataclasses.replace(engaged, image=image, interrupted=interrupted, simulated_time_s=t_end,
+        return dataclasses.replace(engaged, image=image, interrupted=interrupted, simulated_time_s=simulated,
                                    recording=self.recording_status(spin=not interrupted), wall_time_s=wall,
-                                   real_time_factor=t_end / wall if wall > 0 else math.inf)
+                                   real_time_factor=simulated / wall if wall > 0 else math.inf)
 
     def _finish_line(self, scanner, plan, chunk: float) -> str:
         """Ctrl-C while scanning: run to the end of the current line, stop the scan and keep the lines
@@ -726,18 +729,18 @@ class Instrument:
                 self._finishing = False
         if scanner.frames_done >= 1:  # the last line closed the frame: nothing is partial
             return f"at t={self.monitor.answer_time:.3f} s simulated, at the end of the scan: the frame is complete"
-        scanner.stop_scan(write_partial=True)
+        scanner.stop_scan()  # the lines done as a partial frame (unless -p scanner:write_partial_frames:=false)
         frame = scanner.partial_frame
-        kept = (f"{frame.lines_done} of {plan.lines} lines kept as a partial frame" if frame is not None
-                else "no line was complete: nothing kept")
+        written = scanner._values["write_files"] and scanner._values["write_partial_frames"]
+        kept = ("no line was complete: nothing kept" if frame is None else
+                f"{frame.lines_done} of {plan.lines} lines kept as a partial frame" if written else
+                f"{frame.lines_done} of {plan.lines} lines done (not written: write_partial_frames false)")
         return f"at t={self.monitor.answer_time:.3f} s simulated, while scanning: {kept}"
 
     def check_recording(self, simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> None:
         """Before a job of ``simulated_s`` simulated seconds: the session it records fits in the
         recorder's max_size and in the file system's free space above min_free_space (estimate:
         :func:`expected_recording_bytes`); ValueError with what to do."""
-        import shutil
-
         rec = self.nodes.get("recorder")
         if rec is None or not rec.active:
             return
@@ -752,7 +755,7 @@ class Instrument:
                              + ("-p recorder:exclude:=... with /scanner/image/*, the frame file holds the images; "
                                 if frame else "") + "or --no-record)")
         folder = Path(rec.output_path).parent
-        free = shutil.disk_usage(folder).free
+        free = free_space(folder)
         keep = rec.get_parameter("min_free_space").value
         if free - keep < need:
             raise ValueError(f"{what}, but {folder} has {megabytes(free)} free and the recorder keeps min_free_space "
@@ -919,7 +922,7 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     if run_folder is not None:
         # '' (the parameters' own default, e.g. from a dumped config) means: the run folder
         if not ros.value("recorder", "output"):
-            recorder["output"] = str(session_path(run_folder, ros.namespace))
+            recorder["output"] = str(default_output_path(directory=run_folder, namespace=ros.namespace or "/"))
         if not ros.value("scanner", "output_directory"):
             scanner["output_directory"] = str(run_folder)
     if not options.record_raw and not ros.value("recorder", "exclude") and not ros.value("recorder", "topics"):

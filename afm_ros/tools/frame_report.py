@@ -249,14 +249,14 @@ def frame_lines(s: dict) -> list[str]:
                 + "; as the image estimates it (+ higher-harmonic damping) " + ", ".join(
                 f"{m} {r['image_dissipation_J'] * 1e18:.2f} aJ" for m, r in pr.items()
                 if r.get("image_dissipation_J") is not None))
-    errors = {m: v for e in s["amplitude_error_m"].values() for m, v in e.items()}
+    errors = [(abs(v), v, m, d) for d, e in s["amplitude_error_m"].items() for m, v in e.items()]
     if errors:
-        worst = max(errors, key=lambda m: abs(errors[m]))
+        _, worst_value, worst, worst_dir = max(errors)
         text = ", ".join(f"{m} {_nm(v)}" for m, v in s["amplitude_error_m"]["trace"].items())
         lines.append(f"  amplitude error      {text} (trace medians)")
         if not s["settled"]:
-            lines.append(f"  warning              not settled: median amplitude error up to {_nm(errors[worst])} "
-                         f"({worst}); the phase moves ~{s['phase_per_amplitude_deg_per_m'] * 1e-9:.2g} deg per nm "
+            lines.append(f"  warning              not settled: median amplitude error up to {_nm(worst_value)} "
+                         f"({worst}, {worst_dir}); the phase moves ~{s['phase_per_amplitude_deg_per_m'] * 1e-9:.2g} deg per nm "
                          f"of amplitude error and the height by up to as much: medians are biased by the feedback, "
                          f"not material (scan slower or raise the gains)")
     rms = s["trace_retrace_rms"]

@@ -72,7 +72,7 @@ import numpy as np
 
 from afm_ros.formats import chunk_layout
 from afm_ros.formats.chunk_layout import ChunkHeader, ChunkLayoutError, cdr_chunk
-from afm_ros.formats.chunk_layout import cdr_byte_order, cdr_float64_array
+from afm_ros.formats.chunk_layout import cdr_byte_order, cdr_clock_seconds, cdr_float64_array
 from afm_ros.formats.mcap_io import SessionFileError, SessionScan, parameter_metadata, read_session
 
 PEAK_RSS_BOUND_MB = 300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
@@ -149,15 +149,6 @@ def _cdr_float64(data) -> float:
     if len(data) < 12:
         raise ValueError(f"{len(data)} bytes, a Float64 needs 12")
     return struct.unpack_from(order + "d", data, 4)[0]
-
-
-def _cdr_clock(data) -> float:
-    """rosgraph_msgs/msg/Clock -> simulated time [s]."""
-    order = cdr_byte_order(data)
-    if len(data) < 12:
-        raise ValueError(f"{len(data)} bytes, a Clock needs 12")
-    sec, nanosec = struct.unpack_from(order + "iI", data, 4)
-    return sec + 1e-9 * nanosec
 
 
 def _cdr_vector3_stamped(data) -> tuple[float, float, float]:
@@ -979,7 +970,7 @@ def _survey(path) -> _Survey:
                     s.stamp_last = stamp
                     s.stamp_min, s.stamp_max = min(s.stamp_min, stamp), max(s.stamp_max, stamp)
                 elif role == "clock":
-                    s.survey(m.log_time, _cdr_clock(m.data))
+                    s.survey(m.log_time, cdr_clock_seconds(m.data))
                 else:
                     _cdr_float64(m.data)
                     s.survey(m.log_time)

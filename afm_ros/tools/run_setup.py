@@ -73,30 +73,25 @@ class RosArgs:
             i += 1
         return out
 
-    def _file_sections(self, node: str) -> list[dict]:
-        """The ros__parameters sections of the params files that apply to ``node`` of this namespace."""
-        keys = {"/**", f"/**/{node}", node, f"/{node}", f"{self.namespace}/{node}",
-                f"{self.namespace.lstrip('/')}/{node}"}
-        sections = []
+    def _file_values(self, node: str) -> dict:
+        """What the params files give ``node`` of this namespace, matched as rcl matches node keys
+        (wildcards first, the node's own key last; a later file wins)."""
+        from afm_ros.client.params_file import ParamsFileError, parameters_for
+
+        values: dict = {}
         for path in self.files:
             try:
-                data = yaml.safe_load(Path(path).read_text()) or {}
-            except (OSError, yaml.YAMLError):
-                continue  # rcl reports a bad file itself, before the job starts
-            for key, section in (data.items() if isinstance(data, dict) else ()):
-                if key in keys and isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-                    sections.append(section["ros__parameters"])
-        return sections
+                values.update(parameters_for(path, f"{self.namespace}/{node}"))
+            except ParamsFileError:
+                continue  # no entry for the node; a file rcl cannot read it reports itself, before the job
+        return values
 
     def value(self, node: str, name: str, default=None):
         """The value the user gave ``node``'s parameter ``name`` (by -p, with or without the node, or a
-        params file; the last one wins as in rcl: files, then -p), else ``default``."""
-        for source in (self.params.get(node, {}), self.params.get("", {})):
+        params file; -p wins over the files as in rcl), else ``default``."""
+        for source in (self.params.get(node, {}), self.params.get("", {}), self._file_values(node)):
             if name in source:
                 return source[name]
-        for section in reversed(self._file_sections(node)):
-            if name in section:
-                return section[name]
         return default
 
     def given(self, node: str, name: str) -> bool:
@@ -131,10 +126,3 @@ def make_run_folder(out: str | os.PathLike | None, namespace: str = "",
         except FileExistsError:
             continue
     raise FileExistsError(f"no free run folder name under {base} for {stamp}{suffix}")
-
-
-def session_path(run_folder: Path, namespace: str = "", now: _dt.datetime | None = None) -> Path:
-    """``afm_session_<date>-<time>[_<namespace>].mcap`` in the run folder."""
-    stamp = (now or _dt.datetime.now()).strftime("%Y_%m_%d-%H_%M_%S")
-    suffix = "_" + namespace.strip("/").replace("/", "_") if namespace.strip("/") else ""
-    return Path(run_folder) / f"afm_session_{stamp}{suffix}.mcap"
