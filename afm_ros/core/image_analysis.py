@@ -101,3 +101,63 @@ def trace_retrace_rms(frame: Frame, channel: str = "height") -> float:
     d = frame.images["trace"][channel].astype(float) - frame.images["retrace"][channel].astype(float)
     d = d[np.isfinite(d)]
     return float(np.sqrt(np.mean(d * d))) if d.size else math.nan
+
+
+def plane_fit(image: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares plane of an image: (offset, slope per column, slope per row), in image units
+    per pixel (row 0 = lowest y); non-finite pixels are left out."""
+    rows, cols = np.indices(image.shape)
+    ok = np.isfinite(image)
+    a = np.column_stack([np.ones(ok.sum()), cols[ok], rows[ok]])
+    coef = np.linalg.lstsq(a, image[ok].astype(float), rcond=None)[0]
+    return float(coef[0]), float(coef[1]), float(coef[2])
+
+
+def level_plane(image: np.ndarray) -> np.ndarray:
+    """The image minus its least-squares plane (first-order levelling, as Gwyddion's 'Plane Level')."""
+    offset, gx, gy = plane_fit(image)
+    rows, cols = np.indices(image.shape)
+    return image - (offset + gx * cols + gy * rows)
+
+
+def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]:
+    """(rows, columns) by which ``moved`` is shifted against ``reference`` (same shape): a feature at
+    (r, c) of the reference is at (r + dr, c + dc) of ``moved``.
+
+    The whole-pixel shift is the peak of the plane-levelled, Hann-windowed, zero-padded
+    cross-correlation; it is refined to a fraction of a pixel by least squares: the shift that makes
+    the cubic-spline-shifted reference best match ``moved`` over the pixels both images cover, up to
+    a plane (height offset and tilt between the frames are not a shift; no window: a window biases
+    the shift towards 0).
+    """
+    from scipy import ndimage, optimize
+
+    if reference.shape != moved.shape or reference.ndim != 2 or min(reference.shape) < 8:
+        raise ValueError(f"image_shift needs two images of the same shape, at least 8 x 8 (got "
+                         f"{reference.shape} and {moved.shape})")
+    a = np.nan_to_num(level_plane(reference))
+    b = np.nan_to_num(level_plane(moved))
+    window = np.outer(np.hanning(a.shape[0]), np.hanning(a.shape[1]))
+    shape = (2 * a.shape[0], 2 * a.shape[1])
+    corr = np.fft.irfft2(np.conj(np.fft.rfft2(a * window, shape)) * np.fft.rfft2(b * window, shape), shape)
+    peak = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    start = [float(p - n if p > n / 2 else p) for p, n in zip(peak, shape)]
+    margin = [int(math.ceil(abs(x))) + 3 for x in start]
+    if 2 * margin[0] >= a.shape[0] - 4 or 2 * margin[1] >= a.shape[1] - 4:
+        return start[0], start[1]  # too little overlap to refine
+    inner = (slice(margin[0], a.shape[0] - margin[0]), slice(margin[1], a.shape[1] - margin[1]))
+    target = b[inner].ravel()
+    rows, cols = np.indices(b[inner].shape)
+    basis = np.column_stack([np.ones(target.size), rows.ravel(), cols.ravel()])
+    project = basis @ np.linalg.pinv(basis)  # the least-squares plane of a difference
+    scale = float(np.mean((target - project @ target) ** 2)) or 1.0
+
+    def cost(shift):
+        d = ndimage.shift(a, shift, order=3, mode="nearest")[inner].ravel() - target
+        d -= project @ d  # a height offset or plane between the images is not a shift
+        return float(np.mean(d * d)) / scale
+
+    best = optimize.minimize(cost, start, method="Nelder-Mead",
+                             options={"xatol": 1e-3, "fatol": 1e-12, "initial_simplex":
+                                      [start, [start[0] + 0.5, start[1]], [start[0], start[1] + 0.5]]})
+    return float(best.x[0]), float(best.x[1])

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from afm_ros.core.artefacts import Imperfections, check_plan
 from afm_ros.core.cantilever_params import build
 from afm_ros.core.controller import ZController
 from afm_ros.core.imaging import ImageAccumulator
@@ -47,7 +48,9 @@ class WiredInstrument:
 
     ``cantilever``, ``lockin``, ``z_controller``: parameter values of the three nodes (missing
     names take their defaults); ``sample``: an ``afm_ros.core.samples.Sample`` under the tip (None:
-    the flat sample of the cantilever parameters); ``feedback_latency`` from the cantilever values.
+    the flat sample of the cantilever parameters); ``feedback_latency`` from the cantilever values;
+    ``imperfections``: drift, creep, hysteresis and tilt (:mod:`afm_ros.core.artefacts`; all off by
+    default; they need a sample map).
     """
 
     cantilever: dict = field(default_factory=dict)
@@ -55,6 +58,7 @@ class WiredInstrument:
     z_controller: dict = field(default_factory=dict)
     sample: object = None
     keep_records: bool = False
+    imperfections: dict = field(default_factory=dict)  # ARTEFACT_SPECS values (afm_ros.core.artefacts)
 
     def __post_init__(self):
         from afm_ros.core.cantilever_params import default_values
@@ -69,7 +73,12 @@ class WiredInstrument:
                                                                   "tip_youngs_modulus", "tip_poisson_ratio")})
             self.surface = surface_map(self.sample, values["force_model"], tip)
             self.sim.set_surface(self.surface)
-            self.sim.set_scan(parked_plan(0.5 * self.sample.size_x, 0.5 * self.sample.size_y))
+        self.imperfect = Imperfections(self.imperfections, (self.sample.size_x, self.sample.size_y)
+                                       if self.sample is not None else (0.0, 0.0))
+        if self.imperfect.enabled and self.sample is None:
+            raise ValueError("imperfections need a sample map (sample=None is the flat sample)")
+        if self.sample is not None:
+            self.park(0.5 * self.sample.size_x, 0.5 * self.sample.size_y)
         self.lock_in = LockIn(**self.lockin)
         self.controller = ZController(**self.z_controller)
         self.latency = int(values["feedback_latency"])
@@ -85,15 +94,20 @@ class WiredInstrument:
         return self.sim.t
 
     def park(self, x: float, y: float) -> None:
-        """Hold the tip at (x, y) [m] of the sample."""
+        """Hold the tip at (x, y) [m] of the sample (commanded; a creep move if it moved)."""
+        self.imperfect.move(x, y, self.sim.t)
         self.sim.set_scan(parked_plan(x, y))
+        self.sim.set_artefacts(self.imperfect.packed(None))
 
     def start_scan(self, plan_values: dict) -> ScanPlan:
         """Start a scan at the current simulated time (the next chunk boundary); returns the plan."""
         if self.sample is None:
             raise ValueError("start_scan: no sample map (a flat sample has nothing to image)")
         plan = ScanPlan.from_values(plan_values, start_time=self.sim.t)
+        check_plan(self.imperfect.values, plan)
+        self.imperfect.move(plan.center_x, plan.center_y, self.sim.t)
         self.sim.set_scan(plan.packed())
+        self.sim.set_artefacts(self.imperfect.packed(plan))
         k, q = self.setup.cantilever.spring_constant, self.setup.cantilever.quality_factor
         ratio = self.setup.drive.frequency / self.setup.cantilever.resonance_frequency
         self.images = ImageAccumulator(plan, k, q, self.values["free_amplitude"], ratio)

@@ -19,6 +19,8 @@ from numba import njit
 
 from afm_ros.core.physics.forces import tip_sample_force
 from afm_ros.core.physics.noise import THERMAL_STREAM, normal_pair
+from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
+                                    hysteresis_offsets, slow_terms)
 from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_SIZE_X, PLAN_START,
                                    PLAN_X_LEFT, scan_position)
 
@@ -179,13 +181,18 @@ def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
 @njit(cache=True, nogil=True)
 def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset, decimation,
                      out_z, out_v, out_f, out_h, noise_sigma, noise_seed, noise_n0,
-                     heights, materials, size_x, size_y, plan, segment_start):
+                     heights, materials, size_x, size_y, plan, segment_start, art):
     """RK4 over a sample map: at every step the tip's lateral position (``scan_position`` of the
     step's simulated time) gives the tip-dilated surface height ``h`` (bilinear between the map's
     pixel centres, periodic) and the material of the map pixel under the apex; the gap is
     ``z_offset - h + z`` and the force parameters are the material's row of ``fps``. Both are held
     through the step's RK4 stages (the tip moves < 1 pm laterally per step at any supported scan
     speed). ``out_h`` gets ``h`` at each sample.
+
+    Imperfections (``art``, :mod:`afm_ros.core.artefacts`; skipped when ``art[ART_ON]`` is 0): the
+    piezo's hysteresis and creep and the sample's drift move the point under the apex, the drift
+    and the tilt plane raise the surface. Drift and creep are evaluated at the start of each block
+    of SLOW_BLOCK steps (blocks aligned on the absolute step index: chunk-exact).
 
     Speed: the four map values around the tip are re-read only when the tip enters another map
     cell (every ~10^4 steps at 1 line/s); within a cell only the weights change. The result is a
@@ -218,6 +225,11 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
     line_lo = math.inf  # floor of the line count of the cached line
     line_y = 0.0
     line_parked = True
+    art_on = art[ART_ON] != 0.0
+    w_fast2 = 2.0 * art[ART_W_FAST] * size_fast
+    tilt_x, tilt_y, x0, y0 = art[ART_TILT_X], art[ART_TILT_Y], art[ART_X0], art[ART_Y0]
+    off_x = off_y = off_z = 0.0  # drift and creep of the current block
+    line_hy = 0.0
     for i in range(nsteps):
         fth = 0.0
         if noise_sigma > 0.0:
@@ -230,17 +242,37 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
                 px, line_y = scan_position(plan, t)
                 lines = plan[PLAN_LINES]
                 line_parked = math.floor(line_lo / lines) >= 1.0 and plan[PLAN_CONTINUOUS] == 0.0
+                if art_on:
+                    line_hy = hysteresis_offsets(art, plan, t)[1]
             if line_parked:
                 px, py = scan_position(plan, t)
             else:
                 u = rel - line_lo
                 py = line_y
                 if u < 0.5:
-                    px = x_left + size_fast * (2.0 * u)
+                    sf = 2.0 * u
+                    px = x_left + size_fast * sf
+                    if art_on:
+                        px -= w_fast2 * sf * (1.0 - sf)
+                        py += line_hy
                 else:
-                    px = x_left + size_fast * (2.0 - 2.0 * u)
+                    sf = 2.0 - 2.0 * u
+                    px = x_left + size_fast * sf
+                    if art_on:
+                        px += w_fast2 * sf * (1.0 - sf)
+                        py += line_hy
         else:
             px, py = scan_position(plan, t)
+        if art_on:
+            if i == 0 or (n0 + i) % SLOW_BLOCK == 0:
+                t_block = segment_start + ((n0 + i) - (n0 + i) % SLOW_BLOCK) * dt
+                dx, dy, off_z, cx, cy = slow_terms(art, t_block)
+                off_x = cx - dx
+                off_y = cy - dy
+            px += off_x
+            py += off_y
+        sx = px  # unwrapped sample coordinates (the tilt plane does not repeat)
+        sy = py
         if not (0.0 <= px < size_x):
             px = px % size_x
         if not (0.0 <= py < size_y):
@@ -268,6 +300,8 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
         fu = u - uf
         fv = w - wf
         surface = (1.0 - fv) * ((1.0 - fu) * h00 + fu * h01) + fv * ((1.0 - fu) * h10 + fu * h11)
+        if art_on:
+            surface += tilt_x * (sx - x0) + tilt_y * (sy - y0) + off_z
         if fv < 0.5:
             m = m00 if fu < 0.5 else m01
         else:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afm_ros.core.physics.forces import DMTForce, NoForce
+from afm_ros.core.artefacts import ART_LENGTH, off as artefacts_off
 from afm_ros.core.physics.integrators import (METHODS, _advance_surface, advance, drive_table, phase_at_step,
                                               samples_in_range)
 from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
@@ -83,6 +84,7 @@ class Simulation:
         self.segment_phase = self.drive.phase
         self.surface = None  # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
         self.plan = parked_plan(0.0, 0.0)  # packed scan plan (afm_ros.core.scanner)
+        self.artefacts = artefacts_off()  # packed imperfections (afm_ros.core.artefacts)
         self._rebuild()
 
     def _validated_spp(self, spp, drive, cantilever):
@@ -164,6 +166,13 @@ class Simulation:
             raise ValueError(f"scan plan must be {PLAN_LENGTH} finite numbers")
         self.plan = plan
 
+    def set_artefacts(self, packed: np.ndarray) -> None:
+        """Scanner and sample imperfections: ``Imperfections.packed(plan)``; need a sample map."""
+        packed = np.ascontiguousarray(packed, dtype=np.float64)
+        if packed.shape != (ART_LENGTH,) or np.isnan(packed).any():
+            raise ValueError(f"imperfections must be {ART_LENGTH} numbers")
+        self.artefacts = packed
+
     # --- integration ---------------------------------------------------------------------
     def advance(self, nsteps: int, decimation: int = 1, record: bool = True) -> Samples:
         """Integrate ``nsteps`` steps; return the samples at step indices divisible by ``decimation``."""
@@ -191,7 +200,7 @@ class Simulation:
                              float(c.spring_constant), float(c.damping), self._table, int(m.model_id),
                              m.force_params, float(self.z_offset), int(decimation), out_z, out_v, out_f, out_h,
                              float(sigma), int(self.noise_seed), int(self.noise_index), m.heights, m.materials,
-                             float(m.size_x), float(m.size_y), self.plan, float(self.segment_start))
+                             float(m.size_x), float(m.size_y), self.plan, float(self.segment_start), self.artefacts)
         self.n += nsteps
         self.noise_index += nsteps
         first = -(-n0 // decimation) * decimation
