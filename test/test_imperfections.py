@@ -151,6 +151,50 @@ def test_trace_retrace_edges_move_as_the_hysteresis_model_says():
     assert len(shifts) >= 2 * 5 and max(shifts) > 60e-9  # the model moved the edges: up to 2 w L / 4
 
 
+def test_creep_after_an_offset_move_follows_the_log_law():
+    """The scan centre moves by d = 2.25 um at t_m and the piezo creeps on: every grating edge of
+    every line appears displaced by -c(t) against the same scan without creep, c(t) = d g
+    lg((t - t_m) / t0), t the time the tip crosses the edge (0.3 to 8 s after the move, 1.4
+    decades). g = 0.05 (an uncompensated scanner): c from 60 to 210 nm. Tolerance 2.5 nm: the
+    creep's own speed (< 0.2 um/s) is < 3 % of the scan speed (8 um/s), so the loop meets every edge
+    as without creep; compared are the centres of lines and trenches (``_edges``)."""
+    sample = grating(step_height=20e-9, pitch=1e-6, duty=0.5, size=(8e-6, 8e-6), pixels=512,
+                     line_material="silicon", trench_material="silicon")
+    # the instrument starts parked at the map's centre (4 um, 4 um); the scan is 2 um to the right
+    values = dict(scan_size_x=4e-6, scan_size_y=0.4e-6, scan_center_x=6.25e-6, scan_center_y=4e-6,
+                  pixels_per_line=128, lines=8, line_rate=1.0)
+    d, g, t0 = 2.25e-6, 0.05, 0.1
+    moved = {}
+    for name, imperfect in (("ideal", {}), ("creep", {"creep_per_decade": g, "creep_time": t0})):
+        w = WiredInstrument(cantilever=EXACT, z_controller=LOOP, sample=sample, imperfections=imperfect)
+        w.run_until(0.05)
+        t_move = w.sim.t
+        moved[name] = w.scan_frame(values)
+    plan = ScanPlan.from_values(values, start_time=t_move)
+    x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
+    checked = 0
+    for row in range(1, plan.lines):
+        ideal = _edges(moved["ideal"].images["trace"]["height"][row].astype(float), x)
+        creep = _edges(moved["creep"].images["trace"]["height"][row].astype(float), x)
+        assert len(ideal) >= 6
+        pairs = []
+        for xi in ideal:
+            near = creep[np.abs(creep - xi) < 250e-9]  # edges are 500 nm apart, the creep < 250 nm
+            t_cross = plan.start_time + row / plan.line_rate + (xi - plan.x_left) / plan.speed
+            pairs.append((xi, float(near[0]) if near.size else math.nan,
+                          -d * g * math.log10((t_cross - t_move) / t0)))
+        # the centre of each line or trench (the mean of its two edges): where the shifted edge falls
+        # in its pixel changes how much of the loop's tail after a rising or a falling edge _edges
+        # sees (+-5 nm, opposite for the two edges); in the mean that cancels to < 2 nm
+        for (xi0, xc0, e0), (xi1, xc1, e1) in zip(pairs[:-1], pairs[1:]):
+            if math.isnan(xc0) or math.isnan(xc1):
+                continue  # an edge moved too close to the frame's start to be located
+            shift = 0.5 * (xc0 + xc1) - 0.5 * (xi0 + xi1)
+            assert shift == pytest.approx(0.5 * (e0 + e1), abs=2.5e-9), (row, xi0)
+            checked += 1
+    assert checked >= 7 * 5
+
+
 def test_tilted_sample_gives_the_tilt_plane():
     """A tilted mount: the height image minus the untilted one is a plane with the configured
     slopes (the loop follows a plane but for a constant lag, which only offsets it; the islands
