@@ -39,6 +39,10 @@ CANTILEVER = {**EXACT_PHYSICS, "force_model": "viscoelastic_dmt", "sample": "ps_
 SCAN = dict(scan_size_x=5e-6, scan_size_y=5e-6, scan_center_x=5e-6, scan_center_y=5e-6, pixels_per_line=16,
             lines=8, line_rate=10.0)
 ENGAGE = 0.05  # [s] simulated before the scan starts
+# every imperfection on (the scanner's parameters; the ideal path is the same kernel with them skipped,
+# test_imperfections.py): the ROS frame must still equal the wired one bit for bit
+IMPERFECT = dict(drift_lateral_rate=2e-9, drift_vertical_rate=2e-10, drift_seed=3, tilt_x=0.01, tilt_y=-0.004,
+                 hysteresis_small=0.02, hysteresis_large=0.12, creep_per_decade=0.02)
 
 
 def spin_until(executor, condition, timeout=120.0):
@@ -64,7 +68,7 @@ def scanned(tmp_path_factory):
     lockin = LockInNode(context=ctx, namespace=ns)
     controller = ZControllerNode(context=ctx, namespace=ns)
     scanner = ScannerNode(context=ctx, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {**SCAN, "output_directory": str(out)}.items()])
+        Parameter(k, value=v) for k, v in {**SCAN, **IMPERFECT, "output_directory": str(out)}.items()])
     viewer = Node("viewer", context=ctx, namespace=ns)
     images = {}
     for c in CHANNELS:
@@ -79,6 +83,7 @@ def scanned(tmp_path_factory):
     try:
         spin_until(ex, lambda: {f"{ns}/lockin", f"{ns}/scanner"} <= set(cantilever.consumers))
         spin_until(ex, lambda: scanner.lockin_output_rate is not None)  # asked asynchronously
+        spin_until(ex, lambda: cantilever.imperfections_received)  # latched; before the first chunk
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
         spin_until(ex, lambda: cantilever.paused and scanner._lockin_end[1] >= ENGAGE - 1e-9)
         first = scanner._start(Trigger.Response(), single=True)
@@ -121,7 +126,7 @@ def run_refusals(ex, cantilever, scanner, tmp) -> dict:
 
 
 def test_ros_frame_equals_the_wired_cores_bit_for_bit(scanned):
-    wired = WiredInstrument(cantilever=CANTILEVER, sample=resolve_sample("ps_ldpe_blend"))
+    wired = WiredInstrument(cantilever=CANTILEVER, sample=resolve_sample("ps_ldpe_blend"), imperfections=IMPERFECT)
     wired.run_until(ENGAGE)
     offline = wired.scan_frame(SCAN)
     frame = scanned["frame"]

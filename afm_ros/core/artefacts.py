@@ -39,13 +39,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.parameters import ParamSpec
-from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINE_STEP, PLAN_LINES,
-                                  PLAN_SIZE_X, PLAN_START, ScanPlan)
+from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINE_STEP, PLAN_LINES,
+                                      PLAN_SIZE_X, PLAN_START)
+
+if TYPE_CHECKING:
+    from afm_ros.core.scanner import ScanPlan
 
 ARTEFACT_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("drift_lateral_rate", 0.0, "m/s",
@@ -102,7 +106,7 @@ def validate(values: dict) -> dict:
     return {name: spec.validate(values.get(name, spec.default)) for name, spec in ARTEFACT_SPECS.items()}
 
 
-def check_plan(values: dict, plan: ScanPlan) -> None:
+def check_plan(values: dict, plan: "ScanPlan") -> None:
     """A scan must fit in the scanner's field (ValueError naming the fields and the range)."""
     f = values["scanner_field"]
     for name, size in (("scan_size_x", plan.size_x), ("scan_size_y", plan.size_y)):
@@ -168,7 +172,7 @@ class Imperfections:
                     self.frozen = (self.frozen[0] + ox * c, self.frozen[1] + oy * c)
         self.last_center = (float(center_x), float(center_y))
 
-    def packed(self, plan: ScanPlan | None) -> np.ndarray:
+    def packed(self, plan: "ScanPlan | None") -> np.ndarray:
         out = off()
         if not self.enabled:
             return out
@@ -243,6 +247,9 @@ def hysteresis_offsets(art, plan, t):
     else:  # down: descending from the top
         hy = 2.0 * art[ART_W_SLOW] * size_y * sy * (1.0 - sy)
     return hx, hy
+
+
+TRUTH_KEYS = ("hysteresis_x", "hysteresis_y", "creep_x", "creep_y", "drift_x", "drift_y", "drift_z")
 
 
 def truth(art: np.ndarray, plan: np.ndarray, t) -> dict:

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
+from afm_ros.core.artefacts import ARTEFACT_SPECS, check_plan as check_in_field
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 
@@ -40,10 +41,9 @@ SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("continuous", False, "", "scan frame after frame (else one frame, then park)", kind=bool),
 )}
 
-# layout of the packed plan handed to the integration kernel (float64 array)
-PLAN_ACTIVE, PLAN_START, PLAN_X_LEFT, PLAN_SIZE_X, PLAN_Y_FIRST, PLAN_LINE_STEP, PLAN_LINE_RATE, PLAN_LINES, \
-    PLAN_CONTINUOUS, PLAN_PARK_X, PLAN_PARK_Y = range(11)
-PLAN_LENGTH = 11
+from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LENGTH, PLAN_LINE_RATE,  # noqa: E402,F401
+                                      PLAN_LINE_STEP, PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_SIZE_X,
+                                      PLAN_START, PLAN_X_LEFT, PLAN_Y_FIRST)
 
 
 @dataclass(frozen=True)
@@ -297,7 +297,7 @@ def check_scan(values, lockin_output_rate: float, sample_interval: float | None 
 
 
 # the scanner node's parameters: the scan settings above plus where frames go
-SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **{s.name: s for s in (
+SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **ARTEFACT_SPECS, **{s.name: s for s in (
     ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
               "directory); checked when set and at each scan start; a missing last level is created then (never "
               "a chain of folders, never at /)", kind=str),
@@ -359,12 +359,13 @@ def bin_into(t, values, start, rate, lines, pixels, continuous, frame_index, sum
 
 def check_scanner_values(values: dict) -> ScanPlan:
     """The scanner node's parameter values (SCANNER_NODE_SPECS names), what can be checked when
-    they are set: the scan (:meth:`ScanPlan.from_values`), ``file_prefix`` (a file name part) and
+    they are set: the scan (:meth:`ScanPlan.from_values`; it fits in ``scanner_field``), ``file_prefix`` (a file name part) and
     ``output_directory`` (not a file, its parent exists; writing and space are checked when a scan
     starts). ValueError naming the field; else the plan."""
     from afm_ros.formats.folders import check_output_directory
 
     plan = ScanPlan.from_values(values)
+    check_in_field({name: values.get(name, spec.default) for name, spec in ARTEFACT_SPECS.items()}, plan)
     prefix = values.get("file_prefix", SCANNER_NODE_SPECS["file_prefix"].default)
     if not prefix or "/" in prefix or "\\" in prefix or "\0" in prefix or prefix in (".", ".."):
         raise ValueError(f"file_prefix={prefix!r} must be a non-empty file name part without '/' or '\\'; "

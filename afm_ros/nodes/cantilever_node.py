@@ -48,6 +48,7 @@ from afm_ros.core.physics.parameters import CANTILEVER_SPECS, DISSIPATION_SPECS,
 from afm_ros.core.physics.simulation import Simulation, surface_map
 from afm_ros.core.physics.parameters import DMTSample
 from afm_ros.core.samples import describe, resolve_sample
+from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as artefacts_off, truth as artefact_truth, validate
 from afm_ros.core.scanner import ScanPlan, parked_plan
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
@@ -131,6 +132,10 @@ class CantileverNode(Node):
         self._pending_plan: dict | None = None  # the scanner's latest request, applied at the next chunk
         self.scan_plan: ScanPlan | None = None  # the scan being run (None: parked)
         self._plan_id = 0
+        self._imperfect = Imperfections()  # the scanner's imperfections (scanner/imperfections), in force
+        self._pending_imperfections: dict | None = None
+        self._imperfections_warned = False
+        self._imperfections_seen = False
         self._apply_sample(values)
         self._gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
         self._window = ConsumerWindow(values["flow_window"])
@@ -148,6 +153,12 @@ class CantileverNode(Node):
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
         self._plan_sub = self.create_subscription(String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS)
+        self._imperfections_sub = self.create_subscription(String, topics.IMPERFECTIONS, self._on_imperfections,
+                                                           LATCHED_QOS)
+        self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
+        self._truth_msg = Float64MultiArray()
+        self._truth_msg.layout.dim = [MultiArrayDimension(label=",".join(topics.TRUTH_FIELDS),
+                                                          size=len(topics.TRUTH_FIELDS), stride=len(topics.TRUTH_FIELDS))]
         self.add_on_set_parameters_callback(ros_params.make_set_callback(
             CANTILEVER_NODE_SPECS, self._requested_values, self._check_values, self._queue_changes))
         self.add_post_set_parameters_callback(self._on_material_set)
@@ -261,14 +272,18 @@ class CantileverNode(Node):
         if sample is None:
             self._sim.set_surface(None)
             self._surface_info = {"sample": values["sample"] or "flat"}
+            self._pack_imperfections()
             return
         key = self._surface_key(values)
         surface = self._surfaces.get(key)
         if surface is None:  # not checked with exactly these values (e.g. a start value): build it now
             surface = self._surfaces[key] = surface_map(sample, values["force_model"], self._tip(values))
         self._sim.set_surface(surface)
+        self._imperfect.sample_size = (sample.size_x, sample.size_y)
         if self.scan_plan is None:
-            self._sim.set_scan(parked_plan(0.5 * sample.size_x, 0.5 * sample.size_y))
+            self._park(0.5 * sample.size_x, 0.5 * sample.size_y)
+        else:
+            self._pack_imperfections()
         self._surface_info = {"sample": values["sample"], "description": describe(sample),
                               "materials": list(sample.materials), "size_x_m": sample.size_x,
                               "size_y_m": sample.size_y}
@@ -294,7 +309,53 @@ class CantileverNode(Node):
             self._pending_plan = request
         self._try_step(MAX_BURST)
 
+    def _on_imperfections(self, msg: String) -> None:
+        """The scanner's imperfection parameters (JSON), applied together at the next chunk boundary."""
+        try:
+            values = validate(json.loads(msg.data))
+        except (ValueError, TypeError, AttributeError) as exc:
+            self.get_logger().error(f"ignoring malformed imperfections on {topics.IMPERFECTIONS}: {exc}")
+            return
+        with self._plan_lock:
+            self._pending_imperfections = values
+
+    @property
+    def imperfections_received(self) -> bool:
+        """True once the scanner's imperfection parameters arrived (pending or in force)."""
+        with self._plan_lock:
+            return self._pending_imperfections is not None or self._imperfections_seen
+
+    def _apply_imperfections(self) -> None:
+        with self._plan_lock:
+            values, self._pending_imperfections = self._pending_imperfections, None
+        if values is None:
+            return
+        self._imperfections_seen = True
+        if values == self._imperfect.values:
+            return
+        self._imperfect.configure(**values)
+        self._pack_imperfections()
+        changed = "on" if self._imperfect.enabled else "off"
+        self.get_logger().info(f"imperfections {changed} from t={self._sim.t:.6g} s")
+
+    def _pack_imperfections(self) -> None:
+        """The kernel's imperfection array for the path in force (a flat sample stays ideal)."""
+        if self._sim.surface is None:
+            if self._imperfect.enabled and not self._imperfections_warned:
+                self._imperfections_warned = True
+                self.get_logger().warning("imperfections (drift, creep, hysteresis, tilt) need a sample map; "
+                                          "the flat sample stays ideal")
+            self._sim.set_artefacts(artefacts_off())
+            return
+        self._sim.set_artefacts(self._imperfect.packed(self.scan_plan))
+
+    def _park(self, x: float, y: float) -> None:
+        self._sim.set_scan(parked_plan(x, y))
+        self._imperfect.move(x, y, self._sim.t)
+        self._pack_imperfections()
+
     def _apply_plan(self) -> None:
+        self._apply_imperfections()
         with self._plan_lock:
             request, self._pending_plan = self._pending_plan, None
         if request is None:
@@ -306,11 +367,13 @@ class CantileverNode(Node):
             fields["start_time"] = max(float(fields.get("start_time", 0.0)), t0)
             self.scan_plan = ScanPlan(**fields)
             self._sim.set_scan(self.scan_plan.packed())
+            self._imperfect.move(self.scan_plan.center_x, self.scan_plan.center_y, t0)
+            self._pack_imperfections()
             applied = {"plan": self.scan_plan.as_dict()}
         else:
             x, y = (float(v) for v in request["park"])
             self.scan_plan = None
-            self._sim.set_scan(parked_plan(x, y))
+            self._park(x, y)
             applied = {"park": [x, y], "time": t0}
         v = self._values
         applied.update({
@@ -569,6 +632,10 @@ class CantileverNode(Node):
             self._pub_deflection.publish(chunk_message(header, measured))
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(chunk_message(header, samples.force))
+        if sim.artefacts[ART_ON] != 0.0 and sim.surface is not None:
+            truth = artefact_truth(sim.artefacts, sim.plan, sim.t)
+            self._truth_msg.data = [sim.t] + [float(truth[name][0]) for name in TRUTH_KEYS]
+            self._pub_truth.publish(self._truth_msg)
         if publish_clock:
             self._pub_clock.publish(ClockMsg(clock=_time_msg(sim.t)))
         self._published_end = first + samples.z.shape[0]

@@ -37,6 +37,7 @@ from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
 
+from afm_ros.core.artefacts import ARTEFACT_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 
@@ -85,6 +86,8 @@ class ScannerNode(Node):
             SCANNER_NODE_SPECS, lambda: dict(self._values), check_scanner_values, self._apply))
         self._lock = threading.RLock()
         self._pub_plan = self.create_publisher(String, topics.SCAN_PLAN, topics.LATCHED_QOS)
+        self._pub_imperfections = self.create_publisher(String, topics.IMPERFECTIONS, topics.LATCHED_QOS)
+        self._publish_imperfections()
         self._pub_progress = self.create_publisher(String, "scanner/progress", topics.LATCHED_QOS)
         self._pub_geometry = self.create_publisher(String, "scanner/geometry", topics.LATCHED_QOS)
         self._pub_images = {(c, d): self.create_publisher(Image, image_topic(c, d), topics.LATCHED_QOS)
@@ -141,8 +144,20 @@ class ScannerNode(Node):
     def _apply(self, changed: dict) -> None:
         with self._lock:
             self._values.update(changed)
-        note = " (the running scan keeps its settings; they apply to the next one)" if self.state != "idle" else ""
+        if any(name in ARTEFACT_SPECS for name in changed):
+            self._publish_imperfections()
+        scan_settings = [name for name in changed if name not in ARTEFACT_SPECS]
+        note = (" (the running scan keeps its settings; they apply to the next one)"
+                if self.state != "idle" and scan_settings else "")
         self.get_logger().info(f"scanner parameters changed: {changed}{note}")
+
+    def _publish_imperfections(self) -> None:
+        """The imperfection parameters, all together: the cantilever applies them at its next chunk
+        boundary (also during a scan: drift, creep, hysteresis and tilt are the instrument's, not
+        the scan's)."""
+        with self._lock:
+            values = {name: self._values[name] for name in ARTEFACT_SPECS}
+        self._pub_imperfections.publish(String(data=json.dumps(values)))
 
     def _start(self, response, single: bool):
         with self._lock:

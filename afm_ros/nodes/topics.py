@@ -14,6 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
 
+from afm_ros.core.artefacts import TRUTH_KEYS
 from afm_ros.formats.chunk_layout import ACK_LEAVING, ACK_READY
 
 DEFLECTION = "cantilever/deflection"
@@ -24,6 +25,14 @@ Z_COMMAND = "z_controller/z_command"
 Z_TRACE = "z_controller/trace"
 SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
 SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
+# std_msgs/String, JSON: the scanner's and sample's imperfection parameters (latched; the cantilever
+# applies them at its next chunk boundary, all together)
+IMPERFECTIONS = "scanner/imperfections"
+# std_msgs/Float64MultiArray: ground truth at each chunk's end while imperfections are on, the values
+# of TRUTH_FIELDS in order (the one dimension's label lists them): the piezo's hysteresis and creep
+# (true minus commanded position) and the sample's drift
+TRUTH = "truth/scanner"
+TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing
