@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from diagnostic_msgs.msg import DiagnosticArray
-from std_msgs.msg import Float64, Float64MultiArray
+from std_msgs.msg import Float64MultiArray
 
 from conftest import EXACT_PHYSICS
 from afm_ros.nodes.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode

@@ -19,7 +19,6 @@ import sys
 import threading
 import time
 
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
@@ -29,6 +28,7 @@ from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from afm_ros.formats import chunk_layout
 
 from afm_ros.nodes import topics
+from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
@@ -41,12 +41,6 @@ OUTPUT_QOS = topics.HISTORY_QOS
 BATCH_QOS = topics.HISTORY_QOS
 DIAGNOSTICS_PERIOD_S = 1.0
 WARNING_PERIOD_S = 5.0
-
-
-def sim_time_msg(t: float) -> Time:
-    """builtin_interfaces/Time for a simulated time t [s] (>= 0), rounded to the nanosecond."""
-    total = int(round(t * 1e9))
-    return Time(sec=total // 1_000_000_000, nanosec=total % 1_000_000_000)
 
 
 class LockInNode(Node):

@@ -18,7 +18,6 @@ cannot deliver message info), both ns since the epoch (see docs/recording.md).
 """
 from __future__ import annotations
 
-import fnmatch
 import os
 import queue
 import sys
@@ -40,6 +39,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from afm_ros.nodes import ros_params, topics
+from afm_ros.nodes.topics import matches, split_patterns  # noqa: F401 (also used by tools)
 from afm_ros.formats.chunk_layout import cdr_chunk, cdr_clock_seconds, cdr_float64_array
 from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, BudgetReached, RecordingError,
                                     SessionWriter, default_output_path, message_class, qos_profiles_yaml,
@@ -101,25 +101,11 @@ class StreamCheck:
         return end
 
 
-def split_patterns(text: str, namespace: str) -> list[str]:
-    """Comma/space separated names or globs; relative ones are put under ``namespace``."""
-    out = []
-    for item in text.replace(",", " ").split():
-        if not item.startswith("/"):
-            item = (namespace.rstrip("/") + "/" + item) if namespace not in ("", "/") else "/" + item
-        out.append(item)
-    return out
-
-
 def outputs_end(data: bytes) -> tuple[int, float]:
     """(input_end_index, input_end_time_s) of a serialized lockin/outputs batch (see
     afm_ros.formats.chunk_layout), read from the CDR bytes without deserialising the message."""
     _, values = cdr_float64_array(data)
     return int(values[1]), float(values[2])
-
-
-def matches(topic: str, patterns: list[str]) -> bool:
-    return any(topic == p or fnmatch.fnmatchcase(topic, p) for p in patterns)
 
 
 def _hidden(name: str) -> bool:

@@ -33,7 +33,7 @@ from afm_ros.nodes import ros_params
 from afm_ros.formats.chunk_layout import unpack
 from afm_ros.formats.mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan, check_mcap_file, message_class,
                                     read_session, read_summary)
-from afm_ros.nodes.recorder_node import matches, split_patterns
+from afm_ros.nodes.topics import matches, split_patterns
 from afm_ros.nodes import node_main
 
 CLOCK = "/clock"

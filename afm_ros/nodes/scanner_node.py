@@ -47,7 +47,7 @@ from afm_ros.core.scanner import (SCANNER_NODE_SPECS, ScanPlan, check_scan, chec
 from afm_ros.formats.folders import check_output_directory
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
-from afm_ros.nodes.lockin_node import sim_time_msg
+from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 

@@ -8,8 +8,10 @@ never drops a message the Python side has not taken yet) and acknowledge what th
 """
 from __future__ import annotations
 
+import fnmatch
 import threading
 
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
@@ -38,6 +40,27 @@ TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
 # before a scripted session starts, or its first samples would be missing
 INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
                      "z_controller/z_piezo", "z_controller/error", Z_COMMAND, Z_TRACE, SCAN_APPLIED)
+
+def sim_time_msg(t: float) -> Time:
+    """builtin_interfaces/Time for a simulated time t [s] (>= 0), rounded to the nanosecond."""
+    total = int(round(t * 1e9))
+    return Time(sec=total // 1_000_000_000, nanosec=total % 1_000_000_000)
+
+
+def split_patterns(text: str, namespace: str) -> list[str]:
+    """Comma/space separated topic names or globs; relative ones are put under ``namespace``."""
+    out = []
+    for item in text.replace(",", " ").split():
+        if not item.startswith("/"):
+            item = (namespace.rstrip("/") + "/" + item) if namespace not in ("", "/") else "/" + item
+        out.append(item)
+    return out
+
+
+def matches(topic: str, patterns: list[str]) -> bool:
+    """True if ``topic`` is one of ``patterns`` or matches one of their globs."""
+    return any(topic == p or fnmatch.fnmatchcase(topic, p) for p in patterns)
+
 
 # publishers of the data path: reliable, history of 200 messages kept for late joiners
 HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,

@@ -436,7 +436,7 @@ class Instrument:
         wanted = self.instrument_topics()
         rec = self.nodes.get("recorder")
         if rec is not None:
-            from afm_ros.nodes.recorder_node import matches
+            from afm_ros.nodes.topics import matches
             wanted = {t for t in wanted if not matches(t, rec._exclude)}
             if "scanner" not in self.nodes:
                 wanted.discard(self.monitor.resolve_topic_name(topics.SCAN_PLAN))
@@ -658,7 +658,7 @@ class Instrument:
                         "waiting for the scanner to learn the lock-in's output_rate")
         rec = self.nodes.get("recorder")
         if rec is not None:  # every image of every line in the session: subscribed before the first line
-            from afm_ros.nodes.recorder_node import matches
+            from afm_ros.nodes.topics import matches
             images = [p for p in scanner.published_copies if not matches(p.topic_name, rec._exclude)]
             self.spin_until(lambda: {p.topic_name for p in images} <= set(rec.topics)
                             and all(p.get_subscription_count() > 0 for p in images),
