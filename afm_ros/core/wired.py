@@ -93,6 +93,14 @@ class WiredInstrument:
     def t(self) -> float:
         return self.sim.t
 
+    def set_drive_frequency(self, frequency: float) -> None:
+        """Drive at ``frequency`` [Hz] from now on with the same drive force (a new integration
+        segment; the chunk geometry follows, as the cantilever node's ``drive_frequency``)."""
+        values = {**self.values, "drive_frequency": float(frequency)}
+        setup = build(values)
+        self.values, self.setup = values, setup
+        self.sim.reconfigure(drive=setup.drive)
+
     def park(self, x: float, y: float) -> None:
         """Hold the tip at (x, y) [m] of the sample (commanded; a creep move if it moved)."""
         self.imperfect.move(x, y, self.sim.t)

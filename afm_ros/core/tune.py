@@ -1,0 +1,208 @@
+"""Drive-frequency tune (no ROS): sweep the drive around the resonance with the instrument's own
+lock-in, fit the driven oscillator, choose the working point.
+
+Every tapping-mode session starts with it (vendors' "auto tune": NanoMagnetics AutoTune, Asylum
+ACTune, aespm ``tune_probe``). The sweep holds the drive force F0 and steps the drive frequency f
+over ``points`` values; at each it waits ``settle`` [s] (the oscillator's transient decays as
+exp(-t pi f0 / Q)) and averages the lock-in's X + iY over ``dwell`` [s]. The fit is the steady state
+of m z'' = -k z - (m w0 / Q) z' + F0 cos(w t), a complex response (amplitude and phase together)::
+
+    X + iY ~ a_s e^{-i phi_0} / (1 - (f / f0)^2 + i f / (f0 Q))
+
+with a_s = F0 / k (the static deflection, unknown to the instrument: only ratios are used) and
+phi_0 the phase the detection chain adds (0 here). Its least-squares solution gives f0, Q and
+their standard errors. The working point:
+
+- drive frequency: the amplitude peak f_peak = f0 sqrt(1 - 1 / (2 Q^2)) plus ``offset`` [Hz]
+  (negative: below the peak, on the flank, as vendors offer: e.g. -f0 / (2 Q), where the amplitude
+  is down to ~0.7 of the peak);
+- drive: the factor by which to scale the drive force so that the free amplitude at that
+  frequency is ``target_amplitude`` [m] (from the fit's amplitude there, so no k is needed; in
+  this instrument the drive is set through ``free_amplitude`` = k A0 / Q, which scales alike);
+- phase: the offset [deg] to subtract from the lock-in phase so that the free phase at the drive
+  frequency reads ``phase_target`` (90 deg, the lag of a free cantilever at resonance: the
+  convention of :mod:`afm_ros.core.lockin`; Asylum's "center phase" puts it at 90 deg too).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_ros.core.physics.parameters import ParamSpec
+
+TUNE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
+    ParamSpec("tune_center", 0.0, "Hz", "centre of the sweep; 0 = the drive frequency in force", 0.0, 1e8),
+    ParamSpec("tune_span", 0.0, "Hz", "width of the sweep; 0 = 8 peak widths (8 f/Q of the nominal cantilever)",
+              0.0, 1e8),
+    ParamSpec("tune_points", 81, "1", "drive frequencies in the sweep", 11, 2001, kind=int),
+    ParamSpec("tune_settle", 0.0, "s", "wait at each frequency before averaging; 0 = 8 Q / (pi f) (8 decay times)",
+              0.0, 10.0),
+    ParamSpec("tune_dwell", 0.0, "s", "averaging time at each frequency; 0 = 3 lock-in output intervals",
+              0.0, 10.0),
+    ParamSpec("tune_offset", 0.0, "Hz", "working drive frequency relative to the amplitude peak (negative: "
+              "below it, on the flank)", -1e7, 1e7),
+    ParamSpec("tune_target_amplitude", 60e-9, "m", "free amplitude wanted at the working frequency", 1e-10, 1e-6),
+    ParamSpec("tune_phase_target", 90.0, "deg", "what the free phase reads at the working frequency after the tune",
+              -180.0, 180.0),
+)}
+
+
+@dataclass
+class TuneResult:
+    """A sweep and its fit; frequencies [Hz], amplitudes [m], phases [deg]."""
+
+    frequency: np.ndarray
+    amplitude: np.ndarray
+    phase_deg: np.ndarray
+    f0: float = math.nan  # fitted resonance [Hz]
+    q: float = math.nan
+    f0_error: float = math.nan  # standard errors of the fit
+    q_error: float = math.nan
+    static_amplitude: float = math.nan  # a_s = F0 / k [m]
+    phase0_deg: float = math.nan
+    residual_rms: float = math.nan  # rms of |measured - fit| / peak amplitude
+    drive_frequency: float = math.nan  # chosen working frequency [Hz]
+    drive_scale: float = math.nan  # factor for the drive force (free_amplitude parameter)
+    phase_offset_deg: float = math.nan
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def f_peak(self) -> float:
+        return self.f0 * math.sqrt(max(0.0, 1.0 - 0.5 / self.q ** 2))
+
+    def model(self, f) -> np.ndarray:
+        """The fitted complex response X + iY [m] at frequencies f [Hz]."""
+        return _response(np.asarray(f, dtype=float), self.f0, self.q, self.static_amplitude,
+                         math.radians(self.phase0_deg))
+
+    def summary(self) -> dict:
+        return {"f0_Hz": self.f0, "f0_error_Hz": self.f0_error, "Q": self.q, "Q_error": self.q_error,
+                "f_peak_Hz": self.f_peak, "peak_amplitude_m": float(abs(self.model([self.f_peak])[0])),
+                "drive_frequency_Hz": self.drive_frequency, "drive_scale": self.drive_scale,
+                "phase_offset_deg": self.phase_offset_deg, "fit_residual_rms": self.residual_rms,
+                "points": int(self.frequency.size)}
+
+
+def _response(f, f0, q, a_s, phi0):
+    r = f / f0
+    return a_s * np.exp(-1j * phi0) / (1.0 - r * r + 1j * r / q)
+
+
+def settings(values: dict, nominal_f0: float, nominal_q: float, drive_frequency: float,
+             output_interval: float) -> dict:
+    """Every TUNE_SPECS value validated (missing: default), the automatic ones resolved from the
+    nominal cantilever, the drive in force and the lock-in's output interval [s]."""
+    unknown = set(values) - set(TUNE_SPECS)
+    if unknown:
+        raise ValueError(f"{sorted(unknown)[0]!r} is not a tune parameter; known: {', '.join(TUNE_SPECS)}")
+    v = {name: spec.validate(values.get(name, spec.default)) for name, spec in TUNE_SPECS.items()}
+    center = v["tune_center"] or drive_frequency
+    span = v["tune_span"] or 8.0 * nominal_f0 / nominal_q
+    if span >= 2.0 * center:
+        raise ValueError(f"tune_span={span:g} Hz reaches 0 Hz around tune_center={center:g} Hz; allowed below "
+                         f"{2 * center:g} Hz")
+    v["tune_center"], v["tune_span"] = center, span
+    v["tune_settle"] = v["tune_settle"] or 8.0 * nominal_q / (math.pi * center)
+    v["tune_dwell"] = v["tune_dwell"] or 3.0 * output_interval
+    return v
+
+
+def frequencies(v: dict) -> np.ndarray:
+    return np.linspace(v["tune_center"] - 0.5 * v["tune_span"], v["tune_center"] + 0.5 * v["tune_span"],
+                       v["tune_points"])
+
+
+def fit(f: np.ndarray, amplitude: np.ndarray, phase_deg: np.ndarray) -> TuneResult:
+    """Least-squares fit of the driven-oscillator response to a sweep (see module doc)."""
+    from scipy.optimize import least_squares
+
+    f = np.asarray(f, dtype=float)
+    z = np.asarray(amplitude, dtype=float) * np.exp(-1j * np.radians(phase_deg))  # X + iY
+    ok = np.isfinite(z)
+    if ok.sum() < 6:
+        raise ValueError(f"the sweep has {int(ok.sum())} valid points; a fit needs at least 6")
+    f, z = f[ok], z[ok]
+    a = np.abs(z)
+    i = int(np.argmax(a))
+    # start: the peak and its half-power width
+    half = a >= a[i] / math.sqrt(2.0)
+    width = max(f[half].max() - f[half].min(), 2.0 * (f[1] - f[0]) if f.size > 1 else 1.0)
+    f0_start, q_start = f[i], max(f[i] / width, 0.6)
+    scale = a[i]
+    x0 = [f0_start, math.log(q_start), a[i] / q_start, 0.0]
+
+    def residual(p):
+        m = _response(f, p[0], math.exp(p[1]), p[2], p[3])
+        d = (m - z) / scale
+        return np.concatenate([d.real, d.imag])
+
+    sol = least_squares(residual, x0, x_scale=[max(width, 1e-9), 0.1, a[i] / q_start, 0.01], method="lm",
+                        xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=2000)
+    f0, q, a_s, phi0 = sol.x[0], math.exp(sol.x[1]), sol.x[2], sol.x[3]
+    if a_s < 0:  # the same response with the sign in the phase
+        a_s, phi0 = -a_s, phi0 + math.pi
+    dof = max(1, 2 * f.size - 4)
+    sigma2 = float(np.sum(sol.fun ** 2)) / dof
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * sigma2
+        f0_err = math.sqrt(max(cov[0, 0], 0.0))
+        q_err = q * math.sqrt(max(cov[1, 1], 0.0))
+    except np.linalg.LinAlgError:
+        f0_err = q_err = math.inf
+    phase0 = (math.degrees(phi0) + 180.0) % 360.0 - 180.0
+    return TuneResult(np.asarray(f), np.abs(z), -np.degrees(np.angle(z)), f0, q, f0_err, q_err, a_s, phase0,
+                      math.sqrt(sigma2))
+
+
+def choose_working_point(result: TuneResult, v: dict, current_amplitude_scale: float = 1.0) -> TuneResult:
+    """Fill in the drive frequency, drive scale and phase offset from a fit and the settings."""
+    f = result.f_peak + v["tune_offset"]
+    if not f > 0:
+        raise ValueError(f"tune_offset={v['tune_offset']:g} Hz puts the drive at {f:g} Hz (<= 0)")
+    response = result.model([f])[0]
+    result.drive_frequency = f
+    result.drive_scale = current_amplitude_scale * v["tune_target_amplitude"] / abs(response)
+    phase = -math.degrees(np.angle(response))
+    result.phase_offset_deg = (phase - v["tune_phase_target"] + 180.0) % 360.0 - 180.0
+    result.settings = dict(v)
+    return result
+
+
+def sweep_wired(instrument, values: dict | None = None, progress=None) -> TuneResult:
+    """Tune the wired instrument (:class:`afm_ros.core.wired.WiredInstrument`) with its feedback
+    held: sweep, fit, choose the working point (reported, not applied). The tip
+    must be free (far from the sample) for the fit to mean the cantilever alone."""
+    inst = instrument
+    nominal = inst.setup.cantilever
+    v = settings(values or {}, nominal.resonance_frequency, nominal.quality_factor,
+                 inst.setup.drive.frequency, 1.0 / inst.lock_in.params["output_rate"])
+    was_enabled = inst.controller.params["enabled"]
+    inst.controller.configure(enabled=False)
+    start_frequency = inst.setup.drive.frequency
+    amp, phase = [], []
+    freqs = frequencies(v)
+    try:
+        for k, f in enumerate(freqs):
+            inst.set_drive_frequency(float(f))
+            inst.run_until(inst.t + v["tune_settle"])
+            t_from = inst.t
+            xs, ys = [], []
+            while inst.t < t_from + v["tune_dwell"] - 1e-12:
+                rec = inst.step()
+                keep = rec.lockin_t >= t_from
+                xs.append(rec.amplitude[keep] * np.cos(np.radians(rec.phase_deg[keep])))
+                ys.append(-rec.amplitude[keep] * np.sin(np.radians(rec.phase_deg[keep])))
+            x, y = np.concatenate(xs), np.concatenate(ys)
+            if x.size == 0:
+                raise ValueError(f"tune_dwell={v['tune_dwell']:g} s holds no lock-in output; raise it")
+            amp.append(math.hypot(x.mean(), y.mean()))
+            phase.append(math.degrees(math.atan2(-y.mean(), x.mean())))
+            if progress is not None:
+                progress(k + 1, len(freqs), f, amp[-1], phase[-1])
+    finally:
+        inst.set_drive_frequency(start_frequency)
+        inst.controller.configure(enabled=was_enabled)
+    result = fit(freqs, np.array(amp), np.array(phase))
+    return choose_working_point(result, v)

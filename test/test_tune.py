@@ -1,0 +1,70 @@
+"""Drive-frequency tune (no ROS): the sweep through the instrument's own lock-in and the fit find
+the configured cantilever's f0 and Q, and the working point follows the driven oscillator's
+analytic response. The tip is 2 um above the sample (free), as after a withdraw."""
+import math
+
+import pytest
+
+from afm_ros.core.tune import TUNE_SPECS, settings, sweep_wired
+from afm_ros.core.wired import WiredInstrument
+
+FREE = {"temperature": 0.0, "detector_noise_density": 0.0, "z_base": 2e-6}
+
+
+def analytic(f, f0, q, a0):
+    """Amplitude [m] and phase lag [deg] of the free oscillator driven by F0 = k a0 / Q at f [Hz]."""
+    r = f / f0
+    amplitude = a0 / q / math.hypot(1 - r * r, r / q)
+    return amplitude, math.degrees(math.atan2(r / q, 1 - r * r))
+
+
+def test_tune_finds_f0_and_q_of_the_configured_cantilever():
+    """Noise-free: the sweep's points are the steady state up to the transient left after 8 decay
+    times (e^-8 = 3e-4 of the step between points, which is < 1 % of the amplitude) and the lock-in's
+    residual ripple, so the fit recovers f0 within 0.05 Hz (1e-6) and Q within 1e-4. The working
+    point at the amplitude peak: the drive scale is the target over the analytic peak amplitude
+    A0 / sqrt(1 - 1 / (4 Q^2)) and the phase offset the analytic lag there minus 90 deg."""
+    w = WiredInstrument(cantilever=FREE)
+    r = sweep_wired(w, {"tune_target_amplitude": 50e-9})
+    assert r.f0 == pytest.approx(45e3, abs=0.05)
+    assert r.q == pytest.approx(25.0, rel=1e-4)
+    assert r.f0_error < 0.05 and r.q_error < 0.01
+    assert r.drive_frequency == pytest.approx(45e3 * math.sqrt(1 - 0.5 / 25 ** 2), abs=0.05)
+    peak, lag = analytic(r.drive_frequency, 45e3, 25.0, 60e-9)
+    assert peak == pytest.approx(60e-9 / math.sqrt(1 - 1 / (4 * 25 ** 2)), rel=1e-9)
+    assert r.drive_scale == pytest.approx(50e-9 / peak, rel=1e-4)
+    assert r.phase_offset_deg == pytest.approx(lag - 90.0, abs=0.01)
+    # the measured points are the analytic response
+    for f, a, p in zip(r.frequency[::10], r.amplitude[::10], r.phase_deg[::10]):
+        a_true, p_true = analytic(f, 45e3, 25.0, 60e-9)
+        assert a == pytest.approx(a_true, rel=1e-3) and p == pytest.approx(p_true, abs=0.05)
+    assert w.setup.drive.frequency == 45e3  # the sweep leaves the drive as it found it
+
+
+def test_tune_finds_a_stiff_high_q_cantilever_with_thermal_and_detector_noise():
+    """A different lever (300 kHz, Q 400, 40 N/m) at room temperature with a 100 fm/sqrt(Hz)
+    detector: the fit is within 5 standard errors of the configured f0 and Q (its errors are
+    what the noise allows), and those are below 1e-5 of f0 and 1e-3 of Q. The sweep starts 1 kHz
+    off the resonance (the nominal centre is the drive frequency in force)."""
+    lever = {"resonance_frequency": 300e3, "drive_frequency": 301e3, "quality_factor": 400.0,
+             "spring_constant": 40.0, "z_base": 2e-6}
+    w = WiredInstrument(cantilever=lever)
+    assert w.values["temperature"] > 0 and w.values["detector_noise_density"] > 0
+    r = sweep_wired(w, {"tune_offset": -300e3 / (2 * 400)})
+    assert abs(r.f0 - 300e3) < 5 * r.f0_error + 1e-3 and r.f0_error < 3.0
+    assert abs(r.q - 400.0) < 5 * r.q_error + 1e-3 and r.q_error < 0.4
+    # on the flank: half a peak width below the peak, where the amplitude is 1/sqrt(2) of it
+    assert r.drive_frequency == pytest.approx(r.f_peak - 375.0, abs=1e-6)
+    at, _ = analytic(r.drive_frequency, 300e3, 400.0, 60e-9)
+    peak, _ = analytic(r.f_peak, 300e3, 400.0, 60e-9)
+    assert at / peak == pytest.approx(1 / math.sqrt(2), abs=0.01)
+
+
+def test_bad_tune_settings_are_refused_by_name():
+    with pytest.raises(ValueError, match=r"tune_points=5 is out of range; allowed range \[11, 2001\]"):
+        settings({"tune_points": 5}, 45e3, 25.0, 45e3, 1e-3)
+    with pytest.raises(ValueError, match="tune_span=100000 Hz reaches 0 Hz around tune_center=45000 Hz; allowed below 90000 Hz"):
+        settings({"tune_span": 1e5}, 45e3, 25.0, 45e3, 1e-3)
+    with pytest.raises(ValueError, match="'span' is not a tune parameter"):
+        settings({"span": 1.0}, 45e3, 25.0, 45e3, 1e-3)
+    assert set(TUNE_SPECS) >= {"tune_points", "tune_offset", "tune_target_amplitude"}
