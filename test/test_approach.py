@@ -57,7 +57,7 @@ def test_approach_is_deterministic_and_withdraw_stops_scanning():
     w.withdraw()
     assert not w.engaged and w.controller.z == Z_RANGE["z_max"]
     assert w.motor == pytest.approx(runs[0][2] + 1e-6)  # withdraw_distance
-    with pytest.raises(ValueError, match=r"start_scan: not engaged \(the approach is withdrawn\); approach first"):
+    with pytest.raises(ValueError, match=r"start_scan: not engaged \(the z stage is withdrawn\); approach first"):
         w.start_scan(dict(scan_size_x=1e-6, scan_size_y=1e-6, scan_center_x=4e-6, scan_center_y=4e-6))
     # far from the surface the oscillation is free again
     rec = w.step()

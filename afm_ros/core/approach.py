@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 
 APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
@@ -50,7 +51,11 @@ APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 )}
 
 ARM_TIMEOUT_S = 0.5  # [s] simulated: the free oscillation must rise above the setpoint within this
+Z_NODE_SPECS: dict[str, ParamSpec] = {}  # the z controller node's parameters (filled below)
 STATES = ("idle", "extending", "retracting", "stepping", "engaged", "failed", "withdrawn")
+
+
+Z_NODE_SPECS.update({**Z_CONTROLLER_SPECS, **APPROACH_SPECS})
 
 
 def validate(values: dict) -> dict:
@@ -151,3 +156,88 @@ class AutoApproach:
                 self.state, self._phase_t, self._phase_z = "extending", t, self.z_max
                 self.log.cycles.append((float(t), self.motor, self.z))
         return self.z
+
+
+class ZStage:
+    """One z axis as the cantilever sees it: the z controller, the approach and the coarse motor.
+
+    :meth:`update` takes each lock-in amplitude [m] and its simulated time [s] and returns the z
+    piezo position [m] (the topography); :attr:`command` = piezo + motor is what moves the base
+    (gap = z_base + command + deflection). Without an approach the motor stays at 0 and the stage
+    is the z controller alone (the ideal start: engaged at z_base). The wired instrument and the z
+    controller node both run this, so their z is the same.
+    """
+
+    def __init__(self, controller, z_base: float):
+        self.controller = controller
+        self.z_base = float(z_base)
+        self.motor = 0.0
+        self.auto: AutoApproach | None = None
+        self.state = "engaged"  # engaged (the loop regulates), approaching, withdrawing, withdrawn, failed
+        self.reason = ""
+        self._withdraw: dict | None = None
+
+    @property
+    def command(self) -> float:
+        return self.z + self.motor
+
+    @property
+    def z(self) -> float:
+        return self.auto.z if self.state == "approaching" else self.controller.z
+
+    @property
+    def engaged(self) -> bool:
+        return self.state == "engaged"
+
+    def start_approach(self, values: dict, t: float) -> AutoApproach:
+        """Start an approach from ``approach_start_distance`` at time t [s] (ValueError naming the
+        field for bad values; nothing changes then)."""
+        c = self.controller.params
+        auto = AutoApproach(values, c["z_min"], c["z_max"], c["setpoint"], self.z_base, t)
+        self.auto = auto
+        self.controller.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+        self.controller.z = self.controller.integrator = auto.z
+        self.motor = auto.motor
+        self.state, self.reason = "approaching", ""
+        return auto
+
+    def start_withdraw(self, values: dict | None, t: float) -> None:
+        """Feedback off; the piezo retracts to z_max at retract_speed, then the motor backs off by
+        withdraw_distance, one step per motor_step_time."""
+        v = validate(values if values is not None else (self.auto.values if self.auto is not None else {}))
+        self.controller.configure(enabled=False, disabled_action="withdraw", max_slew_rate=v["retract_speed"])
+        steps = int(round(v["withdraw_distance"] / v["motor_step"]))
+        self._withdraw = {"values": v, "steps": steps, "t_motor": None}
+        self.state, self.reason = "withdrawing", ""
+
+    def update(self, amplitude: float, t: float) -> float:
+        if self.state == "approaching":
+            z = self.auto.update(amplitude, t)
+            self.motor = self.auto.motor
+            if self.auto.state == "engaged":  # the loop takes over from here, bumpless
+                self.controller.z = self.controller.integrator = z
+                self.controller.configure(enabled=True)
+                self.controller.t_last = t
+                self.state = "engaged"
+            elif self.auto.state == "failed":
+                self.state, self.reason = "failed", self.auto.reason
+                self.controller.z = self.controller.integrator = z
+            self.controller.error = self.controller.params["setpoint"] - amplitude
+            return z
+        z = self.controller.update(amplitude, t)
+        if self.state == "withdrawing":
+            w = self._withdraw
+            if z >= self.controller.params["z_max"]:
+                if w["t_motor"] is None:
+                    w["t_motor"] = t
+                v = w["values"]
+                due = min(w["steps"], int((t - w["t_motor"]) / v["motor_step_time"]))
+                while due > 0:
+                    self.motor += v["motor_step"]
+                    w["steps"] -= 1
+                    w["t_motor"] += v["motor_step_time"]
+                    due -= 1
+                if w["steps"] == 0:
+                    self.controller.configure(max_slew_rate=0.0)
+                    self.state = "withdrawn"
+        return z

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_ros.core.approach import ApproachLog, AutoApproach, validate as approach_validate
+from afm_ros.core.approach import ApproachLog, ZStage
 from afm_ros.core.artefacts import Imperfections, check_plan
 from afm_ros.core.cantilever_params import build
 from afm_ros.core.controller import ZController
@@ -85,8 +85,7 @@ class WiredInstrument:
         self.controller = ZController(**self.z_controller)
         self.latency = int(values["feedback_latency"])
         self.answers: list[float] = []  # z piezo + motor after chunk k's outputs
-        self.motor = 0.0  # coarse motor position [m] (afm_ros.core.approach); 0 without an approach
-        self.auto: AutoApproach | None = None  # the approach, once one was started
+        self.stage = ZStage(self.controller, s.z_base)  # z loop, approach and coarse motor
         self.z_initial = self.controller.z
         self.next_index = 0  # next published sample index
         self.chunks = 0
@@ -114,60 +113,50 @@ class WiredInstrument:
     def approach(self, values: dict | None = None, timeout: float = 600.0) -> ApproachLog:
         """Coarse approach and engage (:mod:`afm_ros.core.approach`) from ``approach_start_distance``:
         the feedback is held, the approach commands z and the motor until the amplitude reaches the
-        setpoint, then the z loop takes over. Returns the log; RuntimeError if the motor's travel
-        ends first or ``timeout`` [s] of simulated time passes."""
-        c = self.controller.params
-        self.auto = AutoApproach(values or {}, c["z_min"], c["z_max"], c["setpoint"], self.setup.z_base, self.sim.t)
-        self.controller.configure(enabled=False, disabled_action="hold")
-        self.controller.z = self.controller.integrator = self.auto.z
-        self.motor = self.auto.motor
+        setpoint, then the z loop takes over. Returns the log; RuntimeError with the reason if it
+        fails (e.g. the motor's travel ends) or ``timeout`` [s] of simulated time passes."""
+        auto = self.stage.start_approach(values or {}, self.sim.t)
         if self.chunks == 0:
-            self.z_initial = self.auto.z  # the first chunks already start at the start distance
+            self.z_initial = auto.z  # the first chunks already start at the start distance
         t_end = self.sim.t + timeout
-        while self.auto.active and self.sim.t < t_end:
+        while self.stage.state == "approaching" and self.sim.t < t_end:
             self.step()
-        if self.auto.state != "engaged":
-            raise RuntimeError(f"approach {self.auto.state} at t={self.sim.t:.6g} s after {self.auto.log.steps} motor "
-                               f"steps ({self.motor_travelled:.4g} m)"
-                               + (": " + self.auto.reason if self.auto.reason else "")
-                               + (" (timeout)" if self.auto.active else ""))
-        return self.auto.log
+        if self.stage.state != "engaged":
+            raise RuntimeError(f"approach {self.stage.state} at t={self.sim.t:.6g} s after {auto.log.steps} motor "
+                               f"steps ({auto.motor_start - self.motor:.4g} m)"
+                               + (": " + self.stage.reason if self.stage.reason else "")
+                               + (" (timeout)" if self.stage.state == "approaching" else ""))
+        return auto.log
 
     @property
-    def motor_travelled(self) -> float:
-        """How far the motor has moved towards the sample since the approach started [m]."""
-        return 0.0 if self.auto is None else self.auto.motor_start - self.motor
+    def motor(self) -> float:
+        """The coarse motor's position [m] (0 without an approach)."""
+        return self.stage.motor
+
+    @property
+    def auto(self):
+        return self.stage.auto
 
     @property
     def engaged(self) -> bool:
         """The z loop regulates on the surface: always without an approach (the ideal start), else
         after an approach engaged and until a withdraw."""
-        return self.auto is None or self.auto.state == "engaged"
+        return self.stage.engaged
 
-    def withdraw(self) -> None:
-        """Feedback off, the piezo retracts to z_max at the approach's retract_speed, then the motor
-        backs off by withdraw_distance (motor_step_time per step)."""
-        values = self.auto.values if self.auto is not None else approach_validate({})
-        self.controller.configure(enabled=False, disabled_action="withdraw", max_slew_rate=values["retract_speed"])
-        z_max = self.controller.params["z_max"]
-        while self.controller.z < z_max:
+    def withdraw(self, values: dict | None = None, timeout: float = 600.0) -> None:
+        """Feedback off, the piezo retracts to z_max at retract_speed, then the motor backs off by
+        withdraw_distance (motor_step_time per step)."""
+        self.stage.start_withdraw(values, self.sim.t)
+        t_end = self.sim.t + timeout
+        while self.stage.state == "withdrawing" and self.sim.t < t_end:
             self.step()
-        self.controller.configure(max_slew_rate=0.0)
-        steps = int(round(values["withdraw_distance"] / values["motor_step"]))
-        self.run_until(self.sim.t + steps * values["motor_step_time"])
-        self.motor += steps * values["motor_step"]
-        if self.auto is None:
-            self.auto = AutoApproach(values, self.controller.params["z_min"], z_max,
-                                     self.controller.params["setpoint"], self.setup.z_base, self.sim.t, self.motor)
-        self.auto.state = "withdrawn"
-        self.auto.motor = self.motor
 
     def start_scan(self, plan_values: dict) -> ScanPlan:
         """Start a scan at the current simulated time (the next chunk boundary); returns the plan."""
         if self.sample is None:
             raise ValueError("start_scan: no sample map (a flat sample has nothing to image)")
         if not self.engaged:
-            raise ValueError(f"start_scan: not engaged (the approach is {self.auto.state}); approach first")
+            raise ValueError(f"start_scan: not engaged (the z stage is {self.stage.state}); approach first")
         plan = ScanPlan.from_values(plan_values, start_time=self.sim.t)
         check_plan(self.imperfect.values, plan)
         self.imperfect.move(plan.center_x, plan.center_y, self.sim.t)
@@ -198,19 +187,10 @@ class WiredInstrument:
         out = self.lock_in.process(header, measured)
         z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
-        auto = self.auto if self.auto is not None and self.auto.active else None
         for i, (t, x, y) in enumerate(zip(out.t.tolist(), out.x.tolist(), out.y.tolist())):
-            if auto is not None and auto.active:
-                z_out[i] = auto.update(math.hypot(x, y), t)
-                errors[i] = self.controller.params["setpoint"] - math.hypot(x, y)
-                self.motor = auto.motor
-                if auto.state == "engaged":  # the z loop takes over from here, bumpless
-                    self.controller.z = self.controller.integrator = auto.z
-                    self.controller.configure(enabled=True)
-                continue
-            z_out[i] = self.controller.update(math.hypot(x, y), t)  # as the z controller node does
+            z_out[i] = self.stage.update(math.hypot(x, y), t)  # as the z controller node does
             errors[i] = self.controller.error
-        self.answers.append((auto.z if auto is not None and auto.active else self.controller.z) + self.motor)
+        self.answers.append(self.stage.command)
         self.next_index = first + count
         self.chunks += 1
         phase = np.degrees(np.arctan2(-out.y, out.x))

@@ -132,6 +132,7 @@ class CantileverNode(Node):
         self._pending_plan: dict | None = None  # the scanner's latest request, applied at the next chunk
         self.scan_plan: ScanPlan | None = None  # the scan being run (None: parked)
         self._plan_id = 0
+        self._applied_path: dict = {"park": [0.0, 0.0], "time": 0.0}
         self._imperfect = Imperfections()  # the scanner's imperfections (scanner/imperfections), in force
         self._pending_imperfections: dict | None = None
         self._imperfections_warned = False
@@ -152,6 +153,7 @@ class CantileverNode(Node):
                                                Z_COMMAND_QOS)
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
+        self._publish_applied()
         self._plan_sub = self.create_subscription(String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS)
         self._imperfections_sub = self.create_subscription(String, topics.IMPERFECTIONS, self._on_imperfections,
                                                            LATCHED_QOS)
@@ -349,7 +351,22 @@ class CantileverNode(Node):
             return
         self._sim.set_artefacts(self._imperfect.packed(self.scan_plan))
 
+    def _publish_applied(self, request_id=None) -> None:
+        """cantilever/scan: the path in force (scan plan or park) and the constants consumers need
+        (the scanner's images, the z controller's z_base for the approach); at start, on every
+        scan request and when z_base changes."""
+        v = self._values
+        applied = dict(self._applied_path)
+        applied.update({
+            "id": self._plan_id, "request_id": request_id,
+            "spring_constant_N_per_m": v["spring_constant"], "quality_factor": v["quality_factor"],
+            "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
+            "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
+            "force_model": v["force_model"], "z_base_m": v["z_base"], **self._surface_info})
+        self._pub_scan.publish(String(data=json.dumps(applied)))
+
     def _park(self, x: float, y: float) -> None:
+        self._applied_path = {"park": [x, y], "time": self._sim.t}
         self._sim.set_scan(parked_plan(x, y))
         self._imperfect.move(x, y, self._sim.t)
         self._pack_imperfections()
@@ -369,22 +386,14 @@ class CantileverNode(Node):
             self._sim.set_scan(self.scan_plan.packed())
             self._imperfect.move(self.scan_plan.center_x, self.scan_plan.center_y, t0)
             self._pack_imperfections()
-            applied = {"plan": self.scan_plan.as_dict()}
+            self._applied_path = {"plan": self.scan_plan.as_dict()}
         else:
             x, y = (float(v) for v in request["park"])
             self.scan_plan = None
             self._park(x, y)
-            applied = {"park": [x, y], "time": t0}
-        v = self._values
-        applied.update({
-            "id": self._plan_id, "request_id": request.get("id"),
-            "spring_constant_N_per_m": v["spring_constant"], "quality_factor": v["quality_factor"],
-            "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
-            "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
-            "force_model": v["force_model"], "z_base_m": v["z_base"], **self._surface_info})
-        self._pub_scan.publish(String(data=json.dumps(applied)))
+        self._publish_applied(request.get("id"))
         self.get_logger().info(f"scan request {request.get('id')} applied at t={t0:.6g} s: "
-                               + ("scanning" if "plan" in request else f"parked at {applied['park']}"))
+                               + ("scanning" if "plan" in request else f"parked at {self._applied_path['park']}"))
 
     def _ready_line(self) -> None:
         v, s = self._values, self._setup
@@ -438,6 +447,9 @@ class CantileverNode(Node):
                 self._gate.controller_gone()
         if "flow_window" in changed:
             self._window.window = v["flow_window"]
+        if "z_base" in changed or set(changed) & {"spring_constant", "quality_factor", "free_amplitude",
+                                                  "drive_frequency", "resonance_frequency"}:
+            self._publish_applied()
         self._starts.resize(max(v["feedback_latency"], v["flow_window"]) + 2)
         if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps or "run_until" in changed:
             self._timer_dirty = True

@@ -99,6 +99,8 @@ class ScannerNode(Node):
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS)
         self.create_subscription(Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_applied, topics.LATCHED_QOS)
+        self.z_stage: dict | None = None  # the z controller's latest z_controller/stage (None: not heard)
+        self.create_subscription(String, topics.Z_STAGE, self._on_stage, topics.LATCHED_QOS)
         self.create_service(Trigger, "scanner/start", lambda req, res: self._start(res, single=False))
         self.create_service(Trigger, "scanner/scan_frame", lambda req, res: self._start(res, single=True))
         self.create_service(Trigger, "scanner/stop", self._stop)
@@ -189,14 +191,26 @@ class ScannerNode(Node):
                             f"{plan.frame_time:g} s per frame" + (" (one frame)" if not plan.continuous else ""))
         return response
 
+    def _on_stage(self, msg: String) -> None:
+        try:
+            self.z_stage = json.loads(msg.data)
+        except ValueError:
+            pass
+
     def check_start(self, values: dict | None = None) -> ScanPlan:
         """What a scan with ``values`` (default: the current parameters) needs, checked before it
-        starts: the lock-in's output_rate gives every pixel an output, the frame buffers fit in
+        starts: the z stage is engaged (if the z controller said otherwise on z_controller/stage),
+        the lock-in's output_rate gives every pixel an output, the frame buffers fit in
         memory (:func:`afm_ros.core.scanner.check_scan`), and, if frames are written, the output
         folder exists or is created (only its last level) and has room for a frame's files
         (:func:`afm_ros.formats.folders.check_output_directory`). ValueError with the reason."""
         values = dict(self._values) if values is None else values
         plan = check_scanner_values(values)
+        stage = self.z_stage
+        if stage is not None and stage.get("state") != "engaged":
+            reason = f" ({stage['reason']})" if stage.get("reason") else ""
+            raise ValueError(f"not engaged: the z stage is {stage.get('state')}{reason}; approach first "
+                             "(service z_controller/approach)")
         if self.lockin_output_rate is None:
             reachable = self._settings_clients["lockin"].services_are_ready()
             raise ValueError(f"the lock-in's output_rate is not known yet ({self._lockin_fqn} "

@@ -27,6 +27,9 @@ Z_COMMAND = "z_controller/z_command"
 Z_TRACE = "z_controller/trace"
 SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
 SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
+# std_msgs/String, JSON (latched): what the z stage does (engaged, approaching, withdrawing, withdrawn,
+# failed), the coarse motor's position and the approach's log
+Z_STAGE = "z_controller/stage"
 # std_msgs/String, JSON: the scanner's and sample's imperfection parameters (latched; the cantilever
 # applies them at its next chunk boundary, all together)
 IMPERFECTIONS = "scanner/imperfections"

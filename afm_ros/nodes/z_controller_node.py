@@ -9,10 +9,17 @@ setpoint - amplitude: negative while the amplitude is above the setpoint). Per b
 ``z_controller/z_command`` (std_msgs/Float64MultiArray ``[answered_end_index, answered_end_time_s,
 z_piezo_m]``): the answer to that chunk, which the cantilever applies ``feedback_latency`` chunks
 later (lockstep, :mod:`afm_ros.core.flow`). Its first command (answered index 0) is the start position.
+
+Approach and withdraw (:mod:`afm_ros.core.approach`, its parameters are this node's too): the
+services ``z_controller/approach`` and ``z_controller/withdraw`` (std_srvs/Trigger) start them; the
+z command is then the piezo plus the coarse motor's position. ``z_controller/stage`` (std_msgs/String,
+JSON, latched) says what the z stage does (engaged, approaching, withdrawing, withdrawn, failed,
+with the motor position and the approach's log); the scanner refuses to scan unless it is engaged.
 """
 from __future__ import annotations
 
 import array
+import json
 import math
 import sys
 import threading
@@ -21,13 +28,15 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from std_srvs.srv import Trigger
 
 from afm_ros.formats import chunk_layout
 
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
 
 INPUT_QOS = topics.CONSUMER_QOS
@@ -40,16 +49,20 @@ DIAGNOSTICS_PERIOD_S = 1.0
 
 
 class ZControllerNode(Node):
-    """Z feedback node; parameters from :data:`afm_ros.core.controller.Z_CONTROLLER_SPECS` (all live)."""
+    """Z feedback node; parameters :data:`afm_ros.core.approach.Z_NODE_SPECS` (the controller's and the
+    approach's; all live)."""
 
     def __init__(self, **kwargs):
         super().__init__("z_controller", **kwargs)
-        values = declare(self, Z_CONTROLLER_SPECS)
+        values = declare(self, Z_NODE_SPECS)
         check_limits(values)
-        self.controller = ZController(**values)
+        self.controller = ZController(**{k: v for k, v in values.items() if k in Z_CONTROLLER_SPECS})
+        self.approach_values = approach_validate({k: v for k, v in values.items() if k in APPROACH_SPECS})
+        self.stage: ZStage | None = None  # made when the cantilever's z_base is known (cantilever/scan)
+        self.z_base: float | None = None
         self._lock = threading.Lock()
         self.add_on_set_parameters_callback(
-            make_set_callback(Z_CONTROLLER_SPECS, lambda: dict(self.controller.params), check_limits, self._apply))
+            make_set_callback(Z_NODE_SPECS, self._all_values, check_limits, self._apply))
         self.pub_z = self.create_publisher(Float64, "z_controller/z_piezo", Z_QOS)
         self.pub_error = self.create_publisher(Float64, "z_controller/error", ERROR_QOS)
         # messages published per per-output publisher: a recorder in this process is waited for until it has them all
@@ -64,6 +77,12 @@ class ZControllerNode(Node):
         self.lost_samples = 0
         self.stale_batches = 0  # batches of chunks already answered (e.g. a restarted lock-in's history)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS)
+        self.pub_stage = self.create_publisher(String, topics.Z_STAGE, topics.LATCHED_QOS)
+        self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
+        self.create_service(Trigger, "z_controller/approach", self._approach)
+        self.create_service(Trigger, "z_controller/withdraw", self._withdraw)
+        self._stage_reported = None
+        self._report_stage()
         self._publish_z()
         self._send_command(0, 0.0)  # the start position: what the cantilever applies to its first chunks
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -73,15 +92,91 @@ class ZControllerNode(Node):
                 values["setpoint"], values["p_gain"], values["i_gain"], values["z_min"], values["z_max"],
                 "enabled" if values["enabled"] else "disabled (%s)" % values["disabled_action"]))
 
+    def _all_values(self) -> dict:
+        return {**self.controller.params, **self.approach_values}
+
+    @property
+    def stage_state(self) -> str:
+        return "engaged" if self.stage is None else self.stage.state
+
+    def _on_cantilever(self, msg: String) -> None:
+        """The cantilever's applied-scan message carries its z_base (needed to place the motor)."""
+        try:
+            z_base = float(json.loads(msg.data)["z_base_m"])
+        except (ValueError, KeyError, TypeError):
+            return
+        with self._lock:
+            if self.stage is None:
+                self.stage = ZStage(self.controller, z_base)
+            self.stage.z_base = self.z_base = z_base
+
+    def _report_stage(self) -> None:
+        st = self.stage
+        info = {"state": self.stage_state, "motor_m": 0.0 if st is None else st.motor,
+                "reason": "" if st is None else st.reason}
+        if st is not None and st.auto is not None:
+            log = st.auto.log
+            info.update({"approach_started_s": log.started_at, "engaged_s": log.engaged_at,
+                         "engaged_z_m": log.engaged_z, "motor_steps": log.steps, "cycles": len(log.cycles)})
+        if info != self._stage_reported:
+            self._stage_reported = info
+            self.pub_stage.publish(String(data=json.dumps(info)))
+
+    def _approach(self, request, response):
+        with self._lock:
+            if self.stage is None:
+                response.success = False
+                response.message = ("approach refused: the cantilever's z_base is not known yet (no message on "
+                                    "cantilever/scan: is the cantilever running in this namespace?)")
+                return response
+            if self.stage.state == "approaching":
+                response.success = False
+                response.message = "approach refused: an approach is already running"
+                return response
+            t = 0.0 if self.controller.t_last is None else self.controller.t_last
+            try:
+                auto = self.stage.start_approach(self.approach_values, t)
+            except ValueError as exc:
+                response.success = False
+                response.message = f"approach refused: {exc}"
+                return response
+            self._report_stage()
+        response.success = True
+        response.message = (f"approaching from {self.approach_values['approach_start_distance']:g} m "
+                            f"(motor at {auto.motor:g} m, z piezo range {auto.range:g} m)")
+        self.get_logger().info(response.message)
+        return response
+
+    def _withdraw(self, request, response):
+        with self._lock:
+            t = 0.0 if self.controller.t_last is None else self.controller.t_last
+            if self.stage is None:
+                self.stage = ZStage(self.controller, 0.0)
+            self.stage.start_withdraw(self.approach_values, t)
+            self._report_stage()
+        response.success = True
+        response.message = (f"withdrawing: the piezo retracts to z_max={self.controller.params['z_max']:g} m, then "
+                            f"the motor backs off {self.approach_values['withdraw_distance']:g} m")
+        self.get_logger().info(response.message)
+        return response
+
     def _publish_z(self) -> None:
         self.pub_z.publish(Float64(data=self.controller.z))
         self.published_copies[self.pub_z] += 1
 
     def _send_command(self, answered_end_index: int, answered_end_time: float) -> None:
-        self._command.data = [float(answered_end_index), float(answered_end_time), float(self.controller.z)]
+        z = self.controller.z if self.stage is None else self.stage.command
+        self._command.data = [float(answered_end_index), float(answered_end_time), float(z)]
         self.pub_command.publish(self._command)
 
     def _apply(self, changed: dict) -> None:
+        approach = {k: v for k, v in changed.items() if k in APPROACH_SPECS}
+        changed = {k: v for k, v in changed.items() if k in Z_CONTROLLER_SPECS}
+        if approach:
+            self.approach_values = approach_validate({**self.approach_values, **approach})
+            self.get_logger().info("approach parameters changed (for the next approach or withdraw): %s" % approach)
+        if not changed:
+            return
         with self._lock:
             z_before = self.controller.z
             self.controller.configure(**changed)
@@ -115,7 +210,10 @@ class ZControllerNode(Node):
         want_error = self.pub_error.get_subscription_count() > 0
         with self._lock:
             for i, (t, x, y) in enumerate(zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist())):
-                z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
+                if self.stage is None:
+                    z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
+                else:
+                    z_msg.data = zs[i] = self.stage.update(math.hypot(x, y), t)
                 e_msg.data = errors[i] = self.controller.error
                 if want_z:
                     self.pub_z.publish(z_msg)
@@ -125,6 +223,7 @@ class ZControllerNode(Node):
             self.published_copies[self.pub_error] += n if want_error else 0
             self.answered_end_index = batch.input_end_index
             self._send_command(batch.input_end_index, batch.input_end_time)
+            self._report_stage()
         trace = Float64MultiArray()
         trace.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_TRACE_LABEL, size=n, stride=3 * n)]
         trace.layout.data_offset = chunk_layout.Z_TRACE_PREAMBLE_LENGTH
@@ -138,7 +237,8 @@ class ZControllerNode(Node):
             self, self._pub_diag, "feedback",
             f"{self.lost_samples} input samples never answered" if self.lost_samples else None,
             {"answered_end_index": self.answered_end_index, "z_piezo_m": c.z, "error_m": c.error,
-             "enabled": c.params["enabled"], "lost_batches": self.lost_batches, "lost_samples": self.lost_samples,
+             "enabled": c.params["enabled"], "stage": self.stage_state,
+             "motor_m": 0.0 if self.stage is None else self.stage.motor, "lost_batches": self.lost_batches, "lost_samples": self.lost_samples,
              "stale_batches": self.stale_batches, "rejected_samples": c.rejected_samples})
 
 

@@ -13,7 +13,7 @@ import sys
 NODE_SPECS = {
     "cantilever": ("afm_ros.core.cantilever_params", "CANTILEVER_NODE_SPECS"),
     "lockin": ("afm_ros.core.lockin", "LOCKIN_SPECS"),
-    "z_controller": ("afm_ros.core.controller", "Z_CONTROLLER_SPECS"),
+    "z_controller": ("afm_ros.core.approach", "Z_NODE_SPECS"),
     "recorder": ("afm_ros.formats.mcap_io", "RECORDER_SPECS"),
     "replay": ("afm_ros.formats.mcap_io", "REPLAY_SPECS"),
     "scanner": ("afm_ros.core.scanner", "SCANNER_NODE_SPECS"),
