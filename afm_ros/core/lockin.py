@@ -47,6 +47,9 @@ LOCKIN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("output_rate", 1000.0, "Hz",
               "rate of the output samples (amplitude, phase, X/Y); taken at the first input sample at or "
               "after each multiple of 1/output_rate of simulated time", 1.0, 1e6),
+    ParamSpec("phase_offset", 0.0, "deg",
+              "subtracted from the measured phase (X + iY rotated by it, amplitude unchanged); the tune sets it so "
+              "that the free phase reads tune_phase_target at the working frequency", -180.0, 180.0),
 )}
 
 # Re-anchor the reference phase after this many samples so n * cycles_per_sample stays small
@@ -384,7 +387,12 @@ class LockIn:
         self._next_index = first + n
         stats.chunks += 1
         stats.samples += n
-        return LockInOutput(out_t[:count], out_j[:count] + first, out_x[:count], out_y[:count])
+        x, y = out_x[:count], out_y[:count]
+        offset = self.params["phase_offset"]
+        if offset != 0.0:  # phase = atan2(-Y, X) - offset: X + iY turned by +offset
+            c, s = math.cos(math.radians(offset)), math.sin(math.radians(offset))
+            x, y = x * c - y * s, x * s + y * c
+        return LockInOutput(out_t[:count], out_j[:count] + first, x, y)
 
 
 def benchmark(samples: int = 1_800_000, chunk: int = 1800, repeats: int = 3) -> list[dict]:

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 
 TUNE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
@@ -47,6 +48,10 @@ TUNE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("tune_phase_target", 90.0, "deg", "what the free phase reads at the working frequency after the tune",
               -180.0, 180.0),
 )}
+
+
+# the lock-in node's parameters: the lock-in's and the tune's
+LOCKIN_NODE_SPECS: dict[str, ParamSpec] = {**LOCKIN_SPECS, **TUNE_SPECS}
 
 
 @dataclass
@@ -76,6 +81,13 @@ class TuneResult:
         """The fitted complex response X + iY [m] at frequencies f [Hz]."""
         return _response(np.asarray(f, dtype=float), self.f0, self.q, self.static_amplitude,
                          math.radians(self.phase0_deg))
+
+    def message(self) -> dict:
+        """The sweep and the fit as JSON-ready values (lockin/tune_result)."""
+        return {**{k: float(v) for k, v in self.summary().items()},
+                "frequency_Hz": self.frequency.tolist(), "amplitude_m": self.amplitude.tolist(),
+                "phase_deg": self.phase_deg.tolist(),
+                "settings": {k: (float(v) if isinstance(v, (int, float)) else v) for k, v in self.settings.items()}}
 
     def summary(self) -> dict:
         return {"f0_Hz": self.f0, "f0_error_Hz": self.f0_error, "Q": self.q, "Q_error": self.q_error,
@@ -170,10 +182,64 @@ def choose_working_point(result: TuneResult, v: dict, current_amplitude_scale: f
     return result
 
 
+class TuneRun:
+    """A sweep driven by the lock-in's outputs, the same for the wired instrument and the lock-in
+    node: :attr:`request` is the drive frequency to set; :meth:`feed` takes every lock-in output
+    (time [s], X, Y [m]) with the drive frequency it was demodulated at, and returns the next
+    frequency to set once a point is done (None otherwise). A point starts at the first output at
+    the requested frequency (the change takes effect at a chunk boundary, whenever that is), waits
+    ``tune_settle`` and averages X + iY over ``tune_dwell`` (both simulated time)."""
+
+    def __init__(self, v: dict):
+        self.v = v
+        self.frequencies = frequencies(v)
+        self.k = 0
+        self._t0: float | None = None
+        self._sum = 0j
+        self._n = 0
+        self.amplitude: list[float] = []
+        self.phase_deg: list[float] = []
+        self.result: TuneResult | None = None
+
+    @property
+    def request(self) -> float:
+        return float(self.frequencies[min(self.k, len(self.frequencies) - 1)])
+
+    @property
+    def done(self) -> bool:
+        return self.k >= len(self.frequencies)
+
+    def feed(self, t: float, x: float, y: float, drive_frequency: float) -> float | None:
+        if self.done:
+            return None
+        f = self.frequencies[self.k]
+        if abs(drive_frequency - f) > 1e-9 * f:
+            return None  # the new frequency is not in force yet
+        if self._t0 is None:
+            self._t0 = t
+        start = self._t0 + self.v["tune_settle"]
+        if t < start:
+            return None
+        if t < start + self.v["tune_dwell"] or self._n == 0:
+            self._sum += complex(x, y)
+            self._n += 1
+            return None
+        mean = self._sum / self._n
+        self.amplitude.append(abs(mean))
+        self.phase_deg.append(math.degrees(math.atan2(-mean.imag, mean.real)))
+        self.k += 1
+        self._t0, self._sum, self._n = None, 0j, 0
+        if self.done:
+            self.result = choose_working_point(fit(self.frequencies, np.array(self.amplitude),
+                                                   np.array(self.phase_deg)), self.v)
+            return None
+        return self.request
+
+
 def sweep_wired(instrument, values: dict | None = None, progress=None) -> TuneResult:
     """Tune the wired instrument (:class:`afm_ros.core.wired.WiredInstrument`) with its feedback
-    held: sweep, fit, choose the working point (reported, not applied). The tip
-    must be free (far from the sample) for the fit to mean the cantilever alone."""
+    held: sweep, fit, choose the working point (reported, not applied). The tip must be free (far
+    from the sample) for the fit to mean the cantilever alone."""
     inst = instrument
     nominal = inst.setup.cantilever
     v = settings(values or {}, nominal.resonance_frequency, nominal.quality_factor,
@@ -181,28 +247,22 @@ def sweep_wired(instrument, values: dict | None = None, progress=None) -> TuneRe
     was_enabled = inst.controller.params["enabled"]
     inst.controller.configure(enabled=False)
     start_frequency = inst.setup.drive.frequency
-    amp, phase = [], []
-    freqs = frequencies(v)
+    run = TuneRun(v)
     try:
-        for k, f in enumerate(freqs):
-            inst.set_drive_frequency(float(f))
-            inst.run_until(inst.t + v["tune_settle"])
-            t_from = inst.t
-            xs, ys = [], []
-            while inst.t < t_from + v["tune_dwell"] - 1e-12:
-                rec = inst.step()
-                keep = rec.lockin_t >= t_from
-                xs.append(rec.amplitude[keep] * np.cos(np.radians(rec.phase_deg[keep])))
-                ys.append(-rec.amplitude[keep] * np.sin(np.radians(rec.phase_deg[keep])))
-            x, y = np.concatenate(xs), np.concatenate(ys)
-            if x.size == 0:
-                raise ValueError(f"tune_dwell={v['tune_dwell']:g} s holds no lock-in output; raise it")
-            amp.append(math.hypot(x.mean(), y.mean()))
-            phase.append(math.degrees(math.atan2(-y.mean(), x.mean())))
-            if progress is not None:
-                progress(k + 1, len(freqs), f, amp[-1], phase[-1])
+        inst.set_drive_frequency(run.request)
+        while not run.done:
+            f_chunk = inst.setup.drive.frequency
+            rec = inst.step()
+            x = rec.amplitude * np.cos(np.radians(rec.phase_deg))
+            y = -rec.amplitude * np.sin(np.radians(rec.phase_deg))
+            for t, xi, yi in zip(rec.lockin_t.tolist(), x.tolist(), y.tolist()):
+                nxt = run.feed(t, xi, yi, f_chunk)
+                if nxt is not None:
+                    inst.set_drive_frequency(nxt)
+                    if progress is not None:
+                        progress(run.k, len(run.frequencies), run.frequencies[run.k - 1], run.amplitude[-1],
+                                 run.phase_deg[-1])
     finally:
         inst.set_drive_frequency(start_frequency)
         inst.controller.configure(enabled=was_enabled)
-    result = fit(freqs, np.array(amp), np.array(phase))
-    return choose_working_point(result, v)
+    return run.result

@@ -14,6 +14,7 @@ duplicates, restarts) are counted and reported on ``/diagnostics`` (1 Hz) and in
 from __future__ import annotations
 
 import array
+import json
 import math
 import sys
 import threading
@@ -23,13 +24,17 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from std_srvs.srv import Trigger
 
 from afm_ros.formats import chunk_layout
 
 from afm_ros.nodes import topics
 from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
+from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TuneRun, settings as tune_settings
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 
@@ -44,16 +49,32 @@ WARNING_PERIOD_S = 5.0
 
 
 class LockInNode(Node):
-    """Lock-in amplifier node; parameters from :data:`afm_ros.core.lockin.LOCKIN_SPECS` (all live)."""
+    """Lock-in amplifier node; parameters :data:`afm_ros.core.tune.LOCKIN_NODE_SPECS` (the lock-in's
+    and the tune's; all live). Service ``lockin/tune`` (std_srvs/Trigger): the drive-frequency tune
+    (:mod:`afm_ros.core.tune`) on this lock-in's own outputs; it sets the cantilever's
+    ``drive_frequency`` point by point with the z controller held, then applies the working point
+    (drive frequency, ``free_amplitude`` scaled for ``tune_target_amplitude``, this node's
+    ``phase_offset``) and publishes the sweep and fit on ``lockin/tune_result`` (String, JSON, latched)."""
 
     def __init__(self, **kwargs):
         super().__init__("lockin", **kwargs)
-        values = declare(self, LOCKIN_SPECS)
-        self.lockin = LockIn(**values)
+        values = declare(self, LOCKIN_NODE_SPECS)
+        self.lockin = LockIn(**{k: v for k, v in values.items() if k in LOCKIN_SPECS})
+        self.tune_values = {k: v for k, v in values.items() if k in TUNE_SPECS}
         self.lockin.warm_up()  # so the first chunk does not stall the executor for the numba load
         self._lock = threading.Lock()
-        self.add_on_set_parameters_callback(
-            make_set_callback(LOCKIN_SPECS, lambda: dict(self.lockin.params), None, self._apply))
+        self.add_on_set_parameters_callback(make_set_callback(
+            LOCKIN_NODE_SPECS, lambda: {**self.lockin.params, **self.tune_values}, None, self._apply))
+        self._tune: TuneRun | None = None
+        self._tune_restore: dict = {}
+        self.tune_state = "idle"  # idle, running, done, failed
+        self.tune_result = None
+        self._cantilever_values: dict | None = None  # from cantilever/scan: nominal f0, Q, drive, A0
+        self._cantilever_params = AsyncParameterClient(self, "cantilever")
+        self._z_params = AsyncParameterClient(self, "z_controller")
+        self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
+        self._pub_tune = self.create_publisher(String, "lockin/tune_result", topics.LATCHED_QOS)
+        self.create_service(Trigger, "lockin/tune", self._start_tune)
         self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
         self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
         self.pub_xy = self.create_publisher(Vector3Stamped, "lockin/xy", OUTPUT_QOS)
@@ -75,9 +96,98 @@ class LockInNode(Node):
                 values["filter_order"], values["output_rate"]))
 
     def _apply(self, changed: dict) -> None:
+        tune = {k: v for k, v in changed.items() if k in TUNE_SPECS}
+        changed = {k: v for k, v in changed.items() if k in LOCKIN_SPECS}
+        self.tune_values.update(tune)
+        if changed:
+            with self._lock:
+                self.lockin.configure(**changed)
+        self.get_logger().info("lock-in parameters changed: %s" % {**changed, **tune})
+
+    # --- tune ------------------------------------------------------------------------------
+    def _on_cantilever(self, msg: String) -> None:
+        try:
+            applied = json.loads(msg.data)
+            self._cantilever_values = {key: float(applied[key]) for key in (
+                "resonance_frequency_Hz", "quality_factor", "drive_frequency_Hz", "free_amplitude_m")}
+        except (ValueError, KeyError, TypeError):
+            pass
+
+    def _start_tune(self, request, response):
+        if self.tune_state == "running":
+            response.success, response.message = False, "tune refused: a tune is already running"
+            return response
+        c = self._cantilever_values
+        if c is None:
+            response.success = False
+            response.message = ("tune refused: the cantilever's drive is not known yet (no message on cantilever/scan: "
+                                "is the cantilever running in this namespace?)")
+            return response
+        try:
+            v = tune_settings(self.tune_values, c["resonance_frequency_Hz"], c["quality_factor"],
+                              c["drive_frequency_Hz"], 1.0 / self.lockin.params["output_rate"])
+        except ValueError as exc:
+            response.success, response.message = False, f"tune refused: {exc}"
+            return response
         with self._lock:
-            self.lockin.configure(**changed)
-        self.get_logger().info("lock-in parameters changed: %s" % changed)
+            self._tune = TuneRun(v)
+            self._tune_restore = {"drive_frequency": c["drive_frequency_Hz"], "free_amplitude": c["free_amplitude_m"],
+                                  "phase_offset": self.lockin.params["phase_offset"]}
+            self.tune_state = "running"
+        self._z_params.set_parameters([Parameter("enabled", value=False)])
+        self._set_drive(self._tune.request)
+        response.success = True
+        response.message = (f"tuning: {v['tune_points']} drive frequencies over {v['tune_span']:g} Hz around "
+                            f"{v['tune_center']:g} Hz, {v['tune_settle']:g} s settle + {v['tune_dwell']:g} s each "
+                            f"(simulated); the z feedback is held")
+        self.get_logger().info(response.message)
+        return response
+
+    def _set_drive(self, frequency: float, **more) -> None:
+        params = [Parameter("drive_frequency", value=float(frequency))]
+        params += [Parameter(k, value=float(v)) for k, v in more.items()]
+        self._cantilever_params.set_parameters(params).add_done_callback(self._drive_answer)
+
+    def _drive_answer(self, future) -> None:
+        try:
+            results = future.result().results
+        except Exception as exc:  # the service went away
+            results, reason = [], str(exc)
+        else:
+            reason = "; ".join(r.reason for r in results if not r.successful)
+        if reason and self.tune_state == "running":
+            self._tune_failed(f"the cantilever refused the drive: {reason}")
+
+    def _tune_failed(self, reason: str) -> None:
+        self.tune_state = "failed"
+        self._tune = None
+        self.get_logger().error(f"tune failed: {reason}")
+        self._set_drive(self._tune_restore["drive_frequency"])
+
+    def _feed_tune(self, header, out):
+        """Feed one chunk's outputs to the running tune (under the lock); returns what to do next
+        outside it: ("next", frequency), ("done", run) or None."""
+        run = self._tune
+        nxt = None
+        for t, x, y in zip(out.t.tolist(), out.x.tolist(), out.y.tolist()):
+            step = run.feed(t, x, y, header.drive_frequency)
+            nxt = step if step is not None else nxt
+            if run.done:
+                self._tune = None
+                return "done", run
+        return ("next", nxt) if nxt is not None else None
+
+    def _finish_tune(self, run: TuneRun) -> None:
+        r = run.result
+        self.tune_result = r
+        self.tune_state = "done"
+        offset = (self._tune_restore["phase_offset"] + r.phase_offset_deg + 180.0) % 360.0 - 180.0
+        self._set_drive(r.drive_frequency, free_amplitude=self._tune_restore["free_amplitude"] * r.drive_scale)
+        self.set_parameters([Parameter("phase_offset", value=float(offset))])
+        self._pub_tune.publish(String(data=json.dumps(r.message())))
+        self.get_logger().info(
+            f"tuned: f0 = {r.f0:.6g} +- {r.f0_error:.2g} Hz, Q = {r.q:.5g} +- {r.q_error:.2g}; drive at "
+            f"{r.drive_frequency:.6g} Hz, free_amplitude x {r.drive_scale:.4g}, phase_offset {offset:.4g} deg")
 
     def _report_events(self, events: list[str]) -> None:
         """Stream events (gaps, duplicates, ...) are counted always, logged at most once per 5 s."""
@@ -103,12 +213,18 @@ class LockInNode(Node):
             with self._lock:
                 out = self.lockin.process(header, samples)
                 events = self.lockin.stats.drain()
+                tune_step = self._feed_tune(header, out) if self._tune is not None else None
         except ValueError as exc:
             self.bad_chunks += 1
             self.get_logger().error(f"malformed deflection chunk ignored: {exc}", throttle_duration_sec=1.0)
             return
         if events:
             self._report_events(events)
+        if tune_step is not None:
+            if tune_step[0] == "done":
+                self._finish_tune(tune_step[1])
+            else:
+                self._set_drive(tune_step[1])
         end = header.first_sample_index + samples.shape[0]
         batch = Float64MultiArray()
         n = len(out)

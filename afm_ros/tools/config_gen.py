@@ -12,7 +12,7 @@ import sys
 # node name -> (module, specs attribute)
 NODE_SPECS = {
     "cantilever": ("afm_ros.core.cantilever_params", "CANTILEVER_NODE_SPECS"),
-    "lockin": ("afm_ros.core.lockin", "LOCKIN_SPECS"),
+    "lockin": ("afm_ros.core.tune", "LOCKIN_NODE_SPECS"),
     "z_controller": ("afm_ros.core.approach", "Z_NODE_SPECS"),
     "recorder": ("afm_ros.formats.mcap_io", "RECORDER_SPECS"),
     "replay": ("afm_ros.formats.mcap_io", "REPLAY_SPECS"),
