@@ -72,12 +72,12 @@ def test_bad_tune_settings_are_refused_by_name():
 
 def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_context, ros_executor,
                                                                            ros_namespace):
-    """The lock-in node's lockin/tune service on live nodes (real DDS): the same sweep algorithm on
-    the same physics finds the same f0 and Q (the frequency changes take effect at whichever chunk
-    boundary the parameter set reaches: the points then differ by the transient's e^-8 residue, so
-    the fits agree to 0.05 Hz and 1e-4 in Q, not bit for bit). Then the working point is in force:
-    the cantilever drives at the fit's peak with free_amplitude scaled to the 50 nm target, and the
-    lock-in's phase reads 90 deg there: measured, 50 nm and 90 deg within the lock-in's ripple."""
+    """The lock-in node's lockin/tune service on live nodes (real DDS), the z feedback off from the
+    start: the sweep follows a schedule in simulated time (lockin/tune_plan), which the cantilever
+    applies at its chunk boundaries, so the ROS tune equals the wired one with the same schedule bit
+    for bit, whenever the messages arrive. Then the working point is in force: the cantilever drives
+    at the fit's peak with free_amplitude scaled to the 50 nm target, and the lock-in reads 50 nm and
+    90 deg there (0.1 % and 0.05 deg: the lock-in's ripple)."""
     import json
     import time
 
@@ -101,7 +101,8 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
         Parameter(k, value=v) for k, v in {**FREE, "real_time_factor": 0.0}.items()])
     lockin = LockInNode(context=ros_context, namespace=ns, parameter_overrides=[
         Parameter("tune_target_amplitude", value=50e-9)])
-    controller = ZControllerNode(context=ros_context, namespace=ns)
+    controller = ZControllerNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter("enabled", value=False)])
     results = []
     lockin.create_subscription(String, "lockin/tune_result", lambda m: results.append(json.loads(m.data)),
                                topics.LATCHED_QOS)
@@ -118,9 +119,10 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
         spin_until(lambda: lockin.tune_state != "running" and results, what="the tune")
         assert lockin.tune_state == "done"
         ros_result = lockin.tune_result
-        wired = sweep_wired(WiredInstrument(cantilever=FREE), {"tune_target_amplitude": 50e-9})
-        assert ros_result.f0 == pytest.approx(wired.f0, abs=0.05)
-        assert ros_result.q == pytest.approx(wired.q, rel=1e-4)
+        wired = sweep_wired(WiredInstrument(cantilever=FREE, z_controller={"enabled": False}),
+                            {"tune_target_amplitude": 50e-9}, start_time=lockin.tune_plan.start_time)
+        assert ros_result.amplitude.tolist() == wired.amplitude.tolist()
+        assert (ros_result.f0, ros_result.q, ros_result.drive_frequency) == (wired.f0, wired.q, wired.drive_frequency)
         assert results[-1]["f0_Hz"] == ros_result.f0 and len(results[-1]["frequency_Hz"]) == 81
         assert controller.controller.params["enabled"] is False  # held until an approach engages
         spin_until(lambda: cantilever.get_parameter("drive_frequency").value == pytest.approx(

@@ -182,19 +182,64 @@ def choose_working_point(result: TuneResult, v: dict, current_amplitude_scale: f
     return result
 
 
-class TuneRun:
-    """A sweep driven by the lock-in's outputs, the same for the wired instrument and the lock-in
-    node: :attr:`request` is the drive frequency to set; :meth:`feed` takes every lock-in output
-    (time [s], X, Y [m]) with the drive frequency it was demodulated at, and returns the next
-    frequency to set once a point is done (None otherwise). A point starts at the first output at
-    the requested frequency (the change takes effect at a chunk boundary, whenever that is), waits
-    ``tune_settle`` and averages X + iY over ``tune_dwell`` (both simulated time)."""
+@dataclass(frozen=True)
+class TunePlan:
+    """The sweep's schedule in simulated time: point k drives at ``frequencies[k]`` from
+    ``start_time + k point_time`` [s] (the cantilever switches at its first chunk boundary at or
+    after it); its measurement window is [t_k + lead, t_k + lead + dwell), lead = one chunk (the
+    switch) + settle, so every window sees the new frequency settled whenever the chunk boundaries
+    fall. A fixed schedule makes the sweep deterministic: the same in the wired instrument and over
+    ROS, whenever messages arrive."""
 
-    def __init__(self, v: dict):
+    start_time: float
+    point_time: float
+    lead: float
+    dwell: float
+    frequencies: tuple
+
+    @classmethod
+    def make(cls, v: dict, start_time: float, chunk_duration: float, output_interval: float) -> "TunePlan":
+        lead = chunk_duration + v["tune_settle"]
+        point = lead + v["tune_dwell"] + output_interval
+        return cls(float(start_time), point, lead, v["tune_dwell"], tuple(float(f) for f in frequencies(v)))
+
+    def frequency_at(self, t: float) -> float | None:
+        """The drive frequency [Hz] the plan wants at simulated time t [s] (None: outside it)."""
+        k = math.floor((t - self.start_time) / self.point_time + 1e-12)
+        return self.frequencies[k] if 0 <= k < len(self.frequencies) else None
+
+    def window(self, k: int) -> tuple[float, float]:
+        t0 = self.start_time + k * self.point_time + self.lead
+        return t0, t0 + self.dwell
+
+    @property
+    def end_time(self) -> float:
+        return self.start_time + len(self.frequencies) * self.point_time
+
+    def as_dict(self) -> dict:
+        return {"start_time": self.start_time, "point_time": self.point_time, "lead": self.lead,
+                "dwell": self.dwell, "frequencies": list(self.frequencies)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TunePlan":
+        plan = cls(float(d["start_time"]), float(d["point_time"]), float(d["lead"]), float(d["dwell"]),
+                   tuple(float(f) for f in d["frequencies"]))
+        if not (plan.point_time > 0 and plan.dwell > 0 and plan.frequencies and all(f > 0 for f in plan.frequencies)
+                and math.isfinite(plan.start_time)):
+            raise ValueError(f"malformed tune plan {d!r}")
+        return plan
+
+
+class TuneRun:
+    """The measurement side of a :class:`TunePlan`, fed with every lock-in output (time [s], X, Y
+    [m]) and the drive frequency it was demodulated at; the same for the wired instrument and the
+    lock-in node. Each point averages X + iY over its window (outputs at its frequency only); a
+    window that got no output counts as missing (left out of the fit)."""
+
+    def __init__(self, v: dict, plan: TunePlan):
         self.v = v
-        self.frequencies = frequencies(v)
+        self.plan = plan
         self.k = 0
-        self._t0: float | None = None
         self._sum = 0j
         self._n = 0
         self.amplitude: list[float] = []
@@ -202,66 +247,59 @@ class TuneRun:
         self.result: TuneResult | None = None
 
     @property
-    def request(self) -> float:
-        return float(self.frequencies[min(self.k, len(self.frequencies) - 1)])
-
-    @property
     def done(self) -> bool:
-        return self.k >= len(self.frequencies)
+        return self.k >= len(self.plan.frequencies)
 
-    def feed(self, t: float, x: float, y: float, drive_frequency: float) -> float | None:
+    def _close_point(self) -> None:
+        if self._n:
+            mean = self._sum / self._n
+            self.amplitude.append(abs(mean))
+            self.phase_deg.append(math.degrees(math.atan2(-mean.imag, mean.real)))
+        else:
+            self.amplitude.append(math.nan)
+            self.phase_deg.append(math.nan)
+        self.k += 1
+        self._sum, self._n = 0j, 0
         if self.done:
-            return None
-        f = self.frequencies[self.k]
-        if abs(drive_frequency - f) > 1e-9 * f:
-            return None  # the new frequency is not in force yet
-        if self._t0 is None:
-            self._t0 = t
-        start = self._t0 + self.v["tune_settle"]
-        if t < start:
-            return None
-        if t < start + self.v["tune_dwell"] or self._n == 0:
+            self.result = choose_working_point(fit(np.array(self.plan.frequencies), np.array(self.amplitude),
+                                                   np.array(self.phase_deg)), self.v)
+
+    def feed(self, t: float, x: float, y: float, drive_frequency: float) -> None:
+        while not self.done and t >= self.plan.window(self.k)[1]:
+            self._close_point()
+        if self.done:
+            return
+        t0, _ = self.plan.window(self.k)
+        f = self.plan.frequencies[self.k]
+        if t >= t0 and abs(drive_frequency - f) <= 1e-9 * f:
             self._sum += complex(x, y)
             self._n += 1
-            return None
-        mean = self._sum / self._n
-        self.amplitude.append(abs(mean))
-        self.phase_deg.append(math.degrees(math.atan2(-mean.imag, mean.real)))
-        self.k += 1
-        self._t0, self._sum, self._n = None, 0j, 0
-        if self.done:
-            self.result = choose_working_point(fit(self.frequencies, np.array(self.amplitude),
-                                                   np.array(self.phase_deg)), self.v)
-            return None
-        return self.request
 
 
-def sweep_wired(instrument, values: dict | None = None, progress=None) -> TuneResult:
+def sweep_wired(instrument, values: dict | None = None, start_time: float | None = None) -> TuneResult:
     """Tune the wired instrument (:class:`afm_ros.core.wired.WiredInstrument`) with its feedback
-    held: sweep, fit, choose the working point (reported, not applied). The tip must be free (far
-    from the sample) for the fit to mean the cantilever alone."""
+    held: the plan from ``start_time`` [s] (default: now; a later one is run up to first), the drive
+    switched at chunk boundaries as the cantilever node does, fit, working point (reported, not
+    applied). The tip must be free (far from the sample) for the fit to mean the cantilever alone."""
     inst = instrument
     nominal = inst.setup.cantilever
+    output_interval = 1.0 / inst.lock_in.params["output_rate"]
     v = settings(values or {}, nominal.resonance_frequency, nominal.quality_factor,
-                 inst.setup.drive.frequency, 1.0 / inst.lock_in.params["output_rate"])
+                 inst.setup.drive.frequency, output_interval)
     was_enabled = inst.controller.params["enabled"]
     inst.controller.configure(enabled=False)
     start_frequency = inst.setup.drive.frequency
-    run = TuneRun(v)
+    plan = TunePlan.make(v, inst.t if start_time is None else start_time, inst.values["chunk_duration"],
+                         output_interval)
+    run = TuneRun(v, plan)
     try:
-        inst.set_drive_frequency(run.request)
         while not run.done:
-            f_chunk = inst.setup.drive.frequency
+            f = plan.frequency_at(inst.t) or start_frequency
+            if f != inst.setup.drive.frequency:
+                inst.set_drive_frequency(f)
             rec = inst.step()
-            x = rec.amplitude * np.cos(np.radians(rec.phase_deg))
-            y = -rec.amplitude * np.sin(np.radians(rec.phase_deg))
-            for t, xi, yi in zip(rec.lockin_t.tolist(), x.tolist(), y.tolist()):
-                nxt = run.feed(t, xi, yi, f_chunk)
-                if nxt is not None:
-                    inst.set_drive_frequency(nxt)
-                    if progress is not None:
-                        progress(run.k, len(run.frequencies), run.frequencies[run.k - 1], run.amplitude[-1],
-                                 run.phase_deg[-1])
+            for t, xi, yi in zip(rec.lockin_t.tolist(), rec.x.tolist(), rec.y.tolist()):
+                run.feed(t, xi, yi, f)
     finally:
         inst.set_drive_frequency(start_frequency)
         inst.controller.configure(enabled=was_enabled)

@@ -42,6 +42,8 @@ class ChunkRecord:
     z_out: np.ndarray  # z controller output after each lock-in output [m]
     error: np.ndarray  # z controller error setpoint - amplitude after each output [m]
     force_peak: float = math.nan  # largest tip-sample force of the chunk's samples [N] (repulsive > 0)
+    x: np.ndarray | None = None  # the lock-in's X and Y [m] of each output
+    y: np.ndarray | None = None
 
 
 @dataclass
@@ -199,7 +201,7 @@ class WiredInstrument:
             self.images.add_z(out.t, z_out, errors)
             self.images.finish_ready()
         record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors,
-                             float(np.max(samples.force, initial=-math.inf)))
+                             float(np.max(samples.force, initial=-math.inf)), out.x, out.y)
         if self.keep_records:
             self.records.append(record)
         return record

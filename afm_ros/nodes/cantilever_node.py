@@ -50,6 +50,7 @@ from afm_ros.core.physics.parameters import DMTSample
 from afm_ros.core.samples import describe, resolve_sample
 from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as artefacts_off, truth as artefact_truth, validate
 from afm_ros.core.scanner import ScanPlan, parked_plan
+from afm_ros.core.tune import TunePlan
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
 # default chunk length), so a consumer that matches late (start-up, a restarted lock-in) still gets
@@ -133,6 +134,8 @@ class CantileverNode(Node):
         self.scan_plan: ScanPlan | None = None  # the scan being run (None: parked)
         self._plan_id = 0
         self._applied_path: dict = {"park": [0.0, 0.0], "time": 0.0}
+        self._pending_tune: TunePlan | None = None
+        self.tune_plan: TunePlan | None = None  # a drive sweep in progress (lockin/tune_plan)
         self._imperfect = Imperfections()  # the scanner's imperfections (scanner/imperfections), in force
         self._pending_imperfections: dict | None = None
         self._imperfections_warned = False
@@ -157,6 +160,7 @@ class CantileverNode(Node):
         self._plan_sub = self.create_subscription(String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS)
         self._imperfections_sub = self.create_subscription(String, topics.IMPERFECTIONS, self._on_imperfections,
                                                            LATCHED_QOS)
+        self._tune_sub = self.create_subscription(String, topics.TUNE_PLAN, self._on_tune_plan, LATCHED_QOS)
         self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
         self._truth_msg = Float64MultiArray()
         self._truth_msg.layout.dim = [MultiArrayDimension(label=",".join(topics.TRUTH_FIELDS),
@@ -362,7 +366,8 @@ class CantileverNode(Node):
             "spring_constant_N_per_m": v["spring_constant"], "quality_factor": v["quality_factor"],
             "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
             "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
-            "force_model": v["force_model"], "z_base_m": v["z_base"], **self._surface_info})
+            "force_model": v["force_model"], "z_base_m": v["z_base"], "chunk_duration_s": v["chunk_duration"],
+            **self._surface_info})
         self._pub_scan.publish(String(data=json.dumps(applied)))
 
     def _park(self, x: float, y: float) -> None:
@@ -371,8 +376,40 @@ class CantileverNode(Node):
         self._imperfect.move(x, y, self._sim.t)
         self._pack_imperfections()
 
+    def _on_tune_plan(self, msg: String) -> None:
+        """The lock-in's tune schedule: while it runs, the drive frequency follows it (switched at
+        chunk boundaries); after it, the drive_frequency parameter is in force again."""
+        try:
+            plan = TunePlan.from_dict(json.loads(msg.data))
+        except (ValueError, KeyError, TypeError) as exc:
+            self.get_logger().error(f"ignoring malformed tune plan on {topics.TUNE_PLAN}: {exc}")
+            return
+        with self._plan_lock:
+            self._pending_tune = plan
+
+    def _apply_tune(self) -> None:
+        with self._plan_lock:
+            if self._pending_tune is not None:
+                self.tune_plan, self._pending_tune = self._pending_tune, None
+        t0 = self._sim.t
+        wanted = None
+        if self.tune_plan is not None:
+            wanted = self.tune_plan.frequency_at(t0)
+            if wanted is None and t0 >= self.tune_plan.end_time:
+                self.tune_plan = None
+        f = self._values["drive_frequency"] if wanted is None else wanted
+        if f != self._setup.drive.frequency:
+            old = self._setup
+            new = build({**self._values, "drive_frequency": f})
+            self._setup = new
+            self._sim.reconfigure(drive=new.drive)
+            if new.chunk_steps != old.chunk_steps:
+                self._timer_dirty = True
+                self._wall_ref = None
+
     def _apply_plan(self) -> None:
         self._apply_imperfections()
+        self._apply_tune()
         with self._plan_lock:
             request, self._pending_plan = self._pending_plan, None
         if request is None:

@@ -34,7 +34,9 @@ from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
-from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TuneRun, settings as tune_settings
+from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TunePlan, TuneRun, settings as tune_settings
+
+TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 
@@ -69,11 +71,14 @@ class LockInNode(Node):
         self._tune_restore: dict = {}
         self.tune_state = "idle"  # idle, running, done, failed
         self.tune_result = None
+        self.tune_plan: TunePlan | None = None
         self._cantilever_values: dict | None = None  # from cantilever/scan: nominal f0, Q, drive, A0
         self._cantilever_params = AsyncParameterClient(self, "cantilever")
         self._z_params = AsyncParameterClient(self, "z_controller")
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
         self._pub_tune = self.create_publisher(String, "lockin/tune_result", topics.LATCHED_QOS)
+        self._pub_tune_plan = self.create_publisher(String, topics.TUNE_PLAN, topics.LATCHED_QOS)
+        self._input_end_time = 0.0  # simulated time at the end of the last chunk processed [s]
         self.create_service(Trigger, "lockin/tune", self._start_tune)
         self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
         self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
@@ -109,7 +114,8 @@ class LockInNode(Node):
         try:
             applied = json.loads(msg.data)
             self._cantilever_values = {key: float(applied[key]) for key in (
-                "resonance_frequency_Hz", "quality_factor", "drive_frequency_Hz", "free_amplitude_m")}
+                "resonance_frequency_Hz", "quality_factor", "drive_frequency_Hz", "free_amplitude_m",
+                "chunk_duration_s")}
         except (ValueError, KeyError, TypeError):
             pass
 
@@ -130,16 +136,19 @@ class LockInNode(Node):
             response.success, response.message = False, f"tune refused: {exc}"
             return response
         with self._lock:
-            self._tune = TuneRun(v)
+            start = self._input_end_time + TUNE_START_CHUNKS * c["chunk_duration_s"]
+            plan = TunePlan.make(v, start, c["chunk_duration_s"], 1.0 / self.lockin.params["output_rate"])
+            self._tune = TuneRun(v, plan)
             self._tune_restore = {"drive_frequency": c["drive_frequency_Hz"], "free_amplitude": c["free_amplitude_m"],
                                   "phase_offset": self.lockin.params["phase_offset"]}
             self.tune_state = "running"
+            self.tune_plan = plan
         self._z_params.set_parameters([Parameter("enabled", value=False)])
-        self._set_drive(self._tune.request)
+        self._pub_tune_plan.publish(String(data=json.dumps(plan.as_dict())))
         response.success = True
         response.message = (f"tuning: {v['tune_points']} drive frequencies over {v['tune_span']:g} Hz around "
-                            f"{v['tune_center']:g} Hz, {v['tune_settle']:g} s settle + {v['tune_dwell']:g} s each "
-                            f"(simulated); the z feedback is held")
+                            f"{v['tune_center']:g} Hz, {plan.point_time:.3g} s each, from t={plan.start_time:.6g} to "
+                            f"{plan.end_time:.6g} s (simulated); the z feedback is held")
         self.get_logger().info(response.message)
         return response
 
@@ -155,27 +164,20 @@ class LockInNode(Node):
             results, reason = [], str(exc)
         else:
             reason = "; ".join(r.reason for r in results if not r.successful)
-        if reason and self.tune_state == "running":
-            self._tune_failed(f"the cantilever refused the drive: {reason}")
-
-    def _tune_failed(self, reason: str) -> None:
-        self.tune_state = "failed"
-        self._tune = None
-        self.get_logger().error(f"tune failed: {reason}")
-        self._set_drive(self._tune_restore["drive_frequency"])
+        if reason:
+            self.tune_state = "failed"
+            self.get_logger().error(f"tune: the cantilever refused the working point: {reason}")
 
     def _feed_tune(self, header, out):
-        """Feed one chunk's outputs to the running tune (under the lock); returns what to do next
-        outside it: ("next", frequency), ("done", run) or None."""
+        """Feed one chunk's outputs to the running tune (under the lock); the finished run, if it
+        finished (its working point is applied outside the lock)."""
         run = self._tune
-        nxt = None
         for t, x, y in zip(out.t.tolist(), out.x.tolist(), out.y.tolist()):
-            step = run.feed(t, x, y, header.drive_frequency)
-            nxt = step if step is not None else nxt
+            run.feed(t, x, y, header.drive_frequency)
             if run.done:
                 self._tune = None
-                return "done", run
-        return ("next", nxt) if nxt is not None else None
+                return run
+        return None
 
     def _finish_tune(self, run: TuneRun) -> None:
         r = run.result
@@ -220,12 +222,10 @@ class LockInNode(Node):
             return
         if events:
             self._report_events(events)
-        if tune_step is not None:
-            if tune_step[0] == "done":
-                self._finish_tune(tune_step[1])
-            else:
-                self._set_drive(tune_step[1])
         end = header.first_sample_index + samples.shape[0]
+        self._input_end_time = header.t_start + samples.shape[0] * header.sample_interval
+        if tune_step is not None:
+            self._finish_tune(tune_step)
         batch = Float64MultiArray()
         n = len(out)
         batch.layout.dim = [MultiArrayDimension(label=chunk_layout.OUTPUTS_LABEL, size=n, stride=3 * n)]

@@ -30,6 +30,9 @@ SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilev
 # std_msgs/String, JSON (latched): what the z stage does (engaged, approaching, withdrawing, withdrawn,
 # failed), the coarse motor's position and the approach's log
 Z_STAGE = "z_controller/stage"
+# std_msgs/String, JSON (latched): the lock-in's drive-sweep schedule (afm_ros.core.tune.TunePlan);
+# the cantilever drives at its frequencies while it runs
+TUNE_PLAN = "lockin/tune_plan"
 # std_msgs/String, JSON: the scanner's and sample's imperfection parameters (latched; the cantilever
 # applies them at its next chunk boundary, all together)
 IMPERFECTIONS = "scanner/imperfections"
