@@ -75,6 +75,8 @@ def test_approach_engages_over_ros_like_the_wired_instrument_and_withdraw_blocks
     assert log.engaged_z == pytest.approx(wired.engaged_z, abs=10e-9)
     spin_until(ros_executor, lambda: stages and stages[-1]["state"] == "engaged")
     assert stages[-1]["motor_steps"] == log.steps
+    refused = call(ros_executor, lockin, f"{ns}/lockin/tune")
+    assert not refused.success and "tune refused: the z stage is engaged" in refused.message
     # the loop regulates at the setpoint
     t = cantilever.sim_time
     spin_until(ros_executor, lambda: cantilever.sim_time > t + 0.2, what="0.2 s of regulation")

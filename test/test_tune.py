@@ -72,8 +72,8 @@ def test_bad_tune_settings_are_refused_by_name():
 
 def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_context, ros_executor,
                                                                            ros_namespace):
-    """The lock-in node's lockin/tune service on live nodes (real DDS), the z feedback off from the
-    start: the sweep follows a schedule in simulated time (lockin/tune_plan), which the cantilever
+    """The lock-in node's lockin/tune service on live nodes (real DDS), the z stage withdrawn from the
+    start (it refuses while engaged): the sweep follows a schedule in simulated time (lockin/tune_plan), which the cantilever
     applies at its chunk boundaries, so the ROS tune equals the wired one with the same schedule bit
     for bit, whenever the messages arrive. Then the working point is in force: the cantilever drives
     at the fit's peak with free_amplitude scaled to the 50 nm target, and the lock-in reads 50 nm and
@@ -102,7 +102,7 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
     lockin = LockInNode(context=ros_context, namespace=ns, parameter_overrides=[
         Parameter("tune_target_amplitude", value=50e-9)])
     controller = ZControllerNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter("enabled", value=False)])
+        Parameter("start_withdrawn", value=True)])
     results = []
     lockin.create_subscription(String, "lockin/tune_result", lambda m: results.append(json.loads(m.data)),
                                topics.LATCHED_QOS)
@@ -110,7 +110,8 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
     for n in nodes:
         ros_executor.add_node(n)
     try:
-        spin_until(lambda: lockin._cantilever_values is not None, what="the cantilever's drive")
+        spin_until(lambda: lockin._cantilever_values is not None and lockin.z_stage == "withdrawn",
+                   what="the cantilever's drive and the withdrawn stage")
         client = lockin.create_client(Trigger, f"{ns}/lockin/tune")
         spin_until(client.service_is_ready, 30, "lockin/tune")
         future = client.call_async(Trigger.Request())
@@ -119,12 +120,12 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
         spin_until(lambda: lockin.tune_state != "running" and results, what="the tune")
         assert lockin.tune_state == "done"
         ros_result = lockin.tune_result
-        wired = sweep_wired(WiredInstrument(cantilever=FREE, z_controller={"enabled": False}),
+        wired = sweep_wired(WiredInstrument(cantilever=FREE, approach_values={"start_withdrawn": True}),
                             {"tune_target_amplitude": 50e-9}, start_time=lockin.tune_plan.start_time)
         assert ros_result.amplitude.tolist() == wired.amplitude.tolist()
         assert (ros_result.f0, ros_result.q, ros_result.drive_frequency) == (wired.f0, wired.q, wired.drive_frequency)
         assert results[-1]["f0_Hz"] == ros_result.f0 and len(results[-1]["frequency_Hz"]) == 81
-        assert controller.controller.params["enabled"] is False  # held until an approach engages
+        assert controller.stage_state == "withdrawn"  # the feedback stays held until an approach engages
         spin_until(lambda: cantilever.get_parameter("drive_frequency").value == pytest.approx(
             ros_result.drive_frequency, rel=1e-12), what="the working drive frequency")
         assert cantilever.get_parameter("free_amplitude").value == pytest.approx(60e-9 * ros_result.drive_scale)

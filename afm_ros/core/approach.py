@@ -48,6 +48,10 @@ APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "motor travel per cycle as a fraction of the z piezo range", 0.1, 0.95),
     ParamSpec("withdraw_distance", 1e-6, "m", "the motor backs off this far on withdraw (piezo retracted too)",
               0.0, 1e-3),
+    ParamSpec("start_withdrawn", False, "",
+              "start far from the sample: withdrawn at approach_start_distance with the feedback off, as a real "
+              "session starts (tune, then approach); false: engaged at z_base from the first chunk (the ideal start)",
+              kind=bool),
 )}
 
 ARM_TIMEOUT_S = 0.5  # [s] simulated: the free oscillation must rise above the setpoint within this
@@ -200,6 +204,16 @@ class ZStage:
         self.motor = auto.motor
         self.state, self.reason = "approaching", ""
         return auto
+
+    def place_withdrawn(self, values: dict) -> None:
+        """Before the first chunk: the head far from the sample (gap approach_start_distance at rest,
+        piezo retracted, feedback off): where a real session starts."""
+        v = validate(values)
+        c = self.controller
+        c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+        c.z = c.integrator = c.params["z_max"]
+        self.motor = v["approach_start_distance"] - self.z_base - c.params["z_max"]
+        self.state, self.reason = "withdrawn", ""
 
     def start_withdraw(self, values: dict | None, t: float) -> None:
         """Feedback off; the piezo retracts to z_max at retract_speed, then the motor backs off by

@@ -63,6 +63,7 @@ class WiredInstrument:
     sample: object = None
     keep_records: bool = False
     imperfections: dict = field(default_factory=dict)  # ARTEFACT_SPECS values (afm_ros.core.artefacts)
+    approach_values: dict = field(default_factory=dict)  # APPROACH_SPECS values (afm_ros.core.approach)
 
     def __post_init__(self):
         from afm_ros.core.cantilever_params import default_values
@@ -88,6 +89,8 @@ class WiredInstrument:
         self.latency = int(values["feedback_latency"])
         self.answers: list[float] = []  # z piezo + motor after chunk k's outputs
         self.stage = ZStage(self.controller, s.z_base)  # z loop, approach and coarse motor
+        if self.approach_values.get("start_withdrawn"):
+            self.stage.place_withdrawn(self.approach_values)
         self.z_initial = self.controller.z
         self.next_index = 0  # next published sample index
         self.chunks = 0
@@ -117,7 +120,7 @@ class WiredInstrument:
         the feedback is held, the approach commands z and the motor until the amplitude reaches the
         setpoint, then the z loop takes over. Returns the log; RuntimeError with the reason if it
         fails (e.g. the motor's travel ends) or ``timeout`` [s] of simulated time passes."""
-        auto = self.stage.start_approach(values or {}, self.sim.t)
+        auto = self.stage.start_approach({**self.approach_values, **(values or {})}, self.sim.t)
         if self.chunks == 0:
             self.z_initial = auto.z  # the first chunks already start at the start distance
         t_end = self.sim.t + timeout

@@ -53,8 +53,9 @@ WARNING_PERIOD_S = 5.0
 class LockInNode(Node):
     """Lock-in amplifier node; parameters :data:`afm_ros.core.tune.LOCKIN_NODE_SPECS` (the lock-in's
     and the tune's; all live). Service ``lockin/tune`` (std_srvs/Trigger): the drive-frequency tune
-    (:mod:`afm_ros.core.tune`) on this lock-in's own outputs; it sets the cantilever's
-    ``drive_frequency`` point by point with the z controller held, then applies the working point
+    (:mod:`afm_ros.core.tune`) on this lock-in's own outputs, refused while the z stage is engaged
+    (the cantilever must be free); the cantilever follows its schedule (``lockin/tune_plan``), then
+    this node applies the working point
     (drive frequency, ``free_amplitude`` scaled for ``tune_target_amplitude``, this node's
     ``phase_offset``) and publishes the sweep and fit on ``lockin/tune_result`` (String, JSON, latched)."""
 
@@ -74,7 +75,9 @@ class LockInNode(Node):
         self.tune_plan: TunePlan | None = None
         self._cantilever_values: dict | None = None  # from cantilever/scan: nominal f0, Q, drive, A0
         self._cantilever_params = AsyncParameterClient(self, "cantilever")
-        self._z_params = AsyncParameterClient(self, "z_controller")
+        self.z_stage: str | None = None  # the z controller's stage state (z_controller/stage), None: not heard
+        self.create_subscription(String, topics.Z_STAGE, self._on_stage, topics.LATCHED_QOS)
+        self.tune_applied: dict = {}  # the working point the last tune set (parameter values)
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
         self._pub_tune = self.create_publisher(String, "lockin/tune_result", topics.LATCHED_QOS)
         self._pub_tune_plan = self.create_publisher(String, topics.TUNE_PLAN, topics.LATCHED_QOS)
@@ -119,7 +122,18 @@ class LockInNode(Node):
         except (ValueError, KeyError, TypeError):
             pass
 
+    def _on_stage(self, msg: String) -> None:
+        try:
+            self.z_stage = json.loads(msg.data).get("state")
+        except (ValueError, AttributeError):
+            pass
+
     def _start_tune(self, request, response):
+        if self.z_stage in ("engaged", "approaching", "withdrawing"):
+            response.success = False
+            response.message = (f"tune refused: the z stage is {self.z_stage}; the tune needs the cantilever free: "
+                                "withdraw first (service z_controller/withdraw)")
+            return response
         if self.tune_state == "running":
             response.success, response.message = False, "tune refused: a tune is already running"
             return response
@@ -143,12 +157,11 @@ class LockInNode(Node):
                                   "phase_offset": self.lockin.params["phase_offset"]}
             self.tune_state = "running"
             self.tune_plan = plan
-        self._z_params.set_parameters([Parameter("enabled", value=False)])
         self._pub_tune_plan.publish(String(data=json.dumps(plan.as_dict())))
         response.success = True
         response.message = (f"tuning: {v['tune_points']} drive frequencies over {v['tune_span']:g} Hz around "
                             f"{v['tune_center']:g} Hz, {plan.point_time:.3g} s each, from t={plan.start_time:.6g} to "
-                            f"{plan.end_time:.6g} s (simulated); the z feedback is held")
+                            f"{plan.end_time:.6g} s (simulated)")
         self.get_logger().info(response.message)
         return response
 
@@ -183,9 +196,12 @@ class LockInNode(Node):
         r = run.result
         self.tune_result = r
         self.tune_state = "done"
-        offset = (self._tune_restore["phase_offset"] + r.phase_offset_deg + 180.0) % 360.0 - 180.0
-        self._set_drive(r.drive_frequency, free_amplitude=self._tune_restore["free_amplitude"] * r.drive_scale)
-        self.set_parameters([Parameter("phase_offset", value=float(offset))])
+        offset = float((self._tune_restore["phase_offset"] + r.phase_offset_deg + 180.0) % 360.0 - 180.0)
+        amplitude = float(self._tune_restore["free_amplitude"] * r.drive_scale)
+        self.tune_applied = {"drive_frequency": float(r.drive_frequency), "free_amplitude": amplitude,
+                             "phase_offset": offset}
+        self._set_drive(r.drive_frequency, free_amplitude=amplitude)
+        self.set_parameters([Parameter("phase_offset", value=offset)])
         self._pub_tune.publish(String(data=json.dumps(r.message())))
         self.get_logger().info(
             f"tuned: f0 = {r.f0:.6g} +- {r.f0_error:.2g} Hz, Q = {r.q:.5g} +- {r.q_error:.2g}; drive at "

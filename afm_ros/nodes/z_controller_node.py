@@ -106,9 +106,15 @@ class ZControllerNode(Node):
         except (ValueError, KeyError, TypeError):
             return
         with self._lock:
-            if self.stage is None:
+            new = self.stage is None
+            if new:
                 self.stage = ZStage(self.controller, z_base)
             self.stage.z_base = self.z_base = z_base
+            if new and self.approach_values["start_withdrawn"] and self.answered_end_index == 0:
+                self.stage.place_withdrawn(self.approach_values)
+                self._send_command(0, 0.0)  # the start position again: far away from the first chunk
+                self._publish_z()
+            self._report_stage()
 
     def _report_stage(self) -> None:
         st = self.stage

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections import deque
 import json
 import math
 import sys
@@ -59,6 +60,9 @@ from afm_ros.nodes.node_main import make_executor
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
+WORKFLOW_SIMULATED_S = 8.0  # [s] at most for the tune (~1 s), an approach from 5 um (~4 s) and the withdraw
+RECENT_PAIRS = 64  # lock-in batches the monitor keeps for a setpoint history made after the fact (128 ms)
+APPROACH_STEP_S = 0.02  # [s] simulated per advance while approaching or withdrawing (< RECENT_PAIRS chunks)
 COPIES_WAIT_S = 30.0  # longest wait for the recorder to take the last per-output copies (wall s)
 WAIT_POLL_S = 0.25  # while waiting, look at conditions the monitor cannot see (recorder, blow-up, Ctrl-C)
 IMAGE_SAMPLE = "ps_ldpe_blend"  # --image default: topography (islands) and phase contrast (PS vs LDPE)
@@ -70,6 +74,8 @@ IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}
 # per-output scalar copies of the batches (unless --record-raw): a session a person can leave on
 RAW_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
                         "z_controller/z_piezo", "z_controller/error"))
+# --image's operating workflow: the z piezo's range (3 um, retracted at 0) and the start far away
+WORKFLOW_Z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True}
 IMAGE_FORCE_MODEL = "viscoelastic_dmt"  # --image: PS and LDPE differ in dissipation, hence in phase
 INTERRUPTED_STATUS = 130  # the shell's convention for a job ended by Ctrl-C (128 + SIGINT)
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second
@@ -136,6 +142,9 @@ class Monitor(Node):
         self.z_piezo: list[float] = []  # z [m] of each z command
         self.windows: list[WindowStats] = []
         self.setpoints: SetpointHistory | None = None
+        # the last paired batches (t, amplitude, error): a setpoint history made after the fact (at the
+        # approach's engage, found a few chunks late) replays them
+        self.recent_pairs: deque = deque(maxlen=RECENT_PAIRS)
         self._amplitudes: dict[int, tuple] = {}  # input end index -> (t, amplitude) waiting for its z trace
         self._errors: dict[int, np.ndarray] = {}  # input end index -> error [m] waiting for its outputs
         self.paired_end_time = -1.0  # every lock-in output before this simulated time [s] went through _pair
@@ -204,8 +213,10 @@ class Monitor(Node):
             if error is None and len(self._amplitudes) <= MAX_UNPAIRED_BATCHES:
                 return  # its trace is on its way
             t, a, p, end_time = self._amplitudes.pop(first)
-            if self.setpoints is not None and error is not None and error.shape == a.shape:
-                self.setpoints.add(t, a, error)
+            if error is not None and error.shape == a.shape:
+                self.recent_pairs.append((t, a, error))
+                if self.setpoints is not None:
+                    self.setpoints.add(t, a, error)
             for w in self.windows:
                 w.add_outputs(t, a, p)
             self.paired_end_time = end_time
@@ -531,17 +542,24 @@ class Instrument:
                 "streams": rec.stream_report()}
 
     def run_job(self, duration: float, free_time: float, setpoint_ratio: float | None,
-                band_fraction: float = 0.01, interactive: bool = False) -> Summary:
+                band_fraction: float = 0.01, interactive: bool = False, workflow: bool = False) -> Summary:
         """Withdraw, measure free, engage, hold ``duration`` simulated seconds; return the summary.
 
-        ``self.job`` holds what is known so far, so :meth:`summary` can also describe a job that
-        Ctrl-C interrupted."""
+        ``workflow`` (the z controller started withdrawn, far from the sample): tune the drive first
+        (lockin/tune), measure free, then approach and engage (z_controller/approach) instead of
+        enabling the feedback from z_max. ``self.job`` holds what is known so far, so
+        :meth:`summary` can also describe a job that Ctrl-C interrupted."""
         job = self.job = JobState(wall0=time.monotonic(), duration=duration, interactive=interactive)
         mon = self.monitor
         self.wait_ready()
         if self.attached:
             self.set("cantilever", feedback_sync="lockstep")
-        self.set("z_controller", enabled=False, disabled_action="withdraw")
+        if workflow:
+            self._start_far()
+            job.phase = "tuning the drive"
+            job.workflow["tune"] = self._tune()
+        else:
+            self.set("z_controller", enabled=False, disabled_action="withdraw")
         job.t_start = self.t_paused = mon.answer_time
         job.free = WindowStats(job.t_start + free_time / 2, job.t_start + free_time)
         mon.windows.append(job.free)
@@ -558,6 +576,10 @@ class Instrument:
         job.band_fraction = band_fraction
         job.latency = int(self.get("cantilever", "feedback_latency"))
         job.z_base = float(self.get("cantilever", "z_base"))
+        if workflow:
+            job.phase = "approaching the sample"
+            job.workflow["approach"] = self._approach()
+            job.t_enable = job.workflow["approach"]["engaged_s"]
         if interactive:
             job.hold = RollingStats(INTERACTIVE_HOLD_SPAN_S)  # the last second before Ctrl-C
         else:
@@ -565,7 +587,11 @@ class Instrument:
         mon.windows.append(job.hold)
         mon.setpoints = SetpointHistory(job.t_enable, job.setpoint, band_fraction, on_change=self._restart_hold,
                                        on_settled=self._restart_hold)
-        self.set("z_controller", enabled=True)
+        if workflow:  # engaged already: what the monitor paired since the engage
+            for t, a, e in mon.recent_pairs:
+                mon.setpoints.add(t, a, e)
+        else:
+            self.set("z_controller", enabled=True)
         if interactive:
             job.phase = "running"
             self._run_until_interrupted()
@@ -578,6 +604,71 @@ class Instrument:
             self.wait_recorded()
             job.t_end = self.t_paused
         return self.summary()
+
+    def _start_far(self) -> None:
+        """The workflow's start: the z stage withdrawn far from the sample, and the cantilever holding
+        that start position for its first chunks (in this process: checked on the nodes)."""
+        zc = self.nodes.get("z_controller")
+        if zc is None:
+            raise RuntimeError("the workflow runs the z controller in this process (no --attach)")
+        self.spin_until(lambda: zc.stage is not None, "waiting for the z controller to learn the cantilever's z_base")
+        if zc.stage_state != "withdrawn":
+            raise RuntimeError(f"the workflow starts withdrawn (z_controller start_withdrawn), not {zc.stage_state}")
+        gate = self.cantilever._gate
+        self.spin_until(lambda: gate._commands and gate._commands[-1][1] == zc.stage.command,
+                        "waiting for the cantilever to take the start position")
+
+    def _tune(self) -> dict:
+        """lockin/tune: sweep, fit, working point applied; returns the tune's numbers."""
+        from std_srvs.srv import Trigger
+
+        lockin = self.nodes["lockin"]
+        answer = lockin._start_tune(Trigger.Request(), Trigger.Response())
+        if not answer.success:
+            raise RuntimeError(f"lockin: {answer.message}")
+        plan = lockin.tune_plan
+        chunk = self.cantilever._setup.chunk_steps * self.cantilever._setup.dt
+        self.advance_to(plan.end_time + 2 * chunk)
+        self.spin_until(lambda: lockin.tune_state != "running", "waiting for the tune's fit")
+        if lockin.tune_state != "done":
+            raise RuntimeError("the tune failed (see the lock-in's log)")
+        r = lockin.tune_result
+        for name, value in lockin.tune_applied.items():  # the job's own changes, not listed as others'
+            role = "lockin" if name == "phase_offset" else "cantilever"
+            self.monitor.own_changes.setdefault((role, name), []).append(value)
+        self.spin_until(lambda: self.cantilever.get_parameter("drive_frequency").value == r.drive_frequency,
+                        "waiting for the cantilever to take the tuned drive")
+        return {**r.summary(), "start_s": plan.start_time, "end_s": plan.end_time}
+
+    def _approach(self) -> dict:
+        """z_controller/approach, run in steps of APPROACH_STEP_S until the stage engaged; its numbers."""
+        from std_srvs.srv import Trigger
+
+        zc = self.nodes["z_controller"]
+        answer = zc._approach(Trigger.Request(), Trigger.Response())
+        if not answer.success:
+            raise RuntimeError(f"z_controller: {answer.message}")
+        wall = time.monotonic()
+        while zc.stage_state == "approaching":
+            self.advance(APPROACH_STEP_S)
+        if zc.stage_state != "engaged":
+            raise RuntimeError(f"the approach {zc.stage_state}: {zc.stage.reason}")
+        log = zc.stage.auto.log
+        return {"started_s": log.started_at, "engaged_s": log.engaged_at, "duration_s": log.engaged_at - log.started_at,
+                "engaged_z_m": log.engaged_z, "motor_steps": log.steps, "cycles": len(log.cycles),
+                "motor_m": zc.stage.motor, "start_distance_m": zc.approach_values["approach_start_distance"],
+                "wall_s": time.monotonic() - wall}
+
+    def _withdraw(self) -> dict:
+        from std_srvs.srv import Trigger
+
+        zc = self.nodes["z_controller"]
+        t0 = self.t_paused
+        zc._withdraw(Trigger.Request(), Trigger.Response())
+        while zc.stage_state == "withdrawing":
+            self.advance(APPROACH_STEP_S)
+        return {"started_s": t0, "withdrawn_s": self.t_paused, "motor_m": zc.stage.motor,
+                "distance_m": zc.approach_values["withdraw_distance"]}
 
     def _restart_hold(self, change, t0: float | None = None) -> None:
         """A live setpoint change: the hold statistics describe the new setpoint, from the change on
@@ -609,14 +700,17 @@ class Instrument:
         free = job.free
         wall = time.monotonic() - job.wall0
         simulated = t_end - job.t_start if math.isfinite(job.t_start) else 0.0
+        zc = self.nodes.get("z_controller")
+        motor = zc.stage.motor if zc is not None and zc.stage is not None else 0.0
         return Summary(
             free_amplitude_m=free.amplitude if free is not None else math.nan,
             free_phase_deg=free.phase if free is not None else math.nan,
             setpoint_m=hist.setpoint if hist is not None else job.setpoint,
             reached_amplitude_m=stats.amplitude if stats is not None else math.nan,
             amplitude_std_m=stats.amplitude_std if stats is not None else math.nan,
-            contact_phase_deg=stats.phase if stats is not None else math.nan, z_piezo_m=stats.z if stats else math.nan,
-            z_base_m=job.z_base,
+            contact_phase_deg=stats.phase if stats is not None else math.nan,
+            z_piezo_m=stats.z - motor if stats else math.nan,  # the z command is piezo + motor
+            z_base_m=job.z_base, motor_m=motor, workflow=dict(job.workflow),
             settling_time_s=hist.engage.settling_time if hist is not None else None,
             settling_band_m=job.band_fraction * job.setpoint, engage_time_s=job.t_enable,
             simulated_time_s=simulated, feedback_latency_chunks=job.latency,
@@ -637,9 +731,11 @@ class Instrument:
         return f"{where}, while {job.phase}"
 
     def run_image_job(self, engage_time: float, free_time: float, setpoint_ratio: float | None,
-                      band_fraction: float = 0.01, predict: bool = True, progress: bool = True) -> Summary:
+                      band_fraction: float = 0.01, predict: bool = True, progress: bool = True,
+                      workflow: bool = False) -> Summary:
         """Withdraw, measure free, engage and hold ``engage_time``, then scan one frame with the
         scanner's settings; the summary gets the frame's numbers (tools/frame_report.py) and files.
+        ``workflow``: tune, measure free, approach and engage, hold, scan, withdraw (see :meth:`run_job`).
 
         Ctrl-C during the scan finishes the current line, writes the lines done as a partial frame
         (``*_partial.gwy``) and returns the summary marked interrupted (a second Ctrl-C stops at once).
@@ -649,7 +745,8 @@ class Instrument:
 
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
-        engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction)  # contact numbers: the hold
+        engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction,
+                               workflow=workflow)  # contact numbers: the hold
         job = self.job
         scanner, cantilever = self.nodes["scanner"], self.cantilever
         wall_scan = time.monotonic()
@@ -705,9 +802,14 @@ class Instrument:
                         self.get("z_controller", "i_gain"), job.free.amplitude, latency, values["tip_radius"])
             image["report"] = analyse_frame(frame, sample, loop, values["force_model"], setup.cantilever, setup.drive,
                                             predict=predict)
+        workflow_numbers = dict(engaged.workflow)
+        if workflow and not interrupted:
+            job.phase = "withdrawing"
+            workflow_numbers["withdraw"] = self._withdraw()
         simulated = (self.monitor.answer_time if interrupted else self.t_paused) - job.t_start
         wall = time.monotonic() - job.wall0
         return dataclasses.replace(engaged, image=image, interrupted=interrupted, simulated_time_s=simulated,
+                                   workflow=workflow_numbers,
                                    recording=self.recording_status(spin=not interrupted), wall_time_s=wall,
                                    real_time_factor=simulated / wall if wall > 0 else math.inf)
 
@@ -864,6 +966,9 @@ def parse_args(argv):
     parser.add_argument("--interactive", action="store_true",
                         help="after engaging, keep running until Ctrl-C (tune it from another terminal with "
                              "afm_ctl, or ros2 param set with ROS 2), then print the summary")
+    parser.add_argument("--ideal", action="store_true",
+                        help="--image without the operating workflow: the tip starts engaged at z_base (no tune, "
+                             "approach or withdraw), as before")
     parser.add_argument("--image", action="store_true",
                         help="the imaging job: engage for --duration, then scan one frame with the scanner's "
                              "parameters (-p scanner:...) over the cantilever's sample (default ps_ldpe_blend), "
@@ -913,6 +1018,9 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
             cantilever["force_model"] = IMAGE_FORCE_MODEL
             switched.append(f"force_model {IMAGE_FORCE_MODEL} (not the parameter's default dmt: the PS/LDPE phase "
                             "contrast comes from dissipation)")
+        if not options.ideal:  # a real session: far from the sample with a z piezo of a few um, tune, approach
+            zc = given["z_controller"]
+            zc.update({k: v for k, v in WORKFLOW_Z.items() if not ros.given("z_controller", k)})
         plan = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in IMAGE_SCAN.items()}
         rate = plan["line_rate"]
         rate = f"{rate:g}" if isinstance(rate, (int, float)) else rate  # (a bad value: the scanner says why)
@@ -981,14 +1089,15 @@ def main(args=None):
                 plan = ScanPlan.from_values(instrument.nodes["scanner"]._values)
                 frame_time, frame = plan.frame_time, (plan.pixels, plan.lines)
             if not options.interactive:  # a bounded job: its session must fit
-                instrument.check_recording(options.free_time + options.duration + frame_time, options.record_raw,
-                                           frame)
+                workflow = WORKFLOW_SIMULATED_S if options.image and not options.ideal else 0.0
+                instrument.check_recording(options.free_time + options.duration + frame_time + workflow,
+                                           options.record_raw, frame)
         except ValueError:
             refused = True
             raise
         if options.image:
             summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
-                                               options.band)
+                                               options.band, workflow=not options.ideal)
         else:
             summary = instrument.run_job(options.duration, options.free_time, options.setpoint_ratio, options.band,
                                          interactive=options.interactive)

@@ -51,6 +51,8 @@ class Summary:
     parameter_changes: list = field(default_factory=list)  # changes by others: time_s (approx.), node, name, value
     interrupted: str = ""  # what Ctrl-C / SIGTERM interrupted ('' = the job ran to its end)
     run_folder: str = ""
+    workflow: dict = field(default_factory=dict)  # tune, approach, withdraw (the image job's workflow)
+    motor_m: float = 0.0  # coarse motor position [m] (0: no approach)
 
     def deterministic_part(self) -> dict:
         """Everything that must repeat exactly between runs (not wall time, not the file name)."""
@@ -75,12 +77,24 @@ class Summary:
         lines = [title]
         if self.run_folder:
             lines.append(f"  run folder           {self.run_folder}")
+        tune = self.workflow.get("tune")
+        if tune:
+            lines.append(f"  tune                 f0 {tune['f0_Hz']:.2f} +- {tune['f0_error_Hz']:.2g} Hz, Q {tune['Q']:.3f} "
+                         f"+- {tune['Q_error']:.2g} ({tune['points']} points, t={tune['start_s']:.3f}-"
+                         f"{tune['end_s']:.3f} s)")
+            lines.append(f"  drive                {tune['drive_frequency_Hz']:.2f} Hz (the peak), drive x "
+                         f"{tune['drive_scale']:.5f}, phase offset {tune['phase_offset_deg']:.3f} deg")
         lines += [
             f"  free amplitude       {self.free_amplitude_m * nm:9.3f} nm",
             f"  free phase           {self.free_phase_deg:9.3f} deg (lag behind drive)",
             f"  setpoint             {self.setpoint_m * nm:9.3f} nm ({ratio})"
             + (" at the end" if self.setpoint_changes else ""),
         ]
+        app = self.workflow.get("approach")
+        if app:
+            lines.append(f"  approach             from {app['start_distance_m'] * 1e6:.2f} um: engaged at t={app['engaged_s']:.3f} s "
+                         f"after {app['duration_s']:.3f} s (simulated; {app['wall_s']:.1f} s wall), "
+                         f"{app['cycles']} cycle(s), {app['motor_steps']} motor steps")
         if not math.isfinite(self.engage_time_s):
             lines.append("  (interrupted before the feedback was enabled: no contact numbers)")
         else:
@@ -88,8 +102,9 @@ class Summary:
                 f"  reached amplitude    {self.reached_amplitude_m * nm:9.3f} nm "
                 f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
                 f"  phase in contact     {self.contact_phase_deg:9.3f} deg",
-                f"  z piezo              {self.z_piezo_m * nm:9.3f} nm (z_base + z_piezo = "
-                f"{(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)",
+                f"  z piezo              {self.z_piezo_m * nm:9.3f} nm ("
+                + (f"z_base + motor + z_piezo = {(self.z_base_m + self.motor_m + self.z_piezo_m) * nm:.3f} nm)"
+                   if self.motor_m else f"z_base + z_piezo = {(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)"),
                 f"  settling time        {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
                 f"around the {'engage ' if self.setpoint_changes else ''}setpoint"
                 + (f" {self.engage_setpoint_m * nm:.3f} nm" if self.setpoint_changes else ""),
@@ -130,6 +145,10 @@ class Summary:
                 lines += frame_lines(im["report"])
             for f in im.get("files", [])[:1]:
                 lines.append(f"  frame file           {f} (+ PNG previews beside it)")
+        wd = self.workflow.get("withdraw")
+        if wd:
+            lines.append(f"  withdrawn            at t={wd['withdrawn_s']:.3f} s: piezo retracted, motor backed off "
+                         f"{wd['distance_m'] * 1e6:.2f} um")
         lines.append(f"  simulated / wall     {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
                      f"(real-time factor {self.real_time_factor:.2f})")
         return "\n".join(lines)
@@ -154,6 +173,7 @@ class JobState:
     band_fraction: float = 0.01
     latency: int = 0
     z_base: float = math.nan
+    workflow: dict = field(default_factory=dict)  # tune, approach, withdraw: their numbers
 
 
 class ScanProgress:
