@@ -52,6 +52,9 @@ from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as art
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.tune import TunePlan
 
+TUNE_HOLD_CHUNKS = 2  # drive changes that arrive during a tune apply this many chunks after its end
+TUNE_DEFERRED = ("drive_frequency", "free_amplitude")
+
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
 # default chunk length), so a consumer that matches late (start-up, a restarted lock-in) still gets
 # the chunks it must answer; flow_window (<= 150) keeps every consumer inside that history.
@@ -395,7 +398,7 @@ class CantileverNode(Node):
         wanted = None
         if self.tune_plan is not None:
             wanted = self.tune_plan.frequency_at(t0)
-            if wanted is None and t0 >= self.tune_plan.end_time:
+            if wanted is None and t0 >= self.tune_plan.end_time + TUNE_HOLD_CHUNKS * self._values["chunk_duration"]:
                 self.tune_plan = None
         f = self._values["drive_frequency"] if wanted is None else wanted
         if f != self._setup.drive.frequency:
@@ -465,6 +468,15 @@ class CantileverNode(Node):
             if not self._pending:
                 return
             changed, self._pending = self._pending, {}
+            plan = self.tune_plan or self._pending_tune
+            if plan is not None and self._sim.t < plan.end_time + TUNE_HOLD_CHUNKS * self._values["chunk_duration"]:
+                # the tune's working point (or any drive change) waits for the sweep's end plus a hold:
+                # applied at a defined boundary, however late the message came
+                for name in TUNE_DEFERRED:
+                    if name in changed:
+                        self._pending[name] = changed.pop(name)
+                if not changed:
+                    return
             self._values = {**self._values, **changed}  # with the pending ones: a sample check keeps them
         old = self._setup
         v = self._values

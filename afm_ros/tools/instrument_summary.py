@@ -61,6 +61,7 @@ class Summary:
             d.pop(k)
         for k in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor"):
             d.get("image", {}).pop(k, None)
+        d.get("workflow", {}).get("approach", {}).pop("wall_s", None)
         return d
 
     def text(self) -> str:
