@@ -112,9 +112,13 @@ def test_two_runs_give_the_same_summary_and_frame(runs):
 
 
 def test_report_draws_the_recorded_frame(runs, tmp_path):
-    cwd, _ = runs[0]
+    cwd, summary = runs[0]
     session = next(cwd.glob("afm_runs/*/afm_session_*.mcap"))
     result = report.make_report(session, tmp_path / "rep")
+    # the recorded tune: its fit is the job's, its figure drawn
+    assert result.numbers["tune"]["f0_Hz"] == summary["workflow"]["tune"]["f0_Hz"]
+    assert (tmp_path / "rep" / "tune.png").stat().st_size > 10_000
+    assert "## Drive tune" in result.markdown.read_text()
     assert (tmp_path / "rep" / "images.png").stat().st_size > 10_000
     text = result.markdown.read_text()
     assert "## Images (the last recorded frame)" in text and "16 of 16" in text

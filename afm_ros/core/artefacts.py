@@ -46,7 +46,7 @@ from numba import njit
 
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINE_STEP, PLAN_LINES,
-                                      PLAN_SIZE_X, PLAN_START)
+                                      PLAN_SIZE_X, PLAN_START, TRUTH_KEYS)  # noqa: F401 (TRUTH_KEYS: re-exported)
 
 if TYPE_CHECKING:
     from afm_ros.core.scanner import ScanPlan
@@ -247,9 +247,6 @@ def hysteresis_offsets(art, plan, t):
     else:  # down: descending from the top
         hy = 2.0 * art[ART_W_SLOW] * size_y * sy * (1.0 - sy)
     return hx, hy
-
-
-TRUTH_KEYS = ("hysteresis_x", "hysteresis_y", "creep_x", "creep_y", "drift_x", "drift_y", "drift_z")
 
 
 def truth(art: np.ndarray, plan: np.ndarray, t) -> dict:

@@ -85,6 +85,7 @@ class TuneResult:
     def message(self) -> dict:
         """The sweep and the fit as JSON-ready values (lockin/tune_result)."""
         return {**{k: float(v) for k, v in self.summary().items()},
+                "static_amplitude_m": float(self.static_amplitude), "phase0_deg": float(self.phase0_deg),
                 "frequency_Hz": self.frequency.tolist(), "amplitude_m": self.amplitude.tolist(),
                 "phase_deg": self.phase_deg.tolist(),
                 "settings": {k: (float(v) if isinstance(v, (int, float)) else v) for k, v in self.settings.items()}}

@@ -16,7 +16,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Int64MultiArray, MultiArrayDimension
 
-from afm_ros.core.artefacts import TRUTH_KEYS
+from afm_ros.core.plan_layout import TRUTH_KEYS
 from afm_ros.formats.chunk_layout import ACK_LEAVING, ACK_READY
 
 DEFLECTION = "cantilever/deflection"

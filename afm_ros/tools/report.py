@@ -744,6 +744,7 @@ class SessionData:
     plan: object = None  # the _Plan (time map, windows)
     images: dict = field(default_factory=dict)  # topic -> ImageTopic (the last well-formed image of each)
     geometry: dict | None = None  # the last scanner/geometry, checked
+    tune: dict | None = None  # the last lockin/tune_result, checked
     skipped: dict = field(default_factory=dict)  # topic -> why it was left out (one line each)
 
 
@@ -754,7 +755,8 @@ IMAGE_TOPIC = "/scanner/image/"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 IMAGE_ENCODING = "32FC1"
 GEOMETRY_TOPIC = "/scanner/geometry"
-EXTRA_ROLES = ("image", "geometry", "diagnostics")  # read when present and well-formed, skipped with a note if not
+TUNE_TOPIC = "/lockin/tune_result"
+EXTRA_ROLES = ("image", "geometry", "tune", "diagnostics")  # read when present and well-formed, skipped with a note if not
 DISPLAY_MAX_PIXELS = 1024  # an image is reduced to at most this many pixels per side for the figure
 
 
@@ -763,6 +765,8 @@ def _extra_role(topic: str, type_name: str) -> str | None:
         return "image"
     if topic.endswith(GEOMETRY_TOPIC):
         return "geometry"
+    if topic.endswith(TUNE_TOPIC):
+        return "tune"
     if topic == "/diagnostics" or topic.endswith("/diagnostics"):
         return "diagnostics"
     return None
@@ -855,11 +859,11 @@ def _survey_extra(survey: "_Survey", role: str, m, k: int) -> None:
             it.problem = f"message {k}: {exc}"
             return
         it.last_good, it.shape, it.problem = k, (height, width), ""
-    elif role == "geometry":
+    elif role in ("geometry", "tune"):
         if m.type_name != "std_msgs/msg/String":
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
             return
-        survey.geometry = (m.topic, k, bytes(m.data))
+        setattr(survey, role, (m.topic, k, bytes(m.data)))
     else:
         if m.type_name != "diagnostic_msgs/msg/DiagnosticArray":
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
@@ -892,6 +896,7 @@ class _Survey:
     diagnostics: DiagnosticErrors = field(default_factory=DiagnosticErrors)
     images: dict = field(default_factory=dict)  # topic -> ImageTopic
     geometry: tuple | None = None  # (topic, message number, CDR bytes) of the last scanner/geometry
+    tune: tuple | None = None  # the same for the last lockin/tune_result
     skipped: dict = field(default_factory=dict)  # topic -> why it is left out (one line)
 
 
@@ -1620,12 +1625,11 @@ def _series_from_batches(data: SessionData, survey: _Survey) -> None:
             data.setpoint_data = survey.setpoints.get(prefix)
 
 
-def _geometry(survey: _Survey, data: SessionData) -> None:
-    """The last scanner/geometry, if it is a JSON object whose extent fields are numbers (else a note)."""
-    if survey.geometry is None:
-        return
+def _json_object(found: tuple, data: SessionData) -> dict | None:
+    """The JSON object of a recorded std_msgs/String (topic, message number, CDR bytes); None and a
+    note in ``data.skipped`` if it is not one."""
     import json
-    topic, k, raw = survey.geometry
+    topic, k, raw = found
     try:
         order = cdr_byte_order(raw)
         n = struct.unpack_from(order + "I", raw, 4)[0]
@@ -1634,9 +1638,80 @@ def _geometry(survey: _Survey, data: SessionData) -> None:
         g = json.loads(raw[8:8 + n - 1].decode("utf-8"))
     except (ValueError, struct.error) as exc:
         data.skipped[topic] = f"message {k} is not a JSON text ({str(exc)[:120]})"
-        return
+        return None
     if not isinstance(g, dict):
         data.skipped[topic] = f"message {k} is a JSON {type(g).__name__}, not an object"
+        return None
+    return g
+
+
+def _tune(survey: _Survey, data: SessionData) -> None:
+    """The last lockin/tune_result: its sweep (equal-length finite lists) and fit, else a note."""
+    if survey.tune is None:
+        return
+    topic, k, _ = survey.tune
+    g = _json_object(survey.tune, data)
+    if g is None:
+        return
+    try:
+        arrays = {key: np.asarray(g[key], dtype=float) for key in ("frequency_Hz", "amplitude_m", "phase_deg")}
+        numbers = {key: float(g[key]) for key in ("f0_Hz", "f0_error_Hz", "Q", "Q_error", "drive_frequency_Hz",
+                                                  "drive_scale", "phase_offset_deg", "static_amplitude_m",
+                                                  "phase0_deg")}
+    except (KeyError, TypeError, ValueError) as exc:
+        data.skipped[topic] = f"message {k}: a field is missing or not a number ({str(exc)[:80]})"
+        return
+    sizes = {a.shape for a in arrays.values()}
+    if len(sizes) != 1 or next(iter(sizes))[0] < 2 or any(a.ndim != 1 for a in arrays.values()) or \
+            not all(math.isfinite(v) for key, v in numbers.items() if not key.endswith("_error")):
+        data.skipped[topic] = f"message {k}: the sweep's lists differ in length or the fit is not finite"
+        return
+    data.tune = {**numbers, **arrays}
+
+
+def write_tune_figure(data: SessionData, out: Path) -> Path | None:
+    """``tune.png``: the drive sweep (amplitude and phase vs frequency, as the lock-in measured them)
+    with the fitted driven-oscillator response and the working point."""
+    t = data.tune
+    if t is None:
+        return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from afm_ros.core.tune import TuneResult
+
+    f, a, p = t["frequency_Hz"], t["amplitude_m"], t["phase_deg"]
+    fit = TuneResult(f, a, p, t["f0_Hz"], t["Q"], static_amplitude=t["static_amplitude_m"],
+                     phase0_deg=t["phase0_deg"])
+    fine = np.linspace(f.min(), f.max(), 400)
+    model = fit.model(fine)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    ax1.plot(f * 1e-3, a * 1e9, "o", ms=3, label="measured (lock-in)")
+    ax1.plot(fine * 1e-3, np.abs(model) * 1e9, "-", lw=1,
+             label=f"fit: f0 = {t['f0_Hz']:.2f} Hz, Q = {t['Q']:.3f}")
+    ax1.axvline(t["drive_frequency_Hz"] * 1e-3, color="k", ls=":", lw=1, label="working point")
+    ax1.set_ylabel("amplitude [nm]")
+    ax1.legend(fontsize=8)
+    ax2.plot(f * 1e-3, p, "o", ms=3)
+    ax2.plot(fine * 1e-3, -np.degrees(np.angle(model)), "-", lw=1)
+    ax2.axvline(t["drive_frequency_Hz"] * 1e-3, color="k", ls=":", lw=1)
+    ax2.set_ylabel("phase lag [deg]")
+    ax2.set_xlabel("drive frequency [kHz]")
+    fig.suptitle("Drive tune (lockin/tune_result), before the phase offset was applied")
+    fig.tight_layout()
+    path = out / "tune.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _geometry(survey: _Survey, data: SessionData) -> None:
+    """The last scanner/geometry, if it is a JSON object whose extent fields are numbers (else a note)."""
+    if survey.geometry is None:
+        return
+    topic, k, _ = survey.geometry
+    g = _json_object(survey.geometry, data)
+    if g is None:
         return
     bad = [key for key in ("x_offset_m", "y_offset_m", "size_x_m", "size_y_m")
            if isinstance(g.get(key), bool) or not isinstance(g.get(key), (int, float))
@@ -1664,6 +1739,7 @@ def load_session(path) -> SessionData:
     _series_from_batches(data, survey)
     data.diagnostics, data.images, data.skipped = survey.diagnostics, survey.images, dict(survey.skipped)
     _geometry(survey, data)
+    _tune(survey, data)
     plan = data.plan = _plan(data, survey.events)
     collector = _Collector(data, plan)
     roles = ["deflection", "force", *(r for r in BATCH_ROLES if r in data.batches),
@@ -1930,6 +2006,14 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images=Non
         role for role in ("amplitude", "phase", "z_piezo", "error") if role not in data.series]
     if missing:
         lines += ["", f"Not recorded (figures/numbers skipped): {', '.join(missing)}."]
+    if data.tune is not None:
+        t = data.tune
+        lines += ["", "## Drive tune", "",
+                  f"{t['frequency_Hz'].size} drive frequencies from {t['frequency_Hz'][0]:.2f} to "
+                  f"{t['frequency_Hz'][-1]:.2f} Hz (`tune.png`): f0 = {t['f0_Hz']:.3f} +- {t['f0_error_Hz']:.2g} Hz, "
+                  f"Q = {t['Q']:.4f} +- {t['Q_error']:.2g} (driven-oscillator fit). Working point: "
+                  f"{t['drive_frequency_Hz']:.3f} Hz, drive scaled by {t['drive_scale']:.5f}, lock-in phase offset "
+                  f"changed by {t['phase_offset_deg']:.3f} deg."]
     for topic, type_name, expected in data.ignored:
         lines += ["", f"Ignored `{topic}`: type `{type_name}`, not `{expected}`."]
     if data.unused:
@@ -2186,6 +2270,9 @@ def make_report(session, out_dir=None) -> Report:
     image_figure = write_image_figure(data, out)
     if image_figure is not None:
         figures.append(image_figure)
+    tune_figure = write_tune_figure(data, out)
+    if tune_figure is not None:
+        figures.append(tune_figure)
     md = write_markdown(data, figures, out)
     numbers = tracking_numbers(data)
     for role, stream in (("deflection", data.deflection), ("force", data.force)):
@@ -2209,6 +2296,8 @@ def make_report(session, out_dir=None) -> Report:
     numbers["errors"] = diagnostic_errors(data)
     numbers["images"] = {f"{it.channel}/{it.direction}": it.stats for it in _shown_images(data)}
     numbers["skipped"] = dict(data.skipped)
+    if data.tune is not None:
+        numbers["tune"] = {k: v for k, v in data.tune.items() if not isinstance(v, np.ndarray)}
     return Report(md, figures, numbers, data)
 
 
