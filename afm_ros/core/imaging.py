@@ -93,12 +93,14 @@ class ImageAccumulator:
     frames; :meth:`finish_ready` closes every line both streams have moved past and returns them.
 
     The cantilever's spring_constant [N/m], quality_factor, free_amplitude [m] and drive/resonance
-    frequency ratio give the dissipation channel.
+    frequency ratio give the dissipation channel, from the true phase lag: the measured phase plus
+    the lock-in's ``phase_offset_deg`` (set by a tune; the phase channel keeps the measured phase).
     """
 
     def __init__(self, plan: ScanPlan, spring_constant: float, quality_factor: float,
-                 free_amplitude: float, frequency_ratio: float = 1.0):
+                 free_amplitude: float, frequency_ratio: float = 1.0, phase_offset_deg: float = 0.0):
         self.plan = plan
+        self.phase_offset_deg = float(phase_offset_deg)
         self.constants = (float(spring_constant), float(quality_factor), float(free_amplitude),
                           float(frequency_ratio))
         n = plan.lines * plan.pixels * 2
@@ -128,7 +130,8 @@ class ImageAccumulator:
         a = np.asarray(amplitude, dtype=float)
         p = np.asarray(phase_deg, dtype=float)
         k, q, a0, ratio = self.constants
-        values = np.array([a, p, dissipated_energy(a, p, k, q, a0, ratio)]).reshape(len(_LOCKIN_CHANNELS), -1)
+        lag = p + self.phase_offset_deg if self.phase_offset_deg else p
+        values = np.array([a, p, dissipated_energy(a, lag, k, q, a0, ratio)]).reshape(len(_LOCKIN_CHANNELS), -1)
         self._add("lockin", t, values, self._lockin_sums)
 
     def add_z(self, t, z, error) -> None:

@@ -296,8 +296,10 @@ class LockIn:
             raise ValueError(f"sample_interval={header.sample_interval!r} s must be positive and finite")
         if self._interval is not None and header.sample_interval != self._interval:
             stats.interval_changes += 1
-            stats.messages.append(f"sample interval changed from {self._interval:.6g} s to "
-                                  f"{header.sample_interval:.6g} s at sample {header.first_sample_index}")
+            if self._anchor is None or header.drive_frequency == self._anchor[4]:
+                # (with a new drive frequency it is expected: the integration step follows the drive)
+                stats.messages.append(f"sample interval changed from {self._interval:.6g} s to "
+                                      f"{header.sample_interval:.6g} s at sample {header.first_sample_index}")
             if p["reference_source"] == "fixed" and self._anchor is not None:
                 self._set_anchor(header)  # before _interval changes: continue the oscillator
             else:

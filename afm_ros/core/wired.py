@@ -169,7 +169,8 @@ class WiredInstrument:
         self.sim.set_artefacts(self.imperfect.packed(plan))
         k, q = self.setup.cantilever.spring_constant, self.setup.cantilever.quality_factor
         ratio = self.setup.drive.frequency / self.setup.cantilever.resonance_frequency
-        self.images = ImageAccumulator(plan, k, q, self.values["free_amplitude"], ratio)
+        self.images = ImageAccumulator(plan, k, q, self.values["free_amplitude"], ratio,
+                                       self.lock_in.params["phase_offset"])
         return plan
 
     def step(self) -> ChunkRecord:

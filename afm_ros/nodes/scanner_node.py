@@ -129,6 +129,7 @@ class ScannerNode(Node):
         # from /parameter_events (a service callback must not wait for another node's service), and
         # the interval [s] of its input samples, from consecutive output batches
         self.lockin_output_rate: float | None = None
+        self.lockin_phase_offset = 0.0  # [deg] the lock-in's phase_offset (a tune sets it): the dissipation needs the true lag
         self.sample_interval: float | None = None
         self._lockin_fqn = self.get_namespace().rstrip("/") + "/lockin"
         self._lockin_asking = False
@@ -301,7 +302,10 @@ class ScannerNode(Node):
                 return
             if self.lockin_output_rate is None and isinstance(value, float):
                 self._set_lockin_rate(value)
-        client.get_parameters(["output_rate"]).add_done_callback(done)
+            values = future.result().values
+            if len(values) > 1 and isinstance(parameter_value_to_python(values[1]), float):
+                self.lockin_phase_offset = parameter_value_to_python(values[1])
+        client.get_parameters(["output_rate", "phase_offset"]).add_done_callback(done)
 
     def _on_parameter_event(self, event: ParameterEvent) -> None:
         if event.node != self._lockin_fqn:
@@ -309,6 +313,8 @@ class ScannerNode(Node):
         for param in (*event.new_parameters, *event.changed_parameters):
             if param.name == "output_rate":
                 self._set_lockin_rate(parameter_value_to_python(param.value))
+            elif param.name == "phase_offset":
+                self.lockin_phase_offset = float(parameter_value_to_python(param.value))
 
     def _set_lockin_rate(self, rate: float) -> None:
         self.lockin_output_rate = float(rate)
@@ -338,7 +344,8 @@ class ScannerNode(Node):
             self.plan = ScanPlan(**applied["plan"])
             ratio = applied["drive_frequency_Hz"] / applied["resonance_frequency_Hz"]
             self.accumulator = ImageAccumulator(self.plan, applied["spring_constant_N_per_m"],
-                                                applied["quality_factor"], applied["free_amplitude_m"], ratio)
+                                                applied["quality_factor"], applied["free_amplitude_m"], ratio,
+                                                self.lockin_phase_offset)
             self._plan_request = None
             self.state = "scanning"
             self.frames_done = 0

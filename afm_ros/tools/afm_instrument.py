@@ -633,9 +633,14 @@ class Instrument:
         if lockin.tune_state != "done":
             raise RuntimeError("the tune failed (see the lock-in's log)")
         r = lockin.tune_result
+        mon = self.monitor
         for name, value in lockin.tune_applied.items():  # the job's own changes, not listed as others'
             role = "lockin" if name == "phase_offset" else "cantilever"
-            self.monitor.own_changes.setdefault((role, name), []).append(value)
+            seen = [c for c in mon.user_changes if (c["node"], c["name"], c["value"]) == (role, name, value)]
+            if seen:  # its event came already
+                mon.user_changes.remove(seen[0])
+            else:
+                mon.own_changes.setdefault((role, name), []).append(value)
         self.spin_until(lambda: self.cantilever.get_parameter("drive_frequency").value == r.drive_frequency,
                         "waiting for the cantilever to take the tuned drive")
         return {**r.summary(), "start_s": plan.start_time, "end_s": plan.end_time}
