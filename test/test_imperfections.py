@@ -79,6 +79,10 @@ def test_drift_between_two_frames_is_the_configured_rate():
     t = plan.frame_time
     assert cols == pytest.approx(vx * t / plan.pixel_size, abs=0.1)
     assert rows == pytest.approx(vy * t / (plan.line_pitch - vy / plan.line_rate), abs=0.1)
+    # what an instrument sees of it: the drift flag, with the measured shift over the frame time
+    from afm_ros.core.flags import frame_flags
+    flags = {f.name: f for f in frame_flags(second, 48e-9, (-200e-9, 100e-9), previous=first)}
+    assert flags["drift_detected"].values["shift_x_m"] == pytest.approx(cols * plan.pixel_size)
     # the sample rose by vz T: the z piezo retracts by as much (z is the height image)
     rise = float(np.median(b - a))
     assert rise == pytest.approx(vz * t, rel=0.05, abs=0.1e-9)

@@ -39,6 +39,7 @@ from std_srvs.srv import Trigger
 
 from afm_ros.core.artefacts import ARTEFACT_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
+from afm_ros.core.flags import flags_metadata, frame_flags
 from afm_ros.core.lockin import LOCKIN_SPECS
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
@@ -120,6 +121,9 @@ class ScannerNode(Node):
         self.write_error = ""  # the last failed frame write; cleared by a later successful one
         self.frames_failed = 0
         self.partial_frame = None  # the completed lines of the last stopped scan (Frame.completed), if any
+        self.flags: list = []  # the problem flags of the last finished frame (afm_ros.core.flags)
+        self.frame_flags_history: list = []  # (frame index, flags) of the recent frames
+        self._last_frame = None
         self._writers: list[threading.Thread] = []
         self._applied: dict | None = None
         # the feedback and lock-in settings in force when a scan starts, for the frame's metadata
@@ -466,10 +470,28 @@ class ScannerNode(Node):
             if single:
                 self.state = "idle"
             values = dict(self._values)
+        self.flags = self._check_frame(frame)
         if values["write_files"]:
             self._write_frame(frame, values)
         self.get_logger().info(f"frame {frame.index} finished" + (" (single frame: idle)" if single else ""))
         self._publish_progress()
+
+    def _check_frame(self, frame) -> list:
+        """The problem flags of a finished frame (:mod:`afm_ros.core.flags`), on /diagnostics (WARN)
+        and kept for its file's metadata; needs the z controller's settings (asked at the scan's start)."""
+        zc = self._settings.get("z_controller", {})
+        if not {"setpoint", "z_min", "z_max"} <= set(zc):
+            return []
+        flags = frame_flags(frame, zc["setpoint"], (zc["z_min"], zc["z_max"]), previous=self._last_frame)
+        self._last_frame = frame
+        self.frame_flags_history.append((frame.index, flags))
+        del self.frame_flags_history[:-16]
+        if flags:
+            topics.publish_status(self, self._pub_diag, "frame flags",
+                                  f"frame {frame.index}: " + "; ".join(f"{f.name}: {f.message}" for f in flags),
+                                  {f.name: f.message for f in flags})
+            self.get_logger().warning(f"frame {frame.index}: " + ", ".join(f.name for f in flags))
+        return flags
 
     def _write_frame(self, frame, values: dict) -> threading.Thread:
         """Write ``frame`` (full, or the completed part of one) in a background thread; the
@@ -482,7 +504,8 @@ class ScannerNode(Node):
         metadata = {**{f"scan.{k}": v for k, v in planned.as_dict().items()},
                     **{f"frame.{k}": v for k, v in frame.info().items()},
                     **{f"cantilever.{k}": v for k, v in applied.items() if k not in ("plan", "park")},
-                    **{f"{role}.{k}": v for role, values in self._settings.items() for k, v in values.items()}}
+                    **{f"{role}.{k}": v for role, values in self._settings.items() for k, v in values.items()},
+                    **(flags_metadata(self.flags) if not frame.partial else {})}
         writer = threading.Thread(target=self._write, args=(frame, stem, metadata), daemon=True, name="frame-writer")
         writer.paths = []
         writer.start()

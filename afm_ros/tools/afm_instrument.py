@@ -799,6 +799,8 @@ class Instrument:
                  "line_real_time_factor": scanner.sustained_real_time_factor}
         if not complete:
             image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
+        else:
+            image["flags"] = {f.name: f.message for f in scanner.flags}
         if sample is not None and frame is not None:
             from afm_ros.tools.frame_report import Loop, analyse_frame
             setup, values = cantilever._setup, cantilever._values

@@ -142,6 +142,12 @@ class Summary:
             lines.append(f"  image                {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
                          f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
                          f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
+            if "flags" in im:
+                if im["flags"]:
+                    for name, message in im["flags"].items():
+                        lines.append(f"  flag                 {name}: {message}")
+                else:
+                    lines.append("  flags                none raised (feedback, z range, drift, tip: docs/imperfections.md)")
             if "report" in im:
                 lines += frame_lines(im["report"])
             for f in im.get("files", [])[:1]:
