@@ -141,3 +141,24 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
         for n in nodes:
             ros_executor.remove_node(n)
             n.destroy_node()
+
+
+def test_afm_study_tune_writes_the_sweep_and_refuses_bad_flags(tmp_path, capsys):
+    """The offline command: the same tune on a lever given by flags (noise-free: f0 within 0.05 Hz),
+    its CSV (81 rows) and figure; a bad flag is one line naming it, exit 2."""
+    import csv
+    import json
+
+    from afm_ros.tools.study import main
+
+    assert main(["tune", "--resonance-frequency", "150e3", "--quality-factor", "200", "--spring-constant", "20",
+                 "--exact", "--out", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    numbers = json.loads(lines[1])
+    assert numbers["f0_Hz"] == pytest.approx(150e3, abs=0.05) and numbers["Q"] == pytest.approx(200.0, rel=1e-4)
+    with open(tmp_path / "tune.csv") as f:
+        assert len(list(csv.reader(f))) == 82
+    assert (tmp_path / "tune.png").stat().st_size > 10_000
+    assert main(["tune", "--tune-points", "3", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["afm_study tune: error: tune_points=3 is out of range; allowed range [11, 2001]"]

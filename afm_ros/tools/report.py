@@ -1670,39 +1670,17 @@ def _tune(survey: _Survey, data: SessionData) -> None:
 
 
 def write_tune_figure(data: SessionData, out: Path) -> Path | None:
-    """``tune.png``: the drive sweep (amplitude and phase vs frequency, as the lock-in measured them)
-    with the fitted driven-oscillator response and the working point."""
+    """``tune.png``: the recorded drive sweep with its fit and working point (tools/tune_figure.py)."""
     t = data.tune
     if t is None:
         return None
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from afm_ros.core.tune import TuneResult
+    from afm_ros.tools.tune_figure import plot_tune
 
-    f, a, p = t["frequency_Hz"], t["amplitude_m"], t["phase_deg"]
-    fit = TuneResult(f, a, p, t["f0_Hz"], t["Q"], static_amplitude=t["static_amplitude_m"],
-                     phase0_deg=t["phase0_deg"])
-    fine = np.linspace(f.min(), f.max(), 400)
-    model = fit.model(fine)
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    ax1.plot(f * 1e-3, a * 1e9, "o", ms=3, label="measured (lock-in)")
-    ax1.plot(fine * 1e-3, np.abs(model) * 1e9, "-", lw=1,
-             label=f"fit: f0 = {t['f0_Hz']:.2f} Hz, Q = {t['Q']:.3f}")
-    ax1.axvline(t["drive_frequency_Hz"] * 1e-3, color="k", ls=":", lw=1, label="working point")
-    ax1.set_ylabel("amplitude [nm]")
-    ax1.legend(fontsize=8)
-    ax2.plot(f * 1e-3, p, "o", ms=3)
-    ax2.plot(fine * 1e-3, -np.degrees(np.angle(model)), "-", lw=1)
-    ax2.axvline(t["drive_frequency_Hz"] * 1e-3, color="k", ls=":", lw=1)
-    ax2.set_ylabel("phase lag [deg]")
-    ax2.set_xlabel("drive frequency [kHz]")
-    fig.suptitle("Drive tune (lockin/tune_result), before the phase offset was applied")
-    fig.tight_layout()
-    path = out / "tune.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fit = TuneResult(t["frequency_Hz"], t["amplitude_m"], t["phase_deg"], t["f0_Hz"], t["Q"],
+                     static_amplitude=t["static_amplitude_m"], phase0_deg=t["phase0_deg"],
+                     drive_frequency=t["drive_frequency_Hz"])
+    return plot_tune(fit, out / "tune.png", "Drive tune (lockin/tune_result), before the phase offset was applied")
 
 
 def _geometry(survey: _Survey, data: SessionData) -> None:
