@@ -18,6 +18,7 @@ import numpy as np
 from afm_ros.core.approach import ApproachLog, ZStage
 from afm_ros.core.artefacts import Imperfections, check_plan
 from afm_ros.core.cantilever_params import build
+from afm_ros.core.tip import TIP_SPECS, TipWear
 from afm_ros.core.controller import ZController
 from afm_ros.core.imaging import ImageAccumulator
 from afm_ros.core.lockin import LockIn
@@ -64,6 +65,7 @@ class WiredInstrument:
     keep_records: bool = False
     imperfections: dict = field(default_factory=dict)  # ARTEFACT_SPECS values (afm_ros.core.artefacts)
     approach_values: dict = field(default_factory=dict)  # APPROACH_SPECS values (afm_ros.core.approach)
+    tip: dict = field(default_factory=dict)  # TIP_SPECS values (afm_ros.core.tip): wear
 
     def __post_init__(self):
         from afm_ros.core.cantilever_params import default_values
@@ -73,11 +75,9 @@ class WiredInstrument:
         self.setup = s = build(values)
         self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
         self.sim.set_thermal(values["temperature"], values["noise_seed"])
+        self.wear = TipWear(values["tip_radius"], {**{k: values[k] for k in TIP_SPECS}, **self.tip})
         if self.sample is not None:
-            tip = DMTSample(**{name: values[name] for name in ("tip_radius", "intermolecular_distance",
-                                                                  "tip_youngs_modulus", "tip_poisson_ratio")})
-            self.surface = surface_map(self.sample, values["force_model"], tip)
-            self.sim.set_surface(self.surface)
+            self._build_surface(values["tip_radius"])
         self.imperfect = Imperfections(self.imperfections, (self.sample.size_x, self.sample.size_y)
                                        if self.sample is not None else (0.0, 0.0))
         if self.imperfect.enabled and self.sample is None:
@@ -96,6 +96,14 @@ class WiredInstrument:
         self.chunks = 0
         self.images: ImageAccumulator | None = None
         self.records: list[ChunkRecord] = []
+
+    def _build_surface(self, radius: float) -> None:
+        """The sample map under an apex of ``radius`` [m] (dilated, DMT constants), in force from now."""
+        values = self.values
+        tip = DMTSample(**{**{name: values[name] for name in ("intermolecular_distance", "tip_youngs_modulus",
+                                                              "tip_poisson_ratio")}, "tip_radius": radius})
+        self.surface = surface_map(self.sample, values["force_model"], tip)
+        self.sim.set_surface(self.surface)
 
     @property
     def t(self) -> float:
@@ -206,6 +214,10 @@ class WiredInstrument:
             self.images.finish_ready()
         record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors,
                              float(np.max(samples.force, initial=-math.inf)), out.x, out.y)
+        if self.sample is not None and self.wear.enabled:  # the taps of this chunk wear the tip
+            taps = s.chunk_steps / s.steps_per_period
+            if self.wear.add_chunk(record.force_peak, taps, sim.t):
+                self._build_surface(self.wear.built_radius)
         if self.keep_records:
             self.records.append(record)
         return record

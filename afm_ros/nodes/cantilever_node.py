@@ -34,7 +34,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, MultiArrayLayout, String
 
 from afm_ros.nodes import ros_params, topics
 from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
@@ -50,6 +50,7 @@ from afm_ros.core.physics.parameters import DMTSample
 from afm_ros.core.samples import describe, resolve_sample
 from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as artefacts_off, truth as artefact_truth, validate
 from afm_ros.core.scanner import ScanPlan, parked_plan
+from afm_ros.core.tip import TIP_SPECS, TipWear, validate as tip_validate
 from afm_ros.core.tune import TunePlan
 
 TUNE_HOLD_CHUNKS = 2  # drive changes that arrive during a tune apply this many chunks after its end
@@ -143,6 +144,8 @@ class CantileverNode(Node):
         self._pending_imperfections: dict | None = None
         self._imperfections_warned = False
         self._imperfections_seen = False
+        self.wear = TipWear(values["tip_radius"], {k: values[k] for k in TIP_SPECS})
+        self._worn_radius: float | None = None  # a grown radius waiting to be put under the tip (next chunk)
         self._apply_sample(values)
         self._gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
         self._window = ConsumerWindow(values["flow_window"])
@@ -165,6 +168,9 @@ class CantileverNode(Node):
                                                            LATCHED_QOS)
         self._tune_sub = self.create_subscription(String, topics.TUNE_PLAN, self._on_tune_plan, LATCHED_QOS)
         self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
+        self._pub_tip = self.create_publisher(Float64MultiArray, topics.TRUTH_TIP, LATCHED_QOS)
+        self._tip_layout = MultiArrayLayout(dim=[MultiArrayDimension(label="t_s,tip_radius_m,worn_taps", size=3,
+                                                                     stride=3)])
         self._truth_msg = Float64MultiArray()
         self._truth_msg.layout.dim = [MultiArrayDimension(label=",".join(topics.TRUTH_FIELDS),
                                                           size=len(topics.TRUTH_FIELDS), stride=len(topics.TRUTH_FIELDS))]
@@ -276,8 +282,11 @@ class CantileverNode(Node):
                                       "tip_poisson_ratio")))
 
     def _apply_sample(self, values: dict) -> None:
-        """Put the sample map (tip-dilated, per-material force constants) under the tip, or none."""
+        """Put the sample map (tip-dilated, per-material force constants) under the tip, or none; with
+        the worn apex's radius if the tip has worn (afm_ros.core.tip)."""
         sample = self._samples[values["sample"]]  # checked at set time and kept while in force or pending
+        if self.wear.built_radius != values["tip_radius"]:
+            values = {**values, "tip_radius": self.wear.built_radius}
         if sample is None:
             self._sim.set_surface(None)
             self._surface_info = {"sample": values["sample"] or "flat"}
@@ -317,6 +326,18 @@ class CantileverNode(Node):
         with self._plan_lock:
             self._pending_plan = request
         self._try_step(MAX_BURST)
+
+    def _apply_worn_tip(self) -> None:
+        """The worn apex (afm_ros.core.tip) under the tip from this chunk on: the sample map rebuilt for
+        its radius (not cached: every radius is new), published on truth/tip."""
+        radius, self._worn_radius = self._worn_radius, None
+        if radius is None or self._sim.surface is None:
+            return
+        v = self._values
+        sample = self._samples[v["sample"]]
+        self._sim.set_surface(surface_map(sample, v["force_model"], self._tip({**v, "tip_radius": radius})))
+        self._pub_tip.publish(Float64MultiArray(
+            layout=self._tip_layout, data=[self._sim.t, radius, self.wear.worn_taps]))
 
     def _on_imperfections(self, msg: String) -> None:
         """The scanner's imperfection parameters (JSON), applied together at the next chunk boundary."""
@@ -411,6 +432,7 @@ class CantileverNode(Node):
                 self._wall_ref = None
 
     def _apply_plan(self) -> None:
+        self._apply_worn_tip()
         self._apply_imperfections()
         self._apply_tune()
         with self._plan_lock:
@@ -496,6 +518,11 @@ class CantileverNode(Node):
                 self._gate.controller_gone()
         if "flow_window" in changed:
             self._window.window = v["flow_window"]
+        if "tip_radius" in changed:  # a new tip: the wear starts again from it
+            self.wear = TipWear(v["tip_radius"], {k: v[k] for k in TIP_SPECS})
+            self._worn_radius = None
+        elif set(changed) & set(TIP_SPECS):
+            self.wear.values = tip_validate({k: v[k] for k in TIP_SPECS})
         if "z_base" in changed or set(changed) & {"spring_constant", "quality_factor", "free_amplitude",
                                                   "drive_frequency", "resonance_frequency"}:
             self._publish_applied()
@@ -693,6 +720,10 @@ class CantileverNode(Node):
             self._pub_deflection.publish(chunk_message(header, measured))
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(chunk_message(header, samples.force))
+        if sim.surface is not None and self.wear.enabled:  # the taps of this chunk wear the tip
+            if self.wear.add_chunk(float(np.max(samples.force, initial=-math.inf)),
+                                   s.chunk_steps / s.steps_per_period, sim.t):
+                self._worn_radius = self.wear.built_radius
         if sim.artefacts[ART_ON] != 0.0 and sim.surface is not None:
             truth = artefact_truth(sim.artefacts, sim.plan, sim.t)
             self._truth_msg.data = [sim.t] + [float(truth[name][0]) for name in TRUTH_KEYS]

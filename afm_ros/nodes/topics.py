@@ -41,6 +41,9 @@ IMPERFECTIONS = "scanner/imperfections"
 # (true minus commanded position) and the sample's drift
 TRUTH = "truth/scanner"
 TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
+# std_msgs/Float64MultiArray (latched): the worn tip, [t_s, tip_radius_m, worn_taps] at each rebuild of
+# the sample map for a grown apex radius (afm_ros.core.tip)
+TRUTH_TIP = "truth/tip"
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing
