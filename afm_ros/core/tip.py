@@ -12,11 +12,19 @@ frequency), so the same inputs give the same tip bit for bit (a different chunk 
 slightly different history). A worn tip changes what the cantilever feels: the sample map under the
 apex is rebuilt (tip-dilated with the new radius, DMT constants with the new radius) whenever the
 radius has grown by ``tip_rebuild_step`` since the last rebuild, at a chunk boundary.
+
+Pick-up events: a particle picked up from the sample makes a double tip (a second apex beside the
+main one, a little higher), which images every feature twice: the classic double-tip artefact.
+Events come at seeded times (a Poisson process of rate ``tip_pickup_rate``: exponential gaps from
+``tip_pickup_seed``), each with a seeded offset and height; an event replaces the previous second
+apex. The map is rebuilt at the first chunk boundary at or after the event.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from afm_ros.core.physics.parameters import ParamSpec
 
@@ -28,6 +36,14 @@ TIP_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               0.0, 1e-5),
     ParamSpec("tip_rebuild_step", 0.5e-9, "m",
               "the sample map under the tip is rebuilt when the radius has grown this much", 1e-11, 1e-7),
+    ParamSpec("tip_pickup_rate", 0.0, "1/s",
+              "mean rate of pick-up events (a particle on the tip makes it a double tip; 0 = none)", 0.0, 100.0),
+    ParamSpec("tip_pickup_seed", 0, "1", "seed of the pick-up events' times and shapes", 0, 2 ** 31 - 1, kind=int),
+    ParamSpec("tip_pickup_offset", 100e-9, "m",
+              "largest lateral distance of a picked-up second apex from the main one (each event: 30-100 % "
+              "of it, in a seeded direction)", 1e-9, 1e-6),
+    ParamSpec("tip_pickup_height", 3e-9, "m",
+              "largest height of the second apex above the main one (each event: 0-100 % of it)", 0.0, 1e-7),
 )}
 
 
@@ -52,21 +68,49 @@ class TipWear:
         self.taps = 0.0
         self.worn_taps = 0.0  # taps above the threshold
         self.history: list[tuple[float, float]] = []  # (simulated time [s], radius [m]) at each rebuild
+        self.second_apex: tuple | None = None  # (offset_x, offset_y, height) [m] of a double tip
+        self.events: list[dict] = []  # pick-up events applied: time [s] and shape
+        self._rng = np.random.default_rng([int(self.values["tip_pickup_seed"]), 0x71B])
+        self._next_event = self._draw_gap(0.0)
+
+    def _draw_gap(self, t: float) -> float:
+        rate = self.values["tip_pickup_rate"]
+        return t + self._rng.exponential(1.0 / rate) if rate > 0 else math.inf
+
+    def pick_up(self, offset_x: float, offset_y: float, height: float, t: float) -> None:
+        """A second apex at (offset_x, offset_y) [m] from the main one, ``height`` [m] higher, from t [s]."""
+        self.second_apex = (float(offset_x), float(offset_y), float(height))
+        self.events.append({"time_s": float(t), "offset_x_m": float(offset_x), "offset_y_m": float(offset_y),
+                            "height_m": float(height)})
+
+    def pickups_due(self, t: float) -> bool:
+        """Apply the seeded pick-up events due by simulated time t [s]; True if the tip changed."""
+        changed = False
+        while self._next_event <= t:
+            v = self.values
+            r = v["tip_pickup_offset"] * self._rng.uniform(0.3, 1.0)
+            angle = self._rng.uniform(0.0, 2.0 * math.pi)
+            self.pick_up(r * math.cos(angle), r * math.sin(angle), v["tip_pickup_height"] * self._rng.uniform(),
+                         self._next_event)
+            self._next_event = self._draw_gap(self._next_event)
+            changed = True
+        return changed
 
     @property
     def enabled(self) -> bool:
-        return self.values["tip_wear_coefficient"] > 0.0
+        return self.values["tip_wear_coefficient"] > 0.0 or self.values["tip_pickup_rate"] > 0.0
 
     def add_chunk(self, force_peak: float, taps: float, t: float) -> bool:
         """One chunk of ``taps`` taps whose largest force is ``force_peak`` [N], ending at t [s]."""
         self.taps += taps
+        picked = self.pickups_due(t)
         excess = force_peak - self.values["tip_wear_threshold"]
-        if not (self.enabled and excess > 0.0 and math.isfinite(excess)):
-            return False
+        if not (self.values["tip_wear_coefficient"] > 0.0 and excess > 0.0 and math.isfinite(excess)):
+            return picked
         self.worn_taps += taps
         self.radius += self.values["tip_wear_coefficient"] * excess * taps
         if self.radius - self.built_radius >= self.values["tip_rebuild_step"]:
             self.built_radius = self.radius
             self.history.append((float(t), self.radius))
             return True
-        return False
+        return picked

@@ -97,12 +97,17 @@ class WiredInstrument:
         self.images: ImageAccumulator | None = None
         self.records: list[ChunkRecord] = []
 
+    def pick_up(self, offset_x: float, offset_y: float, height: float) -> None:
+        """A double tip from now (a second apex at that offset [m], ``height`` [m] higher)."""
+        self.wear.pick_up(offset_x, offset_y, height, self.sim.t)
+        self._build_surface(self.wear.built_radius)
+
     def _build_surface(self, radius: float) -> None:
         """The sample map under an apex of ``radius`` [m] (dilated, DMT constants), in force from now."""
         values = self.values
         tip = DMTSample(**{**{name: values[name] for name in ("intermolecular_distance", "tip_youngs_modulus",
                                                               "tip_poisson_ratio")}, "tip_radius": radius})
-        self.surface = surface_map(self.sample, values["force_model"], tip)
+        self.surface = surface_map(self.sample, values["force_model"], tip, second_apex=self.wear.second_apex)
         self.sim.set_surface(self.surface)
 
     @property

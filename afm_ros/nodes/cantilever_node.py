@@ -169,8 +169,8 @@ class CantileverNode(Node):
         self._tune_sub = self.create_subscription(String, topics.TUNE_PLAN, self._on_tune_plan, LATCHED_QOS)
         self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
         self._pub_tip = self.create_publisher(Float64MultiArray, topics.TRUTH_TIP, LATCHED_QOS)
-        self._tip_layout = MultiArrayLayout(dim=[MultiArrayDimension(label="t_s,tip_radius_m,worn_taps", size=3,
-                                                                     stride=3)])
+        self._tip_layout = MultiArrayLayout(dim=[MultiArrayDimension(label="t_s,tip_radius_m,worn_taps,second_apex_x_m,second_apex_y_m,second_apex_height_m",
+                                                                     size=6, stride=6)])
         self._truth_msg = Float64MultiArray()
         self._truth_msg.layout.dim = [MultiArrayDimension(label=",".join(topics.TRUTH_FIELDS),
                                                           size=len(topics.TRUTH_FIELDS), stride=len(topics.TRUTH_FIELDS))]
@@ -293,7 +293,9 @@ class CantileverNode(Node):
             self._pack_imperfections()
             return
         key = self._surface_key(values)
-        surface = self._surfaces.get(key)
+        surface = self._surfaces.get(key) if self.wear.second_apex is None else None
+        if surface is None and self.wear.second_apex is not None:
+            surface = surface_map(sample, values["force_model"], self._tip(values), second_apex=self.wear.second_apex)
         if surface is None:  # not checked with exactly these values (e.g. a start value): build it now
             surface = self._surfaces[key] = surface_map(sample, values["force_model"], self._tip(values))
         self._sim.set_surface(surface)
@@ -335,9 +337,11 @@ class CantileverNode(Node):
             return
         v = self._values
         sample = self._samples[v["sample"]]
-        self._sim.set_surface(surface_map(sample, v["force_model"], self._tip({**v, "tip_radius": radius})))
+        self._sim.set_surface(surface_map(sample, v["force_model"], self._tip({**v, "tip_radius": radius}),
+                                          second_apex=self.wear.second_apex))
+        apex = self.wear.second_apex or (0.0, 0.0, 0.0)
         self._pub_tip.publish(Float64MultiArray(
-            layout=self._tip_layout, data=[self._sim.t, radius, self.wear.worn_taps]))
+            layout=self._tip_layout, data=[self._sim.t, radius, self.wear.worn_taps, *apex]))
 
     def _on_imperfections(self, msg: String) -> None:
         """The scanner's imperfection parameters (JSON), applied together at the next chunk boundary."""

@@ -41,8 +41,9 @@ IMPERFECTIONS = "scanner/imperfections"
 # (true minus commanded position) and the sample's drift
 TRUTH = "truth/scanner"
 TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
-# std_msgs/Float64MultiArray (latched): the worn tip, [t_s, tip_radius_m, worn_taps] at each rebuild of
-# the sample map for a grown apex radius (afm_ros.core.tip)
+# std_msgs/Float64MultiArray (latched): the tip, [t_s, tip_radius_m, worn_taps, second_apex_x_m,
+# second_apex_y_m, second_apex_height_m] at each rebuild of the sample map for a grown apex radius or
+# a pick-up event (afm_ros.core.tip; a single tip has a zero second apex)
 TRUTH_TIP = "truth/tip"
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all

@@ -236,14 +236,15 @@ class SurfaceMap:
 
 
 def surface_map(sample, force_model: str = "dmt", tip: DMTSample | None = None, dilate_tip: bool = True,
-                overrides: dict | None = None) -> SurfaceMap:
+                overrides: dict | None = None, second_apex: tuple | None = None) -> SurfaceMap:
     """SurfaceMap of a :class:`afm_ros.core.samples.Sample` for force model ``force_model``.
 
     Each material's force constants come from the materials table (``sample_for``) with the tip
     radius, a0 and the tip's E and nu of ``tip`` (default: the DMT_SPECS defaults);
     ``overrides[name]`` (a dict of sample_for overrides) replaces values of one material. The
     height map is dilated by the tip sphere (``dilate``) unless ``dilate_tip`` is False (e.g. a
-    sample that already is the dilated surface).
+    sample that already is the dilated surface); ``second_apex`` = (offset_x, offset_y, height) [m]
+    makes it a double tip (:func:`afm_ros.core.samples.surface.double_tip`).
     """
     from afm_ros.core.physics.forces import make_force_model
     from afm_ros.core.physics.materials import sample_for
@@ -258,6 +259,9 @@ def surface_map(sample, force_model: str = "dmt", tip: DMTSample | None = None, 
         model = make_force_model(force_model, dmt, viscosity=viscosity, hamaker_retract=h_retract)
         rows.append(np.asarray(model.packed(), dtype=np.float64))
     surface = dilate(sample, tip.tip_radius) if dilate_tip else sample
+    if second_apex is not None:  # (offset_x, offset_y, height) [m] of a double tip's second apex
+        from afm_ros.core.samples.surface import double_tip
+        surface = double_tip(surface, *second_apex)
     return SurfaceMap(np.ascontiguousarray(surface.height, dtype=np.float64),
                       np.ascontiguousarray(surface.material_index, dtype=np.uint8),
                       float(sample.size_x), float(sample.size_y), np.ascontiguousarray(np.array(rows)),

@@ -195,3 +195,25 @@ def dilate(sample: Sample, tip_radius: float) -> Sample:
             raise ValueError(f"the sample is already dilated (tip_radius={description['tip_radius']!r} m)")
         description["tip_radius"] = radius
     return Sample(out_h, out_m, sample.materials, sample.size_x, sample.size_y, description)
+
+
+def double_tip(dilated: Sample, offset_x: float, offset_y: float, height: float) -> Sample:
+    """The surface a double tip follows: its main apex's surface ``dilated`` (already dilated by the
+    apex sphere) and a second apex ``offset_x``, ``offset_y`` [m] away from it (rounded to whole map
+    pixels) and ``height`` [m] >= 0 higher up, dilated by the same sphere: the tip rests on whichever
+    apex meets the sample first, max(D(x), D(x + offset) - height); the material is that apex's. A
+    feature at X then also images at X - offset, ``height`` lower (the "ghost" of a double tip)."""
+    if not (math.isfinite(offset_x) and math.isfinite(offset_y) and math.isfinite(height) and height >= 0):
+        raise ValueError(f"double tip offset ({offset_x!r}, {offset_y!r}) m and height {height!r} m must be "
+                         "finite, the height >= 0")
+    dj = int(round(offset_x / dilated.pixel_x))
+    di = int(round(offset_y / dilated.pixel_y))
+    second = np.roll(dilated.height, (-di, -dj), axis=(0, 1)) - height
+    second_m = np.roll(dilated.material_index, (-di, -dj), axis=(0, 1))
+    use = second > dilated.height
+    description = dict(dilated.description)
+    if description:
+        description["double_tip"] = {"offset_x": dj * dilated.pixel_x, "offset_y": di * dilated.pixel_y,
+                                     "height": height}
+    return Sample(np.where(use, second, dilated.height), np.where(use, second_m, dilated.material_index),
+                  dilated.materials, dilated.size_x, dilated.size_y, description)
