@@ -35,9 +35,10 @@ from afm_ros.nodes.topics import LATCHED_QOS
 from afm_ros.nodes.z_controller_node import ZControllerNode
 from conftest import EXACT_PHYSICS
 
-# the tip wears too (core/tip.py; exaggerated: ~6 nm over the frame, a dozen map rebuilds)
+# the tip wears and picks things up too (core/tip.py; exaggerated: ~6 nm of wear over the frame, a
+# dozen map rebuilds, and a few double-tip events)
 CANTILEVER = {**EXACT_PHYSICS, "force_model": "viscoelastic_dmt", "sample": "ps_ldpe_blend",
-              "tip_wear_coefficient": 2e-6}
+              "tip_wear_coefficient": 2e-6, "tip_pickup_rate": 4.0, "tip_pickup_seed": 2}
 SCAN = dict(scan_size_x=5e-6, scan_size_y=5e-6, scan_center_x=5e-6, scan_center_y=5e-6, pixels_per_line=16,
             lines=8, line_rate=10.0)
 ENGAGE = 0.05  # [s] simulated before the scan starts
@@ -138,6 +139,7 @@ def test_ros_frame_equals_the_wired_cores_bit_for_bit(scanned):
             assert np.isfinite(frame.images[d][c]).all(), (d, c)
             np.testing.assert_array_equal(frame.images[d][c], offline.images[d][c], err_msg=f"{d} {c}")
     assert wired.wear.history and wired.wear.built_radius > 21e-9  # the tip did wear (and the same in both)
+    assert len(wired.wear.events) >= 2  # and picked things up during the frame
 
 
 def test_published_images_and_gwy_file_hold_the_frame(scanned):
