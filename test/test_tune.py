@@ -98,7 +98,7 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
 
     ns = ros_namespace
     cantilever = CantileverNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {**FREE, "real_time_factor": 0.0}.items()])
+        Parameter(k, value=v) for k, v in {**FREE, "real_time_factor": 0.0, "run_until": 0.0}.items()])
     lockin = LockInNode(context=ros_context, namespace=ns, parameter_overrides=[
         Parameter("tune_target_amplitude", value=50e-9)])
     controller = ZControllerNode(context=ros_context, namespace=ns, parameter_overrides=[
@@ -112,6 +112,8 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
     try:
         spin_until(lambda: lockin._cantilever_values is not None and lockin.z_stage == "withdrawn",
                    what="the cantilever's drive and the withdrawn stage")
+        # the cantilever waited at t = 0 until the z stage was placed far away (as afm_instrument starts it)
+        cantilever.set_parameters([Parameter("run_until", value=-1.0)])
         client = lockin.create_client(Trigger, f"{ns}/lockin/tune")
         spin_until(client.service_is_ready, 30, "lockin/tune")
         future = client.call_async(Trigger.Request())

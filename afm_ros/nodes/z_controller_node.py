@@ -110,9 +110,14 @@ class ZControllerNode(Node):
             if new:
                 self.stage = ZStage(self.controller, z_base)
             self.stage.z_base = self.z_base = z_base
-            if new and self.approach_values["start_withdrawn"] and self.answered_end_index == 0:
+            if new and self.approach_values["start_withdrawn"]:
                 self.stage.place_withdrawn(self.approach_values)
-                self._send_command(0, 0.0)  # the start position again: far away from the first chunk
+                if self.answered_end_index == 0:
+                    self._send_command(0, 0.0)  # the start position again: far away from the first chunk
+                else:  # the cantilever ran before its z_base reached us (start it paused to avoid this)
+                    self.get_logger().warning(
+                        f"start_withdrawn applied late, after samples up to index {self.answered_end_index}: the "
+                        "first chunks ran engaged at z_base (start the cantilever with run_until:=0.0 to avoid it)")
                 self._publish_z()
             self._report_stage()
 
