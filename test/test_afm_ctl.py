@@ -55,14 +55,15 @@ def ctl(env, *args, ns: str | None = None, timeout: str = PATIENCE) -> subproces
 
 
 @contextmanager
-def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, scanner: dict | None = None):
+def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, scanner: dict | None = None,
+                     z_controller: dict | None = None):
     """The instrument's cantilever, lock-in, z controller and scanner in this process (a private
     context on this file's domain, LOCALHOST discovery), spun in a thread; by role."""
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # the afm_ctl processes must see them
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(DOMAIN_ID))
     nodes = build_nodes(ctx, namespace, record=False, scanner=True, cantilever_overrides=cantilever,
-                        scanner_overrides=scanner)
+                        scanner_overrides=scanner, overrides={"z_controller": z_controller or {}})
     executor = make_executor("events", ctx)
     for node in nodes.values():
         executor.add_node(node)
@@ -395,3 +396,30 @@ def test_afm_instrument_interactive_in_a_namespace(ctl_env, tmp_path):
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
+
+
+def test_tune_approach_and_withdraw_from_the_command_line(monkeypatch, ctl_env, ros_namespace):
+    """The operating workflow from a second terminal: the instrument starts withdrawn 2 um away and
+    paused; afm_ctl starts it, tunes (the fit's f0 within 5 standard errors of the lever's), approaches
+    (engaged, as the z stage says), withdraws, and the scanner then refuses with the reason."""
+    z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED, z_controller=z) as n:
+        zc = n["z_controller"]
+        end = time.monotonic() + 60
+        while zc.stage_state != "withdrawn":
+            assert time.monotonic() < end, zc.stage_state
+            time.sleep(0.05)
+        r = ctl(ctl_env, "set", "cantilever", "run_until", "-1", "real_time_factor", "0", ns=ros_namespace)
+        assert r.returncode == 0, r.stderr
+        r = ctl(ctl_env, "tune", "--wait", ns=ros_namespace)
+        assert r.returncode == 0, r.stdout + r.stderr
+        tuned = r.stdout.splitlines()[-1]
+        f0, err = float(tuned.split("f0 = ")[1].split()[0]), float(tuned.split("+- ")[1].split()[0])
+        assert abs(f0 - 45e3) < 5 * err + 0.01, tuned
+        r = ctl(ctl_env, "approach", "--wait", ns=ros_namespace)
+        assert r.returncode == 0 and "z stage engaged" in r.stdout, r.stdout + r.stderr
+        assert zc.stage_state == "engaged"
+        r = ctl(ctl_env, "withdraw", "--wait", ns=ros_namespace)
+        assert r.returncode == 0 and "z stage withdrawn" in r.stdout, r.stdout + r.stderr
+        r = ctl(ctl_env, "scan", "frame", ns=ros_namespace)
+        assert r.returncode == 1 and "not engaged: the z stage is withdrawn" in r.stderr, r.stdout + r.stderr

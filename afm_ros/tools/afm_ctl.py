@@ -328,6 +328,55 @@ def cmd_scan(link, args, out) -> int:
         link.node.destroy_subscription(sub)
 
 
+WORKFLOW = {  # command -> (service, node, topic that tells it is done)
+    "tune": ("lockin/tune", "lockin", "lockin/tune_result"),
+    "approach": ("z_controller/approach", "z_controller", "z_controller/stage"),
+    "withdraw": ("z_controller/withdraw", "z_controller", "z_controller/stage"),
+}
+
+
+def cmd_workflow(link, args, out) -> int:
+    """tune / approach / withdraw: call the service; with --wait, until it is done (the tune's result,
+    or the z stage leaving approaching/withdrawing), then say how it ended (exit 1 if it failed)."""
+    import json as _json
+
+    from std_msgs.msg import String
+
+    from afm_ros.nodes.topics import LATCHED_QOS
+
+    service, node, topic = WORKFLOW[args.command]
+    if not args.wait:
+        print(link.trigger(service, node=node), file=out, flush=True)
+        return 0
+    seen: list = []
+    sub = link.node.create_subscription(String, link.resolve(topic), lambda m: seen.append(_json.loads(m.data)),
+                                        LATCHED_QOS)
+    try:
+        link.wait_for_node(node)
+        link.spin_for(0.5)  # the latched message of before the call
+        before = len(seen)
+        print(link.trigger(service, node=node), file=out, flush=True)
+        busy = {"approaching", "withdrawing"}
+        while len(seen) <= before or (args.command != "tune" and seen[-1].get("state") in busy):
+            link.spin_for(0.2)
+        last = seen[-1]
+        if args.command == "tune":
+            print(f"tuned: f0 = {last['f0_Hz']:.3f} +- {last['f0_error_Hz']:.2g} Hz, Q = {last['Q']:.4f} +- "
+                  f"{last['Q_error']:.2g}; drive at {last['drive_frequency_Hz']:.3f} Hz", file=out, flush=True)
+            return 0
+        state = last.get("state")
+        text = f"z stage {state}, motor at {last.get('motor_m', 0.0):.4g} m"
+        if state == "engaged" and "engaged_s" in last:
+            text += (f": engaged at t={last['engaged_s']:.4f} s after {last['cycles']} cycle(s) and "
+                     f"{last['motor_steps']} motor steps")
+        if last.get("reason"):
+            text += f" ({last['reason']})"
+        print(text, file=out, flush=True)
+        return 0 if state in ("engaged", "withdrawn") else 1
+    finally:
+        link.node.destroy_subscription(sub)
+
+
 def cmd_status(link, args, out) -> int:
     nodes = link.wait_for_nodes()
     statuses = link.collect_diagnostics()
@@ -413,6 +462,11 @@ def build_parser() -> argparse.ArgumentParser:
                 "stop (and park the tip)", cmd_scan)
     p.add_argument("action", choices=["start", "frame", "stop"])
     p.add_argument("--wait", action="store_true", help="start, frame: then watch until the frame is done")
+    for name, text in (("tune", "tune the drive (lockin/tune): sweep, fit, working point; needs the tip withdrawn"),
+                       ("approach", "approach and engage (z_controller/approach) from approach_start_distance"),
+                       ("withdraw", "withdraw (z_controller/withdraw): piezo retracted, motor backed off")):
+        p = command(name, text, cmd_workflow)
+        p.add_argument("--wait", action="store_true", help="until it is done; say how it ended (exit 1: failed)")
     p = command("watch", "a live line per second: simulated time, amplitude, phase, z piezo, scan progress "
                 "(until Ctrl-C)", cmd_watch)
     p.add_argument("--until-frame-done", action="store_true",
