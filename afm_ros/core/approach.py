@@ -33,7 +33,7 @@ import math
 from dataclasses import dataclass, field
 
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
-from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.physics.parameters import ParamSpec, validate_values
 
 APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("approach_start_distance", 5e-6, "m",
@@ -63,10 +63,7 @@ Z_NODE_SPECS.update({**Z_CONTROLLER_SPECS, **APPROACH_SPECS})
 
 
 def validate(values: dict) -> dict:
-    unknown = set(values) - set(APPROACH_SPECS)
-    if unknown:
-        raise ValueError(f"{sorted(unknown)[0]!r} is not an approach parameter; known: {', '.join(APPROACH_SPECS)}")
-    return {name: spec.validate(values.get(name, spec.default)) for name, spec in APPROACH_SPECS.items()}
+    return validate_values(APPROACH_SPECS, values, "an approach")
 
 
 @dataclass

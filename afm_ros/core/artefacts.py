@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
-from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.physics.parameters import ParamSpec, validate_values
 from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINE_STEP, PLAN_LINES,
                                       PLAN_SIZE_X, PLAN_START, TRUTH_KEYS)  # noqa: F401 (TRUTH_KEYS: re-exported)
 
@@ -100,10 +100,7 @@ def off() -> np.ndarray:
 
 def validate(values: dict) -> dict:
     """Every ARTEFACT_SPECS value validated (missing: default); ValueError naming the field."""
-    unknown = set(values) - set(ARTEFACT_SPECS)
-    if unknown:
-        raise ValueError(f"{sorted(unknown)[0]!r} is not an imperfection parameter; known: {', '.join(ARTEFACT_SPECS)}")
-    return {name: spec.validate(values.get(name, spec.default)) for name, spec in ARTEFACT_SPECS.items()}
+    return validate_values(ARTEFACT_SPECS, values, "an imperfection")
 
 
 def check_plan(values: dict, plan: "ScanPlan") -> None:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.physics.parameters import ParamSpec, validate_values
 
 TIP_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("tip_wear_coefficient", 0.0, "m/N",
@@ -48,10 +48,7 @@ TIP_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 
 
 def validate(values: dict) -> dict:
-    unknown = set(values) - set(TIP_SPECS)
-    if unknown:
-        raise ValueError(f"{sorted(unknown)[0]!r} is not a tip parameter; known: {', '.join(TIP_SPECS)}")
-    return {name: spec.validate(values.get(name, spec.default)) for name, spec in TIP_SPECS.items()}
+    return validate_values(TIP_SPECS, values, "a tip")
 
 
 @dataclass

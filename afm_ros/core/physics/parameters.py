@@ -72,6 +72,15 @@ class ParamSpec:
         return value
 
 
+def validate_values(specs: dict, values: dict, what: str) -> dict:
+    """Every spec's value validated (missing: its default); ValueError naming an unknown name (``what``
+    says whose parameters these are) or the field and its range."""
+    unknown = set(values) - set(specs)
+    if unknown:
+        raise ValueError(f"{sorted(unknown)[0]!r} is not {what} parameter; known: {', '.join(specs)}")
+    return {name: spec.validate(values.get(name, spec.default)) for name, spec in specs.items()}
+
+
 def parse_number(text: str):
     """A command-line value as int or float; anything else is returned as it is, for the spec to
     reject by name (``ParamSpec.validate`` names the field and the range)."""
