@@ -215,6 +215,37 @@ def test_tilted_sample_gives_the_tilt_plane():
     assert per_row / plan.line_pitch == pytest.approx(-0.006, rel=0.01)
 
 
+def _lag(frame, direction: str) -> float:
+    """Median amplitude error [m] over the middle 60 % of each line, after the first two lines."""
+    err = frame.images[direction]["amplitude_error"].astype(float)[2:]
+    n = err.shape[1]
+    return float(np.median(err[:, n // 5:n - n // 5]))
+
+
+def test_the_loop_lags_on_a_tilt_by_the_ramp_error_and_slope_compensation_removes_it():
+    """An integral loop tracking a ramp of rate r = slope x tip speed holds a steady error r / i_gain
+    (type-1 loop; the proportional term only acts on the error's change): amplitude below the
+    setpoint uphill (trace, tilt > 0), above it downhill (retrace). Tolerance 10 % (the islands'
+    transients move the medians). Slope compensation (the scanner moving z along the plane open
+    loop) leaves the loop the tilt minus the compensation: half the error at half the slope, and at
+    the full slope the frame of an untilted sample bit for bit."""
+    values = dict(AREA, lines=8, line_rate=4.0)
+    tilt = 0.02
+    plan = ScanPlan.from_values(values)
+    expected = tilt * plan.speed / LOOP["i_gain"]  # 1.2 nm
+    (frame,), _ = _frames(ISLANDS, values, {"tilt_x": tilt})
+    assert _lag(frame, "trace") == pytest.approx(-expected, rel=0.01)
+    assert _lag(frame, "retrace") == pytest.approx(expected, rel=0.01)
+    (half,), _ = _frames(ISLANDS, values, {"tilt_x": tilt, "slope_compensation_x": tilt / 2})
+    assert _lag(half, "trace") == pytest.approx(-expected / 2, rel=0.01)
+    (flat,), _ = _frames(ISLANDS, values, {})
+    (full,), _ = _frames(ISLANDS, values, {"tilt_x": tilt, "tilt_y": -0.01, "slope_compensation_x": tilt,
+                                           "slope_compensation_y": -0.01})
+    for direction in ("trace", "retrace"):
+        for channel, image in flat.images[direction].items():
+            assert np.array_equal(image, full.images[direction][channel], equal_nan=True), (direction, channel)
+
+
 def test_ideal_instrument_path_is_untouched():
     """Every parameter at zero but the kernel's imperfection path forced on gives the same frame
     bit for bit as the ideal instrument (which does not enter that path)."""

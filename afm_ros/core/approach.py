@@ -54,6 +54,10 @@ APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               kind=bool),
 )}
 
+# a real session's z stage (afm_instrument's workflow, afm_study scan --approach): a 3 um z piezo range
+# (retracted at 0), the tip withdrawn far from the sample at the start
+INSTRUMENT_Z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True}
+
 ARM_TIMEOUT_S = 0.5  # [s] simulated: the free oscillation must rise above the setpoint within this
 Z_NODE_SPECS: dict[str, ParamSpec] = {}  # the z controller node's parameters (filled below)
 STATES = ("idle", "extending", "retracting", "stepping", "engaged", "failed", "withdrawn")

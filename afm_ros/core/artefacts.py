@@ -8,7 +8,9 @@ Positions, all in sample coordinates [m] (see :mod:`afm_ros.core.scanner`):
   start; thermal drift of the mount), so the point of the sample under the apex is
   x_s = x_p - D_x(t), y_s = y_p - D_y(t), and the sample surface is raised by D_z(t);
 - the sample is mounted *tilted*: its surface is the sample map plus the plane
-  tilt_x (x_s - X0) + tilt_y (y_s - Y0) through the map's centre (X0, Y0).
+  tilt_x (x_s - X0) + tilt_y (y_s - Y0) through the map's centre (X0, Y0); the scanner's slope
+  compensation moves z open loop along the plane slope_compensation_x/y, so the z loop (and the
+  height image) sees the tilt minus the compensation.
 
 Models and their sources (numbers in ``ARTEFACT_SPECS``, typical values in docs/imperfections.md):
 
@@ -63,6 +65,11 @@ ARTEFACT_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("tilt_x", 0.0, "m/m", "sample plane slope dz/dx (a mounted sample: typically up to 0.01-0.02)",
               -0.2, 0.2),
     ParamSpec("tilt_y", 0.0, "m/m", "sample plane slope dz/dy", -0.2, 0.2),
+    ParamSpec("slope_compensation_x", 0.0, "m/m",
+              "the scanner's slope compensation: z moves open loop by this plane's dz/dx as the tip scans, so "
+              "the z loop follows only tilt_x minus it (set it to the slope of a first image)", -0.2, 0.2),
+    ParamSpec("slope_compensation_y", 0.0, "m/m", "slope compensation dz/dy (see slope_compensation_x)",
+              -0.2, 0.2),
     ParamSpec("scanner_field", 20e-6, "m", "x-y scanner range (each axis); scans must fit in it", 1e-7, 1e-3),
     ParamSpec("closed_loop", False, "", "closed-loop scanner (position sensors): no hysteresis and no creep",
               kind=bool),
@@ -149,7 +156,8 @@ class Imperfections:
     @property
     def enabled(self) -> bool:
         v = self.values
-        return bool(v["drift_lateral_rate"] or v["drift_vertical_rate"] or v["tilt_x"] or v["tilt_y"]
+        return bool(v["drift_lateral_rate"] or v["drift_vertical_rate"] or v["tilt_x"] != v["slope_compensation_x"]
+                    or v["tilt_y"] != v["slope_compensation_y"]
                     or (not v["closed_loop"] and (v["hysteresis_small"] or v["hysteresis_large"]
                                                   or v["creep_per_decade"])))
 
@@ -176,7 +184,8 @@ class Imperfections:
         v = self.values
         out[ART_ON] = 1.0
         out[ART_VX], out[ART_VY], out[ART_VZ] = drift_velocity(v)
-        out[ART_TILT_X], out[ART_TILT_Y] = v["tilt_x"], v["tilt_y"]
+        out[ART_TILT_X] = v["tilt_x"] - v["slope_compensation_x"]  # the plane the z loop must follow
+        out[ART_TILT_Y] = v["tilt_y"] - v["slope_compensation_y"]
         out[ART_X0], out[ART_Y0] = 0.5 * self.sample_size[0], 0.5 * self.sample_size[1]
         if plan is not None:
             out[ART_W_FAST] = loop_width(v, plan.size_x)

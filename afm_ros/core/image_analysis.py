@@ -27,6 +27,54 @@ def sample_under_pixels(sample, plan: ScanPlan):
     return sample.height[np.ix_(rows, cols)], sample.material_index[np.ix_(rows, cols)]
 
 
+@dataclass
+class PixelTruth:
+    """What was under the apex at each pixel of one direction (rows x cols): the sample map's height
+    [m] and material index at the sample point under the apex, and the ``plane`` [m] the mounted
+    sample adds there (tilt plus vertical drift)."""
+
+    height: np.ndarray
+    material: np.ndarray
+    plane: np.ndarray
+
+
+def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = None,
+                       frame_index: int = 0, lines_planned: int = 0) -> dict[str, PixelTruth]:
+    """Per direction, the sample under the apex at each pixel's centre time (:class:`PixelTruth`).
+
+    ``artefacts``: the kernel's packed imperfections (``Imperfections.packed(plan)``) in force
+    during the frame; None or off: the commanded pixel centres, no plane (as
+    :func:`sample_under_pixels`). With them, the apex sits at the commanded position plus the
+    piezo's hysteresis and creep, minus the sample's drift, at the time the pixel's centre is
+    scanned (trace: the first half of the line, left to right; retrace: back). ``frame_index`` and
+    ``lines_planned`` (0: ``plan.lines``) place a frame of a continuous scan, or a cropped partial one,
+    in time."""
+    from afm_ros.core.artefacts import ART_ON, ART_TILT_X, ART_TILT_Y, ART_X0, ART_Y0, truth
+
+    if artefacts is None or artefacts[ART_ON] == 0.0:
+        height, material = sample_under_pixels(sample, plan)
+        flat = PixelTruth(height, material, np.zeros(height.shape))
+        return {"trace": flat, "retrace": flat}
+    x, y = pixel_centres(plan)
+    rows = np.arange(plan.lines)
+    line = rows if plan.slow_scan_direction == "up" else plan.lines - 1 - rows
+    packed = plan.packed()
+    out = {}
+    for direction in ("trace", "retrace"):
+        along = (np.arange(plan.pixels) + 0.5) / (2 * plan.pixels)
+        u = along if direction == "trace" else 1.0 - along
+        t = plan.start_time + (frame_index * (lines_planned or plan.lines) + line[:, None] + u[None, :]) / plan.line_rate
+        tr = {k: v.reshape(t.shape) for k, v in truth(artefacts, packed, t.ravel()).items()}
+        xs = x[None, :] + tr["hysteresis_x"] + tr["creep_x"] - tr["drift_x"]
+        ys = y[:, None] + tr["hysteresis_y"] + tr["creep_y"] - tr["drift_y"]
+        cols = np.floor(np.mod(xs, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]
+        rws = np.floor(np.mod(ys, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
+        plane = (artefacts[ART_TILT_X] * (xs - artefacts[ART_X0]) + artefacts[ART_TILT_Y] * (ys - artefacts[ART_Y0])
+                 + tr["drift_z"])
+        out[direction] = PixelTruth(sample.height[rws, cols], sample.material_index[rws, cols], plane)
+    return out
+
+
 def edge_mask(labels: np.ndarray, plan: ScanPlan, distance: float, distance_y: float | None = None) -> np.ndarray:
     """True for pixels farther than ``distance`` [m] along x (``distance_y`` [m] along y, default the
     same) from any pixel of another label."""

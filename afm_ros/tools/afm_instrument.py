@@ -46,7 +46,10 @@ from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
+from afm_ros.core.approach import INSTRUMENT_Z
+from afm_ros.core.artefacts import INSTRUMENT_ARTEFACTS
 from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.tip import INSTRUMENT_TIP
 from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
 from afm_ros.tools.instrument_summary import (JobState, ScanProgress, Summary, megabytes, expected_recording_bytes,
                                               recording_line)
@@ -74,8 +77,6 @@ IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}
 # per-output scalar copies of the batches (unless --record-raw): a session a person can leave on
 RAW_EXCLUDE = ",".join((topics.DEFLECTION, topics.FORCE, "lockin/amplitude", "lockin/phase", "lockin/xy",
                         "z_controller/z_piezo", "z_controller/error"))
-# --image's operating workflow: the z piezo's range (3 um, retracted at 0) and the start far away
-WORKFLOW_Z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True}
 IMAGE_FORCE_MODEL = "viscoelastic_dmt"  # --image: PS and LDPE differ in dissipation, hence in phase
 INTERRUPTED_STATUS = 130  # the shell's convention for a job ended by Ctrl-C (128 + SIGINT)
 INTERACTIVE_HOLD_SPAN_S = 1.0  # --interactive: the summary's hold statistics cover the last second
@@ -771,6 +772,8 @@ class Instrument:
         # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
         self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
         plan = scanner.plan
+        artefacts = cantilever.simulation.artefacts.copy()  # the imperfections in force for this plan (truth)
+        radius0 = cantilever.wear.radius
         chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
         job.phase = "scanning"
         show = ScanProgress(plan, scanner, self.monitor) if progress else None
@@ -797,6 +800,7 @@ class Instrument:
                  "scan_real_time_factor": (min(self.monitor.answer_time, plan.start_time + plan.frame_time)
                                            - plan.start_time) / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
+        image["truth"] = imperfection_truth(artefacts, plan, cantilever.wear, radius0)
         if not complete:
             image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
         else:
@@ -808,7 +812,7 @@ class Instrument:
             loop = Loop(self.monitor.setpoints.setpoint, self.get("z_controller", "p_gain"),
                         self.get("z_controller", "i_gain"), job.free.amplitude, latency, values["tip_radius"])
             image["report"] = analyse_frame(frame, sample, loop, values["force_model"], setup.cantilever, setup.drive,
-                                            predict=predict)
+                                            predict=predict, artefacts=artefacts)
         workflow_numbers = dict(engaged.workflow)
         if workflow and not interrupted:
             job.phase = "withdrawing"
@@ -974,8 +978,8 @@ def parse_args(argv):
                         help="after engaging, keep running until Ctrl-C (tune it from another terminal with "
                              "afm_ctl, or ros2 param set with ROS 2), then print the summary")
     parser.add_argument("--ideal", action="store_true",
-                        help="--image without the operating workflow: the tip starts engaged at z_base (no tune, "
-                             "approach or withdraw), as before")
+                        help="--image on an ideal instrument without the operating workflow: the tip starts engaged "
+                             "at z_base (no tune, approach or withdraw), no drift, creep, hysteresis, tilt or tip wear")
     parser.add_argument("--image", action="store_true",
                         help="the imaging job: engage for --duration, then scan one frame with the scanner's "
                              "parameters (-p scanner:...) over the cantilever's sample (default ps_ldpe_blend), "
@@ -1025,9 +1029,12 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
             cantilever["force_model"] = IMAGE_FORCE_MODEL
             switched.append(f"force_model {IMAGE_FORCE_MODEL} (not the parameter's default dmt: the PS/LDPE phase "
                             "contrast comes from dissipation)")
-        if not options.ideal:  # a real session: far from the sample with a z piezo of a few um, tune, approach
-            zc = given["z_controller"]
-            zc.update({k: v for k, v in WORKFLOW_Z.items() if not ros.given("z_controller", k)})
+        if not options.ideal:  # a real session: far from the sample with a z piezo of a few um, tune, approach,
+            # a scanner that drifts, creeps and has hysteresis, a tilted sample and a tip that wears
+            for role, values in (("z_controller", INSTRUMENT_Z), ("scanner", INSTRUMENT_ARTEFACTS),
+                                 ("cantilever", INSTRUMENT_TIP)):
+                given[role].update({k: v for k, v in values.items() if not ros.given(role, k)})
+            notes.append(imperfections_line({**INSTRUMENT_ARTEFACTS, **scanner}, {**INSTRUMENT_TIP, **cantilever}))
         plan = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in IMAGE_SCAN.items()}
         rate = plan["line_rate"]
         rate = f"{rate:g}" if isinstance(rate, (int, float)) else rate  # (a bad value: the scanner says why)
@@ -1043,6 +1050,34 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     if not options.record_raw and not ros.value("recorder", "exclude") and not ros.value("recorder", "topics"):
         recorder["exclude"] = RAW_EXCLUDE
     return given, notes
+
+
+def imperfection_truth(artefacts: np.ndarray, plan: ScanPlan, wear, radius0: float) -> dict:
+    """The emulator's ground truth of a frame's imperfections: drift velocity [m/s], tilt [m/m], the
+    hysteresis loop's width along the fast axis [m], and the tip's radius [m] before and after."""
+    from afm_ros.core.artefacts import ART_ON, ART_TILT_X, ART_TILT_Y, ART_VX, ART_VY, ART_VZ, ART_W_FAST
+
+    on = bool(artefacts[ART_ON])
+    return {"imperfections": on,
+            "drift_m_per_s": [float(artefacts[i]) for i in (ART_VX, ART_VY, ART_VZ)] if on else [0.0, 0.0, 0.0],
+            "tilt": [float(artefacts[ART_TILT_X]), float(artefacts[ART_TILT_Y])] if on else [0.0, 0.0],
+            "hysteresis_width_m": float(artefacts[ART_W_FAST] * plan.size_x) if on else 0.0,
+            "tip_radius_start_m": float(radius0), "tip_radius_end_m": float(wear.radius),
+            "tip_events": list(wear.events)}
+
+
+def imperfections_line(scanner: dict, cantilever: dict) -> str:
+    """The start line that says which imperfections the session has (values the user gave included)."""
+    def num(values, name, scale=1.0):
+        value = values.get(name)
+        return f"{value * scale:.3g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
+    loop = ("closed-loop scanner (no hysteresis, no creep)" if scanner.get("closed_loop") is True else
+            f"hysteresis {num(scanner, 'hysteresis_small', 100)}-{num(scanner, 'hysteresis_large', 100)} % of the "
+            f"scan, creep {num(scanner, 'creep_per_decade', 100)} %/decade")
+    return (f"imperfections: drift {num(scanner, 'drift_lateral_rate', 6e10)} nm/min lateral, "
+            f"{num(scanner, 'drift_vertical_rate', 6e10)} nm/min vertical, tilt {num(scanner, 'tilt_x')} x "
+            f"{num(scanner, 'tilt_y')} y, {loop}; tip wear {num(cantilever, 'tip_wear_coefficient')} m/N, pick-ups "
+            f"{num(cantilever, 'tip_pickup_rate')} /s (docs/imperfections.md; --ideal: none)")
 
 
 def main(args=None):

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afm_ros.core.image_analysis import edge_mask, level_step, material_medians, sample_under_pixels, trace_retrace_rms
+from afm_ros.core.image_analysis import (edge_mask, level_step, material_medians, plane_fit, trace_retrace_rms,
+                                        truth_under_pixels)
 from afm_ros.core.imaging import DIRECTIONS
 
 DISCRETE_LEVELS = 16  # more distinct true heights than this: no step to measure (e.g. a rough sample)
@@ -116,19 +117,38 @@ def clean(value):
     return value
 
 
+def _height_slope(frame) -> list[float] | None:
+    """[dz/dx, dz/dy] of the trace height image's least-squares plane [m/m] (what an operator reads off
+    a first image for the slope compensation); None for fewer than 2 lines."""
+    height = frame.images["trace"]["height"].astype(float)
+    if height.shape[0] < 2 or np.isfinite(height).sum() < 3:
+        return None
+    _, gx, gy = plane_fit(height)
+    return [gx / frame.plan.pixel_size, gy / frame.plan.line_pitch]
+
+
 def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive,
-                  steps_per_period: int | None = None, edge_exclusion: float = -1.0, predict: bool = True) -> dict:
+                  steps_per_period: int | None = None, edge_exclusion: float = -1.0, predict: bool = True,
+                  artefacts: np.ndarray | None = None) -> dict:
     """The frame's numbers (module doc) as a JSON-ready dict; SI units in the keys, angles in degrees.
 
-    ``edge_exclusion`` [m] < 0: automatic. The frame may be partial (fewer lines than planned)."""
+    ``edge_exclusion`` [m] < 0: automatic. The frame may be partial (fewer lines than planned).
+    ``artefacts``: the packed imperfections in force during the frame (``Imperfections.packed``):
+    each direction is then compared with the sample under the apex where the scanner truly was
+    (hysteresis, creep, drift), its height image less the tilt and vertical drift there (ground
+    truth, :func:`afm_ros.core.image_analysis.truth_under_pixels`)."""
     plan = frame.plan
-    true_h, mat = sample_under_pixels(sample, plan)
+    under = truth_under_pixels(sample, plan, artefacts, frame.index, frame.lines_planned)
+    true_h, mat = under["trace"].height, under["trace"].material
     levels, level_index = np.unique(np.round(true_h, 15), return_inverse=True)
     level_index = level_index.reshape(true_h.shape)
     numbers = loop.numbers()
     discrete = 2 <= levels.size <= DISCRETE_LEVELS
     step_guess = float(levels.max() - levels.min()) if levels.size >= 2 else 0.0
-    labels = level_index.astype(np.int64) * 256 + mat.astype(np.int64)
+
+    def labels(u):
+        index = np.searchsorted(levels, np.round(u.height, 15)).clip(0, max(levels.size - 1, 0))
+        return index.astype(np.int64) * 256 + u.material.astype(np.int64)
     if edge_exclusion >= 0.0:
         candidates = [(edge_exclusion, "explicit")]
         distance_y = edge_exclusion
@@ -138,7 +158,8 @@ def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive
     # the first candidate that leaves pixels on each of the two main levels (and on each material)
     top = np.argsort(np.bincount(level_index.ravel()))[-2:] if levels.size >= 2 else np.array([0])
     for distance, rule in candidates:
-        keep = edge_mask(labels, plan, distance, distance_y)
+        keeps = {d: edge_mask(labels(under[d]), plan, distance, distance_y) for d in DIRECTIONS}
+        keep = keeps["trace"]
         if all((keep & (level_index == k)).any() for k in top) and \
                 all((keep & (mat == k)).any() for k in np.unique(mat)):
             break
@@ -154,7 +175,8 @@ def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive
                         if levels.size > DISCRETE_LEVELS else "one true height level: no step")
     else:
         try:
-            by_dir = {d: level_step(frame.images[d]["height"].astype(float), true_h, keep) for d in DIRECTIONS}
+            by_dir = {d: level_step(frame.images[d]["height"].astype(float) - under[d].plane, under[d].height,
+                                    keeps[d]) for d in DIRECTIONS}
         except ValueError as exc:
             step["note"] = f"not measurable: {exc} (edge exclusion {distance:.3g} m)"
         else:
@@ -178,9 +200,10 @@ def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive
 
     phase, dissipation, amplitude_error = {}, {}, {}
     for d in DIRECTIONS:
-        phase[d] = material_medians(frame.images[d]["phase"].astype(float), mat, keep, names)
-        dissipation[d] = material_medians(frame.images[d]["dissipation"].astype(float), mat, keep, names)
-        amplitude_error[d] = material_medians(frame.images[d]["amplitude_error"].astype(float), mat, keep, names)
+        m, k = under[d].material, keeps[d]
+        phase[d] = material_medians(frame.images[d]["phase"].astype(float), m, k, names)
+        dissipation[d] = material_medians(frame.images[d]["dissipation"].astype(float), m, k, names)
+        amplitude_error[d] = material_medians(frame.images[d]["amplitude_error"].astype(float), m, k, names)
     worst = max((abs(v) for e in amplitude_error.values() for v in e.values()), default=math.nan)
     # without dissipation, at resonance, sin(phi) = A / A0: dphi/dA = 1 / (A0 cos(phi)) = 1 / (A0 sqrt(1 - r^2))
     # at the setpoint ratio r (1.6 deg/nm at r = 0.8; the core's slope on PS and LDPE is the same)
@@ -205,6 +228,7 @@ def analyse_frame(frame, sample, loop: Loop, force_model: str, cantilever, drive
         "prediction": {m: {k: r.get(k) for k in ("z_base_m", "amplitude_m", "phase_deg", "dissipated_energy_J",
                                                  "image_dissipation_J", "indentation_m", "peak_force_N", "regime")}
                        for m, r in pred.items()},
+        "height_slope": _height_slope(frame),
         "trace_retrace_rms": {"height_m": trace_retrace_rms(frame, "height"),
                               "phase_deg": trace_retrace_rms(frame, "phase")},
     })
@@ -255,10 +279,21 @@ def frame_lines(s: dict) -> list[str]:
         text = ", ".join(f"{m} {_nm(v)}" for m, v in s["amplitude_error_m"]["trace"].items())
         lines.append(f"  amplitude error      {text} (trace medians)")
         if not s["settled"]:
+            advice = "scan slower or raise the gains"
+            tr, rt = s["amplitude_error_m"]["trace"], s["amplitude_error_m"]["retrace"]
+            if tr and all(m in rt and v * rt[m] < 0 and 0.5 < abs(v / rt[m]) < 2 for m, v in tr.items()):
+                # a steady error of one sign uphill and the other downhill: an integral loop lagging on a ramp
+                advice = ("trace and retrace errors of opposite sign: the loop lags on a slope, e.g. the sample's "
+                          "tilt; set the scanner's slope_compensation_x/y to the image's slope, scan slower or "
+                          "raise i_gain")
             lines.append(f"  warning              not settled: median amplitude error up to {_nm(worst_value)} "
                          f"({worst}, {worst_dir}); the phase moves ~{s['phase_per_amplitude_deg_per_m'] * 1e-9:.2g} deg per nm "
                          f"of amplitude error and the height by up to as much: medians are biased by the feedback, "
-                         f"not material (scan slower or raise the gains)")
+                         f"not material ({advice})")
+    if s.get("height_slope"):
+        gx, gy = s["height_slope"]
+        lines.append(f"  height plane         dz/dx {gx:.5f}, dz/dy {gy:.5f} (the image's least-squares plane: the sample's "
+                     f"tilt plus drift; level it, or give it to the scanner's slope_compensation_x/y)")
     rms = s["trace_retrace_rms"]
     lines.append(f"  trace-retrace rms    height {_nm(rms['height_m'])}, phase "
                  f"{'n/a' if rms['phase_deg'] is None else format(rms['phase_deg'], '.3f')} deg")
