@@ -10,6 +10,7 @@ complete session; ``afm_report`` on that session draws the last frame from the r
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -25,8 +26,12 @@ from afm_ros.formats.mcap_io import SessionScan, read_session
 from afm_ros.tools import report
 
 BIN = Path(sys.executable).parent
+# a small frame at 10 lines/s (100 um/s): on the instrument's tilted sample (0.008, -0.005) the loop
+# would lag 8 nm uphill and downhill, so the operator compensates the slope as on a real instrument
+# (test_imperfections checks the lag and its compensation); every other imperfection stays on
 ARGS = ["--image", "--duration", "0.05", "--json", "--ros-args",
         "-p", "scanner:pixels_per_line:=32", "-p", "scanner:lines:=16", "-p", "scanner:line_rate:=10.0",
+        "-p", "scanner:slope_compensation_x:=0.008", "-p", "scanner:slope_compensation_y:=-0.005",
         "-p", "cantilever:real_time_factor:=0.0"]
 
 
@@ -75,6 +80,26 @@ def test_the_job_runs_the_operating_workflow(runs):
     report_ = summary["image"]["report"]
     ps = report_["dissipation_J"]["trace"]["polystyrene"]
     assert ps == pytest.approx(report_["prediction"]["polystyrene"]["image_dissipation_J"], rel=0.15)
+
+
+def test_the_job_runs_a_real_instruments_imperfections_and_reports_their_truth(runs):
+    """The instrument's defaults (core.artefacts.INSTRUMENT_ARTEFACTS, core.tip.INSTRUMENT_TIP) are on,
+    and the summary's truth says what they are: 3 nm/min of lateral drift and 0.5 nm/min vertical, the
+    hysteresis loop of a 5 um scan in a 20 um field (2 % + 10 % x 5/20 of the scan: 225 nm), the tip
+    grown by the wear law over the frame's taps (it taps ~120 nN, 100 nN above the threshold, 72000
+    times: 5e-9 m/N x 1e-7 N x 7.2e4 = 36 pm, within a factor 2 for the peak force's spread), and the
+    compensated slope leaves the height image nearly flat (< 0.1 % against the 0.8 % tilt)."""
+    _, summary = runs[0]
+    truth = summary["image"]["truth"]
+    assert truth["imperfections"]
+    vx, vy, vz = truth["drift_m_per_s"]
+    assert math.hypot(vx, vy) == pytest.approx(5e-11, rel=1e-12) and abs(vz) == pytest.approx(8e-12, rel=1e-12)
+    assert truth["hysteresis_width_m"] == pytest.approx(225e-9, rel=1e-12)
+    grown = truth["tip_radius_end_m"] - truth["tip_radius_start_m"]
+    assert 18e-12 < grown < 72e-12
+    gx, gy = summary["image"]["report"]["height_slope"]
+    assert abs(gx) < 1e-3 and abs(gy) < 1e-3
+    assert summary["image"]["flags"] == {}
 
 
 def test_the_job_writes_the_frame_and_a_complete_session(runs):

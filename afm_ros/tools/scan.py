@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+from afm_ros.core.approach import INSTRUMENT_Z
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
@@ -54,6 +55,9 @@ TOOL_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("lockin_output_rate", LOCKIN_SPECS["output_rate"].default, "Hz",
               "lock-in output rate: one z-controller update and one image sample per output",
               LOCKIN_SPECS["output_rate"].low, LOCKIN_SPECS["output_rate"].high),
+    ParamSpec("approach", 0.0, "m",
+              "start withdrawn this far from the sample and approach (the workflow's auto approach, a 3 um z "
+              "range) instead of engaging at z_base; 0 = engaged at the first pixel (ideal)", 0.0, 0.1),
     ParamSpec("edge_exclusion", -1.0, "m",
               "pixels closer than this to another height level or material are left out of the summary's "
               "medians; negative = automatic (see the module doc)", -1.0, 1e-3),
@@ -96,6 +100,14 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help=_spec_help(TOOL_SPECS["lockin_output_rate"]) + "; every pixel needs at least one output")
     g.add_argument("--engage-time", dest="engage_time", default=None, metavar="S",
                    help=_spec_help(TOOL_SPECS["engage_time"]))
+    g.add_argument("--approach", dest="approach", default=None, metavar="M", help=_spec_help(TOOL_SPECS["approach"]))
+    g = p.add_argument_group("imperfections (default off: an ideal instrument; docs/imperfections.md)")
+    g.add_argument("--imperfections", action="store_true",
+                   help="a real instrument's scanner, sample mount and tip (afm_instrument's defaults: drift, creep, "
+                        "hysteresis, tilt, tip wear and pick-ups)")
+    g.add_argument("--imperfection", dest="imperfection", action="append", default=[], metavar="NAME=VALUE",
+                   help="set one imperfection or tip parameter (the scanner's and cantilever's tables, e.g. "
+                        "tilt_x=0.01 or tip_wear_coefficient=1e-8); repeatable; on top of --imperfections")
     g = p.add_argument_group("noise (default off: deterministic)")
     for name, flag in NOISE_FLAGS.items():
         g.add_argument(flag, dest=name, default=None, metavar="X", help=_spec_help(NOISE_SPECS[name]))
@@ -133,6 +145,9 @@ class ScanConfig:
     previews: bool = True
     quiet: bool = True
     cantilever_extra: dict = field(default_factory=dict)
+    approach: float = 0.0  # [m] start distance of an approach; 0: engaged at the first pixel
+    imperfections: dict = field(default_factory=dict)  # ARTEFACT_SPECS values
+    tip: dict = field(default_factory=dict)  # TIP_SPECS values
 
     @property
     def cantilever(self) -> dict:
@@ -195,10 +210,38 @@ def config_from_args(ns) -> ScanConfig:
         check_scan(plan_values, output_rate, setup.sample_interval)
     except ValueError as exc:
         raise ValueError(f"--pixels-per-line: {exc}") from None
+    approach = _value("--approach", TOOL_SPECS["approach"], getattr(ns, "approach", None))
+    imperfections, tip = imperfection_values(bool(getattr(ns, "imperfections", False)),
+                                             getattr(ns, "imperfection", None) or [])
+    from afm_ros.core.artefacts import check_plan
+    try:
+        check_plan(imperfections, ScanPlan.from_values(plan_values))
+    except ValueError as exc:
+        raise ValueError(f"--scan-size-x: {exc}") from None
     sample = load_sample(getattr(ns, "sample", DEFAULT_SAMPLE) or DEFAULT_SAMPLE)
     return ScanConfig(plan_values, str(getattr(ns, "sample", DEFAULT_SAMPLE)), sample, force_model, feedback,
                       output_rate, engage, noise, edge, Path(getattr(ns, "out", "scan_out")),
-                      bool(getattr(ns, "previews", True)), bool(getattr(ns, "quiet", True)))
+                      bool(getattr(ns, "previews", True)), bool(getattr(ns, "quiet", True)),
+                      approach=approach, imperfections=imperfections, tip=tip)
+
+
+def imperfection_values(instrument: bool, assignments: list[str]) -> tuple[dict, dict]:
+    """(imperfections, tip) values: the instrument's set if ``instrument``, then each NAME=VALUE;
+    ValueError naming --imperfection, the field and its range."""
+    from afm_ros.core import artefacts, tip as tip_core
+
+    imperfections = dict(artefacts.INSTRUMENT_ARTEFACTS) if instrument else {}
+    tip = dict(tip_core.INSTRUMENT_TIP) if instrument else {}
+    for text in assignments:
+        name, sep, value = str(text).partition("=")
+        name = name.strip()
+        target, specs = ((imperfections, artefacts.ARTEFACT_SPECS) if name in artefacts.ARTEFACT_SPECS else
+                         (tip, tip_core.TIP_SPECS) if name in tip_core.TIP_SPECS else (None, None))
+        if not sep or target is None:
+            known = ", ".join([*artefacts.ARTEFACT_SPECS, *tip_core.TIP_SPECS])
+            raise ValueError(f"--imperfection: {text!r} is not NAME=VALUE with NAME one of {known}")
+        target[name] = _value("--imperfection", specs[name], value.strip())
+    return artefacts.validate(imperfections), tip_core.validate(tip)
 
 
 # --- the scan ------------------------------------------------------------------------------
@@ -212,6 +255,8 @@ class ScanResult:
     wall_scan: float  # [s]
     engage_amplitude_error: float  # [m] amplitude - setpoint at the scan start
     peak_rss_scan: int  # [bytes] peak resident set size of the process at the end of the scan
+    approach: object = None  # the ApproachLog of --approach
+    artefacts: object = None  # the packed imperfections in force during the frame
 
 
 def peak_rss_bytes() -> int:
@@ -227,12 +272,22 @@ def run_scan(config: ScanConfig, progress=None, interruption: "Interruption | No
     from afm_ros.core.wired import WiredInstrument
 
     t0 = time.perf_counter()
+    z_controller, approach = dict(config.feedback), {}
+    if config.approach > 0:
+        z_controller.update(z_min=INSTRUMENT_Z["z_min"], z_max=INSTRUMENT_Z["z_max"])
+        approach = {"approach_start_distance": config.approach, "start_withdrawn": True}
     w = WiredInstrument(cantilever=config.cantilever, lockin={"output_rate": config.lockin_output_rate},
-                        z_controller=dict(config.feedback), sample=config.sample)
+                        z_controller=z_controller, sample=config.sample, imperfections=config.imperfections,
+                        approach_values=approach, tip=config.tip)
     plan0 = ScanPlan.from_values(config.plan_values)
     w.park(plan0.x_left, plan0.line_y(0))
     t1 = time.perf_counter()
-    w.run_until(config.engage_time)
+    log = None
+    if config.approach > 0:
+        if interruption is not None:
+            interruption.phase = "setup"
+        log = w.approach()
+    w.run_until(w.t + config.engage_time)
     engage_error = -float(w.controller.error) if math.isfinite(w.controller.error) else math.nan  # A - setpoint
     t2 = time.perf_counter()
     if interruption is None:
@@ -249,7 +304,7 @@ def run_scan(config: ScanConfig, progress=None, interruption: "Interruption | No
             frame = frame.completed() if frame.lines_done else None
     t3 = time.perf_counter()
     return ScanResult(frame, w, frame.plan if frame is not None else plan0, t1 - t0, t2 - t1, t3 - t2, engage_error,
-                      peak_rss_bytes())
+                      peak_rss_bytes(), log, w.sim.artefacts.copy())
 
 
 FINISH_LINE_WALL_S = 10.0  # a first Ctrl-C finishes the current line if that takes at most this [s] (wall)
@@ -322,7 +377,7 @@ def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dic
     frame, plan, w = result.frame, result.plan, result.instrument
     sample = config.sample
     out = analyse_frame(frame, sample, frame_loop(config, w), config.force_model, w.setup.cantilever, w.setup.drive,
-                        edge_exclusion=config.edge_exclusion, predict=predict)
+                        edge_exclusion=config.edge_exclusion, predict=predict, artefacts=result.artefacts)
     if out["edge_exclusion_rule"] == "explicit":
         out["edge_exclusion_rule"] = "--edge-exclusion"
     out["feedback"] = {**config.feedback, **out["feedback"]}
@@ -336,11 +391,33 @@ def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dic
         "lockin_output_rate_hz": config.lockin_output_rate,
         "noise": config.noise,
         "engage": {"time_s": config.engage_time, "amplitude_error_at_scan_start_m": result.engage_amplitude_error},
+        "approach": approach_numbers(config, result),
+        "imperfections": changed_imperfections(config),
+        "tip_radius_m": {"start": w.values["tip_radius"], "end": w.wear.radius, "events": list(w.wear.events)},
         "timing": {"simulated_scan_s": sim_scan, "wall_scan_s": result.wall_scan,
                    "real_time_factor": sim_scan / result.wall_scan if result.wall_scan > 0 else math.inf,
                    "wall_setup_s": result.wall_setup, "wall_engage_s": result.wall_engage},
         "peak_rss_scan_bytes": result.peak_rss_scan,
     })
+
+
+def changed_imperfections(config: ScanConfig) -> dict:
+    """The imperfection and tip values that differ from their (ideal) defaults."""
+    from afm_ros.core.artefacts import ARTEFACT_SPECS
+    from afm_ros.core.tip import TIP_SPECS
+
+    return {k: v for specs, values in ((ARTEFACT_SPECS, config.imperfections), (TIP_SPECS, config.tip))
+            for k, v in values.items() if v != specs[k].default}
+
+
+def approach_numbers(config: ScanConfig, result: ScanResult) -> dict | None:
+    """The approach of --approach: start distance [m], engage time [s], cycles, motor steps, z at engage [m]."""
+    log = result.approach
+    if log is None:
+        return None
+    return {"start_distance_m": config.approach, "engaged_s": log.engaged_at, "started_s": log.started_at,
+            "duration_s": log.engaged_at - log.started_at, "cycles": len(log.cycles), "motor_steps": log.steps,
+            "engaged_z_m": log.engaged_z}
 
 
 def _nm(x) -> str:
@@ -360,8 +437,15 @@ def format_summary(s: dict) -> str:
              f"p_gain {fb['p_gain']:g}, i_gain {fb['i_gain']:g} 1/s; z speed limit i_gain x (A0 - setpoint) = "
              f"{fb['z_speed_limit_m_per_s'] * 1e6:.3g} um/s, loop time constant "
              f"{(fb['loop_time_constant_s'] or math.inf) * 1e3:.3g} ms",
+             *([f"  approach             from {s['approach']['start_distance_m'] * 1e6:.3g} um: engaged at "
+                f"t={s['approach']['engaged_s']:.3f} s (simulated), {s['approach']['cycles']} cycle(s), "
+                f"{s['approach']['motor_steps']} motor steps"] if s.get("approach") else []),
              f"  engage               {s['engage']['time_s']:g} s at the first pixel; amplitude error at the scan "
              f"start {_nm(s['engage']['amplitude_error_at_scan_start_m'])}",
+             *([f"  imperfections        " + ", ".join(f"{k} {v:g}" if not isinstance(v, bool) else f"{k} {v}"
+                                                        for k, v in s["imperfections"].items())
+                + f"; tip radius {s['tip_radius_m']['start'] * 1e9:.2f} -> {s['tip_radius_m']['end'] * 1e9:.2f} nm"]
+               if s.get("imperfections") else []),
              *frame_lines(s)]
     t = s["timing"]
     lines.append(f"  simulated / wall     {t['simulated_scan_s']:g} s / {t['wall_scan_s']:.2f} s "
