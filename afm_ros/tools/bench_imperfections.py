@@ -1,6 +1,7 @@
 """Benchmark of the scanning RK4 kernel with and without imperfections (not a test); JSON on stdout.
 
 ``python -m afm_ros.tools.bench_imperfections [--steps N] [--repeats R] [--baseline-tree DIR]``
+``python -m afm_ros.tools.bench_imperfections --job [--repeats R]``
 
 Each measurement is a fresh subprocess that integrates ``steps`` steps over the PS/LDPE blend
 while scanning 5 um at 1 line/s (viscoelastic_dmt, the imaging default), after a warm-up call
@@ -11,6 +12,13 @@ interleaved, ``repeats`` rounds, and the median of each is printed with the rati
 - ``on``: drift, creep (after a move), hysteresis and tilt all on (afm_instrument's defaults);
 - ``baseline`` (with ``--baseline-tree``): ``off`` run with the afm_ros package of another
   checkout (e.g. ``git worktree add /tmp/base <commit>``), the kernel before a change.
+
+``--job`` measures the README's main job instead (``afm_instrument --image``: tune, approach, 64 x
+64 frame at 2 lines/s, withdraw; not recorded), ``on`` (its defaults: every imperfection and tip
+wear) against ``off`` (the same workflow with every imperfection and tip wear set to zero), in two
+modes: ``paced`` (the instrument's real_time_factor 1: does the scan keep real time?) and
+``unpaced`` (real_time_factor 0: the scan's real-time factor is the machine's capacity). It prints
+the median scan real-time factor of each and the ratio on/off.
 """
 from __future__ import annotations
 
@@ -60,12 +68,56 @@ def _run(variant: str, steps: int, tree: str | None) -> float:
     return json.loads(out.stdout.strip().splitlines()[-1])["ns_per_step"]
 
 
+ZEROED = ["-p", "scanner:drift_lateral_rate:=0.0", "-p", "scanner:drift_vertical_rate:=0.0",
+          "-p", "scanner:tilt_x:=0.0", "-p", "scanner:tilt_y:=0.0", "-p", "scanner:hysteresis_small:=0.0",
+          "-p", "scanner:hysteresis_large:=0.0", "-p", "scanner:creep_per_decade:=0.0",
+          "-p", "cantilever:tip_wear_coefficient:=0.0", "-p", "cantilever:tip_pickup_rate:=0.0"]
+
+
+def _run_job(variant: str, paced: bool) -> float:
+    """The main job's real-time factor while scanning (simulated / wall over the frame)."""
+    import tempfile
+    from pathlib import Path
+
+    args = ["--image", "--no-record", "--json", "--ros-args", "-p",
+            f"cantilever:real_time_factor:={1.0 if paced else 0.0}", *(ZEROED if variant == "off" else [])]
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    with tempfile.TemporaryDirectory() as cwd:
+        out = subprocess.run([str(Path(sys.executable).parent / "afm_instrument"), *args], env=env, cwd=cwd,
+                             capture_output=True, text=True, check=True)
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    if variant == "on" and not summary["image"]["truth"]["imperfections"]:
+        raise RuntimeError("the 'on' job ran without imperfections")
+    return summary["image"]["scan_real_time_factor"]
+
+
+def job_main(repeats: int) -> int:
+    result = {"repeats": repeats}
+    for paced in (False, True):
+        rtf = {"off": [], "on": []}
+        for _ in range(repeats):
+            for v in rtf:
+                rtf[v].append(_run_job(v, paced))
+        medians = {v: statistics.median(x) for v, x in rtf.items()}
+        result["paced" if paced else "unpaced"] = {
+            "scan_real_time_factor": {v: round(m, 3) for v, m in medians.items()},
+            "ratio_on_off": round(medians["on"] / medians["off"], 3),
+            "all": {v: [round(x, 3) for x in xs] for v, xs in rtf.items()}}
+    print(json.dumps(result, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=4_000_000, help="steps per measurement (default 4e6)")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved rounds (default 5)")
     parser.add_argument("--baseline-tree", help="another checkout's root: its kernel as the baseline")
+    parser.add_argument("--job", action="store_true", help="the main job's scan real-time factor, on vs off")
     args = parser.parse_args(argv)
+    if args.job:
+        if args.repeats < 1:
+            parser.error("--repeats must be >= 1")
+        return job_main(args.repeats)
     if args.steps < 1000 or args.repeats < 1:
         parser.error("--steps must be >= 1000 and --repeats >= 1")
     if args.baseline_tree and not os.path.isdir(os.path.join(args.baseline_tree, "afm_ros")):
