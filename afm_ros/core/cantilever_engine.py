@@ -82,6 +82,20 @@ def measure(sim: Simulation, setup: CantileverSetup, samples: Samples, first: in
     return header, measured
 
 
+def retune(sim: Simulation, values: dict, frequency: float) -> CantileverSetup:
+    """Drive ``sim`` at ``frequency`` [Hz] from now on (a new integration segment, the same drive
+    force); returns the set-up of ``values`` with that drive frequency (the chunk geometry follows)."""
+    setup = build({**values, "drive_frequency": frequency})
+    sim.reconfigure(drive=setup.drive)
+    return setup
+
+
+def wear_by_chunk(wear: TipWear, setup: CantileverSetup, force_peak: float, t: float) -> bool:
+    """The taps of a chunk that ended at ``t`` [s] wear the tip, each with the chunk's ``force_peak``
+    [N]; True if the sample map needs a rebuild for ``wear.built_radius``."""
+    return wear.add_chunk(force_peak, setup.chunk_steps / setup.steps_per_period, t)
+
+
 class Job(NamedTuple):
     """A booked chunk: its geometry, z piezo [m], first sample index and what to publish with it."""
 
@@ -450,9 +464,7 @@ class CantileverEngine:
         f = self.values["drive_frequency"] if wanted is None else wanted
         if f != self.setup.drive.frequency:
             old = self.setup
-            new = build({**self.values, "drive_frequency": f})
-            self.setup = new
-            self.sim.reconfigure(drive=new.drive)
+            self.setup = new = retune(self.sim, self.values, f)
             if new.chunk_steps != old.chunk_steps:
                 self.timer_dirty = True
                 self.wall_ref = None
@@ -541,8 +553,7 @@ class CantileverEngine:
         if samples.z.shape[0]:
             header, measured = measure(sim, s, samples, job.first, job.noise_density, job.noise_seed)
         if sim.surface is not None and self.wear.enabled:  # the taps of this chunk wear the tip
-            if self.wear.add_chunk(float(np.max(samples.force, initial=-math.inf)),
-                                   s.chunk_steps / s.steps_per_period, sim.t):
+            if wear_by_chunk(self.wear, s, float(np.max(samples.force, initial=-math.inf)), sim.t):
                 self._worn_radius = self.wear.built_radius
         truth = None
         if sim.artefacts[ART_ON] != 0.0 and sim.surface is not None:
