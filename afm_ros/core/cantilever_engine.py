@@ -637,6 +637,56 @@ class CantileverEngine:
             return f"{self.wait_reason} for {now - self.waiting_since:.1f} s"
         return None
 
+    def status(self, now: float, wall: float, achieved: float, published: int, dropped: list[str],
+               cpu_fraction: float, failure: str | None = None) -> tuple[str, str, list[tuple[str, object]]]:
+        """The loop's state at wall time ``now`` [s] for a diagnostics report over the last ``wall`` [s],
+        in which it ran at ``achieved`` times real time: level ('ok', 'warn', 'error'), message and
+        (key, value) pairs; ``published``: samples published so far, ``dropped``: consumers dropped,
+        ``cpu_fraction``: the process's CPU time per wall time, ``failure``: why the integration
+        stopped (None: it did not)."""
+        rtf = self.values["real_time_factor"]
+        paused = self.paused
+        lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
+        waiting = self.waiting_since is not None and now - self.waiting_since > WAIT_WARNING_S
+        b = self.blowup
+        if failure is not None:
+            message = failure
+        elif b is not None:
+            message = (f"integration blew up at t={b['simulated_time_s']:.6g} s ({b['what']}); stopped until a "
+                       f"parameter changes")
+        elif waiting:
+            message = self.wait_reason
+        elif paused:
+            message = f"paused at run_until={self.values['run_until']:g} s"
+        elif lagging:
+            message = "lagging behind real_time_factor"
+        else:
+            message = "ok"
+        level = "error" if (b is not None or failure is not None) else "warn" if (lagging or waiting) else "ok"
+        return level, message, [
+            ("real_time_factor_requested", rtf),
+            ("real_time_factor_achieved", achieved),
+            ("lag_s", self.lag),
+            ("simulated_time_lost_to_slowdowns_s", self.forgiven_lag_s),
+            ("simulated_time_s", self.t_end),
+            ("samples_published", published),
+            ("samples_submitted", self.starts.next_index),
+            ("chunks", self.chunks),
+            ("paused", "true" if paused else "false"),
+            ("feedback_sync", self.values["feedback_sync"]),
+            ("feedback_locked", "true" if self.gate.locked else "false"),
+            ("feedback_latency_chunks", self.values["feedback_latency"]),
+            ("wall_s_waiting_for_feedback", self.wait_wall_s["feedback"]),
+            ("wall_s_waiting_for_consumers", self.wait_wall_s["consumers"]),
+            ("consumers", ",".join(sorted(self.window.acks))),
+            ("consumers_dropped", ",".join(dropped)),
+            ("z_commands_unsynchronised_ignored", self.gate.ignored_unsynchronised),
+            ("z_commands_stale", self.gate.stale_commands),
+            ("blowups", self.blowups),
+            *([("blowup_parameters", ", ".join(f"{k}={b['parameters'][k]!r}" for k in PHYSICS_REPORT_KEYS))]
+              if b else []),
+            ("process_cpu_fraction", cpu_fraction)]
+
     def drop_stuck_consumers(self, now: float, progress: dict[str, float]) -> list[str]:
         """Consumers that held the loop without progress (``progress``: wall time of each one's last)
         for CONSUMER_TIMEOUT_S while it waited for them (not while paused or idle before): no

@@ -40,9 +40,9 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 
 from afm_ros.nodes import ros_params, topics
 from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
-from afm_ros.core.cantilever_engine import (  # noqa: F401 - PAUSE_TOLERANCE_S: imported from here too
+from afm_ros.core.cantilever_engine import (  # noqa: F401 - the two constants afm_instrument imports from here
     CONSUMER_TIMEOUT_S, FREE_RUN_TIMER_PERIOD_S, IDLE_TIMER_PERIOD_S, PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS,
-    WAIT_WARNING_S, CantileverEngine, Job)
+    CantileverEngine, Job)
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_values
 from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
 from afm_ros.nodes.node_main import run_node
@@ -66,6 +66,7 @@ Z_COMMAND_TOPIC = topics.Z_COMMAND
 MAX_BURST = 8
 DIAGNOSTICS_PERIOD_S = 1.0
 CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
+DIAGNOSTIC_LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
 TIP_LAYOUT = MultiArrayLayout(dim=[MultiArrayDimension(
     label="t_s,tip_radius_m,worn_taps,second_apex_x_m,second_apex_y_m,second_apex_height_m", size=6, stride=6)])
 
@@ -454,52 +455,14 @@ class CantileverNode(Node):
         if wall <= 0.0 and not force:
             return
         achieved = (e.t_end - self._diag_sim) / wall if wall > 0 else 0.0
-        rtf = e.values["real_time_factor"]
-        paused = e.paused
-        lagging = rtf != 0.0 and achieved < 0.95 * rtf and not paused and wall > 0.5
-        waiting = e.waiting_since is not None and now - e.waiting_since > WAIT_WARNING_S
-        if self.worker_error is not None:
-            message = f"integration failed: {self.worker_error!r}; the cantilever stopped"
-        elif e.blowup is not None:
-            b = e.blowup
-            message = (f"integration blew up at t={b['simulated_time_s']:.6g} s ({b['what']}); stopped until a "
-                       f"parameter changes")
-        elif waiting:
-            message = e.wait_reason
-        elif paused:
-            message = f"paused at run_until={e.values['run_until']:g} s"
-        elif lagging:
-            message = "lagging behind real_time_factor"
-        else:
-            message = "ok"
+        failure = None if self.worker_error is None else \
+            f"integration failed: {self.worker_error!r}; the cantilever stopped"
+        level, message, values = e.status(now, wall, achieved, self._published_end, self.consumers_dropped,
+                                          (cpu - self._diag_cpu) / wall if wall > 0 else 0.0, failure)
         status = DiagnosticStatus(
-            level=(DiagnosticStatus.ERROR if (e.blowup is not None or self.worker_error is not None) else
-                   DiagnosticStatus.WARN if (lagging or waiting) else DiagnosticStatus.OK),
-            name=f"{self.get_fully_qualified_name()}: simulation", hardware_id="afm_ros",
-            message=message,
-            values=[KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in (
-                ("real_time_factor_requested", rtf),
-                ("real_time_factor_achieved", achieved),
-                ("lag_s", e.lag),
-                ("simulated_time_lost_to_slowdowns_s", e.forgiven_lag_s),
-                ("simulated_time_s", e.t_end),
-                ("samples_published", self._published_end),
-                ("samples_submitted", e.starts.next_index),
-                ("chunks", e.chunks),
-                ("paused", "true" if paused else "false"),
-                ("feedback_sync", e.values["feedback_sync"]),
-                ("feedback_locked", "true" if e.gate.locked else "false"),
-                ("feedback_latency_chunks", e.values["feedback_latency"]),
-                ("wall_s_waiting_for_feedback", e.wait_wall_s["feedback"]),
-                ("wall_s_waiting_for_consumers", e.wait_wall_s["consumers"]),
-                ("consumers", ",".join(sorted(e.window.acks))),
-                ("consumers_dropped", ",".join(self.consumers_dropped)),
-                ("z_commands_unsynchronised_ignored", e.gate.ignored_unsynchronised),
-                ("z_commands_stale", e.gate.stale_commands),
-                ("blowups", e.blowups),
-                *([("blowup_parameters", ", ".join(f"{k}={e.blowup['parameters'][k]!r}"
-                                                   for k in PHYSICS_REPORT_KEYS))] if e.blowup else []),
-                ("process_cpu_fraction", (cpu - self._diag_cpu) / wall if wall > 0 else 0.0))])
+            level=DIAGNOSTIC_LEVELS[level], name=f"{self.get_fully_qualified_name()}: simulation",
+            hardware_id="afm_ros", message=message,
+            values=[KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in values])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)
