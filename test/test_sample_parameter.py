@@ -60,8 +60,8 @@ def test_a_gwy_map_is_taken_and_applied(live, tmp_path):
     write_gwy(path, {"Height": (s.height, "m")}, s.size_x, s.size_y)
     result, _ = set_sample(str(path))
     assert result.successful, result.reason
-    spin_until(ex, lambda: cantilever._surface_info.get("sample") == str(path), 60)
-    assert cantilever._surface_info["description"] == from_file(path).description
+    spin_until(ex, lambda: cantilever.engine.surface_info.get("sample") == str(path), 60)
+    assert cantilever.engine.surface_info["description"] == from_file(path).description
     runs_on()
 
 

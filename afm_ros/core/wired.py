@@ -5,8 +5,10 @@ The same cores the nodes run, called in the order the ROS loop runs them in lock
 integrated with the z piezo position the z controller computed from the lock-in outputs of chunk
 k - feedback_latency (before that, the controller's initial position); the lock-in demodulates
 every published chunk (deflection plus detector noise); the z controller takes every lock-in output;
-the image accumulator bins the lock-in and z outputs. With the same parameters the ROS
-instrument's frame therefore equals this one (test/test_scan_ros.py).
+the image accumulator bins the lock-in and z outputs. The cantilever's measurement, sample maps,
+drive changes and tip wear are the functions the cantilever node's engine uses
+(:mod:`afm_ros.core.cantilever_engine`). With the same parameters the ROS instrument's frame
+therefore equals this one (test/test_scan_ros.py).
 """
 from __future__ import annotations
 
@@ -17,17 +19,14 @@ import numpy as np
 
 from afm_ros.core.approach import ApproachLog, ZStage
 from afm_ros.core.artefacts import Imperfections, check_plan
+from afm_ros.core.cantilever_engine import measure, retune, sample_surface, wear_by_chunk
 from afm_ros.core.cantilever_params import build
 from afm_ros.core.tip import TIP_SPECS, TipWear
 from afm_ros.core.controller import ZController
 from afm_ros.core.imaging import ImageAccumulator
 from afm_ros.core.lockin import LockIn
-from afm_ros.core.physics.integrators import phase_at_step
-from afm_ros.core.physics.noise import detector_noise
-from afm_ros.core.physics.parameters import DMTSample
-from afm_ros.core.physics.simulation import Simulation, surface_map
+from afm_ros.core.physics.simulation import Simulation
 from afm_ros.core.scanner import ScanPlan, parked_plan
-from afm_ros.formats.chunk_layout import ChunkHeader
 
 
 @dataclass
@@ -104,10 +103,7 @@ class WiredInstrument:
 
     def _build_surface(self, radius: float) -> None:
         """The sample map under an apex of ``radius`` [m] (dilated, DMT constants), in force from now."""
-        values = self.values
-        tip = DMTSample(**{**{name: values[name] for name in ("intermolecular_distance", "tip_youngs_modulus",
-                                                              "tip_poisson_ratio")}, "tip_radius": radius})
-        self.surface = surface_map(self.sample, values["force_model"], tip, second_apex=self.wear.second_apex)
+        self.surface = sample_surface(self.sample, self.values, radius, self.wear.second_apex)
         self.sim.set_surface(self.surface)
 
     @property
@@ -117,10 +113,8 @@ class WiredInstrument:
     def set_drive_frequency(self, frequency: float) -> None:
         """Drive at ``frequency`` [Hz] from now on with the same drive force (a new integration
         segment; the chunk geometry follows, as the cantilever node's ``drive_frequency``)."""
-        values = {**self.values, "drive_frequency": float(frequency)}
-        setup = build(values)
-        self.values, self.setup = values, setup
-        self.sim.reconfigure(drive=setup.drive)
+        self.values = {**self.values, "drive_frequency": float(frequency)}
+        self.setup = retune(self.sim, self.values, self.values["drive_frequency"])
 
     def park(self, x: float, y: float) -> None:
         """Hold the tip at (x, y) [m] of the sample (commanded; a creep move if it moved)."""
@@ -195,14 +189,8 @@ class WiredInstrument:
         samples = sim.advance(s.chunk_steps, s.decimation)
         first = self.next_index
         count = samples.z.shape[0]
-        header = ChunkHeader(first, samples.segment_start + samples.first_step * samples.dt, s.sample_interval,
-                             phase_at_step(sim.segment_phase, samples.first_step, sim.steps_per_period),
-                             sim.drive.frequency, sim.z_offset)
-        measured = samples.z
-        density = self.values["detector_noise_density"]
-        if density > 0.0:
-            measured = samples.z + detector_noise(self.values["noise_seed"], first, count, density,
-                                                  s.sample_interval)
+        header, measured = measure(sim, s, samples, first, self.values["detector_noise_density"],
+                                   self.values["noise_seed"])
         out = self.lock_in.process(header, measured)
         z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
@@ -220,8 +208,7 @@ class WiredInstrument:
         record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors,
                              float(np.max(samples.force, initial=-math.inf)), out.x, out.y)
         if self.sample is not None and self.wear.enabled:  # the taps of this chunk wear the tip
-            taps = s.chunk_steps / s.steps_per_period
-            if self.wear.add_chunk(record.force_peak, taps, sim.t):
+            if wear_by_chunk(self.wear, s, record.force_peak, sim.t):
                 self._build_surface(self.wear.built_radius)
         if self.keep_records:
             self.records.append(record)

@@ -385,7 +385,7 @@ class Instrument:
         if not self.attached:
             c = self.cantilever
             return (f"t={c.sim_time:.6g} s, paused={c.paused}, " +
-                    (c._wait_reason if c._waiting_since is not None else "not waiting"))
+                    (c.engine.wait_reason if c.engine.waiting_since is not None else "not waiting"))
         status = self.monitor.diagnostics.get(f"{self._fqn('cantilever')}: simulation")
         return status.message if status is not None else "no diagnostics from the cantilever"
 
@@ -615,7 +615,7 @@ class Instrument:
         self.spin_until(lambda: zc.stage is not None, "waiting for the z controller to learn the cantilever's z_base")
         if zc.stage_state != "withdrawn":
             raise RuntimeError(f"the workflow starts withdrawn (z_controller start_withdrawn), not {zc.stage_state}")
-        gate = self.cantilever._gate
+        gate = self.cantilever.engine.gate
         self.spin_until(lambda: gate._commands and gate._commands[-1][1] == zc.stage.command,
                         "waiting for the cantilever to take the start position")
 
@@ -628,7 +628,7 @@ class Instrument:
         if not answer.success:
             raise RuntimeError(f"lockin: {answer.message}")
         plan = lockin.tune_plan
-        chunk = self.cantilever._setup.chunk_steps * self.cantilever._setup.dt
+        chunk = self.cantilever.engine.setup.chunk_steps * self.cantilever.engine.setup.dt
         self.advance_to(plan.end_time + 2 * chunk)
         self.spin_until(lambda: lockin.tune_state != "running", "waiting for the tune's fit")
         if lockin.tune_state != "done":
@@ -773,8 +773,8 @@ class Instrument:
         self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
         plan = scanner.plan
         artefacts = cantilever.simulation.artefacts.copy()  # the imperfections in force for this plan (truth)
-        radius0 = cantilever.wear.radius
-        chunk = cantilever._setup.chunk_steps * cantilever._setup.dt
+        radius0 = cantilever.engine.wear.radius
+        chunk = cantilever.engine.setup.chunk_steps * cantilever.engine.setup.dt
         job.phase = "scanning"
         show = ScanProgress(plan, scanner, self.monitor) if progress else None
         interrupted = ""
@@ -792,22 +792,22 @@ class Instrument:
             self.wait_recorded()
         complete = scanner.frames_done >= 1
         frame = scanner.accumulator.frames_done[0] if complete else scanner.partial_frame
-        sample = cantilever._samples.get(cantilever._values["sample"])
+        sample = cantilever.engine.samples.get(cantilever.engine.values["sample"])
         image = {"frame_time_s": plan.frame_time, "pixels": plan.pixels, "lines": plan.lines,
                  "line_rate_Hz": plan.line_rate, "scan_start_s": plan.start_time,
-                 "files": [str(p) for p in scanner.frames_written], "sample": cantilever._values["sample"] or "flat",
+                 "files": [str(p) for p in scanner.frames_written], "sample": cantilever.engine.values["sample"] or "flat",
                  "scan_wall_s": wall_scan,
                  "scan_real_time_factor": (min(self.monitor.answer_time, plan.start_time + plan.frame_time)
                                            - plan.start_time) / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
-        image["truth"] = imperfection_truth(artefacts, plan, cantilever.wear, radius0)
+        image["truth"] = imperfection_truth(artefacts, plan, cantilever.engine.wear, radius0)
         if not complete:
             image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
         else:
             image["flags"] = {f.name: f.message for f in scanner.flags}
         if sample is not None and frame is not None:
             from afm_ros.tools.frame_report import Loop, analyse_frame
-            setup, values = cantilever._setup, cantilever._values
+            setup, values = cantilever.engine.setup, cantilever.engine.values
             latency = values["feedback_latency"] * values["chunk_duration"] + 1.0 / self.get("lockin", "output_rate")
             loop = Loop(self.monitor.setpoints.setpoint, self.get("z_controller", "p_gain"),
                         self.get("z_controller", "i_gain"), job.free.amplitude, latency, values["tip_radius"])
@@ -882,7 +882,7 @@ class Instrument:
         from afm_ros.formats.folders import check_output_directory
 
         values = self.nodes["scanner"]._values
-        needs = check_scan(values, self.get("lockin", "output_rate"), self.cantilever._setup.sample_interval)
+        needs = check_scan(values, self.get("lockin", "output_rate"), self.cantilever.engine.setup.sample_interval)
         if values["write_files"]:
             check_output_directory(values["output_directory"], need_bytes=needs.file_bytes, create=True)
 
