@@ -34,6 +34,8 @@ from afm_ros.core.imaging import CHANNELS, DIRECTIONS, Frame
 from afm_ros.core.samples import resolve_sample
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.wired import WiredInstrument
+from afm_ros.core.artefacts import INSTRUMENT_ARTEFACTS
+from afm_ros.core.tip import INSTRUMENT_TIP
 from afm_ros.formats.frames import channel_title
 from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.lockin_node import LockInNode
@@ -265,8 +267,10 @@ def test_a_stopped_scan_writes_its_completed_lines_as_a_partial_frame(stopped):
     assert paths and paths[0].name.endswith("_partial.gwy"), paths
     stem = paths[0].name[:-len(".gwy")]
     assert {p.name for p in paths[1:]} == {f"{stem}_{c}_{d}.png" for c in CHANNELS for d in DIRECTIONS}
-    # the same lines of the same scan (same start: the paused boundary) by the wired cores
-    wired = WiredInstrument(cantilever=CANTILEVER, sample=resolve_sample("ps_ldpe_blend"))
+    # the same lines of the same scan (same start: the paused boundary) by the wired cores, with the
+    # nodes' default imperfections and tip (a real instrument's)
+    wired = WiredInstrument(cantilever=CANTILEVER, sample=resolve_sample("ps_ldpe_blend"),
+                            imperfections=INSTRUMENT_ARTEFACTS, tip=INSTRUMENT_TIP)
     wired.run_until(ENGAGE)
     full = wired.scan_frame(SCAN)
     plan = full.plan

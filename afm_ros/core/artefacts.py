@@ -40,7 +40,7 @@ over a block (~0.1 ms at the default 220 steps per 45 kHz period) drift moves < 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -88,6 +88,14 @@ ARTEFACT_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 INSTRUMENT_ARTEFACTS = {"drift_lateral_rate": 5e-11, "drift_vertical_rate": 8e-12, "tilt_x": 0.008,
                         "tilt_y": -0.005, "hysteresis_small": 0.02, "hysteresis_large": 0.12,
                         "creep_per_decade": 0.015}
+
+# the scanner node's parameters: a real instrument by default (the cores, WiredInstrument and afm_study
+# default to the ideal one: ARTEFACT_SPECS)
+ARTEFACT_NODE_SPECS: dict[str, ParamSpec] = {
+    name: replace(spec, default=INSTRUMENT_ARTEFACTS[name],
+                  description=spec.description + "; default: a real open-loop instrument (0 = ideal)")
+    if name in INSTRUMENT_ARTEFACTS else spec for name, spec in ARTEFACT_SPECS.items()}
+IDEAL_ARTEFACTS = {name: ARTEFACT_SPECS[name].default for name in INSTRUMENT_ARTEFACTS}
 
 SLOW_BLOCK = 1024  # integration steps per evaluation of drift and creep
 CREEP_MOVES = 8

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from afm_ros.core.flow import FEEDBACK_SYNC_MODES
-from afm_ros.core.tip import TIP_SPECS
+from afm_ros.core.tip import TIP_NODE_SPECS
 from afm_ros.core.physics.forces import make_force_model
 from afm_ros.core.physics.forces import FORCE_MODELS
 from afm_ros.core.physics.materials import MATERIALS
@@ -79,7 +79,7 @@ INSTRUMENT_NOISE_SPECS: dict[str, ParamSpec] = {
 }
 
 CANTILEVER_NODE_SPECS: dict[str, ParamSpec] = {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS,
-                                               **INSTRUMENT_NOISE_SPECS, **NODE_SPECS, **TIP_SPECS}
+                                               **INSTRUMENT_NOISE_SPECS, **NODE_SPECS, **TIP_NODE_SPECS}
 
 # A chunk is one message per topic; above this many integration steps per chunk a single
 # callback would block the executor for seconds and a message would exceed ~8 MB.

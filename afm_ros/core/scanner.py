@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-from afm_ros.core.artefacts import ARTEFACT_SPECS, check_plan as check_in_field
+from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, ARTEFACT_SPECS, check_plan as check_in_field
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 
@@ -297,7 +297,7 @@ def check_scan(values, lockin_output_rate: float, sample_interval: float | None 
 
 
 # the scanner node's parameters: the scan settings above plus where frames go
-SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **ARTEFACT_SPECS, **{s.name: s for s in (
+SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **ARTEFACT_NODE_SPECS, **{s.name: s for s in (
     ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
               "directory); checked when set and at each scan start; a missing last level is created then (never "
               "a chain of folders, never at /)", kind=str),

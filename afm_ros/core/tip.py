@@ -22,7 +22,7 @@ apex. The map is rebuilt at the first chunk boundary at or after the event.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -52,6 +52,14 @@ TIP_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 # Vahdat et al. 2013: nanometres over 1e6-1e7 taps at tens of nN), and picks up a particle about once per
 # 3 h of tapping
 INSTRUMENT_TIP = {"tip_wear_coefficient": 5e-9, "tip_pickup_rate": 1e-4}
+
+
+# the cantilever node's tip parameters: a real tip by default (WiredInstrument and afm_study: TIP_SPECS, ideal)
+TIP_NODE_SPECS: dict[str, ParamSpec] = {
+    name: replace(spec, default=INSTRUMENT_TIP[name],
+                  description=spec.description + "; default: a real silicon tip (0 = ideal)")
+    if name in INSTRUMENT_TIP else spec for name, spec in TIP_SPECS.items()}
+IDEAL_TIP = {name: TIP_SPECS[name].default for name in INSTRUMENT_TIP}
 
 
 def validate(values: dict) -> dict:

@@ -74,7 +74,10 @@ class WiredInstrument:
         self.setup = s = build(values)
         self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
         self.sim.set_thermal(values["temperature"], values["noise_seed"])
-        self.wear = TipWear(values["tip_radius"], {**{k: values[k] for k in TIP_SPECS}, **self.tip})
+        # an ideal tip unless asked (the node's defaults wear it: TIP_NODE_SPECS)
+        self.wear = TipWear(values["tip_radius"], {**{k: spec.default for k, spec in TIP_SPECS.items()},
+                                                   **{k: v for k, v in self.cantilever.items() if k in TIP_SPECS},
+                                                   **self.tip})
         if self.sample is not None:
             self._build_surface(values["tip_radius"])
         self.imperfect = Imperfections(self.imperfections, (self.sample.size_x, self.sample.size_y)

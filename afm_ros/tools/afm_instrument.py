@@ -47,9 +47,9 @@ from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Float64MultiArray
 
 from afm_ros.core.approach import INSTRUMENT_Z
-from afm_ros.core.artefacts import INSTRUMENT_ARTEFACTS
+from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, IDEAL_ARTEFACTS
 from afm_ros.core.scanner import ScanPlan
-from afm_ros.core.tip import INSTRUMENT_TIP
+from afm_ros.core.tip import IDEAL_TIP, TIP_NODE_SPECS
 from afm_ros.core.session_stats import RollingStats, SetpointHistory, WindowStats
 from afm_ros.tools.instrument_summary import (JobState, ScanProgress, Summary, megabytes, expected_recording_bytes,
                                               recording_line)
@@ -978,8 +978,9 @@ def parse_args(argv):
                         help="after engaging, keep running until Ctrl-C (tune it from another terminal with "
                              "afm_ctl, or ros2 param set with ROS 2), then print the summary")
     parser.add_argument("--ideal", action="store_true",
-                        help="--image on an ideal instrument without the operating workflow: the tip starts engaged "
-                             "at z_base (no tune, approach or withdraw), no drift, creep, hysteresis, tilt or tip wear")
+                        help="an ideal instrument: no drift, creep, hysteresis, tilt, tip wear or pick-up (the nodes' "
+                             "defaults are a real instrument's), and --image without the operating workflow: the tip "
+                             "starts engaged at z_base (no tune, approach or withdraw)")
     parser.add_argument("--image", action="store_true",
                         help="the imaging job: engage for --duration, then scan one frame with the scanner's "
                              "parameters (-p scanner:...) over the cantilever's sample (default ps_ldpe_blend), "
@@ -1029,18 +1030,23 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
             cantilever["force_model"] = IMAGE_FORCE_MODEL
             switched.append(f"force_model {IMAGE_FORCE_MODEL} (not the parameter's default dmt: the PS/LDPE phase "
                             "contrast comes from dissipation)")
-        if not options.ideal:  # a real session: far from the sample with a z piezo of a few um, tune, approach,
-            # a scanner that drifts, creeps and has hysteresis, a tilted sample and a tip that wears
-            for role, values in (("z_controller", INSTRUMENT_Z), ("scanner", INSTRUMENT_ARTEFACTS),
-                                 ("cantilever", INSTRUMENT_TIP)):
-                given[role].update({k: v for k, v in values.items() if not ros.given(role, k)})
-            notes.append(imperfections_line({**INSTRUMENT_ARTEFACTS, **scanner}, {**INSTRUMENT_TIP, **cantilever}))
+        if not options.ideal:  # a real session: far from the sample with a z piezo of a few um, tune, approach
+            given["z_controller"].update({k: v for k, v in INSTRUMENT_Z.items() if not ros.given("z_controller", k)})
         plan = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in IMAGE_SCAN.items()}
         rate = plan["line_rate"]
         rate = f"{rate:g}" if isinstance(rate, (int, float)) else rate  # (a bad value: the scanner says why)
         notes.append("imaging: " + ", ".join(switched + [
             f"{plan['pixels_per_line']} x {plan['lines']} pixels at {rate} lines/s"])
             + " (-p cantilever:<name>:=... and -p scanner:<name>:=... change them)")
+    # the nodes' defaults are a real instrument's scanner, sample mount and tip; --ideal: none of it
+    for role, ideal in (("scanner", IDEAL_ARTEFACTS), ("cantilever", IDEAL_TIP)):
+        if options.ideal:
+            given[role].update({k: v for k, v in ideal.items() if not ros.given(role, k)})
+    if options.image or options.live_view:
+        notes.append(imperfections_line({**{k: ros.value("scanner", k, spec.default)
+                                             for k, spec in ARTEFACT_NODE_SPECS.items()}, **scanner},
+                                        {**{k: ros.value("cantilever", k, spec.default)
+                                            for k, spec in TIP_NODE_SPECS.items()}, **cantilever}))
     if run_folder is not None:
         # '' (the parameters' own default, e.g. from a dumped config) means: the run folder
         if not ros.value("recorder", "output"):
@@ -1071,6 +1077,16 @@ def imperfections_line(scanner: dict, cantilever: dict) -> str:
     def num(values, name, scale=1.0):
         value = values.get(name)
         return f"{value * scale:.3g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
+    from afm_ros.core.artefacts import ARTEFACT_SPECS, Imperfections
+    from afm_ros.core.tip import TIP_SPECS, TipWear
+
+    try:
+        ideal = not Imperfections({k: v for k, v in scanner.items() if k in ARTEFACT_SPECS}).enabled and \
+            not TipWear(1e-8, {k: v for k, v in cantilever.items() if k in TIP_SPECS}).enabled
+    except (ValueError, TypeError):
+        ideal = False  # a bad value: the node says why
+    if ideal:
+        return "imperfections: none (an ideal scanner, sample mount and tip)"
     loop = ("closed-loop scanner (no hysteresis, no creep)" if scanner.get("closed_loop") is True else
             f"hysteresis {num(scanner, 'hysteresis_small', 100)}-{num(scanner, 'hysteresis_large', 100)} % of the "
             f"scan, creep {num(scanner, 'creep_per_decade', 100)} %/decade")
