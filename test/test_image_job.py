@@ -95,6 +95,7 @@ def test_the_job_runs_a_real_instruments_imperfections_and_reports_their_truth(r
     vx, vy, vz = truth["drift_m_per_s"]
     assert math.hypot(vx, vy) == pytest.approx(5e-11, rel=1e-12) and abs(vz) == pytest.approx(8e-12, rel=1e-12)
     assert truth["hysteresis_width_m"] == pytest.approx(225e-9, rel=1e-12)
+    assert truth["tilt"] == [0.008, -0.005] and truth["slope_compensation"] == [0.008, -0.005]
     grown = truth["tip_radius_end_m"] - truth["tip_radius_start_m"]
     assert 18e-12 < grown < 72e-12
     gx, gy = summary["image"]["report"]["height_slope"]

@@ -774,6 +774,7 @@ class Instrument:
         plan = scanner.plan
         artefacts = cantilever.simulation.artefacts.copy()  # the imperfections in force for this plan (truth)
         radius0 = cantilever.engine.wear.radius
+        scanner_values = dict(scanner._values)
         chunk = cantilever.engine.setup.chunk_steps * cantilever.engine.setup.dt
         job.phase = "scanning"
         show = ScanProgress(plan, scanner, self.monitor) if progress else None
@@ -800,7 +801,7 @@ class Instrument:
                  "scan_real_time_factor": (min(self.monitor.answer_time, plan.start_time + plan.frame_time)
                                            - plan.start_time) / wall_scan,
                  "line_real_time_factor": scanner.sustained_real_time_factor}
-        image["truth"] = imperfection_truth(artefacts, plan, cantilever.engine.wear, radius0)
+        image["truth"] = imperfection_truth(artefacts, plan, cantilever.engine.wear, radius0, scanner_values)
         if not complete:
             image.update(partial=True, lines_done=frame.lines_done if frame is not None else 0)
         else:
@@ -1058,15 +1059,17 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     return given, notes
 
 
-def imperfection_truth(artefacts: np.ndarray, plan: ScanPlan, wear, radius0: float) -> dict:
-    """The emulator's ground truth of a frame's imperfections: drift velocity [m/s], tilt [m/m], the
-    hysteresis loop's width along the fast axis [m], and the tip's radius [m] before and after."""
-    from afm_ros.core.artefacts import ART_ON, ART_TILT_X, ART_TILT_Y, ART_VX, ART_VY, ART_VZ, ART_W_FAST
+def imperfection_truth(artefacts: np.ndarray, plan: ScanPlan, wear, radius0: float, scanner: dict) -> dict:
+    """The emulator's ground truth of a frame's imperfections: drift velocity [m/s], the sample's tilt
+    and the scanner's slope compensation [m/m], the hysteresis loop's width along the fast axis [m],
+    and the tip's radius [m] before and after."""
+    from afm_ros.core.artefacts import ART_ON, ART_VX, ART_VY, ART_VZ, ART_W_FAST
 
     on = bool(artefacts[ART_ON])
     return {"imperfections": on,
             "drift_m_per_s": [float(artefacts[i]) for i in (ART_VX, ART_VY, ART_VZ)] if on else [0.0, 0.0, 0.0],
-            "tilt": [float(artefacts[ART_TILT_X]), float(artefacts[ART_TILT_Y])] if on else [0.0, 0.0],
+            "tilt": [float(scanner["tilt_x"]), float(scanner["tilt_y"])],
+            "slope_compensation": [float(scanner["slope_compensation_x"]), float(scanner["slope_compensation_y"])],
             "hysteresis_width_m": float(artefacts[ART_W_FAST] * plan.size_x) if on else 0.0,
             "tip_radius_start_m": float(radius0), "tip_radius_end_m": float(wear.radius),
             "tip_events": list(wear.events)}

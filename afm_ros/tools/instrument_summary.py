@@ -152,9 +152,11 @@ class Summary:
             if tr and (tr["imperfections"] or tr["tip_radius_end_m"] != tr["tip_radius_start_m"]):
                 v = [x * 6e10 for x in tr["drift_m_per_s"]]
                 events = tr["tip_events"]
+                comp = tr.get("slope_compensation", [0.0, 0.0])
                 lines.append(f"  truth                drift ({v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}) nm/min, tilt "
-                             f"{tr['tilt'][0]:.4g} x {tr['tilt'][1]:.4g} y, hysteresis loop "
-                             f"{tr['hysteresis_width_m'] * nm:.1f} nm wide")
+                             f"{tr['tilt'][0]:.4g} x {tr['tilt'][1]:.4g} y"
+                             + (f" (slope compensation {comp[0]:.4g} x {comp[1]:.4g} y)" if any(comp) else "")
+                             + f", hysteresis loop {tr['hysteresis_width_m'] * nm:.1f} nm wide")
                 lines.append(f"                       tip radius {tr['tip_radius_start_m'] * nm:.2f} -> "
                              f"{tr['tip_radius_end_m'] * nm:.2f} nm over the frame, "
                              + (f"{len(events)} pick-up(s), the last at t={events[-1]['time_s']:.3f} s"
