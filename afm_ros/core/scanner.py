@@ -304,6 +304,9 @@ SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **ARTEFACT_NODE_SPECS,
     ParamSpec("file_prefix", "afm_frame", "", "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
               kind=str),
     ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
+    ParamSpec("tip_x", 5e-6, "m", "x of the position scanner/move_tip moves the tip to (sample coordinates; refused "
+              "while scanning)", -1e-3, 1e-3),
+    ParamSpec("tip_y", 5e-6, "m", "y of the position scanner/move_tip moves the tip to", -1e-3, 1e-3),
     ParamSpec("write_partial_frames", True, "", "a stopped scan writes the lines completed so far as "
               "<prefix>_<date>_<time>_<frame>_partial.gwy (+ PNG previews), if write_files", kind=bool),
 )}}

@@ -119,6 +119,12 @@ class WiredInstrument:
         self.values = {**self.values, "drive_frequency": float(frequency)}
         self.setup = retune(self.sim, self.values, self.values["drive_frequency"])
 
+    def set_drive(self, frequency: float, free_amplitude: float) -> None:
+        """Drive at ``frequency`` [Hz] with the drive that gives ``free_amplitude`` [m] at the
+        resonance (the cantilever node's drive_frequency and free_amplitude, as a tune sets them)."""
+        self.values = {**self.values, "drive_frequency": float(frequency), "free_amplitude": float(free_amplitude)}
+        self.setup = retune(self.sim, self.values, self.values["drive_frequency"])
+
     def park(self, x: float, y: float) -> None:
         """Hold the tip at (x, y) [m] of the sample (commanded; a creep move if it moved)."""
         self.imperfect.move(x, y, self.sim.t)

@@ -2,7 +2,9 @@
 
 Services (std_srvs/Trigger): ``scanner/start`` (scan with the current settings; frame after frame
 if ``continuous``), ``scanner/scan_frame`` (one frame), ``scanner/stop`` (stop and park the tip
-where the scan started). A start while a scan runs is refused with the reason.
+where the scan started), ``scanner/move_tip`` (move the idle tip to ``tip_x``, ``tip_y``). A start
+or a move while a scan runs is refused with the reason. After every frame the problem flags it
+raised are published on ``scanner/flags`` (std_msgs/String, JSON, latched: frame, flags by name).
 
 The scan is a :class:`afm_ros.core.scanner.ScanPlan` published on ``scanner/plan`` (std_msgs/String,
 JSON, latched); the cantilever starts it at its next chunk boundary and answers on
@@ -105,6 +107,8 @@ class ScannerNode(Node):
         self.create_service(Trigger, "scanner/start", lambda req, res: self._start(res, single=False))
         self.create_service(Trigger, "scanner/scan_frame", lambda req, res: self._start(res, single=True))
         self.create_service(Trigger, "scanner/stop", self._stop)
+        self.create_service(Trigger, "scanner/move_tip", self._move_tip)
+        self._pub_flags = self.create_publisher(String, "scanner/flags", topics.LATCHED_QOS)
         self.state = "idle"  # idle, requested (waiting for the cantilever), scanning
         self._request_id = 0
         self._plan_request: dict | None = None
@@ -226,6 +230,20 @@ class ScannerNode(Node):
         if values["write_files"]:
             check_output_directory(values["output_directory"], need_bytes=needs.file_bytes, create=True)
         return plan
+
+    def _move_tip(self, request, response):
+        """Park the tip at (tip_x, tip_y) from the cantilever's next chunk boundary (idle only)."""
+        with self._lock:
+            if self.state != "idle":
+                response.success = False
+                response.message = "the tip is scanning; call scanner/stop first"
+                return response
+            self._request_id += 1
+            park = {"id": self._request_id, "park": [self._values["tip_x"], self._values["tip_y"]]}
+        self._pub_plan.publish(String(data=json.dumps(park)))
+        response.success = True
+        response.message = f"moving the tip to ({park['park'][0]:g}, {park['park'][1]:g}) m"
+        return response
 
     def _stop(self, request, response):
         values = dict(self._values)
@@ -471,6 +489,8 @@ class ScannerNode(Node):
                 self.state = "idle"
             values = dict(self._values)
         self.flags = self._check_frame(frame)
+        self._pub_flags.publish(String(data=json.dumps({"frame": frame.index, "flags": {f.name: f.message
+                                                                                        for f in self.flags}})))
         if values["write_files"]:
             self._write_frame(frame, values)
         self.get_logger().info(f"frame {frame.index} finished" + (" (single frame: idle)" if single else ""))

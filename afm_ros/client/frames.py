@@ -1,0 +1,61 @@
+"""Frames and curves as xarray Datasets: physical coordinates [m], units, trace and retrace, metadata.
+
+A frame is one :class:`xarray.Dataset` with a variable per image channel (``height`` [m],
+``amplitude`` [m], ``phase`` [deg], ``amplitude_error`` [m], ``dissipation`` [J]) over the
+dimensions ``direction`` (``trace``, ``retrace``), ``y`` and ``x``: the coordinates are the pixel
+centres in sample coordinates [m] (row 0 = lowest y, as in the .gwy file the scanner writes). Its
+attributes hold the scan (``scan_*``), the feedback, the start time [s], the problem flags (a JSON
+string, since netCDF attributes are scalars) and where it came from.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
+from afm_ros.core.scanner import ScanPlan
+
+
+def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):
+    """An xarray Dataset of ``images[direction][channel]`` (lines x pixels) on ``plan``'s pixel grid."""
+    import xarray as xr
+
+    x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
+    y = plan.y_low + (np.arange(plan.lines) + 0.5) * plan.line_pitch
+    data = {}
+    for c in CHANNELS:
+        stacked = np.stack([np.asarray(images[d][c], dtype=np.float64) for d in DIRECTIONS])
+        data[c] = xr.DataArray(stacked, dims=("direction", "y", "x"), attrs={"units": UNITS[c]})
+    scan = {(k if k.startswith("scan_") else f"scan_{k}"): (v if not isinstance(v, bool) else int(v))
+            for k, v in plan.values().items()}
+    flat = {k: (json.dumps(v) if isinstance(v, (dict, list)) else v) for k, v in attrs.items()}
+    ds = xr.Dataset(data, coords={"direction": list(DIRECTIONS), "y": ("y", y, {"units": "m"}),
+                                  "x": ("x", x, {"units": "m"})},
+                    attrs={**scan, "start_time_s": plan.start_time, **flat})
+    return ds
+
+
+def curve_dataset(curve, attrs: dict | None = None):
+    """An xarray Dataset of a :class:`afm_ros.core.spectroscopy.SpectroscopyCurve`: per lock-in output
+    (dimension ``t`` [s]) the z piezo and the gap z [m], amplitude [m], phase [deg] and the ramp's
+    leg (``branch``); per cantilever chunk (dimension ``chunk``, its mid time ``chunk_t`` [s]) the
+    gap [m], the mean deflection [m] and the mean tip-sample force [N]; the set-up as attributes."""
+    import xarray as xr
+
+    from afm_ros.core.spectroscopy import DIRECTIONS as LEGS
+
+    units = {"z_piezo": "m", "z_gap": "m", "amplitude": "m", "phase": "deg", "chunk_z_gap": "m",
+             "chunk_deflection": "m", "chunk_force": "N"}
+    variables = {name: xr.DataArray(np.asarray(getattr(curve, name)), dims=("t",), attrs={"units": units[name]})
+                 for name in ("z_piezo", "z_gap", "amplitude", "phase")}
+    variables["branch"] = xr.DataArray(np.array([LEGS[i] for i in curve.direction], dtype=object), dims=("t",))
+    for name in ("chunk_z_gap", "chunk_deflection", "chunk_force"):
+        variables[name] = xr.DataArray(np.asarray(getattr(curve, name)), dims=("chunk",), attrs={"units": units[name]})
+    variables["chunk_branch"] = xr.DataArray(np.array([LEGS[i] for i in curve.chunk_direction], dtype=object),
+                                             dims=("chunk",))
+    mid = 0.5 * (np.asarray(curve.chunk_t_start) + np.asarray(curve.chunk_t_end))
+    meta = {name: getattr(curve, name) for name in curve.META}
+    return xr.Dataset(variables, coords={"t": ("t", np.asarray(curve.t), {"units": "s"}),
+                                         "chunk_t": ("chunk", mid, {"units": "s"})},
+                      attrs={**meta, **(attrs or {})})

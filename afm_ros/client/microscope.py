@@ -1,0 +1,230 @@
+"""One API for scripts and agents, over ROS against running nodes or in-process without ROS.
+
+::
+
+    from afm_ros.client import Microscope
+
+    with Microscope.local() as afm:            # or Microscope.connect(namespace="/afm1")
+        afm.tune()                             # drive at the resonance, free amplitude, phase zero
+        afm.approach()                         # coarse motor + z piezo until the setpoint: engaged
+        afm.set_scan(center=(5e-6, 5e-6), size=(2e-6, 2e-6), pixels=64, lines=64, line_rate=2.0)
+        frame = afm.scan()                     # xarray.Dataset: height, phase, ... x trace/retrace
+        curve = afm.spectroscopy(x=5e-6, y=5e-6)
+        afm.withdraw()
+
+Every verb blocks until done (simulated time advances as long as it needs) and has an
+``*_async`` form returning a :class:`concurrent.futures.Future` (one instrument: verbs run one
+after the other in a worker thread). Units are SI everywhere (m, s, Hz, deg, J, N). Errors are
+typed: :class:`Refused` carries the node's own reason (a setpoint out of range, a scan while not
+engaged: :class:`NotEngaged`), :class:`WorkflowFailed` an approach that failed and why,
+:class:`~afm_ros.client.ros_link.NoAnswer` a timeout naming what did not answer. Nothing waits
+forever: every wait has a timeout, and the simulated time must keep advancing.
+"""
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+
+from afm_ros.client.ros_link import ClientError
+
+
+class Refused(ClientError):
+    """The instrument refused a setting or an action; ``reason`` is the node's own words."""
+
+    def __init__(self, what: str, reason: str):
+        super().__init__(f"{what}: {reason}")
+        self.what, self.reason = what, reason
+
+
+class NotEngaged(Refused):
+    """An action that needs the tip on the surface (a scan, a spectroscopy) while the z stage is not engaged."""
+
+
+class WorkflowFailed(ClientError):
+    """A workflow step (tune, approach, withdraw) ended without reaching its goal; the message says why."""
+
+
+def refusal(what: str, reason: str) -> Refused:
+    """:class:`NotEngaged` if the reason says so, else :class:`Refused`."""
+    return (NotEngaged if "not engaged" in reason or "needs the tip engaged" in reason else Refused)(what, reason)
+
+
+class Microscope:
+    """The instrument as a program sees it; build it with :meth:`connect` or :meth:`local`."""
+
+    def __init__(self, backend):
+        self._backend = backend
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="afm-client")
+
+    @classmethod
+    def connect(cls, namespace: str = "/", timeout: float = 10.0, hold: bool = True) -> "Microscope":
+        """The instrument running as ROS nodes in ``namespace`` (cantilever, lockin, z_controller,
+        scanner). ``timeout`` [s]: the longest any node may take to be discovered or to answer.
+        ``hold``: the client pauses the simulation between verbs (the cantilever's run_until) and
+        runs it in lockstep, so a script gives the same results every time; False: it runs freely."""
+        from afm_ros.client.ros_backend import RosBackend
+
+        return cls(RosBackend(namespace, timeout, hold))
+
+    @classmethod
+    def local(cls, sample: str = "ps_ldpe_blend", force_model: str = "viscoelastic_dmt", ideal: bool = False,
+              withdrawn: bool = True, cantilever: dict | None = None, lockin: dict | None = None,
+              z_controller: dict | None = None, scanner: dict | None = None, approach: dict | None = None,
+              tip: dict | None = None) -> "Microscope":
+        """The same blocks wired in this process, no ROS (:class:`afm_ros.core.wired.WiredInstrument`).
+
+        Defaults are the nodes' (a real instrument: room-temperature noise, the scanner's
+        imperfections, a wearing tip, a 3 um z piezo range), with the tip ``withdrawn`` 5 um above
+        ``sample`` (a built-in name, a description file or a .gwy map); ``ideal``: no noise, no
+        imperfections, no wear. The dicts override parameters by name (the nodes' tables)."""
+        from afm_ros.client.local_backend import LocalBackend
+
+        return cls(LocalBackend(sample, force_model, ideal, withdrawn, cantilever or {}, lockin or {},
+                                z_controller or {}, scanner or {}, approach or {}, tip or {}))
+
+    # --- life cycle ---------------------------------------------------------------------------------
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+        self._backend.close()
+
+    def __enter__(self) -> "Microscope":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _submit(self, fn, *args, **kwargs) -> Future:
+        return self._pool.submit(fn, *args, **kwargs)
+
+    # --- settings -------------------------------------------------------------------------------------
+    def set_scan(self, center: tuple[float, float] | None = None, top_left: tuple[float, float] | None = None,
+                 size: tuple[float, float] | None = None, pixels: int | None = None, lines: int | None = None,
+                 line_rate: float | None = None, slow_scan_direction: str | None = None, angle: float = 0.0) -> dict:
+        """The next scan's region and raster: ``center`` or ``top_left`` (x, y) [m] in sample
+        coordinates (top = the highest y), ``size`` (x, y) [m], ``pixels`` per line, ``lines``,
+        ``line_rate`` [lines/s], ``slow_scan_direction`` ('up' or 'down'). All or nothing: a refused
+        value (:class:`Refused`, the node's reason) changes none. Returns the scan settings.
+        ``angle`` [deg]: this scanner does not rotate; any other value than 0 is refused."""
+        if angle != 0.0:
+            raise Refused("scanner", f"angle={angle!r} deg: this scanner scans along x only (no rotation); "
+                                     f"allowed: 0")
+        if center is not None and top_left is not None:
+            raise ValueError("give center or top_left, not both")
+        values: dict = {}
+        current = self.scan_settings() if top_left is not None and size is None else {}
+        if size is not None:
+            values["scan_size_x"], values["scan_size_y"] = (float(v) for v in size)
+        if center is not None:
+            values["scan_center_x"], values["scan_center_y"] = (float(v) for v in center)
+        if top_left is not None:
+            sx = values.get("scan_size_x", current.get("scan_size_x"))
+            sy = values.get("scan_size_y", current.get("scan_size_y"))
+            values["scan_center_x"] = float(top_left[0]) + 0.5 * sx
+            values["scan_center_y"] = float(top_left[1]) - 0.5 * sy
+        for name, value in (("pixels_per_line", pixels), ("lines", lines), ("line_rate", line_rate),
+                            ("slow_scan_direction", slow_scan_direction)):
+            if value is not None:
+                values[name] = value
+        self._backend.set_values("scanner", values)
+        return self.scan_settings()
+
+    def scan_settings(self) -> dict:
+        """The scan's parameters (the scanner node's names, SI units)."""
+        return self._backend.scan_settings()
+
+    def set_feedback(self, setpoint: float | None = None, p_gain: float | None = None,
+                     i_gain: float | None = None) -> dict:
+        """The z loop's ``setpoint`` [m] (amplitude), ``p_gain`` [1] and ``i_gain`` [1/s]; all or
+        nothing (:class:`Refused` with the node's reason). Returns the feedback settings."""
+        values = {k: float(v) for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
+                  if v is not None}
+        self._backend.set_values("z_controller", values)
+        return self.feedback()
+
+    def feedback(self) -> dict:
+        """setpoint [m], p_gain [1], i_gain [1/s], z_min, z_max [m] of the z loop."""
+        return self._backend.feedback()
+
+    def set(self, node: str, **values) -> None:
+        """Any parameters of one node by name (the README's tables), all or nothing."""
+        self._backend.set_values(node, values)
+
+    def get(self, node: str, *names: str) -> dict:
+        """Parameter values of one node by name."""
+        return self._backend.get_values(node, list(names))
+
+    # --- actions ----------------------------------------------------------------------------------------
+    def tune(self) -> dict:
+        """Sweep the drive around the resonance with the tip free, fit f0 [Hz] and Q, and set the
+        working point (drive frequency, drive for the free amplitude, phase zero). Refused while
+        engaged (withdraw first)."""
+        return self._backend.tune()
+
+    def approach(self) -> dict:
+        """Coarse approach and engage: the motor and z piezo bring the tip down until the amplitude
+        falls to the setpoint, then the z loop regulates. Returns the approach's numbers
+        (cycles, motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
+        return self._backend.approach()
+
+    def engage(self) -> dict:
+        """Engaged on the surface: approaches if the z stage is not engaged already."""
+        state = self.state()["stage"]
+        return {"state": state} if state == "engaged" else self.approach()
+
+    def withdraw(self) -> dict:
+        """Feedback off, z piezo retracted, the motor backs off: the tip is safe to move."""
+        return self._backend.withdraw()
+
+    def scan(self, progress=None):
+        """Scan one frame with the scan settings from now; returns it as an xarray Dataset
+        (:mod:`afm_ros.client.frames`). ``progress(lines_done, lines)`` is called as lines finish.
+        :class:`NotEngaged` if the tip is not on the surface."""
+        return self._backend.scan(progress)
+
+    def move_tip(self, x: float, y: float) -> None:
+        """Move the tip to (x, y) [m] (sample coordinates) and hold it there (not while scanning)."""
+        self._backend.move_tip(float(x), float(y))
+
+    def spectroscopy(self, x: float | None = None, y: float | None = None, **values):
+        """Amplitude, phase, mean deflection and mean force vs z at (x, y) [m] (default: where the
+        tip is): the feedback is held, z ramps toward the sample and back at ``spectroscopy_rate``
+        [m/s] (the z controller's spectroscopy_* parameters; ``values`` override them for this curve),
+        then the loop resumes. Returns an xarray Dataset over time with z [m] beside it."""
+        if (x is None) != (y is None):
+            raise ValueError("give both x and y, or neither")
+        if x is not None:
+            self.move_tip(x, y)
+        return self._backend.spectroscopy(values)
+
+    def wait(self, seconds: float) -> None:
+        """Let ``seconds`` [s] of simulated time pass with the instrument as it is."""
+        self._backend.advance(float(seconds))
+
+    def flags(self) -> dict:
+        """The problem flags of the last frame, by name (what an instrument could see: feedback,
+        z range, drift, tip; docs/imperfections.md); {} if it raised none or no frame was scanned."""
+        return self._backend.flags()
+
+    def truth(self) -> dict:
+        """The emulator's ground truth now: the piezo's hysteresis and creep and the sample's drift
+        [m] (zero when off), the tip's radius [m] in force and its pick-up events."""
+        return self._backend.truth()
+
+    def state(self) -> dict:
+        """Simulated time ``t_s`` [s] and the z stage's ``stage`` (engaged, withdrawn, approaching, ...)."""
+        return self._backend.state()
+
+    # --- the same verbs, asynchronous -------------------------------------------------------------------
+    def tune_async(self) -> Future:
+        return self._submit(self.tune)
+
+    def approach_async(self) -> Future:
+        return self._submit(self.approach)
+
+    def withdraw_async(self) -> Future:
+        return self._submit(self.withdraw)
+
+    def scan_async(self, progress=None) -> Future:
+        return self._submit(self.scan, progress)
+
+    def spectroscopy_async(self, x: float | None = None, y: float | None = None, **values) -> Future:
+        return self._submit(self.spectroscopy, x, y, **values)

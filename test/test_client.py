@@ -1,0 +1,170 @@
+"""The client (afm_ros.client.Microscope) in-process and over real DDS against running nodes.
+
+- Every verb in-process on a real instrument's defaults: the tune finds the configured lever, the
+  approach takes the cycles the algorithm says, the scan comes back on its physical pixel grid with
+  units, the truth's drift is the configured velocity times the time, refusals carry the node's
+  reason and change nothing, and a scan while withdrawn raises NotEngaged.
+- Reproducible: the same script gives the same frame bit for bit, in-process and over ROS, and the
+  ROS frame equals the in-process one (one scenario, both started engaged at t = 0).
+- Over ROS: tune, approach, scan, move, withdraw with the nodes' answers; a namespace without an
+  instrument fails within the timeout, naming what is missing.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+import rclpy
+import xarray as xr
+
+from afm_ros.client import Microscope, NodeNotFound, NotEngaged, Refused
+from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, drift_velocity
+from afm_ros.nodes.node_main import make_executor
+from afm_ros.tools.afm_instrument import build_nodes
+
+DOMAIN_ID = "59"
+SMALL = dict(center=(5e-6, 5e-6), size=(2e-6, 1e-6), pixels=16, lines=8, line_rate=10.0)
+
+
+@contextmanager
+def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, z_controller: dict | None = None,
+                     scanner: dict | None = None):
+    """cantilever, lockin, z_controller and scanner spun in a thread on a private context (LOCALHOST
+    discovery on this file's domain, which the client's own context uses too)."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN_ID)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(DOMAIN_ID))
+    nodes = build_nodes(ctx, namespace, record=False, scanner=True, cantilever_overrides=cantilever,
+                        scanner_overrides={"write_files": False, **(scanner or {})},
+                        overrides={"z_controller": z_controller or {}})
+    executor = make_executor("events", ctx)
+    for node in nodes.values():
+        executor.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        yield nodes
+    finally:
+        stop.set()
+        thread.join(30)
+        for node in nodes.values():
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_every_verb_in_process_on_a_real_instrument():
+    with Microscope.local() as afm:
+        assert afm.state() == {"t_s": 0.0, "stage": "withdrawn"}
+        # the tune on the free lever: the configured 45 kHz and Q 25 within 5 standard errors (plus the
+        # thermal noise's share)
+        tune = afm.tune()
+        assert abs(tune["f0_Hz"] - 45e3) < 5 * tune["f0_error_Hz"] + 0.01
+        assert abs(tune["Q"] - 25.0) < 5 * tune["Q_error"] + 1e-4
+        # the approach from 5 um with a 3 um piezo: one empty cycle, 48 steps of 50 nm (2.4 um), engaged in
+        # the second extension
+        approach = afm.approach()
+        assert approach["cycles"] == 2 and approach["motor_steps"] == 48 and afm.state()["stage"] == "engaged"
+        # refusals carry the node's reason and change nothing
+        with pytest.raises(Refused, match=r"setpoint.*allowed range") as refused:
+            afm.set_feedback(setpoint=1.0)
+        assert "setpoint" in refused.value.reason and afm.feedback()["setpoint"] == 48e-9
+        with pytest.raises(Refused, match="pixels_per_line"):
+            afm.set_scan(pixels=0, lines=4)
+        assert afm.scan_settings()["lines"] == 128
+        # top-left (the highest y) and size place the centre
+        settings = afm.set_scan(top_left=(4e-6, 5.5e-6), size=(2e-6, 1e-6), pixels=16, lines=8, line_rate=10.0)
+        assert (settings["scan_center_x"], settings["scan_center_y"]) == pytest.approx((5e-6, 5e-6), abs=1e-15)
+        seen = []
+        frame = afm.scan(progress=lambda done, lines: seen.append((done, lines)))
+        assert seen[-1] == (8, 8) and len(seen) >= 4
+        assert frame.height.dims == ("direction", "y", "x") and frame.height.shape == (2, 8, 16)
+        assert list(frame.direction.values) == ["trace", "retrace"]
+        np.testing.assert_allclose(frame.x.values, 4e-6 + (np.arange(16) + 0.5) * 2e-6 / 16, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(frame.y.values, 4.5e-6 + (np.arange(8) + 0.5) * 1e-6 / 8, rtol=0, atol=1e-15)
+        assert frame.phase.attrs["units"] == "deg" and frame.height.attrs["units"] == "m"
+        assert np.isfinite(frame.height.values).all() and frame.attrs["scan_pixels_per_line"] == 16
+        assert isinstance(afm.flags(), dict)
+        # the drift's truth: the configured velocity (seeded direction) times the simulated time
+        truth = afm.truth()
+        vx, vy, vz = drift_velocity({k: s.default for k, s in ARTEFACT_NODE_SPECS.items()})
+        assert truth["drift_x_m"] == pytest.approx(vx * truth["t_s"], rel=1e-12)
+        assert truth["drift_z_m"] == pytest.approx(vz * truth["t_s"], rel=1e-12)
+        assert truth["tip_radius_m"] >= 20e-9
+        afm.move_tip(4e-6, 4e-6)
+        assert afm.withdraw()["state"] == "withdrawn"
+        with pytest.raises(NotEngaged, match="not engaged: the z stage is withdrawn"):
+            afm.scan()
+        # the asynchronous form: a Future of the same verb
+        future = afm.approach_async()
+        assert future.result(timeout=600)["cycles"] >= 1 and afm.state()["stage"] == "engaged"
+
+
+def _script(afm) -> xr.Dataset:
+    afm.wait(0.05)
+    afm.set_scan(**SMALL)
+    return afm.scan()
+
+
+def test_the_same_script_gives_the_same_frame_in_process():
+    with Microscope.local(withdrawn=False) as a, Microscope.local(withdrawn=False) as b:
+        xr.testing.assert_identical(_script(a), _script(b))
+
+
+def test_over_ros_the_frame_equals_the_in_process_one(monkeypatch, ros_namespace):
+    """Both start engaged at t = 0 with the nodes' defaults (noise, imperfections, tip wear): the
+    client holds the cantilever between verbs, so the scan starts at the same chunk boundary, and the
+    frame is the in-process one bit for bit."""
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend",
+                  "force_model": "viscoelastic_dmt"}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever):
+        with Microscope.connect(ros_namespace, timeout=30.0) as afm:
+            over_ros = _script(afm)
+    with Microscope.local(withdrawn=False) as afm:
+        local = _script(afm)
+    assert over_ros.attrs["start_time_s"] == local.attrs["start_time_s"]
+    for name in local.data_vars:
+        np.testing.assert_array_equal(over_ros[name].values, local[name].values.astype(np.float32).astype(np.float64),
+                                      err_msg=name)
+
+
+def test_the_workflow_over_ros_and_its_errors(monkeypatch, ros_namespace):
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
+    z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever, z_controller=z):
+        with Microscope.connect(ros_namespace, timeout=30.0) as afm:
+            assert afm.state()["stage"] == "withdrawn"
+            with pytest.raises(NotEngaged, match="not engaged"):
+                afm.scan()
+            tune = afm.tune()
+            assert abs(tune["f0_Hz"] - 45e3) < 5 * tune["f0_error_Hz"] + 0.01
+            approach = afm.approach()
+            assert approach["state"] == "engaged" and approach["engaged_s"] > tune["end_s"]
+            with pytest.raises(Refused, match="allowed range"):
+                afm.set_feedback(i_gain=-1.0)
+            assert afm.feedback()["i_gain"] == 100.0
+            afm.set_scan(**SMALL)
+            frame = afm.scan()
+            assert frame.height.shape == (2, 8, 16) and frame.attrs["source"] == "ros"
+            afm.move_tip(4e-6, 4e-6)
+            assert afm.withdraw()["state"] == "withdrawn"
+
+
+def test_no_instrument_in_the_namespace_fails_within_the_timeout(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN_ID)
+    start = time.monotonic()
+    with pytest.raises(NodeNotFound, match="cantilever"):
+        Microscope.connect("/nobody_here", timeout=1.5)
+    assert time.monotonic() - start < 15.0
