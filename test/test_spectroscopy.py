@@ -166,12 +166,15 @@ def test_the_curve_round_trips_through_its_message_and_dict(run):
         unpack_curve(pack_curve(c)[:-1])
 
 
-def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit(ros_context, ros_executor, ros_namespace):
+def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reported(ros_context, ros_executor,
+                                                                                 ros_namespace, tmp_path):
     """The z controller node's service on live nodes (real DDS) in lockstep: the cantilever paused at
     50 ms, the service called there (its ramp starts at the last lock-in output, as the wired one),
     then released; the node takes each chunk's means from cantilever/deflection and
     cantilever/tip_sample_force while the ramp runs. The curve on z_controller/spectroscopy equals
-    the wired instrument's from the same time, bit for bit, and the stage is engaged again."""
+    the wired instrument's from the same time, bit for bit, and the stage is engaged again. A recorder
+    that leaves out the raw streams (as afm_instrument's) records the curve, and afm_report draws it
+    and gives its numbers."""
     from rclpy.parameter import Parameter
     from std_msgs.msg import Float64MultiArray, String
     from std_srvs.srv import Trigger
@@ -179,6 +182,9 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit(ros_context, r
     from afm_ros.nodes import topics
     from afm_ros.nodes.cantilever_node import CantileverNode
     from afm_ros.nodes.lockin_node import LockInNode
+    from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.tools import report
+    from afm_ros.tools.afm_instrument import RAW_EXCLUDE
     from afm_ros.nodes.z_controller_node import SPECTROSCOPY_TOPIC, ZControllerNode
 
     def spin_until(condition, timeout=120.0, what="condition"):
@@ -201,11 +207,14 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit(ros_context, r
                                    topics.LATCHED_QOS)
     controller.create_subscription(String, topics.Z_STAGE, lambda m: stages.append(json.loads(m.data)["state"]),
                                    topics.LATCHED_QOS)
-    nodes = (cantilever, lockin, controller)
+    session = tmp_path / "spectroscopy.mcap"
+    recorder = RecorderNode(context=ros_context, namespace=ns, parameter_overrides=[
+        Parameter("output", value=str(session)), Parameter("exclude", value=RAW_EXCLUDE)])
+    nodes = (cantilever, lockin, controller, recorder)
     for n in nodes:
         ros_executor.add_node(n)
     try:
-        spin_until(lambda: controller.stage is not None and f"{ns}/lockin" in cantilever.consumers,
+        spin_until(lambda: controller.stage is not None and {f"{ns}/lockin", f"{ns}/recorder"} <= set(cantilever.consumers),
                    what="the cantilever's set-up and the lock-in")
         client = controller.create_client(Trigger, f"{ns}/z_controller/spectroscopy")
         spin_until(client.service_is_ready, 30, "z_controller/spectroscopy")
@@ -225,6 +234,9 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit(ros_context, r
         spin_until(lambda: stages and stages[-1] == "engaged", what="the stage engaged again")
         assert "spectroscopy" in stages
         ros_curve = curves[-1]
+        end = time.monotonic() + 0.3  # the recorder writes what it has
+        while time.monotonic() < end:
+            ros_executor.spin_once(timeout_sec=0.01)
     finally:
         for n in nodes:
             ros_executor.remove_node(n)
@@ -236,3 +248,13 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit(ros_context, r
     assert ros_curve.equal(wired), {k: (v, wired.to_dict()[k]) for k, v in ros_curve.to_dict().items()
                                     if not isinstance(v, list) and v != wired.to_dict()[k]}
     assert math.isfinite(ros_curve.chunk_force.sum())
+    rep = report.make_report(session, tmp_path / "report")
+    g = rep.numbers["spectroscopy"]
+    a = ros_curve.branch("approach")
+    assert g["outputs"] == 39 and g["missing_chunks"] == 0
+    assert g["amplitude_top_m"] == ros_curve.amplitude[a][0] and g["amplitude_bottom_m"] == ros_curve.amplitude[a][-1]
+    assert g["max_mean_force_N"] == np.nanmax(ros_curve.chunk_force)
+    # 1 um/s: the curve lags 2.18 to 6.18 nm (latency 2 chunks of 2 ms, Q/(pi f0) = 0.18 ms)
+    assert g["lag_z_m"] == pytest.approx([2.177e-9, 6.177e-9], abs=1e-12)
+    assert (tmp_path / "report" / "spectroscopy.png").stat().st_size > 5000
+    assert "## Z spectroscopy" in (tmp_path / "report" / "report.md").read_text()
