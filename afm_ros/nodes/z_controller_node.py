@@ -180,6 +180,7 @@ class ZControllerNode(Node):
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             try:
                 auto = self.stage.start_approach(self.approach_values, t)
+                self._abandon_spectroscopy()
             except ValueError as exc:
                 response.success = False
                 response.message = f"approach refused: {exc}"
@@ -196,6 +197,7 @@ class ZControllerNode(Node):
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             if self.stage is None:
                 self.stage = ZStage(self.controller, 0.0)
+            self._abandon_spectroscopy()
             self.stage.start_withdraw(self.approach_values, t)
             self._report_stage()
         response.success = True
@@ -263,6 +265,15 @@ class ZControllerNode(Node):
             ramp.add_chunk(header.first_sample_index, header.t_start, t_end, header.z_offset,
                            **{what: chunk_mean(samples)})
             self._finish_spectroscopy()
+
+    def _abandon_spectroscopy(self) -> None:
+        """A withdraw or approach ends a running ramp: no curve; the raw topics are left. Under the lock."""
+        if self.spectroscopy_ramp is not None and not self.spectroscopy_ramp.done:
+            self.get_logger().warning("spectroscopy abandoned (withdraw or approach): no curve published")
+            self.spectroscopy_ramp = None
+            for sub in self._raw_subs:
+                self.destroy_subscription(sub)
+            self._raw_subs = []
 
     def _finish_spectroscopy(self) -> None:
         """Publish the curve once the ramp is over and every chunk's means arrived (or the grace
