@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
+from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, SpectroscopyRamp
 
 APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("approach_start_distance", 5e-6, "m",
@@ -63,7 +64,7 @@ Z_NODE_SPECS: dict[str, ParamSpec] = {}  # the z controller node's parameters (f
 STATES = ("idle", "extending", "retracting", "stepping", "engaged", "failed", "withdrawn")
 
 
-Z_NODE_SPECS.update({**Z_CONTROLLER_SPECS, **APPROACH_SPECS})
+Z_NODE_SPECS.update({**Z_CONTROLLER_SPECS, **APPROACH_SPECS, **SPECTROSCOPY_SPECS})
 
 
 def validate(values: dict) -> dict:
@@ -178,9 +179,13 @@ class ZStage:
         self.z_base = float(z_base)
         self.motor = 0.0
         self.auto: AutoApproach | None = None
-        self.state = "engaged"  # engaged (the loop regulates), approaching, withdrawing, withdrawn, failed
+        # engaged (the loop regulates), approaching, withdrawing, withdrawn, failed, spectroscopy
+        self.state = "engaged"
         self.reason = ""
         self._withdraw: dict | None = None
+        self.ramp: SpectroscopyRamp | None = None  # the z spectroscopy running or last run
+        self._held_params: dict | None = None  # the controller's settings before a spectroscopy
+        self.t_last: float | None = None  # simulated time of the last lock-in output [s]
 
     @property
     def command(self) -> float:
@@ -188,7 +193,11 @@ class ZStage:
 
     @property
     def z(self) -> float:
-        return self.auto.z if self.state == "approaching" else self.controller.z
+        if self.state == "approaching":
+            return self.auto.z
+        if self.state == "spectroscopy":
+            return self.ramp.z_at(self.ramp.t0 if self.t_last is None else self.t_last)
+        return self.controller.z
 
     @property
     def engaged(self) -> bool:
@@ -220,12 +229,43 @@ class ZStage:
         """Feedback off; the piezo retracts to z_max at retract_speed, then the motor backs off by
         withdraw_distance, one step per motor_step_time."""
         v = validate(values if values is not None else (self.auto.values if self.auto is not None else {}))
+        if self.state == "spectroscopy":  # abandoned: the piezo retracts from where the ramp is
+            self.controller.z = self.controller.integrator = self.z
         self.controller.configure(enabled=False, disabled_action="withdraw", max_slew_rate=v["retract_speed"])
         steps = int(round(v["withdraw_distance"] / v["motor_step"]))
         self._withdraw = {"values": v, "steps": steps, "t_motor": None}
         self.state, self.reason = "withdrawing", ""
 
-    def update(self, amplitude: float, t: float) -> float:
+    def start_spectroscopy(self, values: dict, t: float, meta: dict) -> SpectroscopyRamp:
+        """Hold the feedback where it is and start a z spectroscopy ramp at time t [s]
+        (:mod:`afm_ros.core.spectroscopy`); ``meta`` completes the curve's set-up (x, y,
+        spring_constant, ...). ValueError with the reason when the stage is not engaged or a value is
+        bad (nothing changes then)."""
+        if self.state != "engaged":
+            raise ValueError(f"spectroscopy refused: the z stage is {self.state}"
+                             + (f" ({self.reason})" if self.reason else "") + "; it needs the tip engaged (approach first)")
+        c = self.controller
+        ramp = SpectroscopyRamp(values, c.z, t, c.params["z_min"], c.params["z_max"], self.z_base + self.motor,
+                                {**meta, "setpoint": c.params["setpoint"]})
+        self._held_params = {k: c.params[k] for k in ("enabled", "disabled_action", "max_slew_rate")}
+        c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+        self.ramp, self.state, self.reason = ramp, "spectroscopy", ""
+        return ramp
+
+    def update(self, amplitude: float, t: float, phase: float = math.nan) -> float:
+        """Take one lock-in output (amplitude [m], time [s], phase [deg]: recorded by a spectroscopy)
+        and return the z piezo position [m]."""
+        self.t_last = t
+        if self.state == "spectroscopy":
+            c = self.controller
+            z = self.ramp.update(amplitude, phase, t)
+            if self.ramp.done:  # back at the held point: the loop takes over, bumpless
+                c.z = c.integrator = self.ramp.z_held
+                c.configure(**self._held_params)
+                c.t_last = t
+                self.state = "engaged"
+            c.error = c.params["setpoint"] - amplitude
+            return z
         if self.state == "approaching":
             z = self.auto.update(amplitude, t)
             self.motor = self.auto.motor

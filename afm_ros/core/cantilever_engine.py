@@ -324,7 +324,7 @@ class CantileverEngine:
             "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
             "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
             "force_model": v["force_model"], "z_base_m": v["z_base"], "chunk_duration_s": v["chunk_duration"],
-            **self.surface_info})
+            "feedback_latency_chunks": v["feedback_latency"], **self.surface_info})
         return applied
 
     def apply_pending(self) -> None:

@@ -27,6 +27,7 @@ from afm_ros.core.imaging import ImageAccumulator
 from afm_ros.core.lockin import LockIn
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.core.scanner import ScanPlan, parked_plan
+from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean, phase_deg
 
 
 @dataclass
@@ -86,6 +87,7 @@ class WiredInstrument:
             raise ValueError("imperfections need a sample map (sample=None is the flat sample)")
         if self.sample is not None:
             self.park(0.5 * self.sample.size_x, 0.5 * self.sample.size_y)
+        self.parked_at = getattr(self, "parked_at", (0.0, 0.0))  # the tip's (x, y) [m] while not scanning
         self.lock_in = LockIn(**self.lockin)
         self.controller = ZController(**self.z_controller)
         self.latency = int(values["feedback_latency"])
@@ -130,6 +132,7 @@ class WiredInstrument:
         self.imperfect.move(x, y, self.sim.t)
         self.sim.set_scan(parked_plan(x, y))
         self.sim.set_artefacts(self.imperfect.packed(None))
+        self.parked_at = (float(x), float(y))
 
     def approach(self, values: dict | None = None, timeout: float = 600.0) -> ApproachLog:
         """Coarse approach and engage (:mod:`afm_ros.core.approach`) from ``approach_start_distance``:
@@ -172,6 +175,28 @@ class WiredInstrument:
         while self.stage.state == "withdrawing" and self.sim.t < t_end:
             self.step()
 
+    def spectroscopy(self, values: dict | None = None, timeout: float = 600.0) -> SpectroscopyCurve:
+        """Z spectroscopy at the parked tip position (:mod:`afm_ros.core.spectroscopy`; ``values``:
+        SPECTROSCOPY_SPECS names, missing ones their defaults): the feedback is held, z ramps up,
+        down and back at the rate, then the feedback resumes. Returns the curve; ValueError with
+        the reason if not engaged, scanning or a value is bad; RuntimeError after ``timeout`` [s]
+        of simulated time."""
+        if self.images is not None and not self.images.done:
+            raise ValueError("spectroscopy refused: a scan is running (the tip is not parked)")
+        c = self.setup.cantilever
+        t = self.stage.t_last if self.stage.t_last is not None else self.sim.t
+        ramp = self.stage.start_spectroscopy(values or {}, t, {
+            "x": self.parked_at[0], "y": self.parked_at[1], "spring_constant": c.spring_constant,
+            "quality_factor": c.quality_factor, "resonance_frequency": c.resonance_frequency,
+            "chunk_duration": self.values["chunk_duration"], "feedback_latency": self.latency})
+        t_end = self.sim.t + timeout
+        while self.stage.state == "spectroscopy" and self.sim.t < t_end:
+            self.step()
+        if not ramp.done:
+            raise RuntimeError(f"spectroscopy not finished after {timeout:g} s of simulated time "
+                               f"(the stage is {self.stage.state})")
+        return ramp.curve()
+
     def start_scan(self, plan_values: dict) -> ScanPlan:
         """Start a scan at the current simulated time (the next chunk boundary); returns the plan."""
         if self.sample is None:
@@ -203,9 +228,14 @@ class WiredInstrument:
         out = self.lock_in.process(header, measured)
         z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
+        ramp = self.stage.ramp if self.stage.state == "spectroscopy" else None
         for i, (t, x, y) in enumerate(zip(out.t.tolist(), out.x.tolist(), out.y.tolist())):
-            z_out[i] = self.stage.update(math.hypot(x, y), t)  # as the z controller node does
+            z_out[i] = self.stage.update(math.hypot(x, y), t, phase_deg(x, y))  # as the z controller node does
             errors[i] = self.controller.error
+        if ramp is not None:  # the chunk's means, as the z controller node takes them from the raw topics
+            ramp.expect(first)
+            ramp.add_chunk(first, header.t_start, header.t_start + count * header.sample_interval, header.z_offset,
+                           chunk_mean(measured), chunk_mean(samples.force))
         self.answers.append(self.stage.command)
         self.next_index = first + count
         self.chunks += 1

@@ -129,7 +129,7 @@ class LockInNode(Node):
             pass
 
     def _start_tune(self, request, response):
-        if self.z_stage in ("engaged", "approaching", "withdrawing"):
+        if self.z_stage in ("engaged", "approaching", "withdrawing", "spectroscopy"):
             response.success = False
             response.message = (f"tune refused: the z stage is {self.z_stage}; the tune needs the cantilever free: "
                                 "withdraw first (service z_controller/withdraw)")

@@ -15,6 +15,15 @@ services ``z_controller/approach`` and ``z_controller/withdraw`` (std_srvs/Trigg
 z command is then the piezo plus the coarse motor's position. ``z_controller/stage`` (std_msgs/String,
 JSON, latched) says what the z stage does (engaged, approaching, withdrawing, withdrawn, failed,
 with the motor position and the approach's log); the scanner refuses to scan unless it is engaged.
+
+Z spectroscopy (:mod:`afm_ros.core.spectroscopy`, its parameters are this node's too): the service
+``z_controller/spectroscopy`` (std_srvs/Trigger) holds the feedback and ramps z up, down and back
+at the parked tip (the stage is ``spectroscopy`` meanwhile; refused unless engaged and parked); the
+finished curve is published latched on ``z_controller/spectroscopy`` (std_msgs/Float64MultiArray,
+:mod:`afm_ros.formats.spectroscopy_layout`). The node does not see the raw streams otherwise: only
+while a ramp runs it subscribes ``cantilever/deflection`` and ``cantilever/tip_sample_force`` and
+keeps each chunk's mean, then leaves them (the cantilever publishes the force only while someone
+subscribes it).
 """
 from __future__ import annotations
 
@@ -28,16 +37,18 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from afm_ros.formats import chunk_layout
+from afm_ros.formats import chunk_layout, spectroscopy_layout
 
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
+from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, chunk_mean, phase_deg, validate as spectroscopy_validate
 
 INPUT_QOS = topics.CONSUMER_QOS
 # z_piezo and error: transient local with a history of 200 samples, so a late subscriber gets the
@@ -46,6 +57,15 @@ Z_QOS = topics.HISTORY_QOS
 ERROR_QOS = topics.HISTORY_QOS
 COMMAND_QOS = topics.HISTORY_QOS
 DIAGNOSTICS_PERIOD_S = 1.0
+SPECTROSCOPY_TOPIC = "z_controller/spectroscopy"
+# raw chunks while a spectroscopy runs: reliable, transient local (the chunks published before the
+# subscription matched), the last 100 chunks (0.2 s at 2 ms chunks) kept if the executor falls behind
+RAW_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# lock-in batches to wait, after the ramp's end, for raw chunks still missing before publishing
+# the curve with NaN means for them
+SPECTROSCOPY_GRACE_BATCHES = 50
 
 
 class ZControllerNode(Node):
@@ -58,6 +78,12 @@ class ZControllerNode(Node):
         check_limits(values)
         self.controller = ZController(**{k: v for k, v in values.items() if k in Z_CONTROLLER_SPECS})
         self.approach_values = approach_validate({k: v for k, v in values.items() if k in APPROACH_SPECS})
+        self.spectroscopy_values = spectroscopy_validate({k: v for k, v in values.items() if k in SPECTROSCOPY_SPECS})
+        self.cantilever_info: dict = {}  # the cantilever's last cantilever/scan message
+        self.spectroscopy_ramp = None  # the ramp whose curve is not published yet
+        self.spectroscopy_curve = None  # the last curve published
+        self._raw_subs: list = []
+        self._batches_since_done = 0
         self.stage: ZStage | None = None  # made when the cantilever's z_base is known (cantilever/scan)
         self.z_base: float | None = None
         self._lock = threading.Lock()
@@ -81,6 +107,8 @@ class ZControllerNode(Node):
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
         self.create_service(Trigger, "z_controller/approach", self._approach)
         self.create_service(Trigger, "z_controller/withdraw", self._withdraw)
+        self.create_service(Trigger, "z_controller/spectroscopy", self._spectroscopy)
+        self.pub_curve = self.create_publisher(Float64MultiArray, SPECTROSCOPY_TOPIC, topics.LATCHED_QOS)
         self._stage_reported = None
         self._report_stage()
         self._publish_z()
@@ -93,7 +121,7 @@ class ZControllerNode(Node):
                 "enabled" if values["enabled"] else "disabled (%s)" % values["disabled_action"]))
 
     def _all_values(self) -> dict:
-        return {**self.controller.params, **self.approach_values}
+        return {**self.controller.params, **self.approach_values, **self.spectroscopy_values}
 
     @property
     def stage_state(self) -> str:
@@ -102,10 +130,12 @@ class ZControllerNode(Node):
     def _on_cantilever(self, msg: String) -> None:
         """The cantilever's applied-scan message carries its z_base (needed to place the motor)."""
         try:
-            z_base = float(json.loads(msg.data)["z_base_m"])
+            info = json.loads(msg.data)
+            z_base = float(info["z_base_m"])
         except (ValueError, KeyError, TypeError):
             return
         with self._lock:
+            self.cantilever_info = info
             new = self.stage is None
             if new:
                 self.stage = ZStage(self.controller, z_base)
@@ -129,6 +159,9 @@ class ZControllerNode(Node):
             log = st.auto.log
             info.update({"approach_started_s": log.started_at, "engaged_s": log.engaged_at,
                          "engaged_z_m": log.engaged_z, "motor_steps": log.steps, "cycles": len(log.cycles)})
+        if st is not None and st.ramp is not None:
+            info.update({"spectroscopy_started_s": st.ramp.t0, "spectroscopy_ends_s": st.ramp.breaks[3],
+                         "spectroscopy_done": st.ramp.done})
         if info != self._stage_reported:
             self._stage_reported = info
             self.pub_stage.publish(String(data=json.dumps(info)))
@@ -147,6 +180,7 @@ class ZControllerNode(Node):
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             try:
                 auto = self.stage.start_approach(self.approach_values, t)
+                self._abandon_spectroscopy()
             except ValueError as exc:
                 response.success = False
                 response.message = f"approach refused: {exc}"
@@ -163,6 +197,7 @@ class ZControllerNode(Node):
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             if self.stage is None:
                 self.stage = ZStage(self.controller, 0.0)
+            self._abandon_spectroscopy()
             self.stage.start_withdraw(self.approach_values, t)
             self._report_stage()
         response.success = True
@@ -170,6 +205,98 @@ class ZControllerNode(Node):
                             f"the motor backs off {self.approach_values['withdraw_distance']:g} m")
         self.get_logger().info(response.message)
         return response
+
+    def _spectroscopy(self, request, response):
+        """Start a z spectroscopy at the parked tip (refused, with the reason, unless engaged, parked
+        and no curve is still being finished)."""
+        with self._lock:
+            info = self.cantilever_info
+            if self.stage is None or not info:
+                response.success = False
+                response.message = ("spectroscopy refused: the cantilever's set-up is not known yet (no message "
+                                    "on cantilever/scan: is the cantilever running in this namespace?)")
+                return response
+            if self.spectroscopy_ramp is not None:
+                response.success = False
+                response.message = "spectroscopy refused: a spectroscopy is already running"
+                return response
+            if "park" not in info:
+                response.success = False
+                response.message = "spectroscopy refused: a scan is running (the tip is not parked)"
+                return response
+            t = self.stage.t_last if self.stage.t_last is not None else 0.0
+            try:
+                ramp = self.stage.start_spectroscopy(self.spectroscopy_values, t, {
+                    "x": info["park"][0], "y": info["park"][1], "spring_constant": info["spring_constant_N_per_m"],
+                    "quality_factor": info["quality_factor"], "resonance_frequency": info["resonance_frequency_Hz"],
+                    "chunk_duration": info["chunk_duration_s"],
+                    "feedback_latency": info.get("feedback_latency_chunks", 2)})
+            except ValueError as exc:
+                response.success = False
+                response.message = str(exc)
+                return response
+            self.spectroscopy_ramp, self._first_raw_index = ramp, self.answered_end_index
+            self._batches_since_done = 0
+            self._raw_subs = [
+                self.create_subscription(Float64MultiArray, topics.DEFLECTION,
+                                         lambda m: self._on_raw(m, "deflection"), RAW_QOS),
+                self.create_subscription(Float64MultiArray, topics.FORCE, lambda m: self._on_raw(m, "force"),
+                                         RAW_QOS)]
+            self._report_stage()
+        v = self.spectroscopy_values
+        response.success = True
+        response.message = (f"spectroscopy at ({info['park'][0]:g}, {info['park'][1]:g}) m: z up "
+                            f"{v['spectroscopy_retract']:g} m, down {v['spectroscopy_distance']:g} m and back at "
+                            f"{v['spectroscopy_rate']:g} m/s ({ramp.duration:.4g} s), then the feedback resumes")
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_raw(self, msg: Float64MultiArray, what: str) -> None:
+        """A raw deflection or force chunk while a spectroscopy runs: its mean, for the curve."""
+        try:
+            header, samples = chunk_layout.unpack(msg.data)
+        except ValueError:
+            return
+        with self._lock:
+            ramp = self.spectroscopy_ramp
+            if ramp is None or header.first_sample_index < self._first_raw_index:
+                return
+            t_end = header.t_start + samples.shape[0] * header.sample_interval
+            ramp.add_chunk(header.first_sample_index, header.t_start, t_end, header.z_offset,
+                           **{what: chunk_mean(samples)})
+            self._finish_spectroscopy()
+
+    def _abandon_spectroscopy(self) -> None:
+        """A withdraw or approach ends a running ramp: no curve; the raw topics are left. Under the lock."""
+        if self.spectroscopy_ramp is not None and not self.spectroscopy_ramp.done:
+            self.get_logger().warning("spectroscopy abandoned (withdraw or approach): no curve published")
+            self.spectroscopy_ramp = None
+            for sub in self._raw_subs:
+                self.destroy_subscription(sub)
+            self._raw_subs = []
+
+    def _finish_spectroscopy(self) -> None:
+        """Publish the curve once the ramp is over and every chunk's means arrived (or the grace
+        period ran out: the missing ones are NaN), then leave the raw topics. Under the lock."""
+        ramp = self.spectroscopy_ramp
+        if ramp is None or not ramp.done:
+            return
+        if not ramp.complete and self._batches_since_done < SPECTROSCOPY_GRACE_BATCHES:
+            return
+        curve = ramp.curve()
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride)
+                          for label, size, stride in spectroscopy_layout.dims(curve)]
+        msg.layout.data_offset = 3 + spectroscopy_layout.N_META
+        msg.data = array.array("d", spectroscopy_layout.pack_curve(curve).tobytes())
+        self.pub_curve.publish(msg)
+        self.spectroscopy_curve, self.spectroscopy_ramp = curve, None
+        for sub in self._raw_subs:
+            self.destroy_subscription(sub)
+        self._raw_subs = []
+        self.get_logger().info(f"spectroscopy curve published: {curve.t.shape[0]} outputs, "
+                               f"{curve.chunk_t_start.shape[0]} chunks"
+                               + (f", {curve.missing_chunks} chunks without samples (NaN)" if curve.missing_chunks else ""))
 
     def _publish_z(self) -> None:
         self.pub_z.publish(Float64(data=self.controller.z))
@@ -182,7 +309,11 @@ class ZControllerNode(Node):
 
     def _apply(self, changed: dict) -> None:
         approach = {k: v for k, v in changed.items() if k in APPROACH_SPECS}
+        spectroscopy = {k: v for k, v in changed.items() if k in SPECTROSCOPY_SPECS}
         changed = {k: v for k, v in changed.items() if k in Z_CONTROLLER_SPECS}
+        if spectroscopy:
+            self.spectroscopy_values = spectroscopy_validate({**self.spectroscopy_values, **spectroscopy})
+            self.get_logger().info("spectroscopy parameters changed (for the next spectroscopy): %s" % spectroscopy)
         if approach:
             self.approach_values = approach_validate({**self.approach_values, **approach})
             self.get_logger().info("approach parameters changed (for the next approach or withdraw): %s" % approach)
@@ -220,11 +351,12 @@ class ZControllerNode(Node):
         want_z = self.pub_z.get_subscription_count() > 0  # per-output copies of the trace: while subscribed
         want_error = self.pub_error.get_subscription_count() > 0
         with self._lock:
+            ramp = self.stage.ramp if self.stage is not None and self.stage.state == "spectroscopy" else None
             for i, (t, x, y) in enumerate(zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist())):
                 if self.stage is None:
                     z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
                 else:
-                    z_msg.data = zs[i] = self.stage.update(math.hypot(x, y), t)
+                    z_msg.data = zs[i] = self.stage.update(math.hypot(x, y), t, phase_deg(x, y))
                 e_msg.data = errors[i] = self.controller.error
                 if want_z:
                     self.pub_z.publish(z_msg)
@@ -234,6 +366,11 @@ class ZControllerNode(Node):
             self.published_copies[self.pub_error] += n if want_error else 0
             self.answered_end_index = batch.input_end_index
             self._send_command(batch.input_end_index, batch.input_end_time)
+            if ramp is not None:
+                ramp.expect(batch.input_first_index)
+            if self.spectroscopy_ramp is not None and self.spectroscopy_ramp.done:
+                self._batches_since_done += 1
+                self._finish_spectroscopy()
             self._report_stage()
         trace = Float64MultiArray()
         trace.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_TRACE_LABEL, size=n, stride=3 * n)]

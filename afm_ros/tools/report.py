@@ -745,6 +745,7 @@ class SessionData:
     images: dict = field(default_factory=dict)  # topic -> ImageTopic (the last well-formed image of each)
     geometry: dict | None = None  # the last scanner/geometry, checked
     tune: dict | None = None  # the last lockin/tune_result, checked
+    spectroscopy: object = None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
     skipped: dict = field(default_factory=dict)  # topic -> why it was left out (one line each)
 
 
@@ -756,7 +757,8 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 IMAGE_ENCODING = "32FC1"
 GEOMETRY_TOPIC = "/scanner/geometry"
 TUNE_TOPIC = "/lockin/tune_result"
-EXTRA_ROLES = ("image", "geometry", "tune", "diagnostics")  # read when present and well-formed, skipped with a note if not
+SPECTROSCOPY_TOPIC = "/z_controller/spectroscopy"
+EXTRA_ROLES = ("image", "geometry", "tune", "spectroscopy", "diagnostics")  # read when present and well-formed, skipped with a note if not
 DISPLAY_MAX_PIXELS = 1024  # an image is reduced to at most this many pixels per side for the figure
 
 
@@ -767,6 +769,8 @@ def _extra_role(topic: str, type_name: str) -> str | None:
         return "geometry"
     if topic.endswith(TUNE_TOPIC):
         return "tune"
+    if topic.endswith(SPECTROSCOPY_TOPIC):
+        return "spectroscopy"
     if topic == "/diagnostics" or topic.endswith("/diagnostics"):
         return "diagnostics"
     return None
@@ -864,6 +868,11 @@ def _survey_extra(survey: "_Survey", role: str, m, k: int) -> None:
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
             return
         setattr(survey, role, (m.topic, k, bytes(m.data)))
+    elif role == "spectroscopy":
+        if m.type_name != "std_msgs/msg/Float64MultiArray":
+            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/Float64MultiArray"
+            return
+        survey.spectroscopy = (m.topic, k, bytes(m.data))
     else:
         if m.type_name != "diagnostic_msgs/msg/DiagnosticArray":
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
@@ -897,6 +906,7 @@ class _Survey:
     images: dict = field(default_factory=dict)  # topic -> ImageTopic
     geometry: tuple | None = None  # (topic, message number, CDR bytes) of the last scanner/geometry
     tune: tuple | None = None  # the same for the last lockin/tune_result
+    spectroscopy: tuple | None = None  # the same for the last z_controller/spectroscopy
     skipped: dict = field(default_factory=dict)  # topic -> why it is left out (one line)
 
 
@@ -1669,6 +1679,55 @@ def _tune(survey: _Survey, data: SessionData) -> None:
     data.tune = {**numbers, **arrays}
 
 
+def _spectroscopy(survey: _Survey, data: SessionData) -> None:
+    """The last z_controller/spectroscopy curve (formats/spectroscopy_layout.py), else a note."""
+    if survey.spectroscopy is None:
+        return
+    from afm_ros.formats.spectroscopy_layout import unpack_curve
+    topic, k, raw = survey.spectroscopy
+    try:
+        curve = unpack_curve(cdr_float64_array(raw)[1])
+    except (ValueError, struct.error, KeyError) as exc:
+        data.skipped[topic] = f"message {k} is not a spectroscopy curve ({str(exc)[:120]})"
+        return
+    if curve.t.size < 2 or not (curve.branch("approach").any() and curve.branch("retract").any()):
+        data.skipped[topic] = f"message {k}: the curve has no approach or no retract leg"
+        return
+    data.spectroscopy = curve
+
+
+def spectroscopy_numbers(curve) -> dict:
+    """The report's numbers of a curve: its set-up, the amplitude and phase at the legs' ends, the
+    mean force's extremes and the lag the ramp rate implies (core/spectroscopy.expected_lag)."""
+    from afm_ros.core.spectroscopy import expected_lag
+    lo, hi = expected_lag(curve.chunk_duration, curve.feedback_latency, curve.quality_factor,
+                          curve.resonance_frequency)
+    a, r = curve.branch("approach"), curve.branch("retract")
+    force = curve.chunk_force[np.isfinite(curve.chunk_force)]
+    return {"x_m": curve.x, "y_m": curve.y, "t_start_s": curve.t_start, "t_end_s": curve.t_end,
+            "rate_m_per_s": curve.rate, "retract_m": curve.retract, "distance_m": curve.distance,
+            "z_gap_held_m": curve.z_offset + curve.z_held, "z_gap_lowest_m": float(curve.z_gap[a].min()),
+            "outputs": int(curve.t.size), "chunks": int(curve.chunk_t_start.size),
+            "missing_chunks": curve.missing_chunks,
+            "amplitude_top_m": float(curve.amplitude[a][0]), "amplitude_bottom_m": float(curve.amplitude[a][-1]),
+            "phase_top_deg": float(curve.phase[a][0]), "phase_bottom_deg": float(curve.phase[a][-1]),
+            "amplitude_retract_top_m": float(curve.amplitude[r][-1]),
+            "max_mean_force_N": float(force.max()) if force.size else math.nan,
+            "min_mean_force_N": float(force.min()) if force.size else math.nan,
+            "lag_z_m": [curve.rate * lo, curve.rate * hi]}
+
+
+def write_spectroscopy_figure(data: SessionData, out: Path) -> Path | None:
+    """``spectroscopy.png``: the last recorded z spectroscopy curve (tools/spectroscopy_figure.py)."""
+    if data.spectroscopy is None:
+        return None
+    from afm_ros.tools.spectroscopy_figure import plot_spectroscopy
+    c = data.spectroscopy
+    return plot_spectroscopy(c, out / "spectroscopy.png",
+                             f"Z spectroscopy at ({c.x * 1e6:.3g}, {c.y * 1e6:.3g}) um, {c.rate * 1e9:.4g} nm/s "
+                             "(z_controller/spectroscopy)")
+
+
 def write_tune_figure(data: SessionData, out: Path) -> Path | None:
     """``tune.png``: the recorded drive sweep with its fit and working point (tools/tune_figure.py)."""
     t = data.tune
@@ -1718,6 +1777,7 @@ def load_session(path) -> SessionData:
     data.diagnostics, data.images, data.skipped = survey.diagnostics, survey.images, dict(survey.skipped)
     _geometry(survey, data)
     _tune(survey, data)
+    _spectroscopy(survey, data)
     plan = data.plan = _plan(data, survey.events)
     collector = _Collector(data, plan)
     roles = ["deflection", "force", *(r for r in BATCH_ROLES if r in data.batches),
@@ -1992,6 +2052,19 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images=Non
                   f"Q = {t['Q']:.4f} +- {t['Q_error']:.2g} (driven-oscillator fit). Working point: "
                   f"{t['drive_frequency_Hz']:.3f} Hz, drive scaled by {t['drive_scale']:.5f}, lock-in phase offset "
                   f"changed by {t['phase_offset_deg']:.3f} deg."]
+    if data.spectroscopy is not None:
+        g = spectroscopy_numbers(data.spectroscopy)
+        lines += ["", "## Z spectroscopy", "",
+                  f"At ({g['x_m'] * 1e6:.4g}, {g['y_m'] * 1e6:.4g}) um from t = {g['t_start_s']:.4f} s to "
+                  f"{g['t_end_s']:.4f} s (`spectroscopy.png`), feedback held: z up {g['retract_m'] * 1e9:.3g} nm, down "
+                  f"{g['distance_m'] * 1e9:.3g} nm and back at {g['rate_m_per_s'] * 1e9:.4g} nm/s, {g['outputs']} lock-in "
+                  f"outputs and {g['chunks']} chunks ({g['missing_chunks']} without samples). Approach from gap "
+                  f"{(g['z_gap_held_m'] + g['retract_m']) * 1e9:.2f} to {g['z_gap_lowest_m'] * 1e9:.2f} nm: amplitude "
+                  f"{g['amplitude_top_m'] * 1e9:.3f} -> {g['amplitude_bottom_m'] * 1e9:.3f} nm, phase "
+                  f"{g['phase_top_deg']:.2f} -> {g['phase_bottom_deg']:.2f} deg; mean tip-sample force "
+                  f"{g['min_mean_force_N'] * 1e9:.3f} to {g['max_mean_force_N'] * 1e9:.3f} nN. At this rate the curve "
+                  f"lags the commanded z by {g['lag_z_m'][0] * 1e9:.3g} to {g['lag_z_m'][1] * 1e9:.3g} nm "
+                  "(feedback latency and the amplitude's Q/(pi f0); docs/spectroscopy.md)."]
     for topic, type_name, expected in data.ignored:
         lines += ["", f"Ignored `{topic}`: type `{type_name}`, not `{expected}`."]
     if data.unused:
@@ -2251,6 +2324,9 @@ def make_report(session, out_dir=None) -> Report:
     tune_figure = write_tune_figure(data, out)
     if tune_figure is not None:
         figures.append(tune_figure)
+    spectroscopy_figure = write_spectroscopy_figure(data, out)
+    if spectroscopy_figure is not None:
+        figures.append(spectroscopy_figure)
     md = write_markdown(data, figures, out)
     numbers = tracking_numbers(data)
     for role, stream in (("deflection", data.deflection), ("force", data.force)):
@@ -2276,6 +2352,8 @@ def make_report(session, out_dir=None) -> Report:
     numbers["skipped"] = dict(data.skipped)
     if data.tune is not None:
         numbers["tune"] = {k: v for k, v in data.tune.items() if not isinstance(v, np.ndarray)}
+    if data.spectroscopy is not None:
+        numbers["spectroscopy"] = spectroscopy_numbers(data.spectroscopy)
     return Report(md, figures, numbers, data)
 
 
