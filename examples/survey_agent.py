@@ -20,7 +20,9 @@ import sys
 import numpy as np
 
 SURVEY = dict(center=(5e-6, 5e-6), size=(8e-6, 8e-6), pixels=64, lines=64, line_rate=2.0)
+SLOPE_SCAN = dict(pixels=32, lines=16, line_rate=4.0)  # a quick first image of the survey's area, for its slope
 ZOOM_PIXELS = 48
+MIN_SOLIDITY = 0.9  # a single round island, not two touching ones
 MIN_ISLAND_PIXELS = 12  # smaller regions of the survey's phase mask are noise or edges, not islands
 
 
@@ -29,7 +31,8 @@ def segment(phase: np.ndarray, min_pixels: int = MIN_ISLAND_PIXELS):
     from skimage.filters import threshold_otsu
     from skimage.measure import label, regionprops
 
-    labels = label(phase > threshold_otsu(phase))
+    lo, hi = np.percentile(phase, [1, 99])  # a few transient pixels (the scan's first) must not move the threshold
+    labels = label(phase > threshold_otsu(np.clip(phase, lo, hi)))
     small = [r.label for r in regionprops(labels) if r.area < min_pixels]
     labels[np.isin(labels, small)] = 0
     labels = label(labels > 0)
@@ -46,9 +49,9 @@ def level(height: np.ndarray, frame) -> tuple[float, float]:
 
 def inner(mask: np.ndarray, pixels: int) -> np.ndarray:
     """The mask shrunk by ``pixels`` (the loop's transient at the edges stays out of the medians)."""
-    from skimage.morphology import binary_erosion, disk
+    from skimage.morphology import disk, erosion
 
-    return binary_erosion(mask, disk(pixels)) if pixels > 0 else mask
+    return erosion(mask, disk(pixels)).astype(bool) if pixels > 0 else mask
 
 
 def spectroscopy_summary(curve) -> dict:
@@ -69,26 +72,31 @@ def run(afm, survey: dict = SURVEY, zoom_pixels: int = ZOOM_PIXELS, say=print) -
         say(f"tuned: f0 {tune['f0_Hz']:.2f} Hz, Q {tune['Q']:.3f}")
         approach = afm.approach()
         say(f"engaged after {approach['cycles']} cycles, {approach['motor_steps']} motor steps")
+    afm.set_scan(**{**survey, **SLOPE_SCAN})
+    first = afm.scan()
+    gx, gy = level(first.height.sel(direction="trace").values, first)
+    afm.set("scanner", slope_compensation_x=gx, slope_compensation_y=gy)
+    out["slope"] = [gx, gy]
+    say(f"first image: sample slope dz/dx {gx:.5f}, dz/dy {gy:.5f}, given to the scanner's slope compensation")
     afm.set_scan(**survey)
     say(f"survey: {survey['size'][0] * 1e6:g} x {survey['size'][1] * 1e6:g} um, {survey['pixels']} x "
-        f"{survey['lines']} pixels")
+        f"{survey['lines']} pixels at {survey['line_rate']:g} lines/s")
     frame = afm.scan()
-    gx, gy = level(frame.height.sel(direction="trace").values, frame)
-    afm.set("scanner", slope_compensation_x=gx, slope_compensation_y=gy)
-    say(f"sample slope dz/dx {gx:.5f}, dz/dy {gy:.5f}: given to the scanner's slope compensation")
     labels, regions = segment(frame.phase.sel(direction="trace").values)
     rows, cols = labels.shape
-    whole = [r for r in regions if r.bbox[0] > 0 and r.bbox[1] > 0 and r.bbox[2] < rows and r.bbox[3] < cols]
+    whole = [r for r in regions if r.bbox[0] > 0 and r.bbox[1] > 0 and r.bbox[2] < rows and r.bbox[3] < cols
+             and r.solidity >= MIN_SOLIDITY]
     if not whole:
-        raise RuntimeError(f"no island lies whole inside the survey ({len(regions)} regions touch its edges)")
+        raise RuntimeError(f"no round island lies whole inside the survey ({len(regions)} regions)")
     island = max(whole, key=lambda r: r.area)
     pixel = float(frame.x[1] - frame.x[0])
     cy, cx = island.centroid
     x0, y0 = float(frame.x[0]) + cx * pixel, float(frame.y[0]) + cy * pixel
     diameter = 2.0 * np.sqrt(island.area / np.pi) * pixel
-    out.update(islands=len(regions), island_center_m=[x0, y0], island_diameter_m=diameter)
-    say(f"found {len(regions)} islands; zooming into the largest whole one: {diameter * 1e9:.0f} nm across "
-        f"at ({x0 * 1e6:.2f}, {y0 * 1e6:.2f}) um")
+    out.update(islands=len(regions), island_center_m=[x0, y0], island_diameter_m=diameter,
+               survey_start_s=float(frame.attrs["start_time_s"]))
+    say(f"found {len(regions)} islands; zooming into the largest round one inside the survey: "
+        f"{diameter * 1e9:.0f} nm across at ({x0 * 1e6:.2f}, {y0 * 1e6:.2f}) um")
     size = 2.5 * diameter
     afm.set_scan(center=(x0, y0), size=(size, size), pixels=zoom_pixels, lines=zoom_pixels,
                  line_rate=survey["line_rate"])
@@ -99,18 +107,20 @@ def run(afm, survey: dict = SURVEY, zoom_pixels: int = ZOOM_PIXELS, say=print) -
     on, off = inner(zlabels > 0, edge), inner(zlabels == 0, edge)
     contrast = float(np.median(phase[on]) - np.median(phase[off]))
     out.update(zoom_size_m=size, phase_island_deg=float(np.median(phase[on])),
-               phase_matrix_deg=float(np.median(phase[off])), phase_contrast_deg=contrast,
-               flags=afm.flags())
+               phase_matrix_deg=float(np.median(phase[off])), phase_contrast_deg=contrast, flags=afm.flags())
     say(f"zoom {size * 1e6:.2f} um: phase contrast island - matrix {contrast:.3f} deg "
         f"({int(on.sum())} and {int(off.sum())} pixels away from the edges); flags: {out['flags'] or 'none'}")
-    matrix = (x0 + 0.5 * size - 0.5 * pixel, y0)  # the zoom's right edge, on the matrix
+    # the matrix point: the zoom's pixel farthest from any island
+    from scipy.ndimage import distance_transform_edt
+
+    far = np.unravel_index(int(np.argmax(distance_transform_edt(zlabels == 0))), zlabels.shape)
+    matrix = (float(zoom.x[far[1]]), float(zoom.y[far[0]]))
     for name, (x, y) in (("island", (x0, y0)), ("matrix", matrix)):
         curve = afm.spectroscopy(x, y)
-        out[f"spectroscopy_{name}"] = spectroscopy_summary(curve)
+        out[f"spectroscopy_{name}"] = {**spectroscopy_summary(curve), "point_m": [x, y]}
         s = out[f"spectroscopy_{name}"]
-        say(f"spectroscopy on the {name}: amplitude at the setpoint at z {s['z_at_setpoint_m'] * 1e9:.2f} nm, "
-            f"largest mean force {s['max_mean_force_N'] * 1e9:.2f} nN")
-    out["spectroscopy_matrix"]["point_m"] = list(matrix)
+        say(f"spectroscopy on the {name} at ({x * 1e6:.2f}, {y * 1e6:.2f}) um: the amplitude reaches the setpoint at "
+            f"z {s['z_at_setpoint_m'] * 1e9:.2f} nm, largest mean force {s['max_mean_force_N'] * 1e9:.2f} nN")
     afm.withdraw()
     say("withdrawn")
     return out

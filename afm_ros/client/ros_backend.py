@@ -26,14 +26,10 @@ from afm_ros.client.ros_link import NoAnswer, ParameterRefused, RosLink, Service
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.formats import chunk_layout
+from afm_ros.formats.spectroscopy_layout import unpack_curve
 from afm_ros.nodes import topics
 
 NODES = ("cantilever", "lockin", "z_controller", "scanner")
-SPECTROSCOPY_TOPIC = "z_controller/spectroscopy"
-
-
-def unpack_curve(msg):
-    raise ValueError("not yet")
 STEP_S = 0.1  # [s] simulated: a workflow step (approach, withdraw, spectroscopy) advances this far at a time
 BOUNDARY_TOLERANCE_S = 1e-9  # a chunk boundary this close to a target counts as reaching it (float sums)
 SCAN_PARAMETERS = ("scan_size_x", "scan_size_y", "scan_center_x", "scan_center_y", "pixels_per_line", "lines",
@@ -90,8 +86,8 @@ class RosBackend:
                                  10)
         node.create_subscription(Float64MultiArray, link.resolve(topics.TRUTH_TIP), keep("tip", lambda m: list(m.data)),
                                  topics.LATCHED_QOS)
-        node.create_subscription(Float64MultiArray, link.resolve(SPECTROSCOPY_TOPIC),
-                                 keep("curve", lambda m: unpack_curve(m)), topics.LATCHED_QOS)
+        node.create_subscription(Float64MultiArray, link.resolve(topics.SPECTROSCOPY), keep("curve", unpack_curve),
+                                 topics.LATCHED_QOS)
 
         def on_batch(msg: Float64MultiArray) -> None:
             try:

@@ -45,6 +45,8 @@ TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
 # second_apex_y_m, second_apex_height_m] at each rebuild of the sample map for a grown apex radius or
 # a pick-up event (afm_ros.core.tip; a single tip has a zero second apex)
 TRUTH_TIP = "truth/tip"
+# std_msgs/Float64MultiArray (latched): the last z spectroscopy curve (afm_ros.formats.spectroscopy_layout)
+SPECTROSCOPY = "z_controller/spectroscopy"
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing

@@ -57,7 +57,7 @@ Z_QOS = topics.HISTORY_QOS
 ERROR_QOS = topics.HISTORY_QOS
 COMMAND_QOS = topics.HISTORY_QOS
 DIAGNOSTICS_PERIOD_S = 1.0
-SPECTROSCOPY_TOPIC = "z_controller/spectroscopy"
+SPECTROSCOPY_TOPIC = topics.SPECTROSCOPY
 # raw chunks while a spectroscopy runs: reliable, transient local (the chunks published before the
 # subscription matched), the last 100 chunks (0.2 s at 2 ms chunks) kept if the executor falls behind
 RAW_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
