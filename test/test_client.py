@@ -23,6 +23,9 @@ import xarray as xr
 
 from afm_ros.client import Microscope, NodeNotFound, NotEngaged, Refused
 from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, drift_velocity
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS
+from afm_ros.formats.frames import channel_title
+from afm_ros.formats.gwy import read_gwy
 from afm_ros.nodes.node_main import make_executor
 from afm_ros.tools.afm_instrument import build_nodes
 
@@ -139,10 +142,11 @@ def test_over_ros_the_frame_equals_the_in_process_one(monkeypatch, ros_namespace
                                       err_msg=name)
 
 
-def test_the_workflow_over_ros_and_its_errors(monkeypatch, ros_namespace):
+def test_every_verb_over_ros_and_its_errors(monkeypatch, ros_namespace, tmp_path):
     cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
     z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
-    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever, z_controller=z):
+    scanner = {"write_files": True, "output_directory": str(tmp_path / "scans")}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever, z_controller=z, scanner=scanner):
         with Microscope.connect(ros_namespace, timeout=30.0) as afm:
             assert afm.state()["stage"] == "withdrawn"
             with pytest.raises(NotEngaged, match="not engaged"):
@@ -155,10 +159,34 @@ def test_the_workflow_over_ros_and_its_errors(monkeypatch, ros_namespace):
                 afm.set_feedback(i_gain=-1.0)
             assert afm.feedback()["i_gain"] == 100.0
             afm.set_scan(**SMALL)
-            frame = afm.scan()
+            future = afm.scan_async(save=tmp_path / "frame")
+            frame = future.result(timeout=600)
             assert frame.height.shape == (2, 8, 16) and frame.attrs["source"] == "ros"
-            afm.move_tip(4e-6, 4e-6)
+            # the file holds the Dataset's values, which are the scanner's (its own .gwy)
+            saved = read_gwy(frame.attrs["file"]).channels
+            deadline = time.monotonic() + 60.0  # the scanner writes its file in a background thread
+            while not list(tmp_path.glob("scans/afm_frame_*.gwy")) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            own = read_gwy(next(tmp_path.glob("scans/afm_frame_*.gwy"))).channels
+            for c in CHANNELS:
+                for d in DIRECTIONS:
+                    title = channel_title(c, d)
+                    np.testing.assert_array_equal(saved[title][0], frame[c].sel(direction=d).values)
+                    np.testing.assert_array_equal(own[title][0], saved[title][0])
+            assert isinstance(afm.flags(), dict)
+            truth = afm.truth()
+            assert truth["drift_x_m"] != 0.0 and truth["tip_radius_m"] >= 20e-9
+            t0 = afm.state()["t_s"]
+            afm.wait(0.05)
+            assert afm.state()["t_s"] == pytest.approx(t0 + 0.05, abs=0.002)  # to the next 2 ms chunk boundary
+            curve = afm.spectroscopy(x=4e-6, y=4e-6, spectroscopy_distance=20e-9)
+            assert set(curve.branch.values) == {"lift", "approach", "retract", "return"}
+            assert curve.attrs["distance"] == 20e-9 and afm.get("z_controller", "spectroscopy_distance") == {
+                "spectroscopy_distance": 30e-9}  # the override was for that curve only
+            assert afm.state()["stage"] == "engaged"
             assert afm.withdraw()["state"] == "withdrawn"
+            with pytest.raises(NotEngaged, match="engaged"):
+                afm.spectroscopy()
 
 
 def test_no_instrument_in_the_namespace_fails_within_the_timeout(monkeypatch):

@@ -59,3 +59,30 @@ def curve_dataset(curve, attrs: dict | None = None):
     return xr.Dataset(variables, coords={"t": ("t", np.asarray(curve.t), {"units": "s"}),
                                          "chunk_t": ("chunk", mid, {"units": "s"})},
                       attrs={**meta, **(attrs or {})})
+
+
+def plan_of(ds) -> ScanPlan:
+    """The scan plan a frame Dataset was scanned with (its ``scan_*`` and ``start_time_s`` attributes)."""
+    a = ds.attrs
+    return ScanPlan.from_values({k: a[k] for k in ("scan_size_x", "scan_size_y", "scan_center_x", "scan_center_y")}
+                                | {"pixels_per_line": int(a["scan_pixels_per_line"]), "lines": int(a["scan_lines"]),
+                                   "line_rate": float(a["scan_line_rate"]),
+                                   "slow_scan_direction": a["scan_slow_scan_direction"],
+                                   "continuous": bool(a["scan_continuous"])}, start_time=float(a["start_time_s"]))
+
+
+def save_frame(ds, path, previews: bool = False) -> list:
+    """Write a frame Dataset as a Gwyddion file ``path`` (.gwy added if missing; every channel and
+    direction, SI units, the attributes as metadata), as the scanner writes its frames; the paths."""
+    from pathlib import Path
+
+    from afm_ros.core.imaging import Frame
+    from afm_ros.formats.frames import write_frame
+
+    plan = plan_of(ds)
+    frame = Frame(plan, 0, {d: {c: ds[c].sel(direction=d).values.astype(np.float32) for c in CHANNELS}
+                            for d in DIRECTIONS}, plan.lines)
+    stem = Path(path)
+    stem = stem.with_suffix("") if stem.suffix == ".gwy" else stem
+    meta = {"afm_ros": {k: (v if isinstance(v, (str, int, float)) else str(v)) for k, v in ds.attrs.items()}}
+    return write_frame(frame, stem, meta, previews=previews)

@@ -174,11 +174,17 @@ class Microscope:
         """Feedback off, z piezo retracted, the motor backs off: the tip is safe to move."""
         return self._backend.withdraw()
 
-    def scan(self, progress=None):
+    def scan(self, progress=None, save=None):
         """Scan one frame with the scan settings from now; returns it as an xarray Dataset
-        (:mod:`afm_ros.client.frames`). ``progress(lines_done, lines)`` is called as lines finish.
-        :class:`NotEngaged` if the tip is not on the surface."""
-        return self._backend.scan(progress)
+        (:mod:`afm_ros.client.frames`). ``progress(lines_done, lines)`` is called as lines finish;
+        ``save``: also write it as a Gwyddion file there (the values the .gwy holds are the
+        Dataset's). :class:`NotEngaged` if the tip is not on the surface."""
+        frame = self._backend.scan(progress)
+        if save is not None:
+            from afm_ros.client.frames import save_frame
+
+            frame.attrs["file"] = str(save_frame(frame, save)[0])
+        return frame
 
     def move_tip(self, x: float, y: float) -> None:
         """Move the tip to (x, y) [m] (sample coordinates) and hold it there (not while scanning)."""
@@ -223,8 +229,8 @@ class Microscope:
     def withdraw_async(self) -> Future:
         return self._submit(self.withdraw)
 
-    def scan_async(self, progress=None) -> Future:
-        return self._submit(self.scan, progress)
+    def scan_async(self, progress=None, save=None) -> Future:
+        return self._submit(self.scan, progress, save)
 
     def spectroscopy_async(self, x: float | None = None, y: float | None = None, **values) -> Future:
         return self._submit(self.spectroscopy, x, y, **values)

@@ -15,10 +15,13 @@ whether a flag was right, so detection software can be scored against it.
 - ``drift_detected``: the frame is shifted against the previous frame of the same area by more
   than ``drift_pixels`` (sub-pixel image registration of the height images,
   :func:`afm_ros.core.image_analysis.image_shift`); reported as a shift [m] and a rate [m/s].
-- ``tip_change_suspected``: the trace/retrace mismatch (rms height difference) of a line jumps
-  above ``tip_jump`` times the median of the lines before it (at least ``tip_persist`` of them) and
-  stays there for ``tip_persist`` lines (a tip that picked something up or broke images
-  differently from then on).
+- ``tip_change_suspected``: on the lines with features (height steps above ``FEATURE_FRACTION`` of
+  the frame's upper quartile: a flat line images the same with any tip), the trace/retrace mismatch
+  relative to the line's height steps (the rms height difference over the rms pixel-to-pixel step:
+  the scanner's hysteresis, which shifts trace against retrace, mismatches a line by about the
+  shift times its steps and does not count) jumps above ``tip_jump`` times the median of the lines
+  before it (at least ``tip_persist`` of them) and stays there for ``tip_persist`` lines (a tip that
+  picked something up or broke images differently from then on).
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 LIMIT_TOLERANCE_M = 1e-12
+FEATURE_FRACTION = 0.2  # a line whose height steps are below this fraction of the frame's upper quartile is flat
 
 
 @dataclass(frozen=True)
@@ -87,16 +91,24 @@ def frame_flags(frame, setpoint: float, z_limits: tuple[float, float], previous=
                                   f"frame shifted by ({dx * 1e9:.3g}, {dy * 1e9:.3g}) nm against the previous one: "
                                   f"{math.hypot(dx, dy) / dt * 60e9:.3g} nm/min",
                                   {"shift_x_m": dx, "shift_y_m": dy, "rate_m_per_s": math.hypot(dx, dy) / dt}))
-    mismatch = np.sqrt(np.nanmean((tr["height"][:done].astype(float) - re["height"][:done]) ** 2, axis=1))
-    if np.isfinite(mismatch).all():
+    trace_h = tr["height"][:done].astype(float)
+    raw = np.sqrt(np.nanmean((trace_h - re["height"][:done]) ** 2, axis=1))
+    # relative to the line's features: the scanner's hysteresis shifts trace against retrace, which
+    # mismatches a line by about the shift times its height steps; a tip change shows beyond that, and
+    # only where there are features (a flat line images the same with any tip)
+    steps = np.sqrt(np.nanmean(np.diff(trace_h, axis=1) ** 2, axis=1)) if trace_h.shape[1] > 1 else raw * 0
+    featured = np.flatnonzero(steps > FEATURE_FRACTION * np.nanpercentile(steps, 75)) if done else np.array([], int)
+    relative = raw[featured] / steps[featured]
+    if np.isfinite(relative).all():
         k = settings.tip_persist
-        for line in range(k, done - k + 1):
-            base = float(np.median(mismatch[:line]))
-            if base > 0 and (mismatch[line:line + k] > settings.tip_jump * base).all():
+        for i in range(k, relative.size - k + 1):
+            base = float(np.median(relative[:i]))
+            if base > 0 and (relative[i:i + k] > settings.tip_jump * base).all():
+                line = int(featured[i])
                 flags.append(Flag("tip_change_suspected",
-                                  f"from line {line} on the trace/retrace mismatch is over {settings.tip_jump:g} times "
-                                  f"the median of the lines before ({base * 1e9:.3g} nm)",
-                                  {"line": line, "median_mismatch_m": base}))
+                                  f"from line {line} on the trace/retrace mismatch (relative to the line's height "
+                                  f"steps) is over {settings.tip_jump:g} times the median of the lines before",
+                                  {"line": line, "median_relative_mismatch": base}))
                 break
     return flags
 
