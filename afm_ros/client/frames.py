@@ -3,7 +3,8 @@
 A frame is one :class:`xarray.Dataset` with a variable per image channel (``height`` [m],
 ``amplitude`` [m], ``phase`` [deg], ``amplitude_error`` [m], ``dissipation`` [J]) over the
 dimensions ``direction`` (``trace``, ``retrace``), ``y`` and ``x``: the coordinates are the pixel
-centres in sample coordinates [m] (row 0 = lowest y, as in the .gwy file the scanner writes). Its
+centres [m] of the scan's own raster (row 0 = lowest y, as in the .gwy file the scanner writes),
+and ``sample_x``, ``sample_y`` (y, x) the same centres on the sample (a rotated scan turns them). Its
 attributes hold the scan (``scan_*``), the feedback, the start time [s], the problem flags (a JSON
 string, since netCDF attributes are scalars) and where it came from.
 """
@@ -30,8 +31,11 @@ def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):
     scan = {(k if k.startswith("scan_") else f"scan_{k}"): (v if not isinstance(v, bool) else int(v))
             for k, v in plan.values().items()}
     flat = {k: (json.dumps(v) if isinstance(v, (dict, list)) else v) for k, v in attrs.items()}
+    sample_x, sample_y = plan.to_sample(*np.meshgrid(x, y))
     ds = xr.Dataset(data, coords={"direction": list(DIRECTIONS), "y": ("y", y, {"units": "m"}),
-                                  "x": ("x", x, {"units": "m"})},
+                                  "x": ("x", x, {"units": "m"}),
+                                  "sample_x": (("y", "x"), np.broadcast_to(sample_x, (y.size, x.size)), {"units": "m"}),
+                                  "sample_y": (("y", "x"), np.broadcast_to(sample_y, (y.size, x.size)), {"units": "m"})},
                     attrs={**scan, "start_time_s": plan.start_time, **flat})
     return ds
 
@@ -68,7 +72,8 @@ def plan_of(ds) -> ScanPlan:
                                 | {"pixels_per_line": int(a["scan_pixels_per_line"]), "lines": int(a["scan_lines"]),
                                    "line_rate": float(a["scan_line_rate"]),
                                    "slow_scan_direction": a["scan_slow_scan_direction"],
-                                   "continuous": bool(a["scan_continuous"])}, start_time=float(a["start_time_s"]))
+                                   "continuous": bool(a["scan_continuous"]), "scan_angle": float(a["scan_angle"])},
+                                start_time=float(a["start_time_s"]))
 
 
 def save_frame(ds, path, previews: bool = False) -> list:

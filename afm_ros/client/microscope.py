@@ -98,28 +98,33 @@ class Microscope:
     # --- settings -------------------------------------------------------------------------------------
     def set_scan(self, center: tuple[float, float] | None = None, top_left: tuple[float, float] | None = None,
                  size: tuple[float, float] | None = None, pixels: int | None = None, lines: int | None = None,
-                 line_rate: float | None = None, slow_scan_direction: str | None = None, angle: float = 0.0) -> dict:
+                 line_rate: float | None = None, slow_scan_direction: str | None = None,
+                 angle: float | None = None) -> dict:
         """The next scan's region and raster: ``center`` or ``top_left`` (x, y) [m] in sample
-        coordinates (top = the highest y), ``size`` (x, y) [m], ``pixels`` per line, ``lines``,
-        ``line_rate`` [lines/s], ``slow_scan_direction`` ('up' or 'down'). All or nothing: a refused
-        value (:class:`Refused`, the node's reason) changes none. Returns the scan settings.
-        ``angle`` [deg]: this scanner does not rotate; any other value than 0 is refused."""
-        if angle != 0.0:
-            raise Refused("scanner", f"angle={angle!r} deg: this scanner scans along x only (no rotation); "
-                                     f"allowed: 0")
+        coordinates (the image's top-left corner: its first pixel of the highest row), ``size`` (x, y)
+        [m], ``angle`` [deg] (the fast axis turned counterclockwise from the sample's x axis, about
+        the centre), ``pixels`` per line, ``lines``, ``line_rate`` [lines/s], ``slow_scan_direction``
+        ('up' or 'down'). All or nothing: a refused value (:class:`Refused`, the node's reason)
+        changes none. Returns the scan settings."""
+        import math
+
         if center is not None and top_left is not None:
             raise ValueError("give center or top_left, not both")
         values: dict = {}
-        current = self.scan_settings() if top_left is not None and size is None else {}
+        current = self.scan_settings() if top_left is not None else {}
         if size is not None:
             values["scan_size_x"], values["scan_size_y"] = (float(v) for v in size)
+        if angle is not None:
+            values["scan_angle"] = float(angle)
         if center is not None:
             values["scan_center_x"], values["scan_center_y"] = (float(v) for v in center)
         if top_left is not None:
             sx = values.get("scan_size_x", current.get("scan_size_x"))
             sy = values.get("scan_size_y", current.get("scan_size_y"))
-            values["scan_center_x"] = float(top_left[0]) + 0.5 * sx
-            values["scan_center_y"] = float(top_left[1]) - 0.5 * sy
+            turn = math.radians(values.get("scan_angle", current.get("scan_angle", 0.0)))
+            u, v = 0.5 * sx, -0.5 * sy  # the centre from the top-left corner, in the scan's own frame
+            values["scan_center_x"] = float(top_left[0]) + u * math.cos(turn) - v * math.sin(turn)
+            values["scan_center_y"] = float(top_left[1]) + u * math.sin(turn) + v * math.cos(turn)
         for name, value in (("pixels_per_line", pixels), ("lines", lines), ("line_rate", line_rate),
                             ("slow_scan_direction", slow_scan_direction)):
             if value is not None:

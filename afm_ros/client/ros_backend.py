@@ -33,7 +33,7 @@ NODES = ("cantilever", "lockin", "z_controller", "scanner")
 STEP_S = 0.1  # [s] simulated: a workflow step (approach, withdraw, spectroscopy) advances this far at a time
 BOUNDARY_TOLERANCE_S = 1e-9  # a chunk boundary this close to a target counts as reaching it (float sums)
 SCAN_PARAMETERS = ("scan_size_x", "scan_size_y", "scan_center_x", "scan_center_y", "pixels_per_line", "lines",
-                   "line_rate", "slow_scan_direction")
+                   "line_rate", "slow_scan_direction", "scan_angle")
 
 
 class RosBackend:

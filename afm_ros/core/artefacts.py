@@ -47,8 +47,8 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
-from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINE_STEP, PLAN_LINES,
-                                      PLAN_SIZE_X, PLAN_START, TRUTH_KEYS)  # noqa: F401 (TRUTH_KEYS: re-exported)
+from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_COS, PLAN_LINE_RATE, PLAN_LINE_STEP,
+                                      PLAN_LINES, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X, PLAN_START, TRUTH_KEYS)  # noqa: F401 (TRUTH_KEYS: re-exported)
 
 if TYPE_CHECKING:
     from afm_ros.core.scanner import ScanPlan
@@ -125,6 +125,11 @@ def check_plan(values: dict, plan: "ScanPlan") -> None:
         if size > f * (1 + 1e-12):
             raise ValueError(f"{name}={size:g} m exceeds the scanner's field scanner_field={f:g} m; "
                              f"allowed range [1e-09, {f:g}] m")
+    wide, high = plan.extent
+    if max(wide, high) > f * (1 + 1e-12):
+        raise ValueError(f"scan_angle={plan.angle:g} deg turns the {plan.size_x:g} x {plan.size_y:g} m scan into a "
+                         f"{wide:.4g} x {high:.4g} m box, beyond the scanner's field scanner_field={f:g} m; "
+                         f"make it smaller or turn it less")
 
 
 def drift_velocity(values: dict) -> tuple[float, float, float]:
@@ -278,6 +283,8 @@ def truth(art: np.ndarray, plan: np.ndarray, t) -> dict:
 def _truth(art, plan, t, out):
     for i in range(t.shape[0]):
         hx, hy = hysteresis_offsets(art, plan, t[i])
+        if plan[PLAN_ROTATED] != 0.0:  # along the rotated scan's axes
+            hx, hy = hx * plan[PLAN_COS] - hy * plan[PLAN_SIN], hx * plan[PLAN_SIN] + hy * plan[PLAN_COS]
         dx, dy, dz, cx, cy = slow_terms(art, t[i])
         out[0, i] = hx
         out[1, i] = hy

@@ -13,18 +13,25 @@ from afm_ros.core.scanner import ScanPlan
 
 
 def pixel_centres(plan: ScanPlan) -> tuple[np.ndarray, np.ndarray]:
-    """x [cols] and y [rows] of the pixel centres [m] (row 0 = lowest y)."""
+    """x [cols] and y [rows] of the pixel centres [m] (row 0 = lowest y) in the scan's own frame (the
+    unrotated raster; :func:`pixel_positions` gives them on the sample)."""
     x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
     y = plan.y_low + (np.arange(plan.lines) + 0.5) * plan.line_pitch
     return x, y
 
 
+def pixel_positions(plan: ScanPlan) -> tuple[np.ndarray, np.ndarray]:
+    """Sample coordinates [m] of every pixel centre (rows x cols), the scan's rotation applied."""
+    x, y = pixel_centres(plan)
+    return plan.to_sample(*np.meshgrid(x, y))
+
+
 def sample_under_pixels(sample, plan: ScanPlan):
     """(height [m], material index) of ``sample`` (periodic) at the pixel centres, rows x cols."""
-    x, y = pixel_centres(plan)
+    x, y = pixel_positions(plan)
     cols = np.floor(np.mod(x, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]
     rows = np.floor(np.mod(y, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
-    return sample.height[np.ix_(rows, cols)], sample.material_index[np.ix_(rows, cols)]
+    return sample.height[rows, cols], sample.material_index[rows, cols]
 
 
 @dataclass
@@ -55,7 +62,7 @@ def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = No
         height, material = sample_under_pixels(sample, plan)
         flat = PixelTruth(height, material, np.zeros(height.shape))
         return {"trace": flat, "retrace": flat}
-    x, y = pixel_centres(plan)
+    x, y = pixel_positions(plan)
     rows = np.arange(plan.lines)
     line = rows if plan.slow_scan_direction == "up" else plan.lines - 1 - rows
     packed = plan.packed()
@@ -65,8 +72,8 @@ def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = No
         u = along if direction == "trace" else 1.0 - along
         t = plan.start_time + (frame_index * (lines_planned or plan.lines) + line[:, None] + u[None, :]) / plan.line_rate
         tr = {k: v.reshape(t.shape) for k, v in truth(artefacts, packed, t.ravel()).items()}
-        xs = x[None, :] + tr["hysteresis_x"] + tr["creep_x"] - tr["drift_x"]
-        ys = y[:, None] + tr["hysteresis_y"] + tr["creep_y"] - tr["drift_y"]
+        xs = x + tr["hysteresis_x"] + tr["creep_x"] - tr["drift_x"]
+        ys = y + tr["hysteresis_y"] + tr["creep_y"] - tr["drift_y"]
         cols = np.floor(np.mod(xs, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]
         rws = np.floor(np.mod(ys, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
         plane = (artefacts[ART_TILT_X] * (xs - artefacts[ART_X0]) + artefacts[ART_TILT_Y] * (ys - artefacts[ART_Y0])

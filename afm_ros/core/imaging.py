@@ -78,7 +78,13 @@ class Frame:
         # acquisition lines 0..done-1 are rows 0..done-1 (up) or lines-done..lines-1 (down)
         first = 0 if p.slow_scan_direction == "up" else p.lines - done
         size_y = done * p.line_pitch
-        plan = replace(p, size_y=size_y, lines=done, center_y=p.y_low + first * p.line_pitch + 0.5 * size_y)
+        center_y = p.y_low + first * p.line_pitch + 0.5 * size_y
+        if p.angle == 0.0:
+            plan = replace(p, size_y=size_y, lines=done, center_y=center_y)
+        else:  # the centre moves along the rotated slow axis
+            shift, turn = center_y - p.center_y, math.radians(p.angle)
+            plan = replace(p, size_y=size_y, lines=done, center_x=p.center_x - math.sin(turn) * shift,
+                           center_y=p.center_y + math.cos(turn) * shift)
         images = {d: {c: a[first:first + done].copy() for c, a in chans.items()} for d, chans in self.images.items()}
         return Frame(plan, self.index, images, done, p.lines)
 

@@ -39,10 +39,13 @@ SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("slow_scan_direction", "up", "", "up: first line at the lowest y (image row 0); down: at the highest",
               kind=str, choices=("up", "down")),
     ParamSpec("continuous", False, "", "scan frame after frame (else one frame, then park)", kind=bool),
+    ParamSpec("scan_angle", 0.0, "deg", "scan rotation about the scan centre, counterclockwise from the sample's x "
+              "axis: the fast axis runs along this angle (the image keeps its rows and columns)", -180.0, 180.0),
 )}
 
-from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LENGTH, PLAN_LINE_RATE,  # noqa: E402,F401
-                                      PLAN_LINE_STEP, PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_SIZE_X,
+from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CENTER_X, PLAN_CENTER_Y,  # noqa: E402,F401
+                                      PLAN_CONTINUOUS, PLAN_COS, PLAN_LENGTH, PLAN_LINE_RATE, PLAN_LINE_STEP,
+                                      PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X,
                                       PLAN_START, PLAN_X_LEFT, PLAN_Y_FIRST)
 
 
@@ -60,6 +63,7 @@ class ScanPlan:
     slow_scan_direction: str = "up"
     continuous: bool = False
     start_time: float = 0.0
+    angle: float = 0.0  # [deg] scan rotation about the centre (counterclockwise)
 
     @classmethod
     def from_values(cls, values: dict, start_time: float = 0.0) -> "ScanPlan":
@@ -68,14 +72,15 @@ class ScanPlan:
         if not math.isfinite(start_time):
             raise ValueError(f"start_time={start_time!r} s is not finite")
         return cls(v["scan_size_x"], v["scan_size_y"], v["scan_center_x"], v["scan_center_y"], v["pixels_per_line"],
-                   v["lines"], v["line_rate"], v["slow_scan_direction"], v["continuous"], float(start_time))
+                   v["lines"], v["line_rate"], v["slow_scan_direction"], v["continuous"], float(start_time),
+                   v["scan_angle"])
 
     def values(self) -> dict:
         """Scanner parameter values of this plan (SCAN_SPECS names)."""
         return {"scan_size_x": self.size_x, "scan_size_y": self.size_y, "scan_center_x": self.center_x,
                 "scan_center_y": self.center_y, "pixels_per_line": self.pixels, "lines": self.lines,
                 "line_rate": self.line_rate, "slow_scan_direction": self.slow_scan_direction,
-                "continuous": self.continuous}
+                "continuous": self.continuous, "scan_angle": self.angle}
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -144,7 +149,25 @@ class ScanPlan:
         out[PLAN_CONTINUOUS] = 1.0 if self.continuous else 0.0
         out[PLAN_PARK_X] = self.x_left
         out[PLAN_PARK_Y] = self.line_y(0)
+        if self.angle != 0.0:  # angle 0 stays on the unrotated path (the same bits as before rotation existed)
+            out[PLAN_ROTATED] = 1.0
+            out[PLAN_CENTER_X], out[PLAN_CENTER_Y] = self.center_x, self.center_y
+            out[PLAN_COS], out[PLAN_SIN] = math.cos(math.radians(self.angle)), math.sin(math.radians(self.angle))
         return out
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """Width and height [m] of the rotated scan's bounding box in sample coordinates."""
+        c, s = abs(math.cos(math.radians(self.angle))), abs(math.sin(math.radians(self.angle)))
+        return c * self.size_x + s * self.size_y, s * self.size_x + c * self.size_y
+
+    def to_sample(self, x, y):
+        """Sample coordinates [m] of scan-frame positions (x, y) [m] (the unrotated raster's), arrays or floats."""
+        if self.angle == 0.0:
+            return x, y
+        c, s = math.cos(math.radians(self.angle)), math.sin(math.radians(self.angle))
+        du, dv = np.asarray(x) - self.center_x, np.asarray(y) - self.center_y
+        return self.center_x + du * c - dv * s, self.center_y + du * s + dv * c
 
     def slots(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(frame, line, direction 0 trace / 1 retrace, pixel) of each time t [s]; frame -1 outside the scan."""
@@ -173,6 +196,16 @@ def scan_position(plan, t):
     if u < 0.5:
         return plan[PLAN_X_LEFT] + plan[PLAN_SIZE_X] * (2.0 * u), y
     return plan[PLAN_X_LEFT] + plan[PLAN_SIZE_X] * (2.0 - 2.0 * u), y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def rotate_position(plan, x, y):
+    """Sample coordinates [m] of a scan-frame position (x, y) [m] of a rotated packed plan."""
+    du = x - plan[PLAN_CENTER_X]
+    dv = y - plan[PLAN_CENTER_Y]
+    c = plan[PLAN_COS]
+    s = plan[PLAN_SIN]
+    return plan[PLAN_CENTER_X] + du * c - dv * s, plan[PLAN_CENTER_Y] + du * s + dv * c
 
 
 def parked_plan(x: float, y: float) -> np.ndarray:

@@ -21,8 +21,8 @@ from afm_ros.core.physics.forces import tip_sample_force
 from afm_ros.core.physics.noise import THERMAL_STREAM, normal_pair
 from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
                                     hysteresis_offsets, slow_terms)
-from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_SIZE_X, PLAN_START,
-                                   PLAN_X_LEFT, scan_position)
+from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_ROTATED, PLAN_SIZE_X,
+                                   PLAN_START, PLAN_X_LEFT, rotate_position, scan_position)
 
 EULER = 0
 VERLET_NOTEBOOK = 1
@@ -230,6 +230,7 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
     tilt_x, tilt_y, x0, y0 = art[ART_TILT_X], art[ART_TILT_Y], art[ART_X0], art[ART_Y0]
     off_x = off_y = off_z = 0.0  # drift and creep of the current block
     line_hy = 0.0
+    rotated = plan[PLAN_ROTATED] != 0.0
     for i in range(nsteps):
         fth = 0.0
         if noise_sigma > 0.0:
@@ -263,6 +264,8 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
                         py += line_hy
         else:
             px, py = scan_position(plan, t)
+        if rotated:
+            px, py = rotate_position(plan, px, py)
         if art_on:
             if i == 0 or (n0 + i) % SLOW_BLOCK == 0:
                 t_block = segment_start + ((n0 + i) - (n0 + i) % SLOW_BLOCK) * dt
