@@ -28,8 +28,10 @@ EULER = 0
 VERLET_NOTEBOOK = 1
 RK4 = 2
 RK4_FROZEN_FORCE = 3
+RK4_EVENT = 4  # afm_ros.core.physics.events: RK4 split at the force law's switches
 
-METHODS = {"euler": EULER, "verlet": VERLET_NOTEBOOK, "rk4": RK4, "rk4_frozen": RK4_FROZEN_FORCE}
+METHODS = {"euler": EULER, "verlet": VERLET_NOTEBOOK, "rk4": RK4, "rk4_frozen": RK4_FROZEN_FORCE,
+           "rk4_event": RK4_EVENT}
 
 
 def drive_table(force_amplitude: float, phase: float, steps_per_period: int) -> np.ndarray:

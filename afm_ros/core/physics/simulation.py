@@ -100,6 +100,7 @@ class Simulation:
         self._table = drive_table(self.drive.force, self.segment_phase, self.steps_per_period)
         self._fp = np.ascontiguousarray(self.force_model.packed(), dtype=np.float64)
         self._method_id = METHODS[self.method]
+        self.event_stats = np.zeros(2)  # rk4_event: steps split at a switch of the force law, sub-steps taken
 
     # --- state ---------------------------------------------------------------------------
     @property
@@ -189,7 +190,14 @@ class Simulation:
         c = self.cantilever
         sigma = thermal_force_sigma(self.temperature, c.damping, self.dt) if self.temperature > 0.0 else 0.0
         out_h = None
-        if self.surface is None:
+        if self.surface is None and self.method == "rk4_event":
+            from afm_ros.core.physics.events import advance_event
+            advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
+                          float(c.damping), self._table, int(self.force_model.model_id), self._fp,
+                          float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
+                          int(self.noise_seed), int(self.noise_index), float(self.drive.force),
+                          float(self.segment_phase), int(self.steps_per_period), self.event_stats)
+        elif self.surface is None:
             advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
                     self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
                     out_z, out_v, out_f, sigma, self.noise_seed, self.noise_index)
