@@ -6,15 +6,20 @@ hysteresis model changes branch (the gap's rate changing sign). A fixed RK4 step
 switch integrates a function that is not smooth over the step and loses its fourth order there.
 
 This kernel keeps the fixed output grid (one sample per step, at the step's start, as ``rk4``) and
-splits only the steps that contain a switch:
+does two things only where the tip is near the surface:
 
 1. the step is taken as plain RK4 (bit for bit the ``rk4`` step); if the force law's *region*
    (contact or not, clipped or not, approach or retract branch) is the same at both ends and, when
    the gap turns inside the step, at the turning point too (a graze in and out of contact), it stands;
-2. else the switch is located on the step's cubic Hermite interpolant of z (z and v at both ends)
+   else the switch is located on the step's cubic Hermite interpolant of z (z and v at both ends)
    by bisection to 2^-50 of the step, the step is integrated up to it with the law of the region it
    started in, and from it with the law of the region after it (continued across its boundary so
-   that no stage switches law), again splitting if a second switch falls in the rest.
+   that no stage switches law), again splitting if a second switch falls in the rest;
+2. near the surface the force varies on the scale of the distance to the contact point plus a0 (the
+   van der Waals 1/d^2 outside, the Hertz delta^(3/2) inside): 0.2-2 nm, which the tip crosses in
+   about one step at 220 steps per period. The step (or each part of a split one) is then cut into
+   equal sub-steps, so that the tip moves at most ``NEAR_SURFACE_FRACTION`` of that scale per
+   sub-step (measured: this, not the kink, dominated the error; docs/study.md).
 
 Regions are a pure function of the state, so chunked runs equal single runs and runs are
 deterministic. The drive inside a split step is F0 cos(phase_n + 2 pi theta / spp) at the fraction
@@ -35,6 +40,8 @@ CLIPPED = 2
 RETRACT = 4
 BISECTIONS = 50
 MAX_SWITCHES = 4  # per step; more would mean a step far too coarse for the contact
+MAX_PIECES = 256  # sub-steps of one step near the surface
+NEAR_SURFACE_FRACTION = 0.25  # the tip crosses at most this fraction of the force's length scale per sub-step
 
 
 @njit(cache=True, inline="always")
@@ -88,6 +95,30 @@ def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
     v4 = v + h * a3
     a4 = (-k * z4 - c * v4 + d1 + force_in(model, p, z_offset + z4, v4, r) + fth) * inv_m
     return z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+
+
+@njit(cache=True)
+def _rk4_parts(za, va, fth, force, phase_n, spp, s_a, s_b, m, k, c, inv_m, model, p, z_offset, dt, r):
+    """[s_a, s_b] of a step with region r's law in m equal RK4 sub-steps."""
+    for q in range(m):
+        u0 = s_a + (s_b - s_a) * q / m
+        u1 = s_a + (s_b - s_a) * (q + 1) / m
+        za, va = _rk4_in(za, va, fth, _drive(force, phase_n, spp, u0), _drive(force, phase_n, spp, 0.5 * (u0 + u1)),
+                         _drive(force, phase_n, spp, u1), k, c, inv_m, model, p, z_offset, (u1 - u0) * dt, r)
+    return za, va
+
+
+@njit(cache=True, inline="always")
+def _pieces(p, gap0, v0, gap1, v1, dt, beta):
+    """Sub-steps a step needs near the surface: the force varies on the scale of the distance to the
+    contact point plus a0 (the van der Waals 1/d^2 outside, the Hertz delta^(3/2) inside), which the
+    tip must cross in steps of at most ``beta`` of it (0: no cutting)."""
+    if beta <= 0.0:
+        return 1
+    scale = min(abs(gap0 - p[0]), abs(gap1 - p[0])) + p[0]
+    travel = max(abs(v0), abs(v1)) * dt
+    m = int(math.ceil(travel / (beta * scale)))
+    return min(max(m, 1), MAX_PIECES)
 
 
 @njit(cache=True, inline="always")
@@ -153,10 +184,11 @@ def _locate(model, p, z_offset, z0, v0, z1, v1, h, r0, s_hi):
 
 @njit(cache=True, nogil=True)
 def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, decimation, out_z, out_v, out_f,
-                  noise_sigma, noise_seed, noise_n0, drive_force, drive_phase, spp, stats):
+                  noise_sigma, noise_seed, noise_n0, drive_force, drive_phase, spp, stats, beta):
     """``rk4_event``: as :func:`afm_ros.core.physics.integrators.advance` (same arguments, same output
-    grid), plus the drive's force [N], phase [rad] at step 0 and steps per period, for split steps;
-    returns the samples written and adds the split steps to ``stats[0]`` and the sub-steps to ``stats[1]``."""
+    grid), plus the drive's force [N], phase [rad] at step 0 and steps per period, for split steps, and
+    ``beta`` (NEAR_SURFACE_FRACTION); returns the samples written and adds the split steps to ``stats[0]``
+    and the sub-steps taken in place of steps to ``stats[1]``."""
     z = y[0]
     v = y[1]
     period2 = table.shape[0] - 1
@@ -187,6 +219,12 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
                            h, hh, dt, dth, sixth, dt_sixth)
         r0 = region(model, p, z_offset + z, v)
         s_hi = _other(model, p, z_offset, z, v, z1, v1, dt, r0) if model != MODEL_NONE else -1.0
+        pieces = _pieces(p, z_offset + z, v, z_offset + z1, v1, dt, beta) if model != MODEL_NONE else 1
+        if s_hi <= 0.0 and pieces > 1:  # near the surface, no switch: the same law in sub-steps
+            phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
+            z1, v1 = _rk4_parts(z, v, fth, drive_force, phase_n, spp, 0.0, 1.0, pieces, k, c, inv_m, model, p,
+                                z_offset, dt, r0)
+            substeps += pieces
         if s_hi > 0.0:
             splits += 1
             phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
@@ -194,16 +232,15 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
             for _ in range(MAX_SWITCHES):
                 s, r_next = _locate(model, p, z_offset, za, va, z1, v1, (1.0 - s_start) * dt, r, s_hi)
                 s_switch = s_start + s * (1.0 - s_start)
-                h1 = (s_switch - s_start) * dt
-                za, va = _rk4_in(za, va, fth, _drive(drive_force, phase_n, spp, s_start),
-                                 _drive(drive_force, phase_n, spp, 0.5 * (s_start + s_switch)),
-                                 _drive(drive_force, phase_n, spp, s_switch), k, c, inv_m, model, p, z_offset, h1, r)
+                m1 = max(1, int(math.ceil(pieces * (s_switch - s_start))))
+                za, va = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, s_switch, m1, k, c, inv_m,
+                                    model, p, z_offset, dt, r)
                 s_start, r = s_switch, r_next
-                substeps += 2
                 h2 = (1.0 - s_start) * dt
-                z1, v1 = _rk4_in(za, va, fth, _drive(drive_force, phase_n, spp, s_start),
-                                 _drive(drive_force, phase_n, spp, 0.5 * (s_start + 1.0)),
-                                 _drive(drive_force, phase_n, spp, 1.0), k, c, inv_m, model, p, z_offset, h2, r)
+                m2 = max(1, int(math.ceil(pieces * (1.0 - s_start))))
+                substeps += m1 + m2
+                z1, v1 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, 1.0, m2, k, c, inv_m,
+                                    model, p, z_offset, dt, r)
                 s_hi = _other(model, p, z_offset, za, va, z1, v1, h2, r) if h2 > 0.0 else -1.0
                 if s_hi < 0.0:
                     break

@@ -85,6 +85,10 @@ class Simulation:
         self.surface = None  # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
         self.plan = parked_plan(0.0, 0.0)  # packed scan plan (afm_ros.core.scanner)
         self.artefacts = artefacts_off()  # packed imperfections (afm_ros.core.artefacts)
+        # rk4_event: near the surface a step is cut so that the tip moves at most this fraction of the
+        # force's length scale per sub-step (0: no cutting; afm_ros.core.physics.events)
+        from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION
+        self.event_beta = NEAR_SURFACE_FRACTION
         self._rebuild()
 
     def _validated_spp(self, spp, drive, cantilever):
@@ -196,7 +200,8 @@ class Simulation:
                           float(c.damping), self._table, int(self.force_model.model_id), self._fp,
                           float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
                           int(self.noise_seed), int(self.noise_index), float(self.drive.force),
-                          float(self.segment_phase), int(self.steps_per_period), self.event_stats)
+                          float(self.segment_phase), int(self.steps_per_period), self.event_stats,
+                          float(self.event_beta))
         elif self.surface is None:
             advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
                     self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
