@@ -17,9 +17,7 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -29,8 +27,7 @@ import yaml
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.scanner import SCANNER_NODE_SPECS
-from afm_ros.nodes.node_main import make_executor
-from afm_ros.tools.afm_instrument import build_nodes
+from conftest import instrument_nodes
 
 DOMAIN_ID = "37"
 VENV_BIN = Path(sys.executable).parent
@@ -54,36 +51,10 @@ def ctl(env, *args, ns: str | None = None, timeout: str = PATIENCE) -> subproces
     return subprocess.run(cmd + list(args), env=env, capture_output=True, text=True, timeout=300)
 
 
-@contextmanager
 def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, scanner: dict | None = None,
                      z_controller: dict | None = None):
-    """The instrument's cantilever, lock-in, z controller and scanner in this process (a private
-    context on this file's domain, LOCALHOST discovery), spun in a thread; by role."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # the afm_ctl processes must see them
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(DOMAIN_ID))
-    nodes = build_nodes(ctx, namespace, record=False, scanner=True, cantilever_overrides=cantilever,
-                        scanner_overrides=scanner, overrides={"z_controller": z_controller or {}})
-    executor = make_executor("events", ctx)
-    for node in nodes.values():
-        executor.add_node(node)
-    stop = threading.Event()
-
-    def spin():
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
-        yield nodes
-    finally:
-        stop.set()
-        thread.join(30)
-        for node in nodes.values():
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown(context=ctx)
+    """The instrument's nodes in this process on this file's domain (conftest.instrument_nodes)."""
+    return instrument_nodes(namespace, monkeypatch, DOMAIN_ID, cantilever, scanner, z_controller)
 
 
 PAUSED = {"run_until": 0.0}  # the cantilever waits at t = 0: parameter services only, no CPU

@@ -12,13 +12,10 @@
 from __future__ import annotations
 
 import math
-import threading
 import time
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
-import rclpy
 import xarray as xr
 
 from afm_ros.client import Microscope, NodeNotFound, NotEngaged, Refused
@@ -26,45 +23,18 @@ from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, drift_velocity
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.formats.frames import channel_title
 from afm_ros.formats.gwy import read_gwy
-from afm_ros.nodes.node_main import make_executor
-from afm_ros.tools.afm_instrument import build_nodes
+from conftest import instrument_nodes
 
 DOMAIN_ID = "59"
 SMALL = dict(center=(5e-6, 5e-6), size=(2e-6, 1e-6), pixels=16, lines=8, line_rate=10.0)
 
 
-@contextmanager
 def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, z_controller: dict | None = None,
                      scanner: dict | None = None):
-    """cantilever, lockin, z_controller and scanner spun in a thread on a private context (LOCALHOST
-    discovery on this file's domain, which the client's own context uses too)."""
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN_ID)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(DOMAIN_ID))
-    nodes = build_nodes(ctx, namespace, record=False, scanner=True, cantilever_overrides=cantilever,
-                        scanner_overrides={"write_files": False, **(scanner or {})},
-                        overrides={"z_controller": z_controller or {}})
-    executor = make_executor("events", ctx)
-    for node in nodes.values():
-        executor.add_node(node)
-    stop = threading.Event()
-
-    def spin():
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
-        yield nodes
-    finally:
-        stop.set()
-        thread.join(30)
-        for node in nodes.values():
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown(context=ctx)
+    """The instrument's nodes in this process on this file's domain (the client's own context uses
+    it too), writing no files unless asked."""
+    return instrument_nodes(namespace, monkeypatch, DOMAIN_ID, cantilever, {"write_files": False, **(scanner or {})},
+                            z_controller)
 
 
 def test_every_verb_in_process_on_a_real_instrument():
