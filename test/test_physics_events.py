@@ -7,6 +7,8 @@ What the prototype is shown to do (issue 19 is open: the scanning kernel, the C 
 defaults are not changed yet):
 - steps without a switch, far from the surface, are the plain ``rk4`` steps bit for bit;
 - split into chunks it gives the same run bit for bit;
+- the energy the tip-sample force takes per period, integrated with the RK4 stages, is the
+  reference's within 0.01 % at 220 steps per period;
 - from the same tapping steady state, after 6 periods, its largest error over the last period is
   at least 100 times smaller than plain ``rk4``'s at 880 steps per period for every model (measured
   1000, 460 and 4300 times for dmt, viscoelastic_dmt and hysteresis_dmt), and at 110 steps per
@@ -31,15 +33,17 @@ MODELS = {"dmt": DMTForce(DMTSample()),
           "hysteresis_dmt": HysteresisDMTForce(DMTSample(), hamaker_retract=1.5 * DMTSample().hamaker_constant)}
 
 
-def reference(cantilever, drive, model, y0, t_end, t_eval):
-    """z [m] at ``t_eval`` from DOP853 restarted at every switch of the force law."""
+def reference(cantilever, drive, model, y0, t_end, t_eval, work_from=None):
+    """z [m] at ``t_eval`` from DOP853 restarted at every switch of the force law; with ``work_from``
+    [s] also the energy the tip-sample force took from then to ``t_end`` [J] (-int F v dt, integrated
+    as a third state)."""
     p, kind = model.packed(), model.name
     a0, m, k, c = p[0], cantilever.mass, cantilever.spring_constant, cantilever.damping
     w = 2.0 * math.pi * drive.frequency
 
     def rhs(contact, clipped, retract):
         def f(t, y):
-            z, v = y
+            z, v = y[0], y[1]
             gap = Z_BASE + z
             if not contact:
                 fts = -(p[4] if kind == "hysteresis_dmt" and retract else p[1]) / gap ** 2
@@ -50,7 +54,7 @@ def reference(cantilever, drive, model, y0, t_end, t_eval):
                     fts = -p[3] + (0.0 if clipped else hertz - p[4] * math.sqrt(delta) * v)
                 else:
                     fts = -(p[5] if kind == "hysteresis_dmt" and retract else p[3]) + hertz
-            return [v, (-k * z - c * v + drive.force * math.cos(w * t + drive.phase) + fts) / m]
+            return [v, (-k * z - c * v + drive.force * math.cos(w * t + drive.phase) + fts) / m, -fts * v]
         return f
 
     events = [lambda t, y: Z_BASE + y[0] - a0]
@@ -60,16 +64,21 @@ def reference(cantilever, drive, model, y0, t_end, t_eval):
         events.append(lambda t, y: y[1])
     for e in events:
         e.terminal = True
-    t, y = 0.0, np.array(y0, dtype=float)
+    t, y = 0.0, np.array([y0[0], y0[1], 0.0], dtype=float)
     gap = Z_BASE + y[0]
     state = [gap <= a0, bool(kind == "viscoelastic_dmt" and gap <= a0 and p[2] * (a0 - gap) - p[4] * y[1] <= 0),
              bool(kind == "hysteresis_dmt" and y[1] >= 0)]
     out = {}
+    work = {}
+    marks = [] if work_from is None else [work_from]
     while t < t_end:
         sol = solve_ivp(rhs(*state), (t, t_end), y, method="DOP853", rtol=1e-13, atol=1e-24, events=events,
                         dense_output=True)
         for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
             out[te] = sol.sol(te)[0]
+        for tm in marks:
+            if sol.t[0] <= tm <= sol.t[-1]:
+                work[tm] = sol.sol(tm)[2]
         t, y = sol.t[-1], sol.y[:, -1]
         if sol.status != 1:
             break
@@ -88,7 +97,8 @@ def reference(cantilever, drive, model, y0, t_end, t_eval):
         for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
             out[te] = sol.sol(te)[0]
         t, y = sol.t[-1], sol.y[:, -1]
-    return np.array([out[te] for te in t_eval])
+    z = np.array([out[te] for te in t_eval])
+    return z if work_from is None else (z, y[2] - work[work_from])
 
 
 def test_steps_without_a_switch_are_plain_rk4_bit_for_bit():
@@ -148,3 +158,26 @@ def test_more_accurate_than_plain_rk4_for_less_work(steady_states, name):
     assert err["rk4_event", 880][0] * 100 < err["rk4", 880][0], err
     assert err["rk4_event", 110][0] < err["rk4", 440][0], err
     assert err["rk4_event", 110][1] < 440, err  # sub-steps per period, splits and cuts included
+
+
+@pytest.mark.parametrize("name", ["viscoelastic_dmt", "hysteresis_dmt"])
+def test_the_dissipated_energy_integrated_with_the_stages(steady_states, name):
+    """The energy the tip-sample force takes over a period, integrated with the RK4 stages (the
+    study's E_dis with rk4_event), against the reference's, integrated as a third state: within
+    0.01 % at 220 steps per period (measured 0.0013 % and 0.0018 %), where the rectangle rule over
+    the samples (plain rk4's E_dis) is off by more than 1 % (measured 1.06 % and 1.47 %)."""
+    from afm_ros.core.physics.analysis import analyze
+
+    c, d, y0s = steady_states
+    model, y0 = MODELS[name], y0s[name]
+    periods = 6
+    t_eval = np.array([periods / d.frequency])
+    _, e_ref = reference(c, d, model, y0, periods / d.frequency, t_eval, work_from=(periods - 1) / d.frequency)
+    got = {}
+    for method in ("rk4", "rk4_event"):
+        s = Simulation(c, d, model, Z_BASE, 220, method, z0=y0[0], v0=y0[1])
+        s.advance_periods(periods - 1)
+        got[method] = analyze(s.advance(220), s).tip_sample_dissipation
+    assert e_ref > 1e-18  # [J] these models dissipate
+    assert got["rk4_event"] == pytest.approx(e_ref, rel=1e-4), (got, e_ref)
+    assert abs(got["rk4"] - e_ref) > 0.01 * e_ref, (got, e_ref)

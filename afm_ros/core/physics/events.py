@@ -33,7 +33,7 @@ import math
 from numba import njit
 
 from afm_ros.core.physics.forces import MODEL_HYSTERESIS_DMT, MODEL_NONE, MODEL_VISCOELASTIC_DMT, tip_sample_force
-from afm_ros.core.physics.integrators import _rk4_step, _thermal_force
+from afm_ros.core.physics.integrators import _thermal_force
 
 CONTACT = 1  # region bits
 CLIPPED = 2
@@ -83,29 +83,62 @@ def _drive(force, phase_n, spp, theta):
 
 @njit(cache=True, inline="always")
 def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
-    """Classic RK4 over ``h`` [s] with region ``r``'s force law at every stage."""
-    a1 = (-k * z - c * v + d0 + force_in(model, p, z_offset + z, v, r) + fth) * inv_m
+    """Classic RK4 over ``h`` [s] with region ``r``'s force law at every stage; also the energy the
+    tip-sample force takes over it [J], -int F v dt, with the same stages."""
+    f1 = force_in(model, p, z_offset + z, v, r)
+    a1 = (-k * z - c * v + d0 + f1 + fth) * inv_m
     z2 = z + 0.5 * h * v
     v2 = v + 0.5 * h * a1
-    a2 = (-k * z2 - c * v2 + dh + force_in(model, p, z_offset + z2, v2, r) + fth) * inv_m
+    f2 = force_in(model, p, z_offset + z2, v2, r)
+    a2 = (-k * z2 - c * v2 + dh + f2 + fth) * inv_m
     z3 = z + 0.5 * h * v2
     v3 = v + 0.5 * h * a2
-    a3 = (-k * z3 - c * v3 + dh + force_in(model, p, z_offset + z3, v3, r) + fth) * inv_m
+    f3 = force_in(model, p, z_offset + z3, v3, r)
+    a3 = (-k * z3 - c * v3 + dh + f3 + fth) * inv_m
     z4 = z + h * v3
     v4 = v + h * a3
-    a4 = (-k * z4 - c * v4 + d1 + force_in(model, p, z_offset + z4, v4, r) + fth) * inv_m
-    return z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+    f4 = force_in(model, p, z_offset + z4, v4, r)
+    a4 = (-k * z4 - c * v4 + d1 + f4 + fth) * inv_m
+    work = -h / 6.0 * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
+    return (z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), work)
+
+
+@njit(cache=True, inline="always")
+def _rk4_step_work(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model, fp, z_offset, h, hh, dt, dth,
+                   sixth, dt_sixth):
+    """:func:`afm_ros.core.physics.integrators._rk4_step` (the same operations: the same z and v bit for
+    bit) and the energy the tip-sample force takes over the step [J] from its stages."""
+    a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
+    z2 = z + h * v
+    v2 = v + h * a1
+    f2 = tip_sample_force(model, fp, z_offset + z2, v2)
+    a2 = (-k * z2 - c * v2 + drive_half + f2 + fth) * inv_m
+    z3 = z2 + hh * a1
+    v3 = v + h * a2
+    f3 = tip_sample_force(model, fp, z_offset + z3, v3)
+    a3 = (-k * z3 - c * v3 + drive_half + f3 + fth) * inv_m
+    z_dt = z + dt * v
+    z4 = z_dt + dth * a2
+    v4 = v + dt * a3
+    f4 = tip_sample_force(model, fp, z_offset + z4, v4)
+    a4 = (-k * z4 - c * v4 + drive1 + f4 + fth) * inv_m
+    work = -sixth * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
+    return z_dt + dt_sixth * (a1 + a2 + a3), (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4, work
 
 
 @njit(cache=True)
 def _rk4_parts(za, va, fth, force, phase_n, spp, s_a, s_b, m, k, c, inv_m, model, p, z_offset, dt, r):
-    """[s_a, s_b] of a step with region r's law in m equal RK4 sub-steps."""
+    """[s_a, s_b] of a step with region r's law in m equal RK4 sub-steps; the state and the energy
+    the tip-sample force takes over them [J]."""
+    work = 0.0
     for q in range(m):
         u0 = s_a + (s_b - s_a) * q / m
         u1 = s_a + (s_b - s_a) * (q + 1) / m
-        za, va = _rk4_in(za, va, fth, _drive(force, phase_n, spp, u0), _drive(force, phase_n, spp, 0.5 * (u0 + u1)),
-                         _drive(force, phase_n, spp, u1), k, c, inv_m, model, p, z_offset, (u1 - u0) * dt, r)
-    return za, va
+        za, va, w = _rk4_in(za, va, fth, _drive(force, phase_n, spp, u0),
+                            _drive(force, phase_n, spp, 0.5 * (u0 + u1)), _drive(force, phase_n, spp, u1), k, c,
+                            inv_m, model, p, z_offset, (u1 - u0) * dt, r)
+        work += w
+    return za, va, work
 
 
 @njit(cache=True, inline="always")
@@ -184,11 +217,12 @@ def _locate(model, p, z_offset, z0, v0, z1, v1, h, r0, s_hi):
 
 @njit(cache=True, nogil=True)
 def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, decimation, out_z, out_v, out_f,
-                  noise_sigma, noise_seed, noise_n0, drive_force, drive_phase, spp, stats, beta):
+                  noise_sigma, noise_seed, noise_n0, drive_force, drive_phase, spp, stats, beta, out_w):
     """``rk4_event``: as :func:`afm_ros.core.physics.integrators.advance` (same arguments, same output
     grid), plus the drive's force [N], phase [rad] at step 0 and steps per period, for split steps, and
     ``beta`` (NEAR_SURFACE_FRACTION); returns the samples written and adds the split steps to ``stats[0]``
-    and the sub-steps taken in place of steps to ``stats[1]``."""
+    and the sub-steps taken in place of steps to ``stats[1]``. With ``decimation`` 1, ``out_w[k]`` is the
+    energy the tip-sample force takes over the step of sample k [J] (-int F v dt, from the stages)."""
     z = y[0]
     v = y[1]
     period2 = table.shape[0] - 1
@@ -215,35 +249,40 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
             written += 1
             until_record = decimation
         until_record -= 1
-        z1, v1 = _rk4_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, p, z_offset,
-                           h, hh, dt, dth, sixth, dt_sixth)
+        z1, v1, work = _rk4_step_work(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, p,
+                                      z_offset, h, hh, dt, dth, sixth, dt_sixth)
         r0 = region(model, p, z_offset + z, v)
         s_hi = _other(model, p, z_offset, z, v, z1, v1, dt, r0) if model != MODEL_NONE else -1.0
         pieces = _pieces(p, z_offset + z, v, z_offset + z1, v1, dt, beta) if model != MODEL_NONE else 1
         if s_hi <= 0.0 and pieces > 1:  # near the surface, no switch: the same law in sub-steps
             phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
-            z1, v1 = _rk4_parts(z, v, fth, drive_force, phase_n, spp, 0.0, 1.0, pieces, k, c, inv_m, model, p,
-                                z_offset, dt, r0)
+            z1, v1, work = _rk4_parts(z, v, fth, drive_force, phase_n, spp, 0.0, 1.0, pieces, k, c, inv_m, model,
+                                      p, z_offset, dt, r0)
             substeps += pieces
         if s_hi > 0.0:
             splits += 1
             phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
             s_start, za, va, r = 0.0, z, v, r0
+            done_work = 0.0  # up to s_start
             for _ in range(MAX_SWITCHES):
                 s, r_next = _locate(model, p, z_offset, za, va, z1, v1, (1.0 - s_start) * dt, r, s_hi)
                 s_switch = s_start + s * (1.0 - s_start)
                 m1 = max(1, int(math.ceil(pieces * (s_switch - s_start))))
-                za, va = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, s_switch, m1, k, c, inv_m,
-                                    model, p, z_offset, dt, r)
+                za, va, w1 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, s_switch, m1, k, c, inv_m,
+                                        model, p, z_offset, dt, r)
+                done_work += w1
                 s_start, r = s_switch, r_next
                 h2 = (1.0 - s_start) * dt
                 m2 = max(1, int(math.ceil(pieces * (1.0 - s_start))))
                 substeps += m1 + m2
-                z1, v1 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, 1.0, m2, k, c, inv_m,
-                                    model, p, z_offset, dt, r)
+                z1, v1, w2 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, 1.0, m2, k, c, inv_m,
+                                        model, p, z_offset, dt, r)
+                work = done_work + w2
                 s_hi = _other(model, p, z_offset, za, va, z1, v1, h2, r) if h2 > 0.0 else -1.0
                 if s_hi < 0.0:
                     break
+        if decimation == 1:
+            out_w[written - 1] = work
         z = z1
         v = v1
         j += 2

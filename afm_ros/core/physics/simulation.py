@@ -33,6 +33,9 @@ class Samples:
     v: np.ndarray  # velocity [m/s]
     force: np.ndarray  # tip-sample force [N]
     surface: np.ndarray | None = None  # tip-dilated sample height under the tip [m] (sample maps only)
+    # energy the tip-sample force takes over each sample's step [J], integrated with the RK4 stages
+    # (method rk4_event with decimation 1 only; else None)
+    work: np.ndarray | None = None
 
     @property
     def t(self) -> np.ndarray:
@@ -194,14 +197,18 @@ class Simulation:
         c = self.cantilever
         sigma = thermal_force_sigma(self.temperature, c.damping, self.dt) if self.temperature > 0.0 else 0.0
         out_h = None
+        out_w = None
         if self.surface is None and self.method == "rk4_event":
             from afm_ros.core.physics.events import advance_event
+            out_w = np.empty(count if decimation == 1 else 0)
             advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
                           float(c.damping), self._table, int(self.force_model.model_id), self._fp,
                           float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
                           int(self.noise_seed), int(self.noise_index), float(self.drive.force),
                           float(self.segment_phase), int(self.steps_per_period), self.event_stats,
-                          float(self.event_beta))
+                          float(self.event_beta), out_w)
+            if decimation != 1:
+                out_w = None
         elif self.surface is None:
             advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
                     self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
@@ -218,7 +225,7 @@ class Simulation:
         self.noise_index += nsteps
         first = -(-n0 // decimation) * decimation
         return Samples(first, decimation, self.dt, self.segment_start, self.segment_phase,
-                       self.drive.frequency, self.z_offset, out_z, out_v, out_f, out_h)
+                       self.drive.frequency, self.z_offset, out_z, out_v, out_f, out_h, out_w)
 
     def advance_periods(self, periods: int, decimation: int = 1) -> Samples:
         return self.advance(periods * self.steps_per_period, decimation)
