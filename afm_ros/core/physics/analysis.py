@@ -81,10 +81,12 @@ def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
         min_force=float(f.min()),
         min_gap=min_gap,
         indentation=max(0.0, a0 - min_gap),
-        drive_work=float(np.sum(drive * v) * dt / periods),
-        damping_loss=float(np.sum(c * v * v) * dt / periods),
-        # integrated with the stages where the kernel gives it (rk4_event), else the samples' rectangle rule
-        tip_sample_dissipation=float(np.sum(samples.work) / periods if samples.work is not None
+        # integrated with the stages where the kernel gives them (rk4_event), else the samples' rectangle rule
+        drive_work=float(np.sum(samples.work[1]) / periods if samples.work is not None
+                         else np.sum(drive * v) * dt / periods),
+        damping_loss=float(np.sum(samples.work[2]) / periods if samples.work is not None
+                           else np.sum(c * v * v) * dt / periods),
+        tip_sample_dissipation=float(np.sum(samples.work[0]) / periods if samples.work is not None
                                      else -np.sum(f * v) * dt / periods),
         virial=float(np.mean(f * z)),
         periods=periods,

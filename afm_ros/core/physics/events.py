@@ -21,6 +21,10 @@ does two things only where the tip is near the surface:
    equal sub-steps, so that the tip moves at most ``NEAR_SURFACE_FRACTION`` of that scale per
    sub-step (measured: this, not the kink, dominated the error; docs/study.md).
 
+With ``decimation`` 1 it also integrates, with the same stages, the energy each step the
+tip-sample force takes, the drive gives and the damping loses (``Samples.work``): the dissipated
+energy and the energy balance then no longer depend on a quadrature over the samples.
+
 Regions are a pure function of the state, so chunked runs equal single runs and runs are
 deterministic. The drive inside a split step is F0 cos(phase_n + 2 pi theta / spp) at the fraction
 theta of step n. Prototype of issue 19: the flat-sample path only (no sample map); ``rk4`` stays
@@ -83,8 +87,9 @@ def _drive(force, phase_n, spp, theta):
 
 @njit(cache=True, inline="always")
 def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
-    """Classic RK4 over ``h`` [s] with region ``r``'s force law at every stage; also the energy the
-    tip-sample force takes over it [J], -int F v dt, with the same stages."""
+    """Classic RK4 over ``h`` [s] with region ``r``'s force law at every stage; also, with the same
+    stages, the energy the tip-sample force takes over it (-int F v dt), the drive's work and the
+    damping's loss [J]."""
     f1 = force_in(model, p, z_offset + z, v, r)
     a1 = (-k * z - c * v + d0 + f1 + fth) * inv_m
     z2 = z + 0.5 * h * v
@@ -100,14 +105,18 @@ def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
     f4 = force_in(model, p, z_offset + z4, v4, r)
     a4 = (-k * z4 - c * v4 + d1 + f4 + fth) * inv_m
     work = -h / 6.0 * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
-    return (z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), work)
+    drive = h / 6.0 * (d0 * v + 2.0 * dh * (v2 + v3) + d1 * v4)
+    damping = h / 6.0 * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4)
+    return (z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), work,
+            drive, damping)
 
 
 @njit(cache=True, inline="always")
 def _rk4_step_work(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model, fp, z_offset, h, hh, dt, dth,
                    sixth, dt_sixth):
     """:func:`afm_ros.core.physics.integrators._rk4_step` (the same operations: the same z and v bit for
-    bit) and the energy the tip-sample force takes over the step [J] from its stages."""
+    bit) and, from its stages, the energy the tip-sample force takes over the step, the drive's work
+    and the damping's loss [J]."""
     a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
     z2 = z + h * v
     v2 = v + h * a1
@@ -123,22 +132,27 @@ def _rk4_step_work(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model
     f4 = tip_sample_force(model, fp, z_offset + z4, v4)
     a4 = (-k * z4 - c * v4 + drive1 + f4 + fth) * inv_m
     work = -sixth * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
-    return z_dt + dt_sixth * (a1 + a2 + a3), (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4, work
+    drive = sixth * (drive0 * v + 2.0 * drive_half * (v2 + v3) + drive1 * v4)
+    damping = sixth * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4)
+    return (z_dt + dt_sixth * (a1 + a2 + a3), (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4, work, drive,
+            damping)
 
 
 @njit(cache=True)
 def _rk4_parts(za, va, fth, force, phase_n, spp, s_a, s_b, m, k, c, inv_m, model, p, z_offset, dt, r):
-    """[s_a, s_b] of a step with region r's law in m equal RK4 sub-steps; the state and the energy
-    the tip-sample force takes over them [J]."""
-    work = 0.0
+    """[s_a, s_b] of a step with region r's law in m equal RK4 sub-steps; the state and the energies
+    over them [J] (tip-sample, drive, damping; see :func:`_rk4_in`)."""
+    work = drive = damping = 0.0
     for q in range(m):
         u0 = s_a + (s_b - s_a) * q / m
         u1 = s_a + (s_b - s_a) * (q + 1) / m
-        za, va, w = _rk4_in(za, va, fth, _drive(force, phase_n, spp, u0),
-                            _drive(force, phase_n, spp, 0.5 * (u0 + u1)), _drive(force, phase_n, spp, u1), k, c,
-                            inv_m, model, p, z_offset, (u1 - u0) * dt, r)
+        za, va, w, wd, wc = _rk4_in(za, va, fth, _drive(force, phase_n, spp, u0),
+                                    _drive(force, phase_n, spp, 0.5 * (u0 + u1)), _drive(force, phase_n, spp, u1),
+                                    k, c, inv_m, model, p, z_offset, (u1 - u0) * dt, r)
         work += w
-    return za, va, work
+        drive += wd
+        damping += wc
+    return za, va, work, drive, damping
 
 
 @njit(cache=True, inline="always")
@@ -221,8 +235,9 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
     """``rk4_event``: as :func:`afm_ros.core.physics.integrators.advance` (same arguments, same output
     grid), plus the drive's force [N], phase [rad] at step 0 and steps per period, for split steps, and
     ``beta`` (NEAR_SURFACE_FRACTION); returns the samples written and adds the split steps to ``stats[0]``
-    and the sub-steps taken in place of steps to ``stats[1]``. With ``decimation`` 1, ``out_w[k]`` is the
-    energy the tip-sample force takes over the step of sample k [J] (-int F v dt, from the stages)."""
+    and the sub-steps taken in place of steps to ``stats[1]``. With ``decimation`` 1, ``out_w[:, k]`` are
+    the energies over the step of sample k [J], integrated with its stages: taken by the tip-sample force
+    (-int F v dt), given by the drive, lost to damping."""
     z = y[0]
     v = y[1]
     period2 = table.shape[0] - 1
@@ -249,40 +264,44 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
             written += 1
             until_record = decimation
         until_record -= 1
-        z1, v1, work = _rk4_step_work(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, p,
-                                      z_offset, h, hh, dt, dth, sixth, dt_sixth)
+        z1, v1, work, drive, damping = _rk4_step_work(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c,
+                                                      inv_m, model, p, z_offset, h, hh, dt, dth, sixth, dt_sixth)
         r0 = region(model, p, z_offset + z, v)
         s_hi = _other(model, p, z_offset, z, v, z1, v1, dt, r0) if model != MODEL_NONE else -1.0
         pieces = _pieces(p, z_offset + z, v, z_offset + z1, v1, dt, beta) if model != MODEL_NONE else 1
         if s_hi <= 0.0 and pieces > 1:  # near the surface, no switch: the same law in sub-steps
             phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
-            z1, v1, work = _rk4_parts(z, v, fth, drive_force, phase_n, spp, 0.0, 1.0, pieces, k, c, inv_m, model,
-                                      p, z_offset, dt, r0)
+            z1, v1, work, drive, damping = _rk4_parts(z, v, fth, drive_force, phase_n, spp, 0.0, 1.0, pieces, k, c,
+                                                      inv_m, model, p, z_offset, dt, r0)
             substeps += pieces
         if s_hi > 0.0:
             splits += 1
             phase_n = drive_phase + 2.0 * math.pi * ((n0 + i) % spp) / spp
             s_start, za, va, r = 0.0, z, v, r0
-            done_work = 0.0  # up to s_start
+            done_work = done_drive = done_damping = 0.0  # up to s_start
             for _ in range(MAX_SWITCHES):
                 s, r_next = _locate(model, p, z_offset, za, va, z1, v1, (1.0 - s_start) * dt, r, s_hi)
                 s_switch = s_start + s * (1.0 - s_start)
                 m1 = max(1, int(math.ceil(pieces * (s_switch - s_start))))
-                za, va, w1 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, s_switch, m1, k, c, inv_m,
-                                        model, p, z_offset, dt, r)
+                za, va, w1, d1, c1 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, s_switch, m1, k, c,
+                                                inv_m, model, p, z_offset, dt, r)
                 done_work += w1
+                done_drive += d1
+                done_damping += c1
                 s_start, r = s_switch, r_next
                 h2 = (1.0 - s_start) * dt
                 m2 = max(1, int(math.ceil(pieces * (1.0 - s_start))))
                 substeps += m1 + m2
-                z1, v1, w2 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, 1.0, m2, k, c, inv_m,
-                                        model, p, z_offset, dt, r)
-                work = done_work + w2
+                z1, v1, w2, d2, c2 = _rk4_parts(za, va, fth, drive_force, phase_n, spp, s_start, 1.0, m2, k, c,
+                                                inv_m, model, p, z_offset, dt, r)
+                work, drive, damping = done_work + w2, done_drive + d2, done_damping + c2
                 s_hi = _other(model, p, z_offset, za, va, z1, v1, h2, r) if h2 > 0.0 else -1.0
                 if s_hi < 0.0:
                     break
         if decimation == 1:
-            out_w[written - 1] = work
+            out_w[0, written - 1] = work
+            out_w[1, written - 1] = drive
+            out_w[2, written - 1] = damping
         z = z1
         v = v1
         j += 2

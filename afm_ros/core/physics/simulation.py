@@ -33,8 +33,8 @@ class Samples:
     v: np.ndarray  # velocity [m/s]
     force: np.ndarray  # tip-sample force [N]
     surface: np.ndarray | None = None  # tip-dilated sample height under the tip [m] (sample maps only)
-    # energy the tip-sample force takes over each sample's step [J], integrated with the RK4 stages
-    # (method rk4_event with decimation 1 only; else None)
+    # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event with
+    # decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to damping
     work: np.ndarray | None = None
 
     @property
@@ -200,7 +200,7 @@ class Simulation:
         out_w = None
         if self.surface is None and self.method == "rk4_event":
             from afm_ros.core.physics.events import advance_event
-            out_w = np.empty(count if decimation == 1 else 0)
+            out_w = np.empty((3, count if decimation == 1 else 0))
             advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
                           float(c.damping), self._table, int(self.force_model.model_id), self._fp,
                           float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
