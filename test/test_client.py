@@ -166,3 +166,21 @@ def test_no_instrument_in_the_namespace_fails_within_the_timeout(monkeypatch):
     with pytest.raises(NodeNotFound, match="cantilever"):
         Microscope.connect("/nobody_here", timeout=1.5)
     assert time.monotonic() - start < 15.0
+
+
+def test_a_script_with_an_approach_repeats_bit_for_bit_over_ros(monkeypatch, ros_namespace):
+    """Approach, then scan, twice on fresh nodes: the approach's end is found from the z stage's
+    message, which the client takes only after the z controller's trace of the same chunk, so both
+    runs stop at the same step and scan the same frame bit for bit."""
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
+    z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 1e-6}
+    frames = []
+    for run in ("a", "b"):
+        with nodes_in_process(f"{ros_namespace}_{run}", monkeypatch, cantilever=cantilever, z_controller=z):
+            with Microscope.connect(f"{ros_namespace}_{run}", timeout=30.0) as afm:
+                afm.approach()
+                afm.set_scan(**SMALL)
+                frames.append(afm.scan())
+    assert frames[0].attrs["start_time_s"] == frames[1].attrs["start_time_s"]
+    for name in frames[0].data_vars:
+        np.testing.assert_array_equal(frames[0][name].values, frames[1][name].values, err_msg=name)

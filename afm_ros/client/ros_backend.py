@@ -32,6 +32,7 @@ from afm_ros.nodes import topics
 NODES = ("cantilever", "lockin", "z_controller", "scanner")
 STEP_S = 0.1  # [s] simulated: a workflow step (approach, withdraw, spectroscopy) advances this far at a time
 BOUNDARY_TOLERANCE_S = 1e-9  # a chunk boundary this close to a target counts as reaching it (float sums)
+DRAIN_S = 0.02  # [s] wall: messages already on their way after the last one waited for are taken too
 SCAN_PARAMETERS = ("scan_size_x", "scan_size_y", "scan_center_x", "scan_center_y", "pixels_per_line", "lines",
                    "line_rate", "slow_scan_direction", "scan_angle")
 
@@ -95,6 +96,14 @@ class RosBackend:
             except ValueError:
                 pass
         node.create_subscription(Float64MultiArray, link.resolve(topics.LOCKIN_OUTPUTS), on_batch, topics.HISTORY_QOS)
+        self.z_end = -math.inf  # the end of the last chunk the z controller handled [s] (its trace)
+
+        def on_trace(msg: Float64MultiArray) -> None:
+            try:
+                self.z_end = max(self.z_end, chunk_layout.unpack_z_trace(msg.data).input_end_time)
+            except ValueError:
+                pass
+        node.create_subscription(Float64MultiArray, link.resolve(topics.Z_TRACE), on_trace, topics.HISTORY_QOS)
         cantilever = link.resolve("cantilever")
 
         def on_diagnostics(msg: DiagnosticArray) -> None:
@@ -152,12 +161,19 @@ class RosBackend:
             elif time.monotonic() - since > self.link.timeout:
                 raise NoAnswer(f"the simulated time (stuck at t={last:.6g} s on the way to {t:.6g} s: is the "
                                f"cantilever paused by someone else, or blown up?)", self.link.timeout)
+        # the z controller handles a chunk after the lock-in: its stage message for that chunk comes
+        # before its trace, so once the trace is here the stage it reports is the one at this time
+        # (a verb that steps until the stage changes then stops at the same step every run)
+        reached = self.t_end  # -inf: no chunk integrated yet, nothing to wait for
+        self._wait(lambda: self.z_end >= reached - BOUNDARY_TOLERANCE_S, "the z controller's trace "
+                   "(z_controller/trace) of the last chunk")
+        self.link.spin_for(DRAIN_S)
 
     def _trigger(self, service: str, node: str) -> str:
         try:
             return self.link.trigger(service, node=node)
         except ServiceFailed as exc:
-            raise refusal(service, exc.message if hasattr(exc, "message") else str(exc)) from None
+            raise refusal(service, exc.message) from None
 
     # --- parameters --------------------------------------------------------------------------------------
     def set_values(self, node: str, values: dict) -> None:
@@ -166,7 +182,7 @@ class RosBackend:
         try:
             self.link.set_parameters(node, values)
         except ParameterRefused as exc:
-            raise refusal(node, exc.reason if hasattr(exc, "reason") else str(exc)) from None
+            raise refusal(node, exc.reason) from None
 
     def get_values(self, node: str, names: list[str]) -> dict:
         return self.link.get_parameters(node, names)
@@ -198,9 +214,7 @@ class RosBackend:
         self._trigger(service, "z_controller")
         self._wait(lambda: self.counts["stage"] > seen, "the z stage's answer (z_controller/stage)")
         while self.latest["stage"].get("state") == busy:
-            seen = self.counts["stage"]
             self.advance(STEP_S)
-            self.link.spin_for(0.0)
         return dict(self.latest["stage"])
 
     def approach(self) -> dict:
@@ -266,8 +280,7 @@ class RosBackend:
 
     def truth(self) -> dict:
         row = self.latest["truth"]
-        keys = [k for k in topics.TRUTH_FIELDS]
-        values = dict(zip(keys, row)) if row else {k: 0.0 for k in keys}
+        values = dict(zip(topics.TRUTH_FIELDS, row)) if row else dict.fromkeys(topics.TRUTH_FIELDS, 0.0)
         values["t_s"] = values.get("t_s") or self.now()
         tip = self.latest["tip"]
         radius = tip[1] if tip else self.link.get_parameters("cantilever", ["tip_radius"])["tip_radius"]
