@@ -153,7 +153,7 @@ class CantileverEngine:
         self.check(values)
         self.values = values
         self.setup = s = build(values)
-        self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
+        self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period, s.integrator)
         self.sim.set_thermal(values["temperature"], values["noise_seed"])
         self.sim.advance(0)  # load/compile the numba kernel now, not inside the first paced chunk
         self._plan_lock = threading.Lock()
@@ -353,7 +353,7 @@ class CantileverEngine:
         self.setup = new
         if set(changed) & PHYSICS_KEYS:
             self.sim.reconfigure(cantilever=new.cantilever, drive=new.drive, force_model=new.force_model,
-                                 steps_per_period=new.steps_per_period)
+                                 steps_per_period=new.steps_per_period, method=new.integrator)
         if "temperature" in changed or "noise_seed" in changed:
             self.sim.set_thermal(v["temperature"], v["noise_seed"])
         if "sample" in changed or (v["sample"] and set(changed) & (set(DMT_SPECS) | {"force_model"})):

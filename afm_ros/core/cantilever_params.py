@@ -117,6 +117,7 @@ class CantileverSetup:
     force_model: Any
     steps_per_period: int
     z_base: float  # [m]
+    integrator: str  # Simulation method: rk4_event or rk4
     dt: float  # integration step [s]
     decimation: int  # integration steps per published sample
     sample_interval: float  # decimation * dt [s]
@@ -195,5 +196,5 @@ def build(values: dict[str, Any]) -> CantileverSetup:
     model = make_force_model(values["force_model"], sample, viscosity=values["sample_viscosity"],
                              hamaker_retract=values["hamaker_constant_retract"])
     dt, decimation, chunk_steps = _geometry(values)
-    return CantileverSetup(cantilever, drive, model, values["steps_per_period"], values["z_base"], dt,
-                           decimation, decimation * dt, chunk_steps)
+    return CantileverSetup(cantilever, drive, model, values["steps_per_period"], values["z_base"],
+                           values["integrator"], dt, decimation, decimation * dt, chunk_steps)

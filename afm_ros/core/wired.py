@@ -73,7 +73,7 @@ class WiredInstrument:
         values = {**default_values(), **self.cantilever}
         self.values = values
         self.setup = s = build(values)
-        self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period)
+        self.sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_period, s.integrator)
         self.sim.set_thermal(values["temperature"], values["noise_seed"])
         # an ideal tip unless asked (the node's defaults wear it: TIP_NODE_SPECS)
         self.wear = TipWear(values["tip_radius"], {**{k: spec.default for k, spec in TIP_SPECS.items()},

@@ -37,7 +37,7 @@ from afm_ros.core.physics.simulation import Samples
 # --- parameters from flags ----------------------------------------------------------------
 # Every cantilever and sample spec gets a flag --name-with-dashes; z_base is per subcommand.
 PARAM_SPECS = {name: spec for name, spec in {**CANTILEVER_SPECS, **DMT_SPECS, **DISSIPATION_SPECS}.items()
-               if name != "z_base"}
+               if name not in ("z_base", "integrator")}  # the integrator is --method
 
 
 def _int_at_least(minimum: int):
@@ -268,7 +268,8 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
           steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default, method: str = "rk4",
           retract: bool = False, progress: bool | None = None, amplitude_tol: float = 1e-14,
           phase_tol_deg: float = 1e-5, max_periods: int = 20000, temperature: float = 0.0,
-          detector_density: float = 0.0, noise_seed: int = 0, average_periods: int = 200) -> list[dict]:
+          detector_density: float = 0.0, noise_seed: int = 0, average_periods: int = 200,
+          event_beta: float | None = None) -> list[dict]:
     """Steady state at each z_base [m] in order (approach), then optionally back (retract).
 
     One simulation carries its state from point to point (``reconfigure(z_offset=...)``), so a
@@ -277,7 +278,8 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     amplitude and phase change between successive windows below ``amplitude_tol`` [m] and
     ``phase_tol_deg`` [deg]. Noisy: a fixed settling time, then an average over
     ``average_periods`` periods with standard errors (:func:`noisy_average`); ``converged`` is
-    then False because no convergence test applies.
+    then False because no convergence test applies. ``event_beta``: rk4_event's near-surface fraction
+    (None: the default).
     """
     from tqdm import tqdm
 
@@ -289,6 +291,8 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     if retract:
         plan += [("retract", z) for z in reversed(z_bases[:-1])]
     sim = Simulation(cantilever, drive, force_model, plan[0][1], steps_per_period, method)
+    if event_beta is not None:  # rk4_event's near-surface cut (afm_ros.core.physics.events), for studies
+        sim.event_beta = float(event_beta)
     noisy = temperature > 0.0 or detector_density > 0.0
     sim.set_thermal(temperature, noise_seed)
     if noisy:
@@ -754,7 +758,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, text in (("sweep", "steady-state observables vs z_base (approach, optional --retract)"),
                        ("trajectory", "tip position, drive and tip-sample force vs time at one z_base")):
         p = add(name, text)
-        p.add_argument("--method", default="rk4", help=f"integrator: {', '.join(METHODS)}")
+        p.add_argument("--method", default=CANTILEVER_SPECS["integrator"].default,
+                       help=f"integrator: {', '.join(METHODS)}; default {CANTILEVER_SPECS['integrator'].default}")
         p.add_argument("--force-model", default="dmt", choices=FORCE_MODELS,
                        help="tip-sample force model (default dmt; viscoelastic_dmt uses --sample-viscosity, "
                             "hysteresis_dmt --hamaker-constant-retract)")

@@ -18,7 +18,8 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.forces import tip_sample_force
-from afm_ros.core.physics.noise import THERMAL_STREAM, normal_pair
+from afm_ros.core.physics.events import event_step_full, plain_step_pieces
+from afm_ros.core.physics.noise import _thermal_force
 from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
                                     hysteresis_offsets, slow_terms)
 from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_ROTATED, PLAN_SIZE_X,
@@ -46,17 +47,6 @@ def samples_in_range(n0: int, nsteps: int, decimation: int) -> int:
     first = -(-n0 // decimation) * decimation
     last = n0 + nsteps - 1
     return 0 if last < first else (last - first) // decimation + 1
-
-
-@njit(cache=True, inline="always")
-def _thermal_force(noise_sigma, noise_seed, index, first_of_call, spare):
-    """(thermal force [N] of step ``index``, the spare normal for the next step): number ``index``
-    of the seed's thermal stream; an even index draws a Box-Muller pair and keeps the second
-    number for the next (odd) step, which draws only when it starts a call."""
-    if index & 1 == 0 or first_of_call:
-        first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
-        return noise_sigma * (first if index & 1 == 0 else second), second
-    return noise_sigma * spare, spare
 
 
 @njit(cache=True, inline="always")
@@ -183,8 +173,11 @@ def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
 @njit(cache=True, nogil=True)
 def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset, decimation,
                      out_z, out_v, out_f, out_h, noise_sigma, noise_seed, noise_n0,
-                     heights, materials, size_x, size_y, plan, segment_start, art):
-    """RK4 over a sample map: at every step the tip's lateral position (``scan_position`` of the
+                     heights, materials, size_x, size_y, plan, segment_start, art,
+                     event, beta, spp, stats):
+    """RK4 (``event`` 0) or ``rk4_event`` (``event`` 1, :func:`afm_ros.core.physics.events.event_step`, with
+    ``beta`` and the steps per period; split steps and extra
+    sub-steps added to ``stats``) over a sample map: at every step the tip's lateral position (``scan_position`` of the
     step's simulated time) gives the tip-dilated surface height ``h`` (bilinear between the map's
     pixel centres, periodic) and the material of the map pixel under the apex; the gap is
     ``z_offset - h + z`` and the force parameters are the material's row of ``fps``. Both are held
@@ -233,6 +226,8 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
     off_x = off_y = off_z = 0.0  # drift and creep of the current block
     line_hy = 0.0
     rotated = plan[PLAN_ROTATED] != 0.0
+    splits = 0
+    extra = 0
     for i in range(nsteps):
         fth = 0.0
         if noise_sigma > 0.0:
@@ -324,12 +319,27 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
             written += 1
             until_record = decimation
         until_record -= 1
-        z, v = _rk4_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, fp, offset,
-                         h, hh, dt, dth, sixth, dt_sixth)
+        z1, v1 = _rk4_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, fp, offset,
+                           h, hh, dt, dth, sixth, dt_sixth)
+        if event != 0:
+            # rk4_event: the plain step stands far from the surface; else the full path (not inlined, so
+            # this loop stays as tight as plain rk4's)
+            pieces = plain_step_pieces(model, fp, offset, z, v, z1, v1,
+                                       (-k * z - c * v + table[j] + f1 + fth) * inv_m, dt, beta, k, inv_m)
+            if pieces > 0:
+                z1, v1, _, _, _, split, more = event_step_full(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k,
+                                                               c, inv_m, model, fp, offset, dt, spp, beta, z1, v1, 0.0,
+                                                               0.0, 0.0)
+                splits += split
+                extra += more
+        z = z1
+        v = v1
         j += 2
         if j >= period2:
             j -= period2
     y[0] = z
     y[1] = v
     y[2] = z
+    stats[0] += splits
+    stats[1] += extra
     return written

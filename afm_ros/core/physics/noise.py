@@ -84,3 +84,14 @@ def detector_noise(seed: int, first_index: int, count: int, density: float, samp
         return np.zeros(count)
     sigma = density * math.sqrt(0.5 / sample_interval)
     return sigma * normals(int(seed), DETECTOR_STREAM, int(first_index), int(count))
+
+
+@njit(cache=True, inline="always")
+def _thermal_force(noise_sigma, noise_seed, index, first_of_call, spare):
+    """(thermal force [N] of step ``index``, the spare normal for the next step): number ``index``
+    of the seed's thermal stream; an even index draws a Box-Muller pair and keeps the second
+    number for the next (odd) step, which draws only when it starts a call."""
+    if index & 1 == 0 or first_of_call:
+        first, second = normal_pair(noise_seed, THERMAL_STREAM, index >> 1)
+        return noise_sigma * (first if index & 1 == 0 else second), second
+    return noise_sigma * spare, spare

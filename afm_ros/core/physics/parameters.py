@@ -109,6 +109,10 @@ CANTILEVER_SPECS = _specs(
     # 220: the smallest tested default that keeps amplitude and phase within 0.02 nm and 0.05 deg
     # of a converged run for z_base 80..5 nm (200 misses by 0.002 nm at 46.6 nm; docs/study.md)
     ParamSpec("steps_per_period", 220, "1", "RK4 integration steps per drive period", 20, 100000, kind=int),
+    ParamSpec("integrator", "rk4", "",
+              "integration scheme: rk4_event (RK4 split at every switch of the force law and cut near the "
+              "surface; docs/study.md) or rk4 (plain fixed-step RK4)", kind=str, choices=("rk4_event", "rk4"),
+              live=True),
 )
 
 # The drive can also be given directly as a force amplitude (instead of free_amplitude).

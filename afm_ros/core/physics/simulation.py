@@ -33,8 +33,8 @@ class Samples:
     v: np.ndarray  # velocity [m/s]
     force: np.ndarray  # tip-sample force [N]
     surface: np.ndarray | None = None  # tip-dilated sample height under the tip [m] (sample maps only)
-    # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event with
-    # decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to damping
+    # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event on a flat
+    # sample with decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to damping
     work: np.ndarray | None = None
 
     @property
@@ -131,8 +131,12 @@ class Simulation:
     # --- parameter changes (take effect for the next chunk) -------------------------------
     def reconfigure(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
                     force_model=None, steps_per_period: int | None = None,
-                    z_offset: float | None = None):
+                    z_offset: float | None = None, method: str | None = None):
         """Change parameters; the state (z, v, drive phase) carries over without a jump."""
+        if method is not None and method not in METHODS:
+            raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
+        if method is not None and self.surface is not None and method not in ("rk4", "rk4_event"):
+            raise ValueError(f"method={method!r}: a sample map needs method 'rk4' or 'rk4_event'")
         cantilever = cantilever or self.cantilever
         drive = drive or self.drive
         spp = self.steps_per_period if steps_per_period is None else steps_per_period
@@ -147,6 +151,8 @@ class Simulation:
         self.cantilever, self.drive, self.steps_per_period = cantilever, drive, spp
         if force_model is not None:
             self.force_model = force_model
+        if method is not None:
+            self.method = method
         if z_offset is not None:
             if not math.isfinite(z_offset):
                 raise ValueError(f"z_offset={z_offset!r} m is not finite")
@@ -162,9 +168,9 @@ class Simulation:
         self.temperature, self.noise_seed = float(temperature), int(seed)
 
     def set_surface(self, surface: "SurfaceMap | None") -> None:
-        """Integrate over a sample map (None: the flat sample of ``force_model``); RK4 only."""
-        if surface is not None and self.method != "rk4":
-            raise ValueError(f"method={self.method!r}: a sample map needs method 'rk4'")
+        """Integrate over a sample map (None: the flat sample of ``force_model``); rk4 or rk4_event."""
+        if surface is not None and self.method not in ("rk4", "rk4_event"):
+            raise ValueError(f"method={self.method!r}: a sample map needs method 'rk4' or 'rk4_event'")
         self.surface = surface
 
     def set_scan(self, plan: np.ndarray) -> None:
@@ -204,8 +210,7 @@ class Simulation:
             advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
                           float(c.damping), self._table, int(self.force_model.model_id), self._fp,
                           float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
-                          int(self.noise_seed), int(self.noise_index), float(self.drive.force),
-                          float(self.segment_phase), int(self.steps_per_period), self.event_stats,
+                          int(self.noise_seed), int(self.noise_index), int(self.steps_per_period), self.event_stats,
                           float(self.event_beta), out_w)
             if decimation != 1:
                 out_w = None
@@ -216,11 +221,13 @@ class Simulation:
         else:
             m = self.surface
             out_h = np.empty(count)
+            event = self.method == "rk4_event"
             _advance_surface(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass),
                              float(c.spring_constant), float(c.damping), self._table, int(m.model_id),
                              m.force_params, float(self.z_offset), int(decimation), out_z, out_v, out_f, out_h,
                              float(sigma), int(self.noise_seed), int(self.noise_index), m.heights, m.materials,
-                             float(m.size_x), float(m.size_y), self.plan, float(self.segment_start), self.artefacts)
+                             float(m.size_x), float(m.size_y), self.plan, float(self.segment_start), self.artefacts,
+                             int(event), float(self.event_beta), int(self.steps_per_period), self.event_stats)
         self.n += nsteps
         self.noise_index += nsteps
         first = -(-n0 // decimation) * decimation

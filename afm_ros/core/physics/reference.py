@@ -1,0 +1,85 @@
+"""An independent high-accuracy reference for the tip-sample dynamics over a flat sample.
+
+scipy's DOP853 (rtol 1e-13) restarted at every switch of the force law (contact onset, the
+viscoelastic clip, the hysteresis branch), located by solve_ivp's own event finder, with the force
+laws written again here from their formulas (:mod:`afm_ros.core.physics.forces` documents them):
+nothing of the project's kernels is used. Slow (Python right-hand side); for tests and the
+integrator study (``afm_ros.tools.bench_event``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+
+def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=None, rtol=1e-13):
+    """z [m] at ``t_eval`` [s] (times from 0, the drive's phase at 0) from (z, v) = ``y0`` at t = 0 over a
+    flat sample at ``z_base`` [m]; with ``work_from`` [s] also the energy the tip-sample force took from
+    then to ``t_end`` [J] (-int F v dt, integrated as a third state)."""
+    p, kind = model.packed(), model.name
+    a0, m, k, c = p[0], cantilever.mass, cantilever.spring_constant, cantilever.damping
+    w = 2.0 * math.pi * drive.frequency
+
+    def rhs(contact, clipped, retract):
+        def f(t, y):
+            z, v = y[0], y[1]
+            gap = z_base + z
+            if kind == "none":
+                fts = 0.0
+            elif not contact:
+                fts = -(p[4] if kind == "hysteresis_dmt" and retract else p[1]) / gap ** 2
+            else:
+                delta = max(a0 - gap, 0.0)
+                hertz = p[2] * delta ** 1.5
+                if kind == "viscoelastic_dmt":
+                    fts = -p[3] + (0.0 if clipped else hertz - p[4] * math.sqrt(delta) * v)
+                else:
+                    fts = -(p[5] if kind == "hysteresis_dmt" and retract else p[3]) + hertz
+            return [v, (-k * z - c * v + drive.force * math.cos(w * t + drive.phase) + fts) / m, -fts * v]
+        return f
+
+    events = [lambda t, y: z_base + y[0] - a0]
+    if kind == "viscoelastic_dmt":
+        events.append(lambda t, y: p[2] * (a0 - z_base - y[0]) - p[4] * y[1])
+    if kind == "hysteresis_dmt":
+        events.append(lambda t, y: y[1])
+    for e in events:
+        e.terminal = True
+    t, y = 0.0, np.array([y0[0], y0[1], 0.0], dtype=float)
+    gap = z_base + y[0]
+    state = [gap <= a0, bool(kind == "viscoelastic_dmt" and gap <= a0 and p[2] * (a0 - gap) - p[4] * y[1] <= 0),
+             bool(kind == "hysteresis_dmt" and y[1] >= 0)]
+    t_eval = np.asarray(t_eval, dtype=float)
+    out = {}
+    work = {}
+    marks = [] if work_from is None else [work_from]
+    while t < t_end:
+        sol = solve_ivp(rhs(*state), (t, t_end), y, method="DOP853", rtol=rtol, atol=1e-24, events=events,
+                        dense_output=True)
+        for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
+            out[te] = sol.sol(te)[0]
+        for tm in marks:
+            if sol.t[0] <= tm <= sol.t[-1]:
+                work[tm] = sol.sol(tm)[2]
+        t, y = sol.t[-1], sol.y[:, -1]
+        if sol.status != 1:
+            break
+        which = next(i for i, te in enumerate(sol.t_events) if len(te))
+        a = rhs(*state)(t, y)[1]
+        if which == 0:  # contact onset or its end; the clip starts off
+            state = [y[1] < 0, False, state[2]]
+        elif kind == "viscoelastic_dmt":
+            state[1] = bool(state[0] and -p[2] * y[1] - p[4] * a < 0)
+        else:
+            state[2] = bool(a > 0)
+        # just past the switch with the new law (no event detection over 1e-7 of a period)
+        step = 1e-7 / drive.frequency
+        sol = solve_ivp(rhs(*state), (t, min(t + step, t_end)), y, method="DOP853", rtol=rtol, atol=1e-24,
+                        dense_output=True)
+        for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
+            out[te] = sol.sol(te)[0]
+        t, y = sol.t[-1], sol.y[:, -1]
+    z = np.array([out[te] for te in t_eval])
+    return z if work_from is None else (z, y[2] - work[work_from])
