@@ -110,10 +110,13 @@ def run(afm, survey: dict = SURVEY, zoom_pixels: int = ZOOM_PIXELS, say=print) -
                phase_matrix_deg=float(np.median(phase[off])), phase_contrast_deg=contrast, flags=afm.flags())
     say(f"zoom {size * 1e6:.2f} um: phase contrast island - matrix {contrast:.3f} deg "
         f"({int(on.sum())} and {int(off.sum())} pixels away from the edges); flags: {out['flags'] or 'none'}")
-    # the matrix point: the zoom's pixel farthest from any island
+    # the matrix point: the zoom's pixel farthest from any island and from the zoom's edge (an island the
+    # zoom does not show may lie just outside it, and the scanner's creep moves the tip by ~100 nm)
     from scipy.ndimage import distance_transform_edt
 
-    far = np.unravel_index(int(np.argmax(distance_transform_edt(zlabels == 0))), zlabels.shape)
+    free = zlabels == 0
+    free[0, :] = free[-1, :] = free[:, 0] = free[:, -1] = False
+    far = np.unravel_index(int(np.argmax(distance_transform_edt(free))), zlabels.shape)
     matrix = (float(zoom.x[far[1]]), float(zoom.y[far[0]]))
     for name, (x, y) in (("island", (x0, y0)), ("matrix", matrix)):
         curve = afm.spectroscopy(x, y)

@@ -78,8 +78,8 @@ def test_phase_contrast_matches_the_core_at_the_setpoint(blend, core):
     """LDPE - PS phase in the image vs contrast_study at A/A0 = 0.8: within 0.5 deg.
 
     Budget: the loop residual (amplitude error below 0.5 % of ~1 nm, x dphi/dA = 1.6 deg/nm:
-    0.01 deg); the instrument integrates 220 RK4 steps per period against the study's 1600
-    (the default's tested accuracy on the dissipative models: 0.05 deg); the lock-in's 2f ripple
+    0.01 deg); the instrument integrates rk4_event at 80 steps per period against the study's 1600
+    (the default's tested accuracy on the dissipative models: 0.005 deg); the lock-in's 2f ripple
     and float32 images (< 1e-4 deg). Measured: 0.007 deg. (At 4 lines/s over 5 um with the
     default gains the islands are crossed in 25 ms, 2 loop time constants, and the contrast
     reads 2.0 instead of 2.38 deg: that is why this scan is slower.)"""
@@ -140,10 +140,10 @@ def test_dissipation_channel_orders_the_materials_like_the_core(blend, core):
     (w / w0) / Q exceeds E_dis by the damping of the higher harmonics, pi k (w / w0) / Q
     sum_{n>=2} n^2 A_n^2 (the core's 8 harmonics at the setpoint: 1.7 aJ on PS, 1.1 aJ on LDPE).
     The estimate is very sensitive to the phase: dE = pi F0 A cos(phi) dphi = 37 aJ per degree.
-    The instrument integrates 220 steps per period (phase within 0.05 deg of a converged run,
-    the default's tested accuracy, docs/study.md) against the study's 1600, so the image must
-    match within pi F0 A cos(phi) x 0.05 deg = 1.9 aJ (measured: the image's phase is 0.014 deg
-    below the study's on both materials, 0.5 aJ)."""
+    The instrument integrates rk4_event at 80 steps per period (phase within 0.005 deg of a converged
+    run, the default's tested accuracy, docs/study.md; plain rk4 at 220 was within 0.05 deg) against the
+    study's 1600, so the image must match within pi F0 A cos(phi) x 0.05 deg = 1.9 aJ (measured with
+    rk4 at 220: the image's phase 0.014 deg below the study's on both materials, 0.5 aJ)."""
     frame, _, mat, keep = blend
     at, scans, _ = core
     k, q, a0 = 10.0, 25.0, 60e-9  # the cantilever defaults (drive at resonance: w / w0 = 1)

@@ -124,7 +124,7 @@ def test_kernel_chunk_invariance_with_a_scan(fast_plan):
     multiples of it, boundaries inside lines and map cells) give identical arrays, bit for bit:
     the tip's position and the map cell are pure functions of the step's time."""
     one, _ = _simulation(fast_plan)
-    total = int(round(0.045 / one.dt))
+    total = int(round(0.08 / one.dt))  # more than the chunk sizes below at any step count up to 220
     whole = one.advance(total, 11)
     other, _ = _simulation(fast_plan)
     parts = []

@@ -73,15 +73,15 @@ import json, os, sys
 import afm_ros
 from afm_ros import numba_cache
 before_numba = "numba" not in sys.modules
-from afm_ros.core.physics import integrators, simulation
+from afm_ros.core.physics import events, simulation
 from afm_ros.core import lockin
-simulation.Simulation().advance(100, 4)
+simulation.Simulation().advance(100, 4)  # the default integrator: rk4_event
 lockin.LockIn().warm_up()
 print(json.dumps({
     "package": afm_ros.__file__, "chosen": numba_cache.chosen, "reason": numba_cache.reason,
     "env": os.environ.get("NUMBA_CACHE_DIR"), "configured_before_numba": before_numba,
-    "hits": sum(sum(d.stats.cache_hits.values()) for d in (integrators._advance, lockin._demodulate)),
-    "misses": sum(sum(d.stats.cache_misses.values()) for d in (integrators._advance, lockin._demodulate)),
+    "hits": sum(sum(d.stats.cache_hits.values()) for d in (events.advance_event, lockin._demodulate)),
+    "misses": sum(sum(d.stats.cache_misses.values()) for d in (events.advance_event, lockin._demodulate)),
 }))
 """
 
@@ -167,7 +167,7 @@ def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_inst
     assert first["chosen"] == str(user_dir) == first["env"], first
     assert first["misses"] >= 2 and first["hits"] == 0, first  # compiled: nothing was cached yet
     cached = sorted(p.name for p in user_dir.rglob("*") if p.is_file())
-    assert any(n.startswith("integrators._advance") and n.endswith(".nbc") for n in cached), cached
+    assert any(n.startswith("events.advance_event") and n.endswith(".nbc") for n in cached), cached
     assert any(n.startswith("lockin._demodulate") and n.endswith(".nbc") for n in cached), cached
     assert not list(install.rglob("__pycache__")), "nothing may be written into the install"
 
@@ -178,14 +178,15 @@ def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_inst
 
 # --- compiled specialisations and imports ------------------------------------------------------
 def test_rk4_kernel_has_one_specialisation_for_any_argument_types():
-    from afm_ros.core.physics import integrators, seed_simulation
-    sim = seed_simulation(z_base=40e-9)
-    sim.advance(10)
-    sim.z_offset = 0  # an int, as a caller might pass
-    sim.advance(10, np.int64(2))
-    sim.z_offset = np.float64(40e-9)
-    sim.advance(np.int64(10))
-    assert len(integrators._advance.signatures) == 1, integrators._advance.signatures
+    from afm_ros.core.physics import events, integrators, seed_simulation
+    for method, kernel in (("rk4", integrators._advance), ("rk4_event", events.advance_event)):
+        sim = seed_simulation(z_base=40e-9, method=method)
+        sim.advance(10)
+        sim.z_offset = 0  # an int, as a caller might pass
+        sim.advance(10, np.int64(2))
+        sim.z_offset = np.float64(40e-9)
+        sim.advance(np.int64(10))
+        assert len(kernel.signatures) == 1, (method, kernel.signatures)
 
 
 def test_lockin_filter_stage_is_inlined_not_compiled_per_column():

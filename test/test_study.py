@@ -237,11 +237,11 @@ def test_noisy_sweep_averages_to_the_deterministic_answer_with_the_predicted_sta
     (["convergence", "--methods", "rk4", "--periods", "1000000000"], "--periods <= 44642"),
     (["convergence", "--periods", "5", "--window-periods", "10"], "--window-periods=10 must be at most --periods=5"),
     (["sweep", "--z-base", "40e-9", "--temperature", "300", "--average-periods", "1000000000"],
-     "--average-periods <= 90909"),
+     "--average-periods <= 250000"),
     (["sweep", "--z-base", "40e-9", "--steps-per-period", "100000", "--quality-factor", "1e6"],
      "--quality-factor <= 628 at this step count, or fewer --steps-per-period"),
-    (["trajectory", "--periods", "1000000000"], "--periods <= 4545"),
-    (["trajectory", "--from-rest", "1000000000"], "--from-rest <= 90909"),
+    (["trajectory", "--periods", "1000000000"], "--periods <= 12500"),
+    (["trajectory", "--from-rest", "1000000000"], "--from-rest <= 250000"),
     (["trajectory", "--steps-per-period", "100000", "--quality-factor", "1e6"], "--quality-factor <= 628"),
     (["notebook", "--quality-factor", "1e6"], "--quality-factor <= 19634"),
 ])
@@ -249,8 +249,8 @@ def test_flags_that_would_fill_the_memory_are_refused_before_any_work(tmp_path, 
     """Each run keeps the samples it records (24 bytes per step); the bounds are fixed (2e7 steps,
     480 MB; the trajectory's CSV 1e6 rows), so the refusal is the same on every machine. Expected
     limits, from the module's bounds and the step counts: convergence 2e7 // 12800 (Euler's finest) =
-    1562 periods, // 448 (RK4's) = 44642; the sweep's average and the trajectory's warm-up 2e7 // 220 =
-    90909; the trajectory's CSV 1e6 // 220 = 4545; a steady-state window is Q/pi periods: Q <= pi *
+    1562 periods, // 448 (RK4's) = 44642; the sweep's average and the trajectory's warm-up 2e7 // 80 (the
+    default step count) = 250000; the trajectory's CSV 1e6 // 80 = 12500; a steady-state window is Q/pi periods: Q <= pi *
     (2e7 // 1e5) = 628 at 1e5 steps per period, pi * (2e7 // 3200) = 19634 for the notebook's
     reference runs. Before, each of these died with a MemoryError traceback (or worse, started)."""
     import time

@@ -74,9 +74,10 @@ def test_recorded_thermal_motion_is_the_seeded_simulation(session):
     c = Cantilever()
     assert record.temperature == TEMPERATURE and record.detector_density == DETECTOR
     assert record.sample_rate == pytest.approx(900e3, rel=1e-12)
-    sim = Simulation(c, Drive(c.resonance_frequency, 0.0), NoForce(), 1e-6, 220)
+    sim = Simulation(c, Drive(c.resonance_frequency, 0.0), NoForce(), 1e-6)  # the node's default step count
     sim.set_thermal(TEMPERATURE, SEED)
-    decimation = 11
+    decimation = sim.steps_per_period * 45e3 // 900e3  # the node's: integration steps per published sample
+    decimation = int(decimation)
     total = int(round(SECONDS * 900e3))
     z = sim.advance(total * decimation, decimation).z[:total]
     z = z + detector_noise(SEED, 0, total, DETECTOR, decimation * sim.dt)

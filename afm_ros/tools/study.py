@@ -265,8 +265,8 @@ def noisy_average(sim: Simulation, average_periods: int, detector_density: float
 
 
 def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = None, force_model=None,
-          steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default, method: str = "rk4",
-          retract: bool = False, progress: bool | None = None, amplitude_tol: float = 1e-14,
+          steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
+          method: str = CANTILEVER_SPECS["integrator"].default, retract: bool = False, progress: bool | None = None, amplitude_tol: float = 1e-14,
           phase_tol_deg: float = 1e-5, max_periods: int = 20000, temperature: float = 0.0,
           detector_density: float = 0.0, noise_seed: int = 0, average_periods: int = 200,
           event_beta: float | None = None) -> list[dict]:
@@ -319,7 +319,8 @@ TRAJECTORY_COLUMNS = ["t_s", "deflection_m", "tip_position_m", "drive_force_N", 
 
 def trajectory(z_base: float, cantilever: Cantilever | None = None, drive: Drive | None = None,
                force_model=None, steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
-               method: str = "rk4", periods: int = 5, from_rest_periods: int | None = None):
+               method: str = CANTILEVER_SPECS["integrator"].default, periods: int = 5,
+               from_rest_periods: int | None = None):
     """Time series over ``periods`` drive periods: steady state first, or ``from_rest_periods`` from rest.
 
     Returns (columns dict of arrays, PeriodAnalysis of the recorded periods).

@@ -45,7 +45,7 @@ RETRACT = 4
 ROOT_ITERATIONS = 60  # Illinois iterations at most (about 6-10 are taken)
 MAX_SWITCHES = 4  # per step; more would mean a step far too coarse for the contact
 MAX_PIECES = 256  # sub-steps of one step near the surface
-NEAR_SURFACE_FRACTION = 0.25  # the tip crosses at most this fraction of the force's length scale per sub-step
+NEAR_SURFACE_FRACTION = 0.5  # the tip crosses at most this fraction of the force's length scale per sub-step
 STIFF_PHASE = 0.25  # [rad] per unit of NEAR_SURFACE_FRACTION: the largest phase of the contact oscillation per sub-step
 
 
@@ -59,8 +59,8 @@ def region(model, p, gap, rate):
         r = CONTACT
         if model == MODEL_VISCOELASTIC_DMT and p[2] * (p[0] - gap) - p[4] * rate <= 0.0:
             r |= CLIPPED
-    if model == MODEL_HYSTERESIS_DMT and rate >= 0.0:
-        r |= RETRACT
+    if model == MODEL_HYSTERESIS_DMT and rate >= 0.0 and (p[4] != p[1] or p[5] != p[3]):
+        r |= RETRACT  # (with H_retract = H the branches are one law: no switch, as plain dmt bit for bit)
     return r
 
 
@@ -112,7 +112,7 @@ def _drive(d0, ds0, w_step, theta):
 def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
     """Classic RK4 over ``h`` [s] with region ``r``'s force law at every stage; also, with the same
     stages, the energy the tip-sample force takes over it (-int F v dt), the drive's work and the
-    damping's loss [J]."""
+    damping's loss [J] and the tip-sample force's impulse (int F dt) [N s]."""
     f1 = force_in(model, p, z_offset + z, v, r)
     a1 = (-k * z - c * v + d0 + f1 + fth) * inv_m
     z2 = z + 0.5 * h * v
@@ -130,8 +130,9 @@ def _rk4_in(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, r):
     work = -h / 6.0 * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
     drive = h / 6.0 * (d0 * v + 2.0 * dh * (v2 + v3) + d1 * v4)
     damping = h / 6.0 * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4)
+    impulse = h / 6.0 * (f1 + 2.0 * (f2 + f3) + f4)
     return (z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4), work,
-            drive, damping)
+            drive, damping, impulse)
 
 
 @njit(cache=True, inline="always")
@@ -139,7 +140,7 @@ def _rk4_step_work(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model
                    sixth, dt_sixth):
     """:func:`afm_ros.core.physics.integrators._rk4_step` (the same operations: the same z and v bit for
     bit) and, from its stages, the energy the tip-sample force takes over the step, the drive's work
-    and the damping's loss [J]."""
+    and the damping's loss [J] and the tip-sample force's impulse [N s]."""
     a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
     z2 = z + h * v
     v2 = v + h * a1
@@ -157,8 +158,9 @@ def _rk4_step_work(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model
     work = -sixth * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4)
     drive = sixth * (drive0 * v + 2.0 * drive_half * (v2 + v3) + drive1 * v4)
     damping = sixth * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4)
+    impulse = sixth * (f1 + 2.0 * (f2 + f3) + f4)
     return (z_dt + dt_sixth * (a1 + a2 + a3), (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4, work, drive,
-            damping)
+            damping, impulse)
 
 
 @njit(cache=True, inline="always")
@@ -320,15 +322,16 @@ def _piece_length(p, gap, v, a, dt, beta, k, inv_m):
 
 
 @njit(cache=True)
-def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, beta, z1, v1, w, wd, wc):
+def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, beta, z1, v1, w, wd, wc,
+                    wi):
     """:func:`event_step` in full (the steps near the surface and those with a switch); (z1, v1, w, wd,
-    wc) is the plain step, which stands as the first piece if :func:`_piece_length` allows the whole
+    wc, wi) is the plain step, which stands as the first piece if :func:`_piece_length` allows the whole
     step. The pieces are sized one after the other from their start states; the drive at their ends
     and middles is rotated from the step's start (F0 cos and F0 sin of its angle from the table values
     d0 and d1)."""
     split = 0
     extra = -1  # sub-steps beyond one
-    work = drive = damping = 0.0
+    work = drive = damping = impulse = 0.0
     za = z
     va = v
     a = (-k * z - c * v + d0 + f1 + fth) * inv_m
@@ -353,7 +356,7 @@ def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, 
             pass  # the plain step
         else:
             d_e = _drive(d0, ds0, w_step, u1)
-            z1, v1, w, wd, wc = _rk4_in(za, va, fth, d_a, _drive(d0, ds0, w_step, 0.5 * (u0 + u1)), d_e, k, c, inv_m,
+            z1, v1, w, wd, wc, wi = _rk4_in(za, va, fth, d_a, _drive(d0, ds0, w_step, 0.5 * (u0 + u1)), d_e, k, c, inv_m,
                                         model, p, z_offset, (u1 - u0) * dt, r)
         h_piece = (u1 - u0) * dt
         s_hi = _other(model, p, z_offset, za, va, z1, v1, h_piece, r)
@@ -361,7 +364,7 @@ def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, 
             # the plain step switched law between its stages, so its end state (and the interpolant
             # through it) is only first-order accurate across the switch: take it again with the law
             # it starts in, continued smoothly beyond the switch, and locate on that
-            z1, v1, w, wd, wc = _rk4_in(za, va, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, r)
+            z1, v1, w, wd, wc, wi = _rk4_in(za, va, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, r)
             extra += 1
             s_hi = _other(model, p, z_offset, za, va, z1, v1, dt, r)
         if s_hi > 0.0:
@@ -372,13 +375,14 @@ def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, 
                 s, r_next = _locate(model, p, z_offset, za, va, z1, v1, (u1 - s_start) * dt, r, s_hi)
                 s_switch = s_start + s * (u1 - s_start)
                 d_switch = _drive(d0, ds0, w_step, s_switch)
-                za, va, w1, d_1, c1 = _rk4_in(za, va, fth, d_start, _drive(d0, ds0, w_step, 0.5 * (s_start + s_switch)),
+                za, va, w1, d_1, c1, i1 = _rk4_in(za, va, fth, d_start, _drive(d0, ds0, w_step, 0.5 * (s_start + s_switch)),
                                               d_switch, k, c, inv_m, model, p, z_offset, (s_switch - s_start) * dt, r)
                 work += w1
                 drive += d_1
                 damping += c1
+                impulse += i1
                 s_start, r, d_start = s_switch, r_next, d_switch
-                z1, v1, w, wd, wc = _rk4_in(za, va, fth, d_start, _drive(d0, ds0, w_step, 0.5 * (s_start + u1)),
+                z1, v1, w, wd, wc, wi = _rk4_in(za, va, fth, d_start, _drive(d0, ds0, w_step, 0.5 * (s_start + u1)),
                                             d_e, k, c, inv_m, model, p, z_offset,
                                             (u1 - s_start) * dt, r)
                 extra += 2
@@ -389,12 +393,13 @@ def event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, 
         work += w
         drive += wd
         damping += wc
+        impulse += wi
         a = (v1 - va) / h_piece  # the piece's mean acceleration sizes the next piece
         za = z1
         va = v1
         u0 = u1
         d_a = d_e
-    return za, va, work, drive, damping, split, extra
+    return za, va, work, drive, damping, impulse, split, extra
 
 
 @njit(cache=True, inline="always")
@@ -403,22 +408,22 @@ def event_step(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh
     """One output step of ``rk4_event`` from (z [m], v [m/s]) with f1 the tip-sample force at its start,
     fth the thermal force held over it and d0, dh, d1 the drive at its start, middle and end [N];
     ``spp`` the steps per period. Returns (z, v, energy taken by the tip-sample
-    force, drive's work, damping's loss [J], 1 if a switch was located else 0, RK4 sub-steps computed
-    beyond one).
+    force, drive's work, damping's loss [J], the force's impulse [N s], 1 if a switch was located else 0,
+    RK4 sub-steps computed beyond one).
 
     The step is cut into ``_pieces`` equal pieces (one far from the surface). A one-piece step is first
     taken as the plain ``rk4`` step (bit for bit); a piece of a cut step with the law of the region it
     starts in. If the region differs at the piece's end, or at the gap's turning point inside it, the
     switch is located on the piece's cubic Hermite interpolant and the piece is integrated up to it with
     the old law and from it with the new one (up to MAX_SWITCHES times)."""
-    z1, v1, w, wd, wc = _rk4_step_work(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh, dt, dth,
-                                       sixth, dt_sixth)
+    z1, v1, w, wd, wc, wi = _rk4_step_work(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh, dt,
+                                           dth, sixth, dt_sixth)
     pieces = plain_step_pieces(model, p, z_offset, z, v, z1, v1, (-k * z - c * v + d0 + f1 + fth) * inv_m, dt,
                                beta, k, inv_m)
     if pieces == 0:
-        return z1, v1, w, wd, wc, 0, 0
+        return z1, v1, w, wd, wc, wi, 0, 0
     return event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, beta, z1, v1, w, wd,
-                           wc)
+                           wc, wi)
 
 
 @njit(cache=True, inline="always")
@@ -466,7 +471,7 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
     adds the split steps to ``stats[0]`` and the RK4 sub-steps computed beyond one per step to
     ``stats[1]``. With ``decimation`` 1, ``out_w[:, k]`` are the energies over the step of sample k [J],
     integrated with its stages: taken by the tip-sample force (-int F v dt), given by the drive, lost to
-    damping."""
+    damping; ``out_w[3, k]`` the tip-sample force's impulse int F dt [N s]."""
     z = y[0]
     v = y[1]
     period2 = table.shape[0] - 1
@@ -493,7 +498,7 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
             written += 1
             until_record = decimation
         until_record -= 1
-        z, v, work, drive, damping, split, more = event_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k,
+        z, v, work, drive, damping, impulse, split, more = event_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k,
                                                              c, inv_m, model, p, z_offset, h, hh, dt, dth, sixth,
                                                              dt_sixth, spp, beta)
         splits += split
@@ -502,6 +507,7 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
             out_w[0, written - 1] = work
             out_w[1, written - 1] = drive
             out_w[2, written - 1] = damping
+            out_w[3, written - 1] = impulse
         j += 2
         if j >= period2:
             j -= period2

@@ -327,9 +327,9 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
             pieces = plain_step_pieces(model, fp, offset, z, v, z1, v1,
                                        (-k * z - c * v + table[j] + f1 + fth) * inv_m, dt, beta, k, inv_m)
             if pieces > 0:
-                z1, v1, _, _, _, split, more = event_step_full(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k,
-                                                               c, inv_m, model, fp, offset, dt, spp, beta, z1, v1, 0.0,
-                                                               0.0, 0.0)
+                z1, v1, _, _, _, _, split, more = event_step_full(z, v, f1, fth, table[j], table[j + 1],
+                                                                  table[j + 2], k, c, inv_m, model, fp, offset, dt,
+                                                                  spp, beta, z1, v1, 0.0, 0.0, 0.0, 0.0)
                 splits += split
                 extra += more
         z = z1

@@ -34,7 +34,8 @@ class Samples:
     force: np.ndarray  # tip-sample force [N]
     surface: np.ndarray | None = None  # tip-dilated sample height under the tip [m] (sample maps only)
     # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event on a flat
-    # sample with decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to damping
+    # sample with decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to
+    # damping, and the tip-sample force's impulse int F dt [N s]
     work: np.ndarray | None = None
 
     @property
@@ -65,7 +66,8 @@ class Simulation:
     def __init__(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
                  force_model=None, z_offset: float = 40e-9,
                  steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
-                 method: str = "rk4", z0: float = 0.0, v0: float = 0.0, t0: float = 0.0,
+                 method: str = CANTILEVER_SPECS["integrator"].default, z0: float = 0.0, v0: float = 0.0,
+                 t0: float = 0.0,
                  check_resolution: bool = True):
         if method not in METHODS:
             raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
@@ -206,7 +208,7 @@ class Simulation:
         out_w = None
         if self.surface is None and self.method == "rk4_event":
             from afm_ros.core.physics.events import advance_event
-            out_w = np.empty((3, count if decimation == 1 else 0))
+            out_w = np.empty((4, count if decimation == 1 else 0))
             advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
                           float(c.damping), self._table, int(self.force_model.model_id), self._fp,
                           float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
@@ -239,8 +241,9 @@ class Simulation:
 
 
 def seed_simulation(z_base: float = 40e-9,
-                    steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default, method: str = "rk4",
-                    sample=None, free: bool = False, **kwargs) -> Simulation:
+                    steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
+                    method: str = CANTILEVER_SPECS["integrator"].default, sample=None, free: bool = False,
+                    **kwargs) -> Simulation:
     """The seed notebook's cantilever (k=10 N/m, f0=45 kHz, Q=25, A0=60 nm) over its DMT sample."""
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)
