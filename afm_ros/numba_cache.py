@@ -16,9 +16,18 @@ any afm_ros module imports numba, and picks in this order:
 In cases 3 and 4 ``NUMBA_CACHE_DIR`` is set in ``os.environ`` (child processes make the same
 choice) and, if numba was already imported by someone else, in ``numba.config`` too; numba
 then keeps the files of each source directory in its own sub-directory, keyed by the path.
+
+Numba checks a cached kernel against its own source file only, not against the files whose
+functions it inlined or calls (the scanning kernel in ``integrators.py`` inlines and calls the event
+kernel of ``events.py``): after a ``git pull`` that changed only ``events.py`` it would load a stale
+kernel. :func:`configure` therefore keeps a stamp of every kernel source (path, size, mtime) beside
+the cache (cases 2-4) and removes the cached kernels when it differs: the next start compiles them
+again (tens of seconds once).
 """
 from __future__ import annotations
 
+import glob
+import hashlib
 import os
 import sys
 import tempfile
@@ -67,6 +76,46 @@ def user_cache_dir() -> str:
     return os.path.join(base, "afm_ros", "numba")
 
 
+def sources_stamp() -> str:
+    """A digest of the path, size and modification time of every module in KERNEL_DIRS."""
+    h = hashlib.sha256()
+    for d in KERNEL_DIRS:
+        for path in sorted(glob.glob(os.path.join(d, "*.py"))):
+            st = os.stat(path)
+            h.update(f"{os.path.relpath(path, PACKAGE_DIR)}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
+
+
+def drop_stale(stamp_dir: str, cache_files: list[str]) -> bool:
+    """Remove ``cache_files`` if the stamp in ``stamp_dir`` is not the sources' (then write it); True if
+    they were removed. Errors (a read-only place, a file another process removed) are ignored."""
+    stamp_file = os.path.join(stamp_dir, "afm_ros_sources.stamp")
+    now = sources_stamp()
+    try:
+        with open(stamp_file) as fh:
+            if fh.read().strip() == now:
+                return False
+    except OSError:
+        pass
+    for f in cache_files:
+        try:
+            os.remove(f)
+        except OSError:
+            pass
+    try:
+        os.makedirs(stamp_dir, exist_ok=True)
+        with open(stamp_file, "w") as fh:
+            fh.write(now + "\n")
+    except OSError:
+        pass
+    return True
+
+
+def _cached(root: str, recursive: bool) -> list[str]:
+    pattern = os.path.join(root, "**", "*.nb[ic]") if recursive else os.path.join(root, "*.nb[ic]")
+    return glob.glob(pattern, recursive=recursive)
+
+
 def configure() -> str | None:
     """Choose the cache directory (see the module docstring); return it, or None for in-tree."""
     global chosen, reason
@@ -76,6 +125,8 @@ def configure() -> str | None:
         return user_set
     if _in_tree_writable():
         chosen, reason = None, "package directory writable (numba's in-tree cache)"
+        drop_stale(os.path.join(PACKAGE_DIR, "__pycache__"),
+                   [f for d in KERNEL_DIRS for f in _cached(os.path.join(d, "__pycache__"), False)])
         return None
     candidates = [(user_cache_dir(), "package directory read-only: user cache"),
                   (os.path.join(tempfile.gettempdir(), f"afm_ros-numba-{os.getuid() if hasattr(os, 'getuid') else 0}"),
@@ -83,6 +134,7 @@ def configure() -> str | None:
     for path, why in candidates:
         if _writable_dir(path, create=True):
             chosen, reason = path, why
+            drop_stale(path, _cached(path, True))
             os.environ["NUMBA_CACHE_DIR"] = path
             config = sys.modules.get("numba.core.config")
             if config is not None:  # numba was imported before afm_ros: tell it directly as well

@@ -217,3 +217,18 @@ def test_every_folder_with_numba_kernels_is_checked_for_the_in_tree_cache():
     package = pathlib.Path(numba_cache.PACKAGE_DIR)
     with_kernels = {str(p.parent) for p in package.rglob("*.py") if "njit(" in p.read_text()}
     assert with_kernels <= set(map(os.path.normpath, numba_cache.KERNEL_DIRS)), sorted(with_kernels)
+
+
+def test_cached_kernels_are_dropped_when_any_kernel_source_changes(tmp_path):
+    """numba checks a cached kernel against its own file only; the scanning kernel inlines the event
+    kernel of another file. The stamp of every kernel source decides: unchanged sources keep the cache,
+    a changed one (any file) drops it."""
+    from afm_ros import numba_cache
+
+    cached = tmp_path / "integrators._advance_surface-184.py311.nbi"
+    cached.write_text("x")
+    assert numba_cache.drop_stale(str(tmp_path), [str(cached)])  # no stamp yet: dropped, stamp written
+    cached.write_text("x")
+    assert not numba_cache.drop_stale(str(tmp_path), [str(cached)]) and cached.exists()
+    (tmp_path / "afm_ros_sources.stamp").write_text("an older set of sources\n")
+    assert numba_cache.drop_stale(str(tmp_path), [str(cached)]) and not cached.exists()

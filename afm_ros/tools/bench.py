@@ -13,9 +13,17 @@ z_base = 40 nm, RK4 with 200 steps per drive period, started from rest.
   steps covering the same simulated time).
 - warm startup: a fresh ``python -c`` that imports the package and runs a tiny simulation,
   run twice so the numba cache is warm; the second wall time is reported.
+- ``rk4_event``: the event-located RK4 kernel (``events.advance_event``, flat sample, no recording)
+  against the same algorithm in C (``bench_event_baseline.c``: the same operations in the same order,
+  compiled with ``gcc -O2 -fno-fast-math -ffp-contract=off``), for dmt, viscoelastic_dmt (20 Pa s) and
+  hysteresis_dmt (H_retract = 1.5 H) far from the surface (z_base 2 um), tapping (50 nm) and tapping
+  hard (20 nm), at the steps per period and near-surface fraction ``Simulation`` uses for the method;
+  ns per output step, timed alternately (best of 3), and whether the end state and the split / sub-step
+  counts are bit-identical.
 """
 from __future__ import annotations
 
+import copy
 import ctypes
 import math
 import os
@@ -60,6 +68,112 @@ def _build_c(tmp: Path):
     return fn, None
 
 
+EVENT_C_FLAGS = ["-O2", "-fno-fast-math", "-ffp-contract=off"]
+# (name, z_base [m]) of the rk4_event comparison: the tip far from the surface, tapping, tapping hard
+EVENT_REGIMES = (("far", 2e-6), ("tapping", 50e-9), ("hard_tapping", 20e-9))
+
+
+def _build_event_c(tmp: Path):
+    """``advance_event`` of ``bench_event_baseline.c`` via ctypes, or (None, why not)."""
+    gcc = shutil.which("gcc") or shutil.which("cc")
+    if gcc is None:
+        return None, "no C compiler (gcc/cc) found"
+    src = Path(__file__).with_name("bench_event_baseline.c")
+    lib = tmp / "bench_event_baseline.so"
+    proc = subprocess.run([gcc, *EVENT_C_FLAGS, "-shared", "-fPIC", "-o", str(lib), str(src), "-lm"],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        return None, f"gcc failed: {proc.stderr.strip()[:300]}"
+    dll = ctypes.CDLL(str(lib))
+    ptr = ctypes.POINTER(ctypes.c_double)
+    fn = dll.advance_event
+    fn.argtypes = [ptr, ctypes.c_long, ctypes.c_long, ctypes.c_double, ctypes.c_double, ctypes.c_double,
+                   ctypes.c_double, ptr, ctypes.c_long, ctypes.c_long, ptr, ctypes.c_double, ctypes.c_long,
+                   ctypes.c_double, ptr, ptr]
+    fn.restype = None
+    return fn, None
+
+
+def _event_c_call(fn, sim, steps: int, out_w=None):
+    """``steps`` rk4_event steps in C from the state of ``sim`` (a Simulation with method rk4_event over
+    a flat sample; not changed); returns (y [z, v], stats [split steps, extra sub-steps])."""
+    ptr = ctypes.POINTER(ctypes.c_double)
+    c = sim.cantilever
+    table, fp = sim._table, sim._fp
+    y = np.array(sim.y[:2], dtype=np.float64)
+    stats = np.zeros(2)
+    fn(y.ctypes.data_as(ptr), int(sim.n), int(steps), float(sim.dt), 1.0 / float(c.mass), float(c.spring_constant),
+       float(c.damping), table.ctypes.data_as(ptr), table.shape[0], int(sim.force_model.model_id),
+       fp.ctypes.data_as(ptr), float(sim.z_offset), int(sim.steps_per_period), float(sim.event_beta),
+       stats.ctypes.data_as(ptr), None if out_w is None else out_w.ctypes.data_as(ptr))
+    return y, stats
+
+
+def _event_models() -> dict:
+    """The force models of issue 19's hard-tapping check (test/test_physics_events.py)."""
+    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
+    from afm_ros.core.physics.parameters import DMTSample
+
+    sample = DMTSample()
+    return {"dmt": DMTForce(sample), "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),
+            "hysteresis_dmt": HysteresisDMTForce(sample, hamaker_retract=1.5 * sample.hamaker_constant)}
+
+
+def _event_times(steps: int) -> dict:
+    """ns per output step of numba's ``advance_event`` and of the same algorithm in C, per force model
+    and regime, from the same state (the lever's steady motion: 150 periods from rest first), timed
+    alternately, best of 3; ratio numba / C and whether both end in the same state bit for bit."""
+    from afm_ros.core.physics import Cantilever, Drive, Simulation
+
+    cantilever = Cantilever()
+    drive = Drive.from_free_amplitude(cantilever, 60e-9)
+    starts = {}
+    for regime, z_base in EVENT_REGIMES:
+        for name, model in _event_models().items():
+            sim = Simulation(cantilever, drive, model, z_base, method="rk4_event")
+            sim.advance(150 * sim.steps_per_period, record=False)  # also compiles / loads the kernel
+            starts[(regime, name)] = sim
+    first = next(iter(starts.values()))
+    out = {"method": "rk4_event", "steps": steps, "steps_per_period": first.steps_per_period,
+           "near_surface_fraction": first.event_beta,
+           "z_base_m": {regime: z for regime, z in EVENT_REGIMES}}
+    with tempfile.TemporaryDirectory() as tmp:
+        fn, note = _build_event_c(Path(tmp))
+        if fn is None:
+            out["c_note"] = f"C baseline of rk4_event skipped: {note}"
+            return out
+        out["c_flags"] = " ".join(EVENT_C_FLAGS)
+        numba_times = {key: [] for key in starts}
+        c_times = {key: [] for key in starts}
+        identical = {key: True for key in starts}
+        substeps = {}
+        for _ in range(3):
+            for key, start in starts.items():
+                sim = copy.deepcopy(start)
+                t0 = time.perf_counter()
+                sim.advance(steps, record=False)
+                numba_times[key].append((time.perf_counter() - t0) / steps)
+                t0 = time.perf_counter()
+                y, stats = _event_c_call(fn, start, steps)
+                c_times[key].append((time.perf_counter() - t0) / steps)
+                added = sim.event_stats - start.event_stats  # (the warm-up's counts are in both)
+                identical[key] &= bool(y[0] == sim.y[0] and y[1] == sim.y[1] and np.array_equal(stats, added))
+                substeps[key] = 1.0 + float(added[1]) / steps
+    cases = {}
+    for (regime, name) in starts:
+        ns_numba = min(numba_times[(regime, name)]) * 1e9
+        ns_c = min(c_times[(regime, name)]) * 1e9
+        cases.setdefault(regime, {})[name] = {
+            "numba_ns_per_step": ns_numba, "c_ns_per_step": ns_c, "ratio_vs_c": ns_numba / ns_c,
+            "bit_identical": identical[(regime, name)], "substeps_per_step": substeps[(regime, name)]}
+    out["cases"] = cases
+    ratios = [case["ratio_vs_c"] for models in cases.values() for case in models.values()]
+    out["worst_ratio_vs_c"] = max(ratios)
+    out["all_bit_identical"] = all(case["bit_identical"] for models in cases.values() for case in models.values())
+    out["goals"] = {"within_1.1x_of_c": out["worst_ratio_vs_c"] <= 1.1}
+    return out
+
+
 def _c_call(fn, y, n0, steps, sim):
     ptr = ctypes.POINTER(ctypes.c_double)
     c = sim.cantilever
@@ -70,7 +184,7 @@ def _c_call(fn, y, n0, steps, sim):
 
 def _c_matches(fn) -> bool:
     """Same number of steps from rest in C and numba must give the identical state (bit for bit)."""
-    sim = seed_simulation(Z_BASE, SPP)
+    sim = seed_simulation(Z_BASE, SPP, method="rk4")
     check_steps = 100 * SPP + 7
     y = np.zeros(2)
     _c_call(fn, y, 0, check_steps, sim)
@@ -86,7 +200,7 @@ def _time_c_once(fn, sim, steps: int) -> float:
 
 
 def _rhs_factory():
-    sim = seed_simulation(Z_BASE, SPP)
+    sim = seed_simulation(Z_BASE, SPP, method="rk4")
     c, d = sim.cantilever, sim.drive
     k, damp, inv_m, f0, w, ph = c.spring_constant, c.damping, 1.0 / c.mass, d.force, d.omega, d.phase
     a0, hr6, hertz, fad = (float(x) for x in sim._fp[:4])
@@ -108,7 +222,7 @@ def _rhs_factory():
 
 def _reference(periods: int, spp_ref: int = 6400):
     """z [m] at every 10th RK4-200 step time, from RK4 at ``spp_ref`` steps per period."""
-    sim = seed_simulation(Z_BASE, spp_ref)
+    sim = seed_simulation(Z_BASE, spp_ref, method="rk4")
     ratio = spp_ref // SPP
     s = sim.advance(periods * spp_ref + 1, decimation=10 * ratio)
     return s.t, s.z
@@ -169,7 +283,7 @@ def _model_times(steps: int, fn) -> dict:
              "dmt + thermal 300 K": make_force_model("dmt", sample)}
     sims = {}
     for name, model in cases.items():
-        sim = Simulation(cantilever, drive, model, Z_BASE, SPP)
+        sim = Simulation(cantilever, drive, model, Z_BASE, SPP, "rk4")
         if "thermal" in name:
             sim.set_thermal(300.0, 1)
         sim.advance(10 * SPP, record=False)
@@ -180,7 +294,7 @@ def _model_times(steps: int, fn) -> dict:
         for name, sim in sims.items():
             times[name].append(_time_numba_once(sim, steps))
         if fn is not None:
-            c_times.append(_time_c_once(fn, seed_simulation(Z_BASE, SPP), steps))
+            c_times.append(_time_c_once(fn, seed_simulation(Z_BASE, SPP, method="rk4"), steps))
     ns = {name: min(t) * 1e9 for name, t in times.items()}
     out = {"ns_per_step": ns, "steps": steps}
     if c_times:
@@ -200,7 +314,7 @@ def run_bench(steps: int = 10_000_000, solve_ivp_periods: int = 40, startup: boo
     out: dict = {"problem": f"seed cantilever + DMT, z_base {Z_BASE:g} m, RK4 {SPP} steps/period",
                  "steps": steps, "machine": f"{platform.machine()} {os.cpu_count()} cpu, "
                  f"python {platform.python_version()}"}
-    sim = seed_simulation(Z_BASE, SPP)
+    sim = seed_simulation(Z_BASE, SPP, method="rk4")
     sim.advance(10 * SPP, record=False)  # compile / load from the cache outside the timing
     with tempfile.TemporaryDirectory() as tmp:
         fn, note = _build_c(Path(tmp))
@@ -220,13 +334,14 @@ def run_bench(steps: int = 10_000_000, solve_ivp_periods: int = 40, startup: boo
             out["c_bit_identical_to_numba"] = _c_matches(fn)
     out["rk4_ns_per_step"] = ns_numba * 1e9
     out["models"] = _model_times(max(steps // 5, 200_000), fn)
+    out["rk4_event"] = _event_times(max(steps // 20, 1000))
     out["real_time_factor"] = sim.dt / ns_numba
     default_spp = CANTILEVER_SPECS["steps_per_period"].default
     out["default_steps_per_period"] = default_spp
     out["real_time_factor_at_default_spp"] = 1.0 / (sim.drive.frequency * default_spp * ns_numba)
     # accuracy-matched solve_ivp over fewer periods
     t_ref, z_ref = _reference(solve_ivp_periods)
-    sim200 = seed_simulation(Z_BASE, SPP)
+    sim200 = seed_simulation(Z_BASE, SPP, method="rk4")
     s = sim200.advance(solve_ivp_periods * SPP + 1, decimation=10)
     rk4_err = float(np.max(np.abs(s.z - z_ref)))
     out["accuracy_check"] = {"periods": solve_ivp_periods, "reference": "RK4 at 6400 steps per period",

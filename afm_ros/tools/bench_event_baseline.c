@@ -9,14 +9,18 @@
  * lowering), int / int is a true division of the two converted to double, int(math.ceil(x)) truncates
  * the ceiling, -a * b is (-a) * b, sums and products associate to the left.
  *
- * Structure as in numba: the plain RK4 step (with its energies) and the test whether it stands are
- * inlined in the loop; the full path (event_step_full) is a separate function that is not inlined.
+ * Structure as in numba: the plain RK4 step (with its energies) and the far-from-the-surface test are
+ * inlined in the loop; the test near the surface (_near_step_pieces) and the full path (event_step_full)
+ * are separate functions that are not inlined, as numba compiles them (njit without inline="always").
+ * The thermal force is the constant -0.0 added where numba adds fth: x + (-0.0) == x for every x, so the
+ * compiler may drop the adds, as LLVM does in numba (x + 0.0 could not be dropped: -0.0 + 0.0 is +0.0).
+ * The force constants are passed on by pointer (numba passes a tuple of them: no arithmetic difference).
  *
  * y = [z, v]; table has 2 spp + 1 entries (half-step drive); p = the packed force constants (6 values);
  * model 0 none, 1 dmt, 2 viscoelastic_dmt, 3 hysteresis_dmt; stats[0] += steps split at a switch,
- * stats[1] += RK4 sub-steps computed beyond one per step. out_w: NULL (no recording), else 3 rows of
- * nsteps energies per step [J] (taken by the tip-sample force, given by the drive, lost to damping),
- * what advance_event writes with decimation 1 (row stride nsteps).
+ * stats[1] += RK4 sub-steps computed beyond one per step. out_w: NULL (no recording), else 4 rows of
+ * nsteps values per step, what advance_event writes with decimation 1 (row stride nsteps): the energies
+ * [J] taken by the tip-sample force, given by the drive, lost to damping, and the force's impulse [N s].
  */
 #include <math.h>
 #include <stddef.h>
@@ -85,7 +89,7 @@ static inline int region(long model, const double *p, double gap, double rate)
         if (model == MODEL_VISCOELASTIC_DMT && p[2] * (p[0] - gap) - p[4] * rate <= 0.0)
             r |= CLIPPED;
     }
-    if (model == MODEL_HYSTERESIS_DMT && rate >= 0.0)
+    if (model == MODEL_HYSTERESIS_DMT && rate >= 0.0 && (p[4] != p[1] || p[5] != p[3]))
         r |= RETRACT;
     return r;
 }
@@ -128,15 +132,15 @@ static inline void cos_sin(double x, double *c, double *s)
 }
 
 /* events.py _drive */
-static inline double drive_at(double d0, double ds0, long spp, double theta)
+static inline double drive_at(double d0, double ds0, double w_step, double theta)
 {
     double cos_t, sin_t;
-    cos_sin(2.0 * PI * theta / (double)spp, &cos_t, &sin_t);
+    cos_sin(w_step * theta, &cos_t, &sin_t);
     return d0 * cos_t - ds0 * sin_t;
 }
 
 typedef struct {
-    double z, v, work, drive, damping;
+    double z, v, work, drive, damping, impulse;
 } step_t;
 
 /* events.py _rk4_in */
@@ -161,6 +165,7 @@ static inline step_t rk4_in(double z, double v, double fth, double d0, double dh
     out.work = -h / 6.0 * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4);
     out.drive = h / 6.0 * (d0 * v + 2.0 * dh * (v2 + v3) + d1 * v4);
     out.damping = h / 6.0 * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4);
+    out.impulse = h / 6.0 * (f1 + 2.0 * (f2 + f3) + f4);
     out.z = z + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4);
     out.v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4);
     return out;
@@ -190,6 +195,7 @@ static inline step_t rk4_step_work(double z, double v, double f1, double fth, do
     out.work = -sixth * (f1 * v + 2.0 * (f2 * v2 + f3 * v3) + f4 * v4);
     out.drive = sixth * (drive0 * v + 2.0 * drive_half * (v2 + v3) + drive1 * v4);
     out.damping = sixth * c * (v * v + 2.0 * (v2 * v2 + v3 * v3) + v4 * v4);
+    out.impulse = sixth * (f1 + 2.0 * (f2 + f3) + f4);
     out.z = z_dt + dt_sixth * (a1 + a2 + a3);
     out.v = (v + sixth * (a1 + 2.0 * (a2 + a3))) + sixth * a4;
     return out;
@@ -335,14 +341,24 @@ static inline long pieces_for(const double *p, double gap0, double v0, double a,
     return pieces;
 }
 
-/* events.py plain_step_pieces */
-static inline long plain_step_pieces(long model, const double *p, double z_offset, double z, double v, double z1,
-                                     double v1, double a, double dt, double beta, double k, double inv_m)
+/* events.py _piece_length */
+static inline double piece_length(const double *p, double gap, double v, double a, double dt, double beta, double k,
+                                  double inv_m)
 {
-    if (model == MODEL_NONE)
-        return 0;
-    double gap0 = z_offset + z;
-    double gap1 = z_offset + z1;
+    double speed = fabs(v) + 0.5 * fabs(a) * dt;
+    if (speed == 0.0)
+        return 1.0;
+    double h = beta * (fabs(gap - p[0]) + p[0]) / speed;
+    if (gap < p[0])
+        h = py_min(h, STIFF_PHASE * beta / sqrt((k + 1.5 * p[2] * sqrt(p[0] - gap)) * inv_m));
+    return h / dt;
+}
+
+/* events.py _near_step_pieces: not inlined (a separate function in numba too) */
+__attribute__((noinline)) static long near_step_pieces(long model, const double *p, double gap0, double gap1, double v,
+                                                       double v1, double a, double dt, double beta, double k,
+                                                       double inv_m)
+{
     long pieces = pieces_for(p, gap0, v, a, gap1, dt, beta, k, inv_m);
     if (pieces == 1) {
         if (gap0 > p[0] && gap1 > p[0]) {
@@ -358,87 +374,115 @@ static inline long plain_step_pieces(long model, const double *p, double z_offse
     return pieces;
 }
 
+/* events.py plain_step_pieces */
+static inline long plain_step_pieces(long model, const double *p, double z_offset, double z, double v, double z1,
+                                     double v1, double a, double dt, double beta, double k, double inv_m)
+{
+    if (model == MODEL_NONE)
+        return 0;
+    double gap0 = z_offset + z;
+    double gap1 = z_offset + z1;
+    if (beta * (py_min(gap0, gap1) - p[0]) > 1.5 * dt * py_max(fabs(v), fabs(v1))
+        && (model != MODEL_HYSTERESIS_DMT || (v > 0.0) == (v1 > 0.0)))
+        return 0;
+    return near_step_pieces(model, p, gap0, gap1, v, v1, a, dt, beta, k, inv_m);
+}
+
 typedef struct {
-    double z, v, work, drive, damping;
+    double z, v, work, drive, damping, impulse;
     long split, extra;
 } full_t;
 
 /* events.py event_step_full: not inlined (numba calls it as a separate function) */
-__attribute__((noinline)) static full_t event_step_full(double z, double v, double fth, double d0, double dh,
-                                                        double d1, double k, double c, double inv_m, long model,
-                                                        const double *p, double z_offset, double dt, long spp,
-                                                        long pieces, double z1, double v1, double w, double wd,
-                                                        double wc)
+__attribute__((noinline)) static full_t event_step_full(double z, double v, double f1, double fth, double d0,
+                                                        double dh, double d1, double k, double c, double inv_m,
+                                                        long model, const double *p, double z_offset, double dt,
+                                                        long spp, double beta, double z1, double v1, double w,
+                                                        double wd, double wc, double wi)
 {
     long split = 0;
-    long extra = pieces - 1;
-    double work = 0.0, drive = 0.0, damping = 0.0;
+    long extra = -1;
+    double work = 0.0, drive = 0.0, damping = 0.0, impulse = 0.0;
     double za = z;
     double va = v;
+    double a = (-k * z - c * v + d0 + f1 + fth) * inv_m;
+    double w_step = 2.0 * PI / (double)spp;
     double cos_p, sin_p;
-    cos_sin(2.0 * PI / (double)spp, &cos_p, &sin_p);
-    double cos_a = d0;
-    double sin_a = (d0 * cos_p - d1) / sin_p;
-    double ds0 = sin_a;
-    double cos_h, sin_h;
-    cos_sin(PI / (double)(spp * pieces), &cos_h, &sin_h);
-    for (long q = 0; q < pieces; q++) {
-        double u0 = (double)q / (double)pieces;
-        double u1 = (double)(q + 1) / (double)pieces;
-        int r = region(model, p, z_offset + za, va);
-        double cos_m = cos_a * cos_h - sin_a * sin_h;
-        double sin_m = sin_a * cos_h + cos_a * sin_h;
-        double cos_e = cos_m * cos_h - sin_m * sin_h;
-        double sin_e = sin_m * cos_h + cos_m * sin_h;
-        step_t st;
-        if (pieces > 1) {
-            st = rk4_in(za, va, fth, cos_a, cos_m, cos_e, k, c, inv_m, model, p, z_offset, (u1 - u0) * dt, r);
-            z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping;
+    cos_sin(w_step, &cos_p, &sin_p);
+    double ds0 = (d0 * cos_p - d1) / sin_p;
+    double u0 = 0.0;
+    double d_a = d0;
+    double d_e = d1;
+    int r = region(model, p, z_offset + z, v);
+    step_t st;
+    while (u0 < 1.0) {
+        double hq = beta > 0.0 ? piece_length(p, z_offset + za, va, a, dt, beta, k, inv_m) : 1.0;
+        double rest = 1.0 - u0;
+        double u1;
+        if (hq >= rest || extra >= MAX_PIECES - 2)
+            u1 = 1.0;
+        else if (hq > 0.5 * rest)
+            u1 = u0 + 0.5 * rest;
+        else
+            u1 = u0 + hq;
+        extra += 1;
+        if (!(u0 == 0.0 && u1 == 1.0)) {
+            d_e = drive_at(d0, ds0, w_step, u1);
+            st = rk4_in(za, va, fth, d_a, drive_at(d0, ds0, w_step, 0.5 * (u0 + u1)), d_e, k, c, inv_m, model, p,
+                        z_offset, (u1 - u0) * dt, r);
+            z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping; wi = st.impulse;
         }
-        double s_hi = other(model, p, z_offset, za, va, z1, v1, (u1 - u0) * dt, r);
-        if (s_hi > 0.0 && pieces == 1) {
+        double h_piece = (u1 - u0) * dt;
+        double s_hi = other(model, p, z_offset, za, va, z1, v1, h_piece, r);
+        if (s_hi > 0.0 && u0 == 0.0 && u1 == 1.0) {
             st = rk4_in(za, va, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, r);
-            z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping;
+            z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping; wi = st.impulse;
             extra += 1;
             s_hi = other(model, p, z_offset, za, va, z1, v1, dt, r);
         }
+        double s_start = u0;
         if (s_hi > 0.0) {
             split = 1;
-            double s_start = u0;
-            double d_start = cos_a;
+            double d_start = d_a;
             for (int it = 0; it < MAX_SWITCHES; it++) {
                 int r_next;
                 double s = locate(model, p, z_offset, za, va, z1, v1, (u1 - s_start) * dt, r, s_hi, &r_next);
                 double s_switch = s_start + s * (u1 - s_start);
-                double d_switch = drive_at(d0, ds0, spp, s_switch);
-                st = rk4_in(za, va, fth, d_start, drive_at(d0, ds0, spp, 0.5 * (s_start + s_switch)), d_switch, k,
+                double d_switch = drive_at(d0, ds0, w_step, s_switch);
+                st = rk4_in(za, va, fth, d_start, drive_at(d0, ds0, w_step, 0.5 * (s_start + s_switch)), d_switch, k,
                             c, inv_m, model, p, z_offset, (s_switch - s_start) * dt, r);
                 za = st.z; va = st.v;
                 work += st.work;
                 drive += st.drive;
                 damping += st.damping;
+                impulse += st.impulse;
                 s_start = s_switch;
                 r = r_next;
                 d_start = d_switch;
-                st = rk4_in(za, va, fth, d_start, drive_at(d0, ds0, spp, 0.5 * (s_start + u1)), cos_e, k, c, inv_m,
+                st = rk4_in(za, va, fth, d_start, drive_at(d0, ds0, w_step, 0.5 * (s_start + u1)), d_e, k, c, inv_m,
                             model, p, z_offset, (u1 - s_start) * dt, r);
-                z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping;
+                z1 = st.z; v1 = st.v; w = st.work; wd = st.drive; wc = st.damping; wi = st.impulse;
                 extra += 2;
                 double h2 = (u1 - s_start) * dt;
                 s_hi = h2 > 0.0 ? other(model, p, z_offset, za, va, z1, v1, h2, r) : -1.0;
                 if (s_hi < 0.0)
                     break;
             }
+            if (s_hi >= 0.0) /* MAX_SWITCHES reached: go on with the end state's law */
+                r = region(model, p, z_offset + z1, v1);
         }
         work += w;
         drive += wd;
         damping += wc;
+        impulse += wi;
+        /* the acceleration at the piece's end (in the law it ends in) sizes the next piece */
+        a = (-k * z1 - c * v1 + d_e + force_in(model, p, z_offset + z1, v1, r) + fth) * inv_m;
         za = z1;
         va = v1;
-        cos_a = cos_e;
-        sin_a = sin_e;
+        u0 = u1;
+        d_a = d_e;
     }
-    full_t out = {za, va, work, drive, damping, split, extra};
+    full_t out = {za, va, work, drive, damping, impulse, split, extra};
     return out;
 }
 
@@ -452,11 +496,11 @@ static inline full_t event_step(double z, double v, double f1, double fth, doubl
     long pieces = plain_step_pieces(model, p, z_offset, z, v, st.z, st.v,
                                     (-k * z - c * v + d0 + f1 + fth) * inv_m, dt, beta, k, inv_m);
     if (pieces == 0) {
-        full_t out = {st.z, st.v, st.work, st.drive, st.damping, 0, 0};
+        full_t out = {st.z, st.v, st.work, st.drive, st.damping, st.impulse, 0, 0};
         return out;
     }
-    return event_step_full(z, v, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, pieces, st.z, st.v,
-                           st.work, st.drive, st.damping);
+    return event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, beta, st.z, st.v,
+                           st.work, st.drive, st.damping, st.impulse);
 }
 
 /* events.py advance_event with the thermal force off and no sample recording */
@@ -468,7 +512,7 @@ void advance_event(double *y, long n0, long nsteps, double dt, double inv_m, dou
     const long period2 = table_len - 1;
     long j = (2 * n0) % period2;
     const double h = 0.5 * dt, sixth = dt / 6.0, hh = h * h, dth = dt * h, dt_sixth = dt * sixth;
-    const double fth = 0.0;
+    const double fth = -0.0; /* the thermal force off (see above) */
     long splits = 0, extra = 0;
     for (long i = 0; i < nsteps; i++) {
         double f1 = tip_sample_force(model, p, z_offset + z, v);
@@ -482,6 +526,7 @@ void advance_event(double *y, long n0, long nsteps, double dt, double inv_m, dou
             out_w[i] = st.work;
             out_w[nsteps + i] = st.drive;
             out_w[2 * nsteps + i] = st.damping;
+            out_w[3 * nsteps + i] = st.impulse;
         }
         j += 2;
         if (j >= period2)
