@@ -103,7 +103,7 @@ def test_setpoint_change_listed_with_its_own_settling(ros_context, ros_namespace
     assert "### Setpoint changes" in md and "before engaging" in md and "→ 40 nm |" in md
 
 
-BLOW_UP = {"integrator": "rk4", "tip_youngs_modulus": 1e13, "sample_youngs_modulus": 1e13,
+BLOW_UP = {"integrator": "rk4", "steps_per_period": 220, "tip_youngs_modulus": 1e13, "sample_youngs_modulus": 1e13,
            "z_base": -1e-6}  # test_faults.py
 
 
