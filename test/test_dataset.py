@@ -174,6 +174,12 @@ def test_each_frames_truth_is_its_own_sample(spec_file, reference):
             np.testing.assert_array_equal(ds["material"][i, d].values, material.astype(np.uint8))
             np.testing.assert_array_equal(ds["dilated_height"][i, d].values, apex.astype(np.float32))
         assert float(ds["tip_radius_m"][i]) == fc.values["tip_radius_m"]
+        # no imperfections: the apex was at the commanded pixel centres
+        for d in range(2):
+            np.testing.assert_allclose(ds["apex_x_m"][i, d].values, np.broadcast_to(ds["x_m"][i].values, (8, 16)),
+                                       rtol=0, atol=1e-15)
+            np.testing.assert_allclose(ds["apex_y_m"][i, d].values.T, np.broadcast_to(ds["y_m"][i].values, (16, 8)),
+                                       rtol=0, atol=1e-15)
         fractions.append(float(ds["sample_island_fraction"][i]))
         # the measured height follows the truth: the islands (10 nm) stand out of the matrix
         measured = ds["measured"][i, 0, 0].values
@@ -182,3 +188,28 @@ def test_each_frames_truth_is_its_own_sample(spec_file, reference):
             assert np.median(measured[material == 1]) != np.median(measured[material == 0])
     assert len(set(fractions)) == 4 and all(0.2 <= f <= 0.4 for f in fractions)
     assert isinstance(ds, xr.Dataset)
+
+
+def test_with_imperfections_the_truth_is_where_the_apex_really_was(tmp_path):
+    """The real instrument's imperfections (hysteresis, creep, drift, tilt): the apex left the commanded
+    pixel centres (by up to the hysteresis loop's width), differently in trace and retrace, and the
+    true height and material are the sample's at the apex's true position."""
+    import yaml
+
+
+    spec = validate({**yaml.safe_load(SPEC), "frames": 1, "instrument": {"imperfections": True}})
+    out = tmp_path / "imperfect.zarr"
+    make_dataset(spec, out, workers=1, say=lambda s: None)
+    ds = dataset_store.open_dataset(out)
+    sample = frame_config(spec, 0).scan.sample
+    shift = np.hypot(ds["apex_x_m"][0].values - ds["x_m"][0].values[None, None, :],
+                     ds["apex_y_m"][0].values - ds["y_m"][0].values[None, :, None])
+    assert shift.max() > 5e-9  # the imperfections moved the apex (the loop is a few % of the 1 um scan)
+    assert not np.array_equal(ds["apex_x_m"][0, 0].values, ds["apex_x_m"][0, 1].values)
+    assert float(np.abs(ds["sample_plane"][0]).max()) > 0.0  # the tilt
+    for d in range(2):
+        xs, ys = ds["apex_x_m"][0, d].values, ds["apex_y_m"][0, d].values
+        cols = np.floor(np.mod(xs, sample.size_x) / sample.pixel_x).astype(int) % sample.height.shape[1]
+        rows = np.floor(np.mod(ys, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
+        np.testing.assert_array_equal(ds["true_height"][0, d].values, sample.height[rows, cols].astype(np.float32))
+        np.testing.assert_array_equal(ds["material"][0, d].values, sample.material_index[rows, cols])

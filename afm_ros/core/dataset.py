@@ -362,6 +362,8 @@ def make_frame(spec: dict, index: int) -> dict:
         "dilated_height": np.stack([apex[d].height for d in DIRECTIONS]).astype(np.float32),
         "material": np.stack([truth[d].material for d in DIRECTIONS]).astype(np.uint8),
         "sample_plane": np.stack([truth[d].plane for d in DIRECTIONS]).astype(np.float32),
+        "apex_x_m": np.stack([truth[d].x for d in DIRECTIONS]).astype(np.float64),
+        "apex_y_m": np.stack([truth[d].y for d in DIRECTIONS]).astype(np.float64),
         "x_m": x, "y_m": y,
         "imperfections_packed": np.asarray(result.artefacts, dtype=np.float64),
         "tip_radius_end_m": float(w.wear.radius),

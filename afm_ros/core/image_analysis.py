@@ -37,12 +37,14 @@ def sample_under_pixels(sample, plan: ScanPlan):
 @dataclass
 class PixelTruth:
     """What was under the apex at each pixel of one direction (rows x cols): the sample map's height
-    [m] and material index at the sample point under the apex, and the ``plane`` [m] the mounted
-    sample adds there (tilt plus vertical drift)."""
+    [m] and material index at the sample point under the apex, the ``plane`` [m] the mounted sample
+    adds there (tilt plus vertical drift), and that point ``x``, ``y`` [m] on the sample."""
 
     height: np.ndarray
     material: np.ndarray
     plane: np.ndarray
+    x: np.ndarray | None = None  # sample coordinates of the apex [m] (None: the commanded pixel centres)
+    y: np.ndarray | None = None
 
 
 def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = None,
@@ -60,7 +62,8 @@ def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = No
 
     if artefacts is None or artefacts[ART_ON] == 0.0:
         height, material = sample_under_pixels(sample, plan)
-        flat = PixelTruth(height, material, np.zeros(height.shape))
+        x, y = pixel_positions(plan)
+        flat = PixelTruth(height, material, np.zeros(height.shape), x, y)
         return {"trace": flat, "retrace": flat}
     x, y = pixel_positions(plan)
     rows = np.arange(plan.lines)
@@ -78,7 +81,7 @@ def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = No
         rws = np.floor(np.mod(ys, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
         plane = (artefacts[ART_TILT_X] * (xs - artefacts[ART_X0]) + artefacts[ART_TILT_Y] * (ys - artefacts[ART_Y0])
                  + tr["drift_z"])
-        out[direction] = PixelTruth(sample.height[rws, cols], sample.material_index[rws, cols], plane)
+        out[direction] = PixelTruth(sample.height[rws, cols], sample.material_index[rws, cols], plane, xs, ys)
     return out
 
 

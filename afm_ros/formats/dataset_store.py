@@ -4,7 +4,8 @@ Dimensions ``frame, direction (trace, retrace), channel (height, amplitude, phas
 dissipation), y, x``; every variable is chunked one frame per chunk, so workers write disjoint
 chunks. Variables: ``measured`` [frame, direction, channel, y, x] (SI units: m, m, deg, m, J), the
 ground truth ``true_height``, ``dilated_height`` [m], ``material`` (index into the ``materials``
-attribute), ``sample_plane`` [m] under the apex per direction, the pixel centres ``x_m``/``y_m``,
+attribute), ``sample_plane`` [m] under the apex per direction and where the apex really was on the
+sample, ``apex_x_m``/``apex_y_m`` [m], the pixel centres ``x_m``/``y_m``,
 the frame's parameters (one float64 or int variable each, named with their unit), the packed
 imperfections in force, and ``done`` (bool): a frame's data are written first and ``done`` last,
 so a frame is whole or not at all, and a run continues where one stopped.
@@ -39,6 +40,8 @@ def _template(spec: dict, first: dict, frames: int):
         "dilated_height": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float32, np.nan)),
         "material": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.uint8, 255)),
         "sample_plane": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float32, np.nan)),
+        "apex_x_m": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float64, np.nan)),
+        "apex_y_m": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float64, np.nan)),
         "x_m": (("frame", "x"), lazy((pixels,), np.float64, np.nan)),
         "y_m": (("frame", "y"), lazy((lines,), np.float64, np.nan)),
         "imperfections_packed": (("frame", "art"), lazy((first["imperfections_packed"].shape[0],), np.float64, np.nan)),
@@ -95,8 +98,8 @@ def write_frame(path, index: int, data: dict) -> None:
     materials = json.loads(group.attrs["materials"])
     if list(data["materials"]) != materials:
         raise ValueError(f"frame {index}: materials {data['materials']} differ from the store's {materials}")
-    for name in ("measured", "true_height", "dilated_height", "material", "sample_plane", "x_m", "y_m",
-                 "imperfections_packed"):
+    for name in ("measured", "true_height", "dilated_height", "material", "sample_plane", "apex_x_m", "apex_y_m",
+                 "x_m", "y_m", "imperfections_packed"):
         group[name][index] = data[name]
     group["tip_radius_end_m"][index] = data["tip_radius_end_m"]
     for name, value in data["values"].items():
