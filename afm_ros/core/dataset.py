@@ -11,7 +11,7 @@ the instrument. Any value may instead be a draw, made independently for each fra
 The draws of frame ``i`` come from ``numpy.random.default_rng([seed, i])`` in a fixed order, so a
 frame is a pure function of (spec, seed, i): the same dataset whatever the number of workers and
 the order in which frames finish. Each frame is the offline wired scan of ``afm_study scan``
-(:func:`afm_ros.tools.scan.run_scan`: the same blocks and physics as the live instrument), its
+(:func:`afm_ros.core.offline_scan.run_scan`: the same blocks and physics as the live instrument), its
 measured channels beside the ground truth under the apex (true height, tip-dilated height,
 material, the mounted sample's plane) and every drawn parameter. SI units throughout.
 """
@@ -117,7 +117,7 @@ def validate(spec, base_dir: str | None = None) -> dict:
     from afm_ros.core.controller import Z_CONTROLLER_SPECS
     from afm_ros.core.samples.generators import GENERATORS, PAIRS, SPECS, check as check_sample
     from afm_ros.core.scanner import SCAN_SPECS
-    from afm_ros.tools.scan import IMAGING_MODELS, TOOL_SPECS
+    from afm_ros.core.offline_scan import IMAGING_MODELS, TOOL_SPECS
 
     if not isinstance(spec, dict):
         raise ValueError(f"a dataset spec must be a mapping of {', '.join(TOP)}; got {type(spec).__name__}")
@@ -265,18 +265,18 @@ def _resolved(spec: dict, draws: dict) -> dict:
 class FrameConfig:
     """One frame's concrete settings."""
 
-    scan: object  # afm_ros.tools.scan.ScanConfig
+    scan: object  # afm_ros.core.offline_scan.ScanConfig
     sample_description: dict
     values: dict  # every parameter of the frame, numbers or names (the store's per-frame variables)
 
 
 def frame_config(spec: dict, index: int | None = None, draws: dict | None = None) -> FrameConfig:
-    """The :class:`afm_ros.tools.scan.ScanConfig` of frame ``index`` (or of given ``draws``)."""
+    """The :class:`afm_ros.core.offline_scan.ScanConfig` of frame ``index`` (or of given ``draws``)."""
     from afm_ros.core import artefacts, tip as tip_core
     from afm_ros.core.cantilever_params import default_values
     from afm_ros.core.samples import sample_from_description
     from afm_ros.core.scanner import check_scan, max_pixels
-    from afm_ros.tools.scan import ScanConfig, TOOL_SPECS
+    from afm_ros.core.offline_scan import ScanConfig, TOOL_SPECS
 
     draws = draws_for(spec, index) if draws is None else {**draws, ("noise_seed",): 0}
     s = _resolved(spec, draws)
@@ -345,7 +345,7 @@ def make_frame(spec: dict, index: int) -> dict:
     from afm_ros.core.image_analysis import truth_under_pixels
     from afm_ros.core.imaging import CHANNELS, DIRECTIONS
     from afm_ros.core.samples import dilate
-    from afm_ros.tools.scan import run_scan
+    from afm_ros.core.offline_scan import run_scan
 
     fc = frame_config(spec, index)
     result = run_scan(fc.scan)
