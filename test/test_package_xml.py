@@ -10,7 +10,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PYTHON_KEYS = {"numpy": "python3-numpy", "numba": "python3-numba", "scipy": "python3-scipy",
                "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "mcap": "python3-mcap-pip",
                "yaml": "python3-yaml", "PIL": "python3-pil", "gwyfile": "python3-gwyfile-pip",
-               "foxglove": "python3-foxglove-sdk-pip", "xarray": "python3-xarray"}
+               "foxglove": "python3-foxglove-sdk-pip", "xarray": "python3-xarray", "zarr": "python3-zarr",
+               "dask": "python3-dask", "distributed": "python3-distributed"}
 
 
 def imported_top_level_modules():
