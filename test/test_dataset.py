@@ -142,6 +142,15 @@ def test_a_killed_run_continues_where_it_stopped(spec_file, reference, tmp_path)
     _equal(reference, out)
 
 
+def test_max_frames_stops_with_that_many_frames_in_the_store(spec_file, reference, tmp_path):
+    out = tmp_path / "part.zarr"
+    spec = load_spec(spec_file)
+    assert make_dataset(spec, out, workers=1, max_frames=2, say=lambda s: None)["done"] == 2
+    assert make_dataset(spec, out, workers=1, max_frames=2, say=lambda s: None)["done"] == 2  # nothing to add
+    assert make_dataset(spec, out, workers=1, say=lambda s: None)["done"] == 4
+    _equal(reference, out)
+
+
 def test_a_store_of_another_spec_is_not_continued(spec_file, reference):
     import yaml
 

@@ -73,8 +73,8 @@ def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | N
         store.write_frame(out, 0, first)
     done = store.done_frames(out)
     todo = [i for i in range(spec["frames"]) if not done[i]]
-    if max_frames is not None:
-        todo = todo[:max(0, max_frames - (0 if existing is not None else 1))]
+    if max_frames is not None:  # stop once this many frames are in the store
+        todo = todo[:max(0, max_frames - int(done.sum()))]
     progress = Progress(spec["frames"], int(done.sum()), say)
     interrupted = False
     try:
