@@ -13,6 +13,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/config/samples", glob("config/samples/*.yaml")),
+        ("share/" + package_name + "/config/datasets", glob("config/datasets/*.yaml")),
         ("share/" + package_name + "/config/foxglove", glob("config/foxglove/*.json")),
     ],
     package_data={package_name + ".tools": ["*.c"]},
