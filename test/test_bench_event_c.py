@@ -11,18 +11,16 @@ import shutil
 import numpy as np
 import pytest
 
-from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
-from afm_ros.core.physics.parameters import Cantilever, DMTSample, Drive
+from afm_ros.core.physics.parameters import Cantilever, Drive
+from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE, hard_tapping_models
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.tools.bench import _build_event_c, _event_c_call
 
 pytestmark = pytest.mark.skipif(shutil.which("gcc") is None and shutil.which("cc") is None,
                                 reason="no C compiler (gcc/cc)")
 
-Z_BASE = 20e-9  # [m] as test/test_physics_events.py
-MODELS = {"dmt": DMTForce(DMTSample()),
-          "viscoelastic_dmt": ViscoelasticDMTForce(DMTSample(), viscosity=20.0),
-          "hysteresis_dmt": HysteresisDMTForce(DMTSample(), hamaker_retract=1.5 * DMTSample().hamaker_constant)}
+Z_BASE = HARD_TAPPING_Z_BASE
+MODELS = hard_tapping_models()
 
 
 def samples_rows():

@@ -23,15 +23,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, NoForce, ViscoelasticDMTForce
+from afm_ros.core.physics.forces import DMTForce, NoForce
 from afm_ros.core.physics.parameters import Cantilever, DMTSample, Drive
 from afm_ros.core.physics.reference import reference as _reference
+from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE, hard_tapping_models
 from afm_ros.core.physics.simulation import Simulation
 
-Z_BASE = 20e-9  # [m] the lever (A0 = 60 nm) taps hard: every model switches law twice per period or more
-MODELS = {"dmt": DMTForce(DMTSample()),
-          "viscoelastic_dmt": ViscoelasticDMTForce(DMTSample(), viscosity=20.0),
-          "hysteresis_dmt": HysteresisDMTForce(DMTSample(), hamaker_retract=1.5 * DMTSample().hamaker_constant)}
+Z_BASE = HARD_TAPPING_Z_BASE
+MODELS = hard_tapping_models()
 
 
 def reference(cantilever, drive, model, y0, t_end, t_eval, work_from=None):

@@ -215,9 +215,9 @@ def _named(where: str, ps, value):
         if isinstance(value, str) and ps.kind is not str:
             value = parse_number(value)
         return ps.validate(value)
-    except ValueError as exc:
+    except ValueError as exc:  # "name=value ... allowed ..." named by where it stands in the spec
         msg = str(exc)
-        raise ValueError(f"{where}: {msg[msg.find(' ') + 1:] if msg.startswith(ps.name) else msg}") from None
+        raise ValueError(where + msg[len(ps.name):] if msg.startswith(ps.name + "=") else f"{where}: {msg}") from None
 
 
 def _corner_draws(spec: dict, corner: int) -> dict:
@@ -274,9 +274,10 @@ def frame_config(spec: dict, index: int | None = None, draws: dict | None = None
     """The :class:`afm_ros.core.offline_scan.ScanConfig` of frame ``index`` (or of given ``draws``)."""
     from afm_ros.core import artefacts, tip as tip_core
     from afm_ros.core.cantilever_params import default_values
-    from afm_ros.core.samples import sample_from_description
-    from afm_ros.core.scanner import check_scan, max_pixels
+    from afm_ros.core.controller import Z_CONTROLLER_SPECS
     from afm_ros.core.offline_scan import ScanConfig, TOOL_SPECS
+    from afm_ros.core.samples import sample_from_description
+    from afm_ros.core.scanner import ScanPlan, check_scan
 
     draws = draws_for(spec, index) if draws is None else {**draws, ("noise_seed",): 0}
     s = _resolved(spec, draws)
@@ -287,12 +288,8 @@ def frame_config(spec: dict, index: int | None = None, draws: dict | None = None
              "noise_seed": int(draws[("noise_seed",)])}
     defaults = default_values()
     a0 = float(cantilever.get("free_amplitude", defaults["free_amplitude"]))
-    feedback = {"setpoint": float(inst.get("setpoint_ratio", 0.8)) * a0}
-    for k in ("p_gain", "i_gain"):
-        if k in inst:
-            feedback[k] = float(inst[k])
-    from afm_ros.core.controller import Z_CONTROLLER_SPECS
-    feedback = {**{k: Z_CONTROLLER_SPECS[k].default for k in ("p_gain", "i_gain")}, **feedback}
+    feedback = {"setpoint": float(inst.get("setpoint_ratio", 0.8)) * a0,
+                **{k: float(inst.get(k, Z_CONTROLLER_SPECS[k].default)) for k in ("p_gain", "i_gain")}}
     size = float(s["scan_size"])
     plan_values = {"scan_size_x": size, "scan_size_y": size * s["lines"] / s["pixels"],
                    "pixels_per_line": int(s["pixels"]), "lines": int(s["lines"]), "line_rate": float(s["line_rate"]),
@@ -321,8 +318,8 @@ def frame_config(spec: dict, index: int | None = None, draws: dict | None = None
     except ValueError as exc:
         raise ValueError(f"pixels={plan_values['pixels_per_line']} at line_rate={plan_values['line_rate']:g} Hz: "
                          f"{exc}") from None
-    artefacts.check_plan(imperfections, __import__("afm_ros.core.scanner", fromlist=["ScanPlan"]).ScanPlan
-                         .from_values(plan_values)) if imperfections else None
+    if imperfections:
+        artefacts.check_plan(imperfections, ScanPlan.from_values(plan_values))
     scan = ScanConfig(plan_values, "dataset", sample, str(s["force_model"]), feedback, rate, float(s["engage_time"]),
                       noise, -1.0, Path("."), previews=False, quiet=True, cantilever_extra=cantilever,
                       imperfections=imperfections, tip=tip)

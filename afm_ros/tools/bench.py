@@ -49,17 +49,24 @@ def _time_numba_once(sim, steps: int) -> float:
     return (time.perf_counter() - t0) / steps
 
 
-def _build_c(tmp: Path):
+def _compile(tmp: Path, source: str, flags: list[str]):
+    """``source`` (beside this file) compiled into a shared library in ``tmp``: (ctypes.CDLL, None) or
+    (None, why not)."""
     gcc = shutil.which("gcc") or shutil.which("cc")
     if gcc is None:
         return None, "no C compiler (gcc/cc) found"
-    src = Path(__file__).with_name("bench_baseline.c")
-    lib = tmp / "bench_baseline.so"
-    proc = subprocess.run([gcc, "-O2", "-shared", "-fPIC", "-o", str(lib), str(src), "-lm"],
-                          capture_output=True, text=True)
+    lib = tmp / Path(source).with_suffix(".so").name
+    proc = subprocess.run([gcc, *flags, "-shared", "-fPIC", "-o", str(lib), str(Path(__file__).with_name(source)),
+                           "-lm"], capture_output=True, text=True)
     if proc.returncode != 0:
         return None, f"gcc failed: {proc.stderr.strip()[:300]}"
-    dll = ctypes.CDLL(str(lib))
+    return ctypes.CDLL(str(lib)), None
+
+
+def _build_c(tmp: Path):
+    dll, note = _compile(tmp, "bench_baseline.c", ["-O2"])
+    if dll is None:
+        return None, note
     ptr = ctypes.POINTER(ctypes.c_double)
     fn = dll.rk4_dmt
     fn.argtypes = [ptr, ctypes.c_long, ctypes.c_long, ctypes.c_double, ctypes.c_double, ctypes.c_double,
@@ -75,16 +82,9 @@ EVENT_REGIMES = (("far", 2e-6), ("tapping", 50e-9), ("hard_tapping", 20e-9))
 
 def _build_event_c(tmp: Path):
     """``advance_event`` of ``bench_event_baseline.c`` via ctypes, or (None, why not)."""
-    gcc = shutil.which("gcc") or shutil.which("cc")
-    if gcc is None:
-        return None, "no C compiler (gcc/cc) found"
-    src = Path(__file__).with_name("bench_event_baseline.c")
-    lib = tmp / "bench_event_baseline.so"
-    proc = subprocess.run([gcc, *EVENT_C_FLAGS, "-shared", "-fPIC", "-o", str(lib), str(src), "-lm"],
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        return None, f"gcc failed: {proc.stderr.strip()[:300]}"
-    dll = ctypes.CDLL(str(lib))
+    dll, note = _compile(tmp, "bench_event_baseline.c", EVENT_C_FLAGS)
+    if dll is None:
+        return None, note
     ptr = ctypes.POINTER(ctypes.c_double)
     fn = dll.advance_event
     fn.argtypes = [ptr, ctypes.c_long, ctypes.c_long, ctypes.c_double, ctypes.c_double, ctypes.c_double,
@@ -109,27 +109,18 @@ def _event_c_call(fn, sim, steps: int, out_w=None):
     return y, stats
 
 
-def _event_models() -> dict:
-    """The force models of issue 19's hard-tapping check (test/test_physics_events.py)."""
-    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
-    from afm_ros.core.physics.parameters import DMTSample
-
-    sample = DMTSample()
-    return {"dmt": DMTForce(sample), "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),
-            "hysteresis_dmt": HysteresisDMTForce(sample, hamaker_retract=1.5 * sample.hamaker_constant)}
-
-
 def _event_times(steps: int) -> dict:
     """ns per output step of numba's ``advance_event`` and of the same algorithm in C, per force model
     and regime, from the same state (the lever's steady motion: 150 periods from rest first), timed
     alternately, best of 3; ratio numba / C and whether both end in the same state bit for bit."""
     from afm_ros.core.physics import Cantilever, Drive, Simulation
+    from afm_ros.core.physics.reference import hard_tapping_models
 
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)
     starts = {}
     for regime, z_base in EVENT_REGIMES:
-        for name, model in _event_models().items():
+        for name, model in hard_tapping_models().items():
             sim = Simulation(cantilever, drive, model, z_base, method="rk4_event")
             sim.advance(150 * sim.steps_per_period, record=False)  # also compiles / loads the kernel
             starts[(regime, name)] = sim

@@ -28,7 +28,8 @@ import time
 
 import numpy as np
 
-Z_HARD = 20e-9  # [m] the trajectory check's z_base: every model switches law at least twice per period
+from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE as Z_HARD, hard_tapping_models
+
 SWEEP_Z = [z * 1e-9 for z in range(80, 4, -5)]
 # (label, force model, material) of the sweeps: the standard sweep (dmt on the seed sample) and every
 # dissipative model on every dissipative material; the conservative materials with dmt
@@ -41,14 +42,6 @@ REFERENCE = ("rk4_event", 1760, 0.25)
 # 0.4) and its neighbours
 CANDIDATES = [("rk4", 220, 0.0), ("rk4", 80, 0.0), ("rk4_event", 60, 0.5), ("rk4_event", 80, 0.4),
               ("rk4_event", 80, 1.0), ("rk4_event", 120, 0.4)]
-
-
-def _hard_models():
-    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
-    from afm_ros.core.physics.parameters import DMTSample
-
-    return {"dmt": DMTForce(DMTSample()), "viscoelastic_dmt": ViscoelasticDMTForce(DMTSample(), viscosity=20.0),
-            "hysteresis_dmt": HysteresisDMTForce(DMTSample(), hamaker_retract=1.5 * DMTSample().hamaker_constant)}
 
 
 def _sim(model, z_base, method, spp, beta, y0=None):
@@ -67,7 +60,7 @@ def trajectory_errors(configs, periods=6, fine=1760):  # fine: the start's stead
     from afm_ros.core.physics.reference import reference
 
     out = {}
-    for name, model in _hard_models().items():
+    for name, model in hard_tapping_models().items():
         start = _sim(model, Z_HARD, "rk4", fine, 0.0)
         start.advance_periods(150)
         y0 = start.y[:2].copy()
@@ -104,7 +97,7 @@ def convergence_order(spps=(40, 80, 160, 320), beta_spp=32.0, z_base=Z_HARD):
 
     configs = [("rk4_event", s, beta_spp / s) for s in spps] + [("rk4", s, 0.0) for s in spps]
     errs = trajectory_errors(configs)
-    models = _hard_models()
+    models = hard_tapping_models()
     out = {}
     for name, rows in errs.items():
         fine = _sim(models[name], z_base, "rk4_event", 16 * spps[-1], beta_spp / (16 * spps[-1]))

@@ -10,7 +10,7 @@
  * the ceiling, -a * b is (-a) * b, sums and products associate to the left.
  *
  * Structure as in numba: the plain RK4 step (with its energies) and the far-from-the-surface test are
- * inlined in the loop; the test near the surface (_near_step_pieces) and the full path (event_step_full)
+ * inlined in the loop; the test near the surface (_near_step_stands) and the full path (event_step_full)
  * are separate functions that are not inlined, as numba compiles them (njit without inline="always").
  * The thermal force is the constant -0.0 added where numba adds fth: x + (-0.0) == x for every x, so the
  * compiler may drop the adds, as LLVM does in numba (x + 0.0 could not be dropped: -0.0 + 0.0 is +0.0).
@@ -318,7 +318,7 @@ static inline double locate(long model, const double *p, double z_offset, double
     return s_hi;
 }
 
-/* events.py _pieces */
+/* events.py _needs_cut, as a count: more than one piece exactly when it says yes */
 static inline long pieces_for(const double *p, double gap0, double v0, double a, double gap1, double dt, double beta,
                               double k, double inv_m)
 {
@@ -354,7 +354,7 @@ static inline double piece_length(const double *p, double gap, double v, double 
     return h / dt;
 }
 
-/* events.py _near_step_pieces: not inlined (a separate function in numba too) */
+/* events.py _near_step_stands (0 = stands): not inlined (a separate function in numba too) */
 __attribute__((noinline)) static long near_step_pieces(long model, const double *p, double gap0, double gap1, double v,
                                                        double v1, double a, double dt, double beta, double k,
                                                        double inv_m)
@@ -374,7 +374,7 @@ __attribute__((noinline)) static long near_step_pieces(long model, const double 
     return pieces;
 }
 
-/* events.py plain_step_pieces */
+/* events.py plain_step_stands (0 = stands) */
 static inline long plain_step_pieces(long model, const double *p, double z_offset, double z, double v, double z1,
                                      double v1, double a, double dt, double beta, double k, double inv_m)
 {

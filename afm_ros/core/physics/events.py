@@ -279,32 +279,31 @@ def _locate(model, p, z_offset, z0, v0, z1, v1, h, r0, s_hi):
 
 
 @njit(cache=True, inline="always")
-def _pieces(p, gap0, v0, a, gap1, dt, beta, k, inv_m):
-    """Sub-steps a step needs near the surface, from its start (gap [m], rate [m/s], acceleration
-    [m/s^2]) and the plain step's end gap [m] (0 when ``beta`` is 0: no cutting):
+def _needs_cut(p, gap0, v0, a, gap1, dt, beta, k, inv_m):
+    """Whether a step near the surface needs sub-steps, from its start (gap [m], rate [m/s], acceleration
+    [m/s^2]) and the plain step's end gap [m] (never when ``beta`` is 0: no cutting):
     - the force varies on the scale of the distance to the contact point plus a0 (the van der Waals
       1/d^2 outside, the Hertz delta^(3/2) inside), which the tip must cross in sub-steps of at most
       ``beta`` of it; the gap at the step's end is also predicted to second order, and a crossing of a0
       makes the scale a0;
     - in contact the lever oscillates at sqrt((k + k_c) / m), k_c = dF/d(delta) = 3/2 (4/3 E* sqrt(R))
       sqrt(delta) the Hertz stiffness at the deepest end: a stiff sample (silicon: k_c ~ 50 k) needs
-      sub-steps of at most STIFF_PHASE * beta [rad] of that oscillation."""
+      sub-steps of at most STIFF_PHASE * beta [rad] of that oscillation.
+    (:func:`_piece_length` then sizes the sub-steps one after the other.)"""
     if beta <= 0.0:
-        return 1
+        return False
     travel = abs(v0) * dt + 0.5 * abs(a) * dt * dt
     gap_p = gap0 + v0 * dt + 0.5 * a * dt * dt
     d0 = gap0 - p[0]
     d1 = gap_p - p[0]
     scale = p[0] if (d0 > 0.0) != (d1 > 0.0) else min(abs(d0), abs(d1)) + p[0]
-    pieces = 1
-    if travel > beta * scale:
-        pieces = min(int(math.ceil(travel / (beta * scale))), MAX_PIECES)
+    if travel > beta * scale and travel / (beta * scale) > 1.0:
+        return True
     deepest = min(gap0, gap_p, gap1)
     if deepest < p[0]:
         turn = math.sqrt((k + 1.5 * p[2] * math.sqrt(p[0] - deepest)) * inv_m) * dt
-        if turn > STIFF_PHASE * beta:
-            pieces = max(pieces, min(int(math.ceil(turn / (STIFF_PHASE * beta))), MAX_PIECES))
-    return pieces
+        return turn > STIFF_PHASE * beta and turn / (STIFF_PHASE * beta) > 1.0
+    return False
 
 
 @njit(cache=True, inline="always")
@@ -418,7 +417,7 @@ def event_step(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh
     force, drive's work, damping's loss [J], the force's impulse [N s], 1 if a switch was located else 0,
     RK4 sub-steps computed beyond one).
 
-    The plain ``rk4`` step is taken first and stands far from the surface (:func:`plain_step_pieces`);
+    The plain ``rk4`` step is taken first and stands far from the surface (:func:`plain_step_stands`);
     else :func:`event_step_full` cuts the step into pieces sized one after the other
     (:func:`_piece_length`), each integrated with the law of the region it starts in; if the region
     differs at a piece's end, or at the gap's turning point inside it, the switch is located on the
@@ -426,22 +425,20 @@ def event_step(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh
     with the new one (up to MAX_SWITCHES times)."""
     z1, v1, w, wd, wc, wi = _rk4_step_work(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, h, hh, dt,
                                            dth, sixth, dt_sixth)
-    pieces = plain_step_pieces(model, p, z_offset, z, v, z1, v1, (-k * z - c * v + d0 + f1 + fth) * inv_m, dt,
-                               beta, k, inv_m)
-    if pieces == 0:
+    if plain_step_stands(model, p, z_offset, z, v, z1, v1, (-k * z - c * v + d0 + f1 + fth) * inv_m, dt, beta, k,
+                         inv_m):
         return z1, v1, w, wd, wc, wi, 0, 0
     return event_step_full(z, v, f1, fth, d0, dh, d1, k, c, inv_m, model, p, z_offset, dt, spp, beta, z1, v1, w, wd,
                            wc, wi)
 
 
 @njit(cache=True, inline="always")
-def plain_step_pieces(model, p, z_offset, z, v, z1, v1, a, dt, beta, k, inv_m):
-    """0 if the plain RK4 step from (z, v) to (z1, v1) [m, m/s] stands (the common step, far from the
-    surface: one piece, no switch of the force law inside), else the pieces to cut it into (>= 1) for
-    :func:`event_step_full`; ``a`` [m/s^2] is the acceleration at its start, k [N/m] and inv_m [1/kg]
-    the lever's."""
+def plain_step_stands(model, p, z_offset, z, v, z1, v1, a, dt, beta, k, inv_m):
+    """Whether the plain RK4 step from (z, v) to (z1, v1) [m, m/s] stands (the common step, far from the
+    surface: no sub-steps needed, no switch of the force law inside); else :func:`event_step_full` takes
+    it. ``a`` [m/s^2] is the acceleration at its start, k [N/m] and inv_m [1/kg] the lever's."""
     if model == MODEL_NONE:
-        return 0
+        return True
     gap0 = z_offset + z
     gap1 = z_offset + z1
     # far from the surface (the common case, decided inline in a few operations): both ends farther above
@@ -450,25 +447,22 @@ def plain_step_pieces(model, p, z_offset, z, v, z1, v1, a, dt, beta, k, inv_m):
     # not inlined: inlined, the compiler computes parts of it on every step
     if (beta * (min(gap0, gap1) - p[0]) > 1.5 * dt * max(abs(v), abs(v1))
             and (model != MODEL_HYSTERESIS_DMT or (v > 0.0) == (v1 > 0.0))):
-        return 0
-    return _near_step_pieces(model, p, gap0, gap1, v, v1, a, dt, beta, k, inv_m)
+        return True
+    return _near_step_stands(model, p, gap0, gap1, v, v1, a, dt, beta, k, inv_m)
 
 
 @njit(cache=True)
-def _near_step_pieces(model, p, gap0, gap1, v, v1, a, dt, beta, k, inv_m):
-    """:func:`plain_step_pieces` near the surface."""
-    pieces = _pieces(p, gap0, v, a, gap1, dt, beta, k, inv_m)
-    if pieces == 1:
-        if gap0 > p[0] and gap1 > p[0]:
-            # out of contact at both ends: the gap does not reach a0 inside if it does not turn, or if it
-            # turns too far away (a turn switches the hysteresis model's branch: the full path)
-            if (v > 0.0) == (v1 > 0.0) or (model != MODEL_HYSTERESIS_DMT
-                                             and min(gap0, gap1) - max(abs(v), abs(v1)) * dt > p[0]):
-                return 0
-        elif (gap0 <= p[0] and gap1 <= p[0] and (v > 0.0) == (v1 > 0.0)
-              and region(model, p, gap1, v1) == region(model, p, gap0, v)):
-            return 0
-    return pieces
+def _near_step_stands(model, p, gap0, gap1, v, v1, a, dt, beta, k, inv_m):
+    """:func:`plain_step_stands` near the surface."""
+    if _needs_cut(p, gap0, v, a, gap1, dt, beta, k, inv_m):
+        return False
+    if gap0 > p[0] and gap1 > p[0]:
+        # out of contact at both ends: the gap does not reach a0 inside if it does not turn, or if it
+        # turns too far away (a turn switches the hysteresis model's branch: the full path)
+        return (v > 0.0) == (v1 > 0.0) or (model != MODEL_HYSTERESIS_DMT
+                                           and min(gap0, gap1) - max(abs(v), abs(v1)) * dt > p[0])
+    return (gap0 <= p[0] and gap1 <= p[0] and (v > 0.0) == (v1 > 0.0)
+            and region(model, p, gap1, v1) == region(model, p, gap0, v))
 
 
 @njit(cache=True, nogil=True)

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.forces import tip_sample_force
-from afm_ros.core.physics.events import event_step_full, plain_step_pieces
+from afm_ros.core.physics.events import event_step_full, plain_step_stands
 from afm_ros.core.physics.noise import _thermal_force
 from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
                                     hysteresis_offsets, slow_terms)
@@ -326,9 +326,8 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
         if event != 0:
             # rk4_event: the plain step stands far from the surface; else the full path (not inlined, so
             # this loop stays as tight as plain rk4's)
-            pieces = plain_step_pieces(model, fp, offset, z, v, z1, v1,
-                                       (-k * z - c * v + table[j] + f1 + fth) * inv_m, dt, beta, k, inv_m)
-            if pieces > 0:
+            if not plain_step_stands(model, fp, offset, z, v, z1, v1, (-k * z - c * v + table[j] + f1 + fth) * inv_m,
+                                     dt, beta, k, inv_m):
                 z1, v1, _, _, _, _, split, more = event_step_full(z, v, f1, fth, table[j], table[j + 1],
                                                                   table[j + 2], k, c, inv_m, model, fp, offset, dt,
                                                                   spp, beta, z1, v1, 0.0, 0.0, 0.0, 0.0)

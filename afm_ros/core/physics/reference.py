@@ -13,6 +13,19 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
+HARD_TAPPING_Z_BASE = 20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
+
+
+def hard_tapping_models() -> dict:
+    """The force models of the integrator checks (issue 19) on the seed sample: dmt, viscoelastic_dmt
+    (20 Pa s) and hysteresis_dmt (H_retract = 1.5 H), by name."""
+    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
+    from afm_ros.core.physics.parameters import DMTSample
+
+    sample = DMTSample()
+    return {"dmt": DMTForce(sample), "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),
+            "hysteresis_dmt": HysteresisDMTForce(sample, hamaker_retract=1.5 * sample.hamaker_constant)}
+
 
 def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=None, rtol=1e-13):
     """z [m] at ``t_eval`` [s] (times from 0, the drive's phase at 0) from (z, v) = ``y0`` at t = 0 over a

@@ -15,6 +15,9 @@ from afm_ros.core.physics.noise import thermal_force_sigma
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever, DMTSample, Drive, check_steps_per_resonance
 
 
+MAP_METHODS = ("rk4", "rk4_event")  # the integrators of the sample-map kernel
+
+
 @dataclass
 class Samples:
     """Samples of one chunk: sample k is step ``first_step + k * decimation``.
@@ -137,8 +140,8 @@ class Simulation:
         """Change parameters; the state (z, v, drive phase) carries over without a jump."""
         if method is not None and method not in METHODS:
             raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
-        if method is not None and self.surface is not None and method not in ("rk4", "rk4_event"):
-            raise ValueError(f"method={method!r}: a sample map needs method 'rk4' or 'rk4_event'")
+        if method is not None and self.surface is not None:
+            self._check_map_method(method)
         cantilever = cantilever or self.cantilever
         drive = drive or self.drive
         spp = self.steps_per_period if steps_per_period is None else steps_per_period
@@ -171,9 +174,14 @@ class Simulation:
 
     def set_surface(self, surface: "SurfaceMap | None") -> None:
         """Integrate over a sample map (None: the flat sample of ``force_model``); rk4 or rk4_event."""
-        if surface is not None and self.method not in ("rk4", "rk4_event"):
-            raise ValueError(f"method={self.method!r}: a sample map needs method 'rk4' or 'rk4_event'")
+        if surface is not None:
+            self._check_map_method(self.method)
         self.surface = surface
+
+    @staticmethod
+    def _check_map_method(method: str) -> None:
+        if method not in MAP_METHODS:
+            raise ValueError(f"method={method!r}: a sample map needs method {' or '.join(map(repr, MAP_METHODS))}")
 
     def set_scan(self, plan: np.ndarray) -> None:
         """The tip's lateral path: a packed plan (``ScanPlan.packed()`` or ``parked_plan(x, y)``)."""
