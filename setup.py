@@ -29,6 +29,7 @@ setup(
             "cantilever_node = afm_ros.nodes.cantilever_node:main",
             "lockin_node = afm_ros.nodes.lockin_node:main",
             "z_controller_node = afm_ros.nodes.z_controller_node:main",
+            "pll_node = afm_ros.nodes.pll_node:main",
             "afm_instrument = afm_ros.tools.afm_instrument:main",
             "recorder_node = afm_ros.nodes.recorder_node:main",
             "replay_node = afm_ros.nodes.replay_node:main",

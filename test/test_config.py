@@ -16,7 +16,7 @@ def config():
 
 def test_every_node_has_specs():
     # every node declares its parameters through specs
-    assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "recorder", "replay", "scanner", "live_view"}
+    assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "pll", "recorder", "replay", "scanner", "live_view"}
 
 
 def test_yaml_file_is_the_generator_output():

@@ -207,7 +207,7 @@ class ZStage:
         """Start an approach from ``approach_start_distance`` at time t [s] (ValueError naming the
         field for bad values; nothing changes then)."""
         c = self.controller.params
-        auto = AutoApproach(values, c["z_min"], c["z_max"], c["setpoint"], self.z_base, t)
+        auto = AutoApproach(values, c["z_min"], c["z_max"], self.controller.setpoint, self.z_base, t)
         self.auto = auto
         self.controller.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
         self.controller.z = self.controller.integrator = auto.z
@@ -264,7 +264,7 @@ class ZStage:
                 c.configure(**self._held_params)
                 c.t_last = t
                 self.state = "engaged"
-            c.error = c.params["setpoint"] - amplitude
+            c.error = c.setpoint - amplitude
             return z
         if self.state == "approaching":
             z = self.auto.update(amplitude, t)
@@ -277,7 +277,7 @@ class ZStage:
             elif self.auto.state == "failed":
                 self.state, self.reason = "failed", self.auto.reason
                 self.controller.z = self.controller.integrator = z
-            self.controller.error = self.controller.params["setpoint"] - amplitude
+            self.controller.error = self.controller.setpoint - amplitude
             return z
         z = self.controller.update(amplitude, t)
         if self.state == "withdrawing":

@@ -13,17 +13,17 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
 
 from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as artefacts_off, truth as artefact_truth, validate
-from afm_ros.core.cantilever_params import CantileverSetup, build, check_all
+from afm_ros.core.cantilever_params import CantileverSetup, _geometry, build, check_all
 from afm_ros.core.flow import ChunkStarts, ConsumerWindow, FeedbackGate, SlowdownReporter
 from afm_ros.core.physics.integrators import phase_at_step, samples_in_range
 from afm_ros.core.physics.noise import detector_noise
-from afm_ros.core.physics.parameters import CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS, DMTSample
+from afm_ros.core.physics.parameters import CANTILEVER_SPECS, DISSIPATION_SPECS, DMT_SPECS, DMTSample, Drive
 from afm_ros.core.physics.simulation import Samples, Simulation, SurfaceMap, surface_map
 from afm_ros.core.samples import describe, resolve_sample
 from afm_ros.core.scanner import ScanPlan, parked_plan
@@ -88,6 +88,21 @@ def retune(sim: Simulation, values: dict, frequency: float) -> CantileverSetup:
     setup = build({**values, "drive_frequency": frequency})
     sim.reconfigure(drive=setup.drive)
     return setup
+
+
+def excite(sim: Simulation, setup: CantileverSetup, values: dict, frequency: float, force: float) -> CantileverSetup:
+    """Drive ``sim`` at ``frequency`` [Hz] with force amplitude ``force`` [N] from now on (FM: the
+    PLL's oscillator and the amplitude controller's drive; the phase continues, a new frequency is a
+    new integration segment); returns ``setup`` with that drive and its chunk geometry."""
+    if frequency == sim.drive.frequency and force == sim.drive.force:
+        return setup
+    drive = Drive(frequency, force, sim.drive.phase)
+    sim.reconfigure(drive=drive)
+    if frequency == setup.drive.frequency:
+        return replace(setup, drive=drive)
+    dt, decimation, chunk_steps = _geometry({**values, "drive_frequency": frequency})
+    return replace(setup, drive=drive, dt=dt, decimation=decimation, sample_interval=decimation * dt,
+                   chunk_steps=chunk_steps)
 
 
 def wear_by_chunk(wear: TipWear, setup: CantileverSetup, force_peak: float, t: float) -> bool:
@@ -172,6 +187,9 @@ class CantileverEngine:
         self.surface_info: dict = {}
         self._apply_sample(values)
         self.gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"])
+        # FM (excitation 'pll'): the PLL's drive per chunk, the same lockstep as z
+        self.excitation_gate = FeedbackGate(values["feedback_sync"], values["feedback_latency"],
+                                            (self.setup.drive.frequency, self.setup.drive.force))
         self.window = ConsumerWindow(values["flow_window"])
         self.starts = ChunkStarts(0, keep=max(values["feedback_latency"], values["flow_window"]) + 2)
         # Decisions (parameters, gates, z) are taken under step_lock when a chunk is booked; the
@@ -324,7 +342,7 @@ class CantileverEngine:
             "free_amplitude_m": v["free_amplitude"], "drive_frequency_Hz": v["drive_frequency"],
             "resonance_frequency_Hz": v["resonance_frequency"], "tip_radius_m": v["tip_radius"],
             "force_model": v["force_model"], "z_base_m": v["z_base"], "chunk_duration_s": v["chunk_duration"],
-            "feedback_latency_chunks": v["feedback_latency"], **self.surface_info})
+            "feedback_latency_chunks": v["feedback_latency"], "excitation": v["excitation"], **self.surface_info})
         return applied
 
     def apply_pending(self) -> None:
@@ -359,10 +377,11 @@ class CantileverEngine:
         if "sample" in changed or (v["sample"] and set(changed) & (set(DMT_SPECS) | {"force_model"})):
             self._apply_sample(v)
         if "feedback_sync" in changed or "feedback_latency" in changed:
-            self.gate.mode = v["feedback_sync"]
-            self.gate.latency = v["feedback_latency"]
-            if v["feedback_sync"] == "free":
-                self.gate.controller_gone()
+            for gate in (self.gate, self.excitation_gate):
+                gate.mode = v["feedback_sync"]
+                gate.latency = v["feedback_latency"]
+                if v["feedback_sync"] == "free":
+                    gate.controller_gone()
         if "flow_window" in changed:
             self.window.window = v["flow_window"]
         if "tip_radius" in changed:  # a new tip: the wear starts again from it
@@ -371,7 +390,7 @@ class CantileverEngine:
         elif set(changed) & set(TIP_SPECS):
             self.wear.values = tip_validate({k: v[k] for k in TIP_SPECS})
         if "z_base" in changed or set(changed) & {"spring_constant", "quality_factor", "free_amplitude",
-                                                  "drive_frequency", "resonance_frequency"}:
+                                                  "drive_frequency", "resonance_frequency", "excitation"}:
             self.on_applied(self.applied())
         self.starts.resize(max(v["feedback_latency"], v["flow_window"]) + 2)
         if "real_time_factor" in changed or new.chunk_steps != old.chunk_steps or "run_until" in changed:
@@ -461,6 +480,8 @@ class CantileverEngine:
             wanted = self.tune_plan.frequency_at(t0)
             if wanted is None and t0 >= self.tune_plan.end_time + TUNE_HOLD_CHUNKS * self.values["chunk_duration"]:
                 self.tune_plan = None
+        if wanted is None and self.pll_excited:
+            return  # FM: the PLL's excitation sets the drive (book)
         f = self.values["drive_frequency"] if wanted is None else wanted
         if f != self.setup.drive.frequency:
             old = self.setup
@@ -500,11 +521,20 @@ class CantileverEngine:
                 return None
             return self.book(self.gate.take(self.starts))
 
+    @property
+    def pll_excited(self) -> bool:
+        """FM: the PLL's excitation drives the cantilever."""
+        return self.values["excitation"] == "pll"
+
     def _gates_open(self, now: float) -> bool:
         """Both gates (feedback, consumers) open; otherwise note why and since when."""
         if not self.gate.ready(self.starts):
             reason = (f"waiting for {self.feedback_topic} answering sample index "
                       f"{self.gate.required_index(self.starts)}")
+            kind = "feedback"
+        elif self.pll_excited and not self.excitation_gate.ready(self.starts):
+            reason = (f"waiting for pll/excitation answering sample index "
+                      f"{self.excitation_gate.required_index(self.starts)}")
             kind = "feedback"
         elif not self.window.ready(self.starts):
             behind = self.window.blocking(self.starts)
@@ -524,9 +554,13 @@ class CantileverEngine:
         return False
 
     def book(self, z_piezo: float) -> Job:
-        """Book the next chunk at z piezo ``z_piezo`` [m] (indices, time; pending changes applied first)."""
+        """Book the next chunk at z piezo ``z_piezo`` [m] (indices, time; pending changes applied first;
+        FM: with the PLL's excitation for it)."""
         with self.step_lock:
             self.apply_pending()
+            if self.pll_excited:
+                f, force = self.excitation_gate.take(self.starts)
+                self.setup = excite(self.sim, self.setup, self.values, f, force)
             s, sim = self.setup, self.sim
             count = samples_in_range(sim.n, s.chunk_steps, s.decimation)
             first = self.starts.next_index

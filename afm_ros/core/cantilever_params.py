@@ -57,6 +57,11 @@ NODE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "largest number of published chunks a consumer (lock-in, recorder, monitor) may not yet have "
               "acknowledged on cantilever/_ack; beyond it the cantilever waits (slows down) instead of letting "
               "the consumer lose samples", 2, 150, kind=int),
+    ParamSpec("excitation", "drive", "",
+              "what drives the cantilever: 'drive' = drive_frequency and free_amplitude (tapping, AM); 'pll' = the "
+              "PLL node's pll/excitation (FM-AFM self-excitation: its oscillator's frequency and its amplitude "
+              "controller's force, applied feedback_latency chunks after the chunk they answer, lockstep)",
+              kind=str, choices=("drive", "pll")),
     ParamSpec("run_until", -1.0, "s",
               "simulated time at which the integration pauses (at the first chunk boundary at or after it); "
               "negative = no pause. Raise it to continue: scripted sessions step through their phases this way",

@@ -1,6 +1,9 @@
 """Amplitude-modulation z feedback: PI controller core (no ROS import), Nanonis-style units.
 
-Error ``e = setpoint - amplitude`` [m]. The output (z piezo position [m], the topography) is::
+Error ``e = setpoint - amplitude`` [m]; in FM-AFM (``feedback_signal`` 'frequency_shift') the same
+loop runs on the PLL's frequency shift: ``e = df_setpoint - df`` [Hz] with ``df_p_gain`` [m/Hz] and
+``df_i_gain`` [m/(Hz s)]. The sign is the same: on the attractive branch df falls (more negative)
+as the tip approaches, as the amplitude does in tapping, so a df below the setpoint retracts. The output (z piezo position [m], the topography) is::
 
     z = I + p_gain * e,        dI/dt = i_gain * e
 
@@ -29,6 +32,16 @@ Z_CONTROLLER_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("p_gain", 0.1, "m/m", "proportional gain: metres of z per metre of amplitude error", 0.0, 100.0),
     ParamSpec("i_gain", 100.0, "1/s",
               "integral gain: z moves at i_gain*error [m/s] per metre of error (Nanonis I gain)", 0.0, 1e7),
+    ParamSpec("feedback_signal", "amplitude", "",
+              "what the z loop regulates: 'amplitude' (tapping, setpoint/p_gain/i_gain) or 'frequency_shift' "
+              "(FM-AFM, df_setpoint/df_p_gain/df_i_gain, the PLL's df)", kind=str,
+              choices=("amplitude", "frequency_shift")),
+    ParamSpec("df_setpoint", -20.0, "Hz",
+              "frequency shift setpoint (FM); negative = attractive regime. Stable only on the branch where df "
+              "falls as the tip approaches (farther than the df minimum)", -1e5, 1e5),
+    ParamSpec("df_p_gain", 1e-11, "m/Hz", "FM proportional gain: metres of z per Hz of df error", 0.0, 1e-3),
+    ParamSpec("df_i_gain", 1e-9, "m/(Hz s)",
+              "FM integral gain: z moves at df_i_gain*error [m/s] per Hz of error", 0.0, 1e-1),
     ParamSpec("z_min", -200e-9, "m", "lowest z piezo position (most extended towards the sample)", -1e-4, 1e-4),
     ParamSpec("z_max", 100e-9, "m", "highest z piezo position (retracted; the withdraw position)", -1e-4, 1e-4),
     ParamSpec("enabled", True, "", "feedback on; when off, z holds or withdraws (disabled_action)", kind=bool),
@@ -79,8 +92,11 @@ class ZController:
         self.params = merged
         if merged["enabled"] and not old["enabled"]:
             self._needs_init = True
-        if merged["p_gain"] != old["p_gain"] and not math.isnan(self.error):
-            self.integrator = self.z - merged["p_gain"] * self.error  # bumpless gain change
+        if merged["feedback_signal"] != old["feedback_signal"]:
+            self._needs_init = True  # another signal: the error is new, re-initialise bumpless
+        elif self.gains[0] != (old["df_p_gain"] if old["feedback_signal"] == "frequency_shift" else old["p_gain"]) \
+                and not math.isnan(self.error):
+            self.integrator = self.z - self.gains[0] * self.error  # bumpless gain change
         if merged["z_min"] != old["z_min"] or merged["z_max"] != old["z_max"]:
             self.z = min(max(self.z, merged["z_min"]), merged["z_max"])
             self.integrator = min(max(self.integrator, merged["z_min"]), merged["z_max"])
@@ -93,6 +109,22 @@ class ZController:
         if p["disabled_action"] == "withdraw" and p["max_slew_rate"] == 0.0:
             self.z = p["z_max"]
 
+    @property
+    def fm(self) -> bool:
+        """The loop regulates the frequency shift (FM-AFM)."""
+        return self.params["feedback_signal"] == "frequency_shift"
+
+    @property
+    def setpoint(self) -> float:
+        """The active setpoint: amplitude [m] or frequency shift [Hz]."""
+        return self.params["df_setpoint"] if self.fm else self.params["setpoint"]
+
+    @property
+    def gains(self) -> tuple[float, float]:
+        """The active (P, I) gains: (m/m, 1/s) or (m/Hz, m/(Hz s))."""
+        p = self.params
+        return (p["df_p_gain"], p["df_i_gain"]) if self.fm else (p["p_gain"], p["i_gain"])
+
     # --- control -----------------------------------------------------------------------------
     def _slew(self, target: float, dt: float) -> float:
         rate = self.params["max_slew_rate"]
@@ -102,12 +134,13 @@ class ZController:
         return min(max(target, self.z - step), self.z + step)
 
     def update(self, amplitude: float, t: float) -> float:
-        """Process amplitude [m] measured at simulated time t [s]; return the new z [m]."""
+        """Process amplitude [m] (FM: frequency shift [Hz]) measured at simulated time t [s]; return
+        the new z [m]."""
         p = self.params
         if not (math.isfinite(amplitude) and math.isfinite(t)):
             self.rejected_samples += 1  # a NaN would poison the integrator for good
             return self.z
-        e = p["setpoint"] - amplitude
+        e = self.setpoint - amplitude
         self.error = e
         if self.t_last is None:
             dt = 0.0
@@ -123,12 +156,13 @@ class ZController:
                 self.z = self._slew(z_hi, dt)
             self._needs_init = True
             return self.z
+        kp, ki = self.gains
         if self._needs_init:
-            self.integrator = self.z - p["p_gain"] * e
+            self.integrator = self.z - kp * e
             self._needs_init = False
             return self.z
-        pe = p["p_gain"] * e
-        candidate = self.integrator + p["i_gain"] * e * dt
+        pe = kp * e
+        candidate = self.integrator + ki * e * dt
         # conditional integration: integrate only until the output reaches a limit, never beyond
         if e > 0.0 and candidate + pe > z_hi:
             candidate = min(candidate, max(self.integrator, z_hi - pe))
@@ -139,6 +173,6 @@ class ZController:
         target = min(max(raw, z_lo), z_hi)
         z = self._slew(target, dt)
         if z != target:  # slew-limited: let the integrator track the output
-            self.integrator = min(max(z - p["p_gain"] * e, z_lo), z_hi)
+            self.integrator = min(max(z - kp * e, z_lo), z_hi)
         self.z = z
         return z

@@ -52,7 +52,8 @@ class ChunkStarts:
 
 
 class FeedbackGate:
-    """Picks the z [m] of the next chunk from the z controller's commands (see module docstring).
+    """Picks the z [m] of the next chunk from the z controller's commands (see module docstring); the
+    same gate picks the FM excitation (frequency, force) from the PLL's commands (``value`` of a command).
 
     mode ``lockstep``: always wait for the answer; ``auto``: lockstep once a synchronised command
     (``answered_end_index >= 0``) arrived from a controller that is still present, free before;
@@ -64,7 +65,8 @@ class FeedbackGate:
             raise ValueError(f"feedback_sync={mode!r} is not allowed; allowed: {', '.join(FEEDBACK_SYNC_MODES)}")
         self.mode = mode
         self.latency = int(latency)
-        self.z = float(z_initial)  # z of the last chunk [m]
+        # the value of the last chunk: z [m] for the z command, (frequency [Hz], force [N]) for the excitation
+        self.z = float(z_initial) if isinstance(z_initial, (int, float)) else z_initial
         self._commands: deque[tuple[int, float]] = deque()  # synchronised (answered index, z), ascending
         self._synced_seen = False
         self.ignored_unsynchronised = 0
@@ -83,16 +85,16 @@ class FeedbackGate:
             if self.locked:
                 self.ignored_unsynchronised += 1
             else:
-                self.z = cmd.z
+                self.z = cmd.value
             return
         self._synced_seen = True
         if self._commands and cmd.answered_end_index <= self._commands[-1][0]:
             if cmd.answered_end_index == self._commands[-1][0]:
-                self._commands[-1] = (cmd.answered_end_index, cmd.z)  # a re-sent answer: newest wins
+                self._commands[-1] = (cmd.answered_end_index, cmd.value)  # a re-sent answer: newest wins
             else:
                 self.stale_commands += 1  # e.g. a restarted controller replaying its history
             return
-        self._commands.append((cmd.answered_end_index, cmd.z))
+        self._commands.append((cmd.answered_end_index, cmd.value))
         if not self.locked or len(self._commands) > 4096:  # bound memory when nobody consumes them
             while len(self._commands) > 1:
                 self._commands.popleft()

@@ -11,6 +11,11 @@ delay is not compensated (a real controller does not either). Channels and units
 - ``amplitude_error`` [m]: amplitude - setpoint, from the z controller's own error output
   (setpoint - amplitude, sign flipped: positive when the amplitude is above the setpoint, e.g. at a
   down-step), so it follows live setpoint changes.
+FM frames (:data:`FM_CHANNELS`) bin the FM loop's outputs instead of the lock-in's: ``frequency_shift``
+[Hz], ``drive`` [N], ``dissipation`` [J] = ``pi A F - pi k A^2 / Q`` (the drive above what the
+cantilever's own damping needs, :func:`afm_ros.core.fm.dissipation_from_drive`), ``amplitude`` [m],
+``phase_error`` [deg] and ``frequency_shift_error`` [Hz] (df - df_setpoint, from the z loop).
+
 - ``dissipation`` [J]: energy dissipated per cycle estimated from amplitude and phase, what real
   instruments compute (Cleveland et al. 1998, Anczykowski et al. 1999):
   ``E = (pi k A^2 / Q) ((A0 / A) sin(phi) - f / f0)`` with A0 the free amplitude at resonance
@@ -26,10 +31,17 @@ import numpy as np
 from afm_ros.core.scanner import ScanPlan, bin_into
 
 CHANNELS = ("height", "amplitude", "phase", "amplitude_error", "dissipation")
-UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J"}
+# FM-AFM frames (afm_ros.core.fm): the PLL's frequency shift, the amplitude controller's drive and the
+# dissipation from it, the amplitude and phase error the loops leave, and the z loop's df error
+FM_CHANNELS = ("height", "frequency_shift", "drive", "dissipation", "amplitude", "phase_error",
+               "frequency_shift_error")
+UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J",
+         "frequency_shift": "Hz", "drive": "N", "phase_error": "deg", "frequency_shift_error": "Hz"}
 DIRECTIONS = ("trace", "retrace")
 _LOCKIN_CHANNELS = ("amplitude", "phase", "dissipation")
 _Z_CHANNELS = ("height", "amplitude_error")
+_FM_LOOP_CHANNELS = ("frequency_shift", "drive", "dissipation", "amplitude", "phase_error")
+_FM_Z_CHANNELS = ("height", "frequency_shift_error")
 
 
 def dissipated_energy(amplitude, phase_deg, spring_constant: float, quality_factor: float, free_amplitude: float,
@@ -56,10 +68,15 @@ class Frame:
     lines_planned: int = 0
 
     @classmethod
-    def empty(cls, plan: ScanPlan, index: int) -> "Frame":
-        images = {d: {c: np.full((plan.lines, plan.pixels), np.nan, dtype=np.float32) for c in CHANNELS}
+    def empty(cls, plan: ScanPlan, index: int, channels: tuple = CHANNELS) -> "Frame":
+        images = {d: {c: np.full((plan.lines, plan.pixels), np.nan, dtype=np.float32) for c in channels}
                   for d in DIRECTIONS}
         return cls(plan, index, images)
+
+    @property
+    def channels(self) -> tuple:
+        """The frame's channel names (CHANNELS, or FM_CHANNELS for an FM frame)."""
+        return tuple(self.images[DIRECTIONS[0]])
 
     @property
     def partial(self) -> bool:
@@ -104,19 +121,24 @@ class ImageAccumulator:
     """
 
     def __init__(self, plan: ScanPlan, spring_constant: float, quality_factor: float,
-                 free_amplitude: float, frequency_ratio: float = 1.0, phase_offset_deg: float = 0.0):
+                 free_amplitude: float, frequency_ratio: float = 1.0, phase_offset_deg: float = 0.0,
+                 fm: bool = False):
         self.plan = plan
+        self.fm = bool(fm)
         self.phase_offset_deg = float(phase_offset_deg)
         self.constants = (float(spring_constant), float(quality_factor), float(free_amplitude),
                           float(frequency_ratio))
         n = plan.lines * plan.pixels * 2
-        self._lockin_sums = np.zeros((len(_LOCKIN_CHANNELS), n))
-        self._z_sums = np.zeros((len(_Z_CHANNELS), n))
-        self._sums = {**{c: self._lockin_sums[i] for i, c in enumerate(_LOCKIN_CHANNELS)},
-                      **{c: self._z_sums[i] for i, c in enumerate(_Z_CHANNELS)}}
+        loop, zc = (_FM_LOOP_CHANNELS, _FM_Z_CHANNELS) if fm else (_LOCKIN_CHANNELS, _Z_CHANNELS)
+        self.channels = FM_CHANNELS if fm else CHANNELS
+        self._lockin_sums = np.zeros((len(loop), n))
+        self._z_sums = np.zeros((len(zc), n))
+        self._sums = {**{c: self._lockin_sums[i] for i, c in enumerate(loop)},
+                      **{c: self._z_sums[i] for i, c in enumerate(zc)}}
+        self._stream = {**{c: "lockin" for c in loop}, **{c: "z" for c in zc}}
         self._counts = {"lockin": np.zeros(n, dtype=np.int64), "z": np.zeros(n, dtype=np.int64)}
         self._frame_index = 0
-        self.frame = Frame.empty(plan, 0)
+        self.frame = Frame.empty(plan, 0, self.channels)
         self._next_line = 0  # acquisition line (within the current frame) to close next
         self.frames_done: list[Frame] = []
         # per stream, the line count (lines since the start) of its latest output: outputs arrive in
@@ -140,8 +162,19 @@ class ImageAccumulator:
         values = np.array([a, p, dissipated_energy(a, lag, k, q, a0, ratio)]).reshape(len(_LOCKIN_CHANNELS), -1)
         self._add("lockin", t, values, self._lockin_sums)
 
+    def add_fm(self, t, df, drive, phase_error, amplitude) -> None:
+        """FM loop outputs at simulated times t [s]: df [Hz], drive [N], phase error [deg], amplitude [m]."""
+        from afm_ros.core.fm import dissipation_from_drive
+        k, q = self.constants[:2]
+        a = np.asarray(amplitude, dtype=float)
+        drive = np.asarray(drive, dtype=float)
+        values = np.array([np.asarray(df, dtype=float), drive, dissipation_from_drive(drive, a, k, q), a,
+                           np.asarray(phase_error, dtype=float)]).reshape(len(_FM_LOOP_CHANNELS), -1)
+        self._add("lockin", t, values, self._lockin_sums)
+
     def add_z(self, t, z, error) -> None:
-        """z controller outputs at simulated times t [s]: z piezo [m] and error setpoint - amplitude [m]."""
+        """z controller outputs at simulated times t [s]: z piezo [m] and error setpoint - amplitude [m]
+        (FM: df_setpoint - df [Hz])."""
         values = np.array([np.asarray(z, dtype=float), -np.asarray(error, dtype=float)]).reshape(len(_Z_CHANNELS), -1)
         self._add("z", t, values, self._z_sums)
 
@@ -165,7 +198,7 @@ class ImageAccumulator:
                 del self.frames_done[:-1]  # continuous: only the latest (bounded memory, see check_scan)
                 self._frame_index += 1
                 self._next_line = 0
-                self.frame = Frame.empty(plan, self._frame_index)
+                self.frame = Frame.empty(plan, self._frame_index, self.channels)
                 self._lockin_sums[:] = 0.0
                 self._z_sums[:] = 0.0
                 for arr in self._counts.values():
@@ -177,8 +210,8 @@ class ImageAccumulator:
         for d, direction in enumerate(DIRECTIONS):
             lo = (line * 2 + d) * plan.pixels
             sl = slice(lo, lo + plan.pixels)
-            for c in CHANNELS:
-                n = self._counts["z" if c in _Z_CHANNELS else "lockin"][sl]
+            for c in self.channels:
+                n = self._counts[self._stream[c]][sl]
                 with np.errstate(invalid="ignore", divide="ignore"):
                     self.frame.images[direction][c][row] = np.where(n > 0, self._sums[c][sl] / n, np.nan)
         self.frame.lines_done = line + 1

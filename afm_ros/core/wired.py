@@ -19,7 +19,8 @@ import numpy as np
 
 from afm_ros.core.approach import ApproachLog, ZStage
 from afm_ros.core.artefacts import Imperfections, check_plan
-from afm_ros.core.cantilever_engine import measure, retune, sample_surface, wear_by_chunk
+from afm_ros.core.cantilever_engine import excite, measure, retune, sample_surface, wear_by_chunk
+from afm_ros.core.fm import OscillationController
 from afm_ros.core.cantilever_params import build
 from afm_ros.core.tip import TIP_SPECS, TipWear
 from afm_ros.core.controller import ZController
@@ -66,6 +67,7 @@ class WiredInstrument:
     imperfections: dict = field(default_factory=dict)  # ARTEFACT_SPECS values (afm_ros.core.artefacts)
     approach_values: dict = field(default_factory=dict)  # APPROACH_SPECS values (afm_ros.core.approach)
     tip: dict = field(default_factory=dict)  # TIP_SPECS values (afm_ros.core.tip): wear
+    fm: dict | None = None  # FM-AFM: FM_SPECS values (afm_ros.core.fm; the PLL node's); None: tapping
 
     def __post_init__(self):
         from afm_ros.core.cantilever_params import default_values
@@ -96,6 +98,11 @@ class WiredInstrument:
         if self.approach_values.get("start_withdrawn"):
             self.stage.place_withdrawn(self.approach_values)
         self.z_initial = self.controller.z
+        # FM: the PLL and amplitude controller; the excitation computed from chunk k drives chunk k + latency
+        self.pll = OscillationController(**self.fm) if self.fm is not None else None
+        self.excitations: list[tuple[float, float]] = []  # (frequency [Hz], force [N]) after chunk k's outputs
+        self.excitation_initial = (self.pll.frequency, self.pll.drive) if self.pll is not None else None
+        self.fm_records: list = []
         self.next_index = 0  # next published sample index
         self.chunks = 0
         self.images: ImageAccumulator | None = None
@@ -211,7 +218,7 @@ class WiredInstrument:
         k, q = self.setup.cantilever.spring_constant, self.setup.cantilever.quality_factor
         ratio = self.setup.drive.frequency / self.setup.cantilever.resonance_frequency
         self.images = ImageAccumulator(plan, k, q, self.values["free_amplitude"], ratio,
-                                       self.lock_in.params["phase_offset"])
+                                       self.lock_in.params["phase_offset"], fm=self.pll is not None)
         return plan
 
     def step(self) -> ChunkRecord:
@@ -219,6 +226,9 @@ class WiredInstrument:
         s, sim = self.setup, self.sim
         k = self.chunks
         z_piezo = self.answers[k - self.latency] if k >= self.latency else self.z_initial + self.motor
+        if self.pll is not None:  # as the cantilever node with excitation 'pll'
+            f, force = self.excitations[k - self.latency] if k >= self.latency else self.excitation_initial
+            self.setup = s = excite(sim, s, self.values, f, force)
         sim.z_offset = s.z_base + z_piezo
         samples = sim.advance(s.chunk_steps, s.decimation)
         first = self.next_index
@@ -229,8 +239,17 @@ class WiredInstrument:
         z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
         ramp = self.stage.ramp if self.stage.state == "spectroscopy" else None
-        for i, (t, x, y) in enumerate(zip(out.t.tolist(), out.x.tolist(), out.y.tolist())):
-            z_out[i] = self.stage.update(math.hypot(x, y), t, phase_deg(x, y))  # as the z controller node does
+        fm_out = None
+        if self.pll is not None:  # as the PLL node does
+            fm_out = self.pll.process(out.t, out.x, out.y)
+            self.excitations.append((self.pll.frequency, self.pll.drive))
+        xs, ys = out.x.tolist(), out.y.tolist()
+        if fm_out is not None and self.controller.fm:  # as the z controller node does
+            signal, phases = fm_out.df.tolist(), (fm_out.phase_error + 90.0).tolist()
+        else:
+            signal, phases = [math.hypot(x, y) for x, y in zip(xs, ys)], [phase_deg(x, y) for x, y in zip(xs, ys)]
+        for i, (t, a, ph) in enumerate(zip(out.t.tolist(), signal, phases)):
+            z_out[i] = self.stage.update(a, t, ph)
             errors[i] = self.controller.error
         if ramp is not None:  # the chunk's means, as the z controller node takes them from the raw topics
             ramp.expect(first)
@@ -241,7 +260,10 @@ class WiredInstrument:
         self.chunks += 1
         phase = np.degrees(np.arctan2(-out.y, out.x))
         if self.images is not None:
-            self.images.add_lockin(out.t, amplitude, phase)
+            if self.images.fm:
+                self.images.add_fm(fm_out.t, fm_out.df, fm_out.drive, fm_out.phase_error, fm_out.amplitude)
+            else:
+                self.images.add_lockin(out.t, amplitude, phase)
             self.images.add_z(out.t, z_out, errors)
             self.images.finish_ready()
         record = ChunkRecord(k, sim.t, z_piezo, out.t, amplitude, phase, z_out, errors,
@@ -251,6 +273,8 @@ class WiredInstrument:
                 self._build_surface(self.wear.built_radius)
         if self.keep_records:
             self.records.append(record)
+            if fm_out is not None:
+                self.fm_records.append(fm_out)
         return record
 
     def run_until(self, t_end: float) -> None:

@@ -129,6 +129,11 @@ class ZCommand:
     answered_end_time: float  # [s]
     z: float  # [m]
 
+    @property
+    def value(self) -> float:
+        """What a feedback gate holds: z [m]."""
+        return self.z
+
 
 def pack_z_command(cmd: ZCommand) -> np.ndarray:
     return np.array([float(cmd.answered_end_index), cmd.answered_end_time, cmd.z])
@@ -140,6 +145,73 @@ def unpack_z_command(data) -> ZCommand:
         raise ValueError(f"z command has {arr.shape[0]} values; expected {len(Z_COMMAND_FIELDS)} "
                          f"({', '.join(Z_COMMAND_FIELDS)})")
     return ZCommand(int(arr[0]), float(arr[1]), float(arr[2]))
+
+
+# --- excitation command (topic ``pll/excitation``, FM mode) --------------------------------------
+# ``data = [answered_end_index, answered_end_time_s, frequency_hz, drive_force_n]``: the drive the PLL
+# and amplitude controller (afm_ros.core.fm) computed from every lock-in output of the deflection
+# samples before ``answered_end_index``; the cantilever (excitation 'pll') drives the chunk that starts
+# ``feedback_latency`` chunks after the answered one with it (lockstep, as the z command). Index 0:
+# the initial excitation; a negative index: unsynchronised (applied at the next chunk, never waited for).
+EXCITATION_FIELDS = ("answered_end_index", "answered_end_time_s", "frequency_hz", "drive_force_n")
+EXCITATION_LABEL = "excitation"
+
+
+@dataclass
+class ExcitationCommand:
+    answered_end_index: int
+    answered_end_time: float  # [s]
+    frequency: float  # [Hz]
+    force: float  # [N]
+
+    @property
+    def value(self) -> tuple[float, float]:
+        """What a feedback gate holds: (frequency [Hz], force [N])."""
+        return (self.frequency, self.force)
+
+
+def pack_excitation(cmd: ExcitationCommand) -> np.ndarray:
+    return np.array([float(cmd.answered_end_index), cmd.answered_end_time, cmd.frequency, cmd.force])
+
+
+def unpack_excitation(data) -> ExcitationCommand:
+    arr = np.asarray(data, dtype=np.float64)
+    if arr.shape[0] != len(EXCITATION_FIELDS):
+        raise ValueError(f"excitation command has {arr.shape[0]} values; expected {len(EXCITATION_FIELDS)} "
+                         f"({', '.join(EXCITATION_FIELDS)})")
+    return ExcitationCommand(int(arr[0]), float(arr[1]), float(arr[2]), float(arr[3]))
+
+
+# --- FM loop outputs (topic ``pll/outputs``) -------------------------------------------------------
+# One message per lock-in batch: ``data[0:3] = [input_first_index, input_end_index, input_end_time_s]``
+# (as the lock-in batch), then the loop's n outputs (one per lock-in output) as five blocks ``t`` [s],
+# ``df`` [Hz] (frequency shift), ``drive`` [N] (excitation force amplitude), ``phase_error`` [deg],
+# ``amplitude`` [m]. ``layout.data_offset = 3``; ``layout.dim[0] = ("fm_outputs", n, 5 n)``.
+FM_OUTPUTS_LABEL = "fm_outputs"
+FM_OUTPUT_BLOCKS = ("t", "df", "drive", "phase_error", "amplitude")
+
+
+@dataclass
+class FMBatch:
+    input_first_index: int
+    input_end_index: int
+    input_end_time: float  # [s]
+    t: np.ndarray
+    df: np.ndarray  # [Hz]
+    drive: np.ndarray  # [N]
+    phase_error: np.ndarray  # [deg]
+    amplitude: np.ndarray  # [m]
+
+
+def pack_fm_outputs(batch: FMBatch) -> np.ndarray:
+    return _pack_blocks((float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
+                        tuple(getattr(batch, name) for name in FM_OUTPUT_BLOCKS))
+
+
+def unpack_fm_outputs(data) -> FMBatch:
+    """Inverse of :func:`pack_fm_outputs`; ValueError for a malformed message."""
+    pre, blocks = _unpack_blocks(data, OUTPUTS_PREAMBLE_LENGTH, len(FM_OUTPUT_BLOCKS), "FM output batch")
+    return FMBatch(int(pre[0]), int(pre[1]), float(pre[2]), *blocks)
 
 
 # --- z controller trace (topic ``z_controller/trace``) ---------------------------------------------

@@ -36,7 +36,9 @@ from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
 from afm_ros.core.live_view import IMAGE_TAIL_CUT, tail_cut_limits
 
 CHANNEL_TITLES = {"height": "Height", "amplitude": "Amplitude", "phase": "Phase",
-                  "amplitude_error": "Amplitude error", "dissipation": "Dissipation"}
+                  "amplitude_error": "Amplitude error", "dissipation": "Dissipation",
+                  "frequency_shift": "Frequency shift", "drive": "Drive", "phase_error": "Phase error",
+                  "frequency_shift_error": "Frequency shift error"}
 
 # display scaling of the previews: (factor, unit text) for a value range of this magnitude
 _PREFIXES = ((1e-18, "a"), (1e-15, "f"), (1e-12, "p"), (1e-9, "n"), (1e-6, "u"), (1e-3, "m"), (1.0, ""))
@@ -51,7 +53,7 @@ def frame_channels(frame) -> dict[str, tuple[np.ndarray, str]]:
     """Ordered {title: (float64 array [lines, pixels], SI unit)} of every channel x direction
     (channel-major: Height (trace), Height (retrace), Amplitude (trace), ...); row 0 = lowest y."""
     out = {}
-    for channel in CHANNELS:
+    for channel in frame.channels:
         for direction in DIRECTIONS:
             out[channel_title(channel, direction)] = (np.asarray(frame.images[direction][channel], dtype=np.float64),
                                                        UNITS[channel])
@@ -228,7 +230,7 @@ def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = T
               metadata=meta, display_ranges=ranges)
     written = [gwy]
     if previews:
-        for channel in CHANNELS:
+        for channel in frame.channels:
             for direction in DIRECTIONS:
                 path = stem.with_name(f"{stem.name}_{channel}_{direction}.png")
                 title = channel_title(channel, direction)

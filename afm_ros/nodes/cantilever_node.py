@@ -44,7 +44,8 @@ from afm_ros.core.cantilever_engine import (  # noqa: F401 - the two constants a
     CONSUMER_TIMEOUT_S, FREE_RUN_TIMER_PERIOD_S, IDLE_TIMER_PERIOD_S, PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS,
     CantileverEngine, Job)
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_values
-from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_z_command
+from afm_ros.formats.chunk_layout import (PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_excitation,
+                                         unpack_z_command)
 from afm_ros.nodes.node_main import run_node
 from afm_ros.core.physics.simulation import Simulation
 
@@ -105,6 +106,8 @@ class CantileverNode(Node):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._z_sub = self.create_subscription(Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command,
                                                Z_COMMAND_QOS)
+        self._excitation_sub = self.create_subscription(Float64MultiArray, topics.EXCITATION, self._on_excitation,
+                                                        Z_COMMAND_QOS)
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
         self._publish_applied(self.engine.applied())
@@ -231,6 +234,21 @@ class CantileverNode(Node):
             return
         with self.engine.step_lock:
             self.engine.gate.receive(cmd)
+        self._try_step(MAX_BURST)
+
+    def _on_excitation(self, msg: Float64MultiArray) -> None:
+        """The PLL's drive (FM, excitation 'pll'): gated like the z command."""
+        try:
+            cmd = unpack_excitation(msg.data)
+        except ValueError as exc:
+            self.get_logger().warning(f"ignoring malformed excitation: {exc}", throttle_duration_sec=5.0)
+            return
+        if not (math.isfinite(cmd.frequency) and cmd.frequency >= 10.0 and math.isfinite(cmd.force)
+                and 0.0 <= cmd.force <= 1e-3):
+            self.get_logger().warning(f"ignoring excitation outside the drive's range: {cmd}", throttle_duration_sec=5.0)
+            return
+        with self.engine.step_lock:
+            self.engine.excitation_gate.receive(cmd)
         self._try_step(MAX_BURST)
 
     def _on_ack(self, msg: Int64MultiArray) -> None:
@@ -425,6 +443,11 @@ class CantileverNode(Node):
             with self.engine.step_lock:
                 gate.controller_gone()
             self.get_logger().warning(f"no publisher on {Z_COMMAND_TOPIC} any more: feedback runs free")
+        ex = self.engine.excitation_gate
+        if ex.locked and ex.mode == "auto" and self._excitation_sub.get_publisher_count() == 0:
+            with self.engine.step_lock:
+                ex.controller_gone()
+            self.get_logger().warning(f"no publisher on {topics.EXCITATION} any more: the drive holds its last value")
         if not window.acks:
             return
         present = {topics.fqn(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(

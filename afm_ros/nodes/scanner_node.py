@@ -44,7 +44,7 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.flags import flags_metadata, frame_flags
 from afm_ros.core.lockin import LOCKIN_SPECS
 
-from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, ImageAccumulator
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS, UNITS, ImageAccumulator
 from afm_ros.core.scanner import (SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values,
                                   max_pixels)
 from afm_ros.formats.folders import check_output_directory
@@ -101,6 +101,7 @@ class ScannerNode(Node):
         self._ack = topics.Acknowledger(self)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS)
         self.create_subscription(Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
+        self.create_subscription(Float64MultiArray, topics.PLL_OUTPUTS, self._on_fm, topics.CONSUMER_QOS)
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_applied, topics.LATCHED_QOS)
         self.z_stage: dict | None = None  # the z controller's latest z_controller/stage (None: not heard)
         self.create_subscription(String, topics.Z_STAGE, self._on_stage, topics.LATCHED_QOS)
@@ -365,9 +366,17 @@ class ScannerNode(Node):
                 return
             self.plan = ScanPlan(**applied["plan"])
             ratio = applied["drive_frequency_Hz"] / applied["resonance_frequency_Hz"]
+            fm = applied.get("excitation") == "pll"
             self.accumulator = ImageAccumulator(self.plan, applied["spring_constant_N_per_m"],
                                                 applied["quality_factor"], applied["free_amplitude_m"], ratio,
-                                                self.lockin_phase_offset)
+                                                self.lockin_phase_offset, fm=fm)
+            if fm:  # the FM channels' image topics, made at the first FM scan
+                for c in FM_CHANNELS:
+                    for d in DIRECTIONS:
+                        if (c, d) not in self._pub_images:
+                            pub = self._pub_images[(c, d)] = self.create_publisher(Image, image_topic(c, d),
+                                                                                  topics.LATCHED_QOS)
+                            self.published_copies[pub] = 0
             self._plan_request = None
             self.state = "scanning"
             self.frames_done = 0
@@ -377,7 +386,7 @@ class ScannerNode(Node):
         self._publish_geometry(applied)
         self._fetch_settings()
         for kind, data in buffered:
-            (self._add_outputs if kind == "outputs" else self._add_trace)(data)
+            self._adders[kind](data)
         self._finish_lines()
 
     def _fetch_settings(self) -> None:
@@ -404,7 +413,7 @@ class ScannerNode(Node):
         geometry = {"frame_id": "afm_scan", "x_offset_m": p.x_left, "y_offset_m": p.y_low, "size_x_m": p.size_x,
                     "size_y_m": p.size_y, "pixels": p.pixels, "lines": p.lines, "line_rate_Hz": p.line_rate,
                     "slow_scan_direction": p.slow_scan_direction, "continuous": p.continuous,
-                    "start_time_s": p.start_time, "row_0": "lowest y", "channels": {c: UNITS[c] for c in CHANNELS},
+                    "start_time_s": p.start_time, "row_0": "lowest y", "channels": {c: UNITS[c] for c in (FM_CHANNELS if applied.get("excitation") == "pll" else CHANNELS)},
                     "sample": applied.get("sample")}
         self._pub_geometry.publish(String(data=json.dumps(geometry)))
 
@@ -415,6 +424,25 @@ class ScannerNode(Node):
     def _on_trace(self, msg: Float64MultiArray) -> None:
         self._consume("trace", msg.data)
 
+    def _on_fm(self, msg: Float64MultiArray) -> None:
+        self._consume("fm", msg.data)
+
+    @property
+    def _adders(self) -> dict:
+        return {"outputs": self._add_outputs, "trace": self._add_trace, "fm": self._add_fm}
+
+    def _add_fm(self, data, record_only: bool = False) -> None:
+        """The PLL's outputs: an FM frame's loop channels (df, drive, dissipation, amplitude, phase error)."""
+        if record_only or self.accumulator is None or not self.accumulator.fm:
+            return
+        try:
+            b = chunk_layout.unpack_fm_outputs(data)
+        except ValueError as exc:
+            self.get_logger().error(f"malformed FM output batch ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        if b.t.shape[0]:
+            self.accumulator.add_fm(b.t, b.df, b.drive, b.phase_error, b.amplitude)
+
     def _consume(self, kind: str, data) -> None:
         with self._lock:
             if self.state == "requested":
@@ -422,7 +450,7 @@ class ScannerNode(Node):
                     self._buffer.append((kind, np.array(data, dtype=np.float64)))
                 else:
                     self.last_error = "buffer full while waiting for the cantilever to start the scan"
-            (self._add_outputs if kind == "outputs" else self._add_trace)(data, record_only=self.state != "scanning")
+            self._adders[kind](data, record_only=self.state != "scanning")
         self._finish_lines()
 
     def _add_outputs(self, data, record_only: bool = False) -> None:
@@ -435,7 +463,7 @@ class ScannerNode(Node):
         if b.input_first_index == last_index and b.input_end_index > last_index and math.isfinite(last_time):
             self.sample_interval = (b.input_end_time - last_time) / (b.input_end_index - last_index)
         self._lockin_end = (b.input_end_index, b.input_end_time)
-        if not record_only and self.accumulator is not None and b.t.shape[0]:
+        if not record_only and self.accumulator is not None and not self.accumulator.fm and b.t.shape[0]:
             self.accumulator.add_lockin(b.t, np.hypot(b.x, b.y), np.degrees(np.arctan2(-b.y, b.x)))
 
     def _add_trace(self, data, record_only: bool = False) -> None:
@@ -467,8 +495,9 @@ class ScannerNode(Node):
     def _publish_line(self, frame, line: int) -> None:
         stamp = frame.plan.line_end_time(frame.index, line)
         for (c, d), pub in self._pub_images.items():
-            pub.publish(image_message(frame.images[d][c], stamp))
-            self.published_copies[pub] += 1
+            if c in frame.images[d]:
+                pub.publish(image_message(frame.images[d][c], stamp))
+                self.published_copies[pub] += 1
         self._publish_progress()
 
     def _publish_progress(self) -> None:

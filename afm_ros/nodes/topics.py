@@ -25,6 +25,8 @@ ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by r
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
 Z_TRACE = "z_controller/trace"
+PLL_OUTPUTS = "pll/outputs"  # FM loop outputs per lock-in batch (afm_ros.formats.chunk_layout FM batch)
+EXCITATION = "pll/excitation"  # the FM drive (frequency, force) per answered chunk
 SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
 SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
 # std_msgs/String, JSON (latched): what the z stage does (engaged, approaching, withdrawing, withdrawn,

@@ -51,6 +51,7 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limit
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, chunk_mean, phase_deg, validate as spectroscopy_validate
 
 INPUT_QOS = topics.CONSUMER_QOS
+FM_PHASE_SETPOINT_DEG = 90.0  # FM: the lag a spectroscopy records is the PLL's phase error + 90 deg
 # z_piezo and error: transient local with a history of 200 samples, so a late subscriber gets the
 # current position at once and a recorder that matches late the recent samples.
 Z_QOS = topics.HISTORY_QOS
@@ -103,6 +104,7 @@ class ZControllerNode(Node):
         self.lost_samples = 0
         self.stale_batches = 0  # batches of chunks already answered (e.g. a restarted lock-in's history)
         self.create_subscription(Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS)
+        self.create_subscription(Float64MultiArray, topics.PLL_OUTPUTS, self._on_fm_batch, INPUT_QOS)
         self.pub_stage = self.create_publisher(String, topics.Z_STAGE, topics.LATCHED_QOS)
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
         self.create_service(Trigger, "z_controller/approach", self._approach)
@@ -331,32 +333,54 @@ class ZControllerNode(Node):
             self._send_command(-1, 0.0 if self.controller.t_last is None else self.controller.t_last)
 
     def _on_batch(self, msg: Float64MultiArray) -> None:
+        """A lock-in batch: the loop's input unless it regulates the frequency shift (FM)."""
+        if self.controller.fm:
+            return
         try:
             batch = chunk_layout.unpack_outputs(msg.data)
         except ValueError as exc:
             self.get_logger().error(f"malformed lock-in output batch ignored: {exc}", throttle_duration_sec=5.0)
             return
-        if batch.input_end_index <= self.answered_end_index and batch.input_first_index != 0:
+        xs, ys = batch.x.tolist(), batch.y.tolist()  # math.hypot as the wired instrument (bit for bit)
+        self._answer(batch.input_first_index, batch.input_end_index, batch.input_end_time, batch.t,
+                     [math.hypot(x, y) for x, y in zip(xs, ys)], [phase_deg(x, y) for x, y in zip(xs, ys)])
+
+    def _on_fm_batch(self, msg: Float64MultiArray) -> None:
+        """A PLL batch (pll/outputs): the loop's input when it regulates the frequency shift (FM)."""
+        if not self.controller.fm:
+            return
+        try:
+            batch = chunk_layout.unpack_fm_outputs(msg.data)
+        except ValueError as exc:
+            self.get_logger().error(f"malformed FM output batch ignored: {exc}", throttle_duration_sec=5.0)
+            return
+        # the phase a spectroscopy records: the lag, phase_error + setpoint (90 deg at resonance)
+        self._answer(batch.input_first_index, batch.input_end_index, batch.input_end_time, batch.t,
+                     batch.df.tolist(), (batch.phase_error + FM_PHASE_SETPOINT_DEG).tolist())
+
+    def _answer(self, input_first_index: int, input_end_index: int, input_end_time: float, t, signal, phase) -> None:
+        """One controller step per output (signal: amplitude [m] or df [Hz]); the z command answering the batch."""
+        if input_end_index <= self.answered_end_index and input_first_index != 0:
             self.stale_batches += 1
             return
-        if batch.input_first_index > self.answered_end_index and self.answered_end_index > 0:
+        if input_first_index > self.answered_end_index and self.answered_end_index > 0:
             self.lost_batches += 1
-            self.lost_samples += batch.input_first_index - self.answered_end_index
+            self.lost_samples += input_first_index - self.answered_end_index
             self.get_logger().warning(
-                f"lock-in outputs of samples {self.answered_end_index}..{batch.input_first_index} never arrived "
+                f"loop outputs of samples {self.answered_end_index}..{input_first_index} never arrived "
                 f"({self.lost_samples} samples in {self.lost_batches} gaps so far)", throttle_duration_sec=5.0)
         z_msg, e_msg = Float64(), Float64()
-        n = batch.t.shape[0]
+        n = len(t)
         zs, errors = np.empty(n), np.empty(n)
         want_z = self.pub_z.get_subscription_count() > 0  # per-output copies of the trace: while subscribed
         want_error = self.pub_error.get_subscription_count() > 0
         with self._lock:
             ramp = self.stage.ramp if self.stage is not None and self.stage.state == "spectroscopy" else None
-            for i, (t, x, y) in enumerate(zip(batch.t.tolist(), batch.x.tolist(), batch.y.tolist())):
+            for i, (ti, a, ph) in enumerate(zip(t.tolist(), signal, phase)):
                 if self.stage is None:
-                    z_msg.data = zs[i] = self.controller.update(math.hypot(x, y), t)
+                    z_msg.data = zs[i] = self.controller.update(a, ti)
                 else:
-                    z_msg.data = zs[i] = self.stage.update(math.hypot(x, y), t, phase_deg(x, y))
+                    z_msg.data = zs[i] = self.stage.update(a, ti, ph)
                 e_msg.data = errors[i] = self.controller.error
                 if want_z:
                     self.pub_z.publish(z_msg)
@@ -364,10 +388,10 @@ class ZControllerNode(Node):
                     self.pub_error.publish(e_msg)
             self.published_copies[self.pub_z] += n if want_z else 0
             self.published_copies[self.pub_error] += n if want_error else 0
-            self.answered_end_index = batch.input_end_index
-            self._send_command(batch.input_end_index, batch.input_end_time)
+            self.answered_end_index = input_end_index
+            self._send_command(input_end_index, input_end_time)
             if ramp is not None:
-                ramp.expect(batch.input_first_index)
+                ramp.expect(input_first_index)
             if self.spectroscopy_ramp is not None and self.spectroscopy_ramp.done:
                 self._batches_since_done += 1
                 self._finish_spectroscopy()
@@ -376,7 +400,7 @@ class ZControllerNode(Node):
         trace.layout.dim = [MultiArrayDimension(label=chunk_layout.Z_TRACE_LABEL, size=n, stride=3 * n)]
         trace.layout.data_offset = chunk_layout.Z_TRACE_PREAMBLE_LENGTH
         trace.data = array.array("d", chunk_layout.pack_z_trace(chunk_layout.ZTrace(
-            batch.input_end_index, batch.input_end_time, batch.t, zs, errors)).tobytes())
+            input_end_index, input_end_time, np.asarray(t, dtype=np.float64), zs, errors)).tobytes())
         self.pub_trace.publish(trace)
 
     def _publish_diagnostics(self) -> None:

@@ -14,6 +14,7 @@ NODE_SPECS = {
     "cantilever": ("afm_ros.core.cantilever_params", "CANTILEVER_NODE_SPECS"),
     "lockin": ("afm_ros.core.tune", "LOCKIN_NODE_SPECS"),
     "z_controller": ("afm_ros.core.approach", "Z_NODE_SPECS"),
+    "pll": ("afm_ros.core.fm", "FM_SPECS"),
     "recorder": ("afm_ros.formats.mcap_io", "RECORDER_SPECS"),
     "replay": ("afm_ros.formats.mcap_io", "REPLAY_SPECS"),
     "scanner": ("afm_ros.core.scanner", "SCANNER_NODE_SPECS"),
