@@ -107,7 +107,7 @@ def test_set_get_and_refusals_with_the_nodes_reasons(monkeypatch, ctl_env, ros_n
         assert value(zc, "z_max") == Z_CONTROLLER_SPECS["z_max"].default and value(zc, "setpoint") == 4e-8
         # an unknown name: exit 1 before anything is sent, with the likely meant one
         r = ctl(ctl_env, "set", "z_controller", "setpiont", "3e-8", ns=ros_namespace)
-        assert r.returncode == 1 and "has no parameter 'setpiont'; did you mean setpoint?" in r.stderr, r.stderr
+        assert r.returncode == 1 and "has no parameter 'setpiont'; did you mean setpoint" in r.stderr, r.stderr
         # the command line itself: exit 2
         r = ctl(ctl_env, "set", "z_controller", "setpoint", ns=ros_namespace)
         assert r.returncode == 2 and "'setpoint' has no value" in r.stderr

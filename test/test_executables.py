@@ -88,7 +88,9 @@ def test_installed_cantilever_node_publishes_and_stops_on_sigint(install, monkey
         node.create_subscription(Float64MultiArray, "cantilever/deflection", take, CHUNK_QOS)
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
-        deadline = time.monotonic() + 30.0
+        # generous: the installed copy compiles its numba kernels afresh (its cache lives beside the
+        # installed sources), which took more than 30 s on a loaded CI machine; the loop ends at 20 chunks
+        deadline = time.monotonic() + 120.0
         while len(chunks) < 20 and time.monotonic() < deadline and proc.poll() is None:
             executor.spin_once(timeout_sec=0.05)
         executor.remove_node(node)

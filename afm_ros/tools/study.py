@@ -789,12 +789,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
-    from afm_ros.tools import contrast, dataset, drive_tune, scan, thermal_tune  # their own flags (EXTERNAL)
+    from afm_ros.tools import contrast, dataset, drive_tune, force_reconstruction, scan, thermal_tune  # their own flags (EXTERNAL)
     thermal_tune.add_parser(sub)
     drive_tune.add_parser(sub)
     contrast.add_parser(sub)
     scan.add_parser(sub)
     dataset.add_parser(sub)
+    force_reconstruction.add_parser(sub)
     return parser
 
 
@@ -807,7 +808,7 @@ def _external(module_name: str):
 
 
 EXTERNAL = {"thermal": "thermal_tune", "tune": "drive_tune", "contrast": "contrast", "scan": "scan",
-            "dataset": "dataset"}
+            "dataset": "dataset", "reconstruct": "force_reconstruction"}
 
 
 COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep,
