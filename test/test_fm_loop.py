@@ -49,7 +49,7 @@ def test_default_gains_are_the_documented_design():
         assert FM_SPECS[name].default == pytest.approx(value, rel=0.02), name
     # dead time of 1 ms chunks, latency 2, 1 kHz outputs, the lock-in's 4 x 20 us: 2.58 ms; margin > 50 deg
     delay = loop_delay(CHUNK, 2, 1000.0, 20e-6, 4)
-    assert delay == pytest.approx(2.58e-3)
+    assert delay == pytest.approx(2.58e-3, rel=1e-6, abs=0)
     assert phase_margin(20.0, delay) > 50.0
 
 
