@@ -9,7 +9,7 @@ from afm_ros.client.microscope import Refused, WorkflowFailed, refusal
 from afm_ros.core import artefacts
 from afm_ros.core.approach import APPROACH_SPECS, INSTRUMENT_Z
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
-from afm_ros.core.flags import frame_flags
+from afm_ros.core.flags import feedback_setpoint, frame_flags
 from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
 from afm_ros.core.tune import TUNE_SPECS
@@ -196,7 +196,7 @@ class LocalBackend:
                 progress(lines, images.plan.lines)
         frame = w.scan_frame(values, progress=report)
         zc = w.controller.params
-        flags = frame_flags(frame, zc["setpoint"], (zc["z_min"], zc["z_max"]), previous=self.last_frame)
+        flags = frame_flags(frame, feedback_setpoint(frame, zc), (zc["z_min"], zc["z_max"]), previous=self.last_frame)
         self.last_frame = frame
         self.last_flags = {f.name: f.message for f in flags}
         return frame_dataset(frame.images, frame.plan, {

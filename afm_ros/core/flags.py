@@ -49,22 +49,32 @@ class Flag:
     values: dict = field(default_factory=dict)
 
 
+def feedback_setpoint(frame, z_controller: dict) -> float:
+    """The setpoint the frame's error channel is measured against: the amplitude setpoint [m] of a
+    tapping frame, the df setpoint [Hz] of an FM frame (its error channel is ``frequency_shift_error``)."""
+    return z_controller["df_setpoint"] if "frequency_shift_error" in frame.channels else z_controller["setpoint"]
+
+
 def frame_flags(frame, setpoint: float, z_limits: tuple[float, float], previous=None,
                 settings: FlagSettings = FlagSettings()) -> list[Flag]:
     """The problems a finished frame shows (see the module doc); ``previous``: the frame before it
-    (the same area for a drift check; ignored if its plan differs)."""
+    (the same area for a drift check; ignored if its plan differs). ``setpoint``: the z loop's, in the
+    error channel's unit (:func:`feedback_setpoint`: m in tapping, Hz in FM)."""
     flags = []
     tr, re = frame.images["trace"], frame.images["retrace"]
     done = max(1, frame.lines_done or frame.plan.lines)
-    err = np.concatenate([tr["amplitude_error"][:done], re["amplitude_error"][:done]], axis=1).astype(float)
+    fm = "frequency_shift_error" in frame.channels
+    channel = "frequency_shift_error" if fm else "amplitude_error"
+    err = np.concatenate([tr[channel][:done], re[channel][:done]], axis=1).astype(float)
     with np.errstate(invalid="ignore"):
         typical = np.nanmedian(np.abs(err), axis=1)
-    bad = np.flatnonzero(typical > settings.error_fraction * setpoint)
+    bad = np.flatnonzero(typical > settings.error_fraction * abs(setpoint))
     if bad.size:
+        worst = f"{np.nanmax(typical):.3g} Hz" if fm else f"{np.nanmax(typical) * 1e9:.3g} nm"
         flags.append(Flag("feedback_not_optimal",
-                          f"{bad.size} of {done} lines with a median amplitude error above {settings.error_fraction:.0%} "
-                          f"of the setpoint (worst {np.nanmax(typical) * 1e9:.3g} nm, line {int(np.nanargmax(typical))})",
-                          {"lines": bad.tolist(), "worst_median_m": float(np.nanmax(typical))}))
+                          f"{bad.size} of {done} lines with a median {'df' if fm else 'amplitude'} error above "
+                          f"{settings.error_fraction:.0%} of the setpoint (worst {worst}, line {int(np.nanargmax(typical))})",
+                          {"lines": bad.tolist(), ("worst_median_hz" if fm else "worst_median_m"): float(np.nanmax(typical))}))
     z_lo, z_hi = z_limits
     height = np.concatenate([tr["height"][:done], re["height"][:done]], axis=1).astype(float)
     at_limit = (height <= z_lo + LIMIT_TOLERANCE_M) | (height >= z_hi - LIMIT_TOLERANCE_M)

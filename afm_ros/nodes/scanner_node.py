@@ -41,7 +41,7 @@ from std_srvs.srv import Trigger
 
 from afm_ros.core.artefacts import ARTEFACT_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
-from afm_ros.core.flags import flags_metadata, frame_flags
+from afm_ros.core.flags import feedback_setpoint, flags_metadata, frame_flags
 from afm_ros.core.lockin import LOCKIN_SPECS
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS, UNITS, ImageAccumulator
@@ -531,7 +531,7 @@ class ScannerNode(Node):
         zc = self._settings.get("z_controller", {})
         if not {"setpoint", "z_min", "z_max"} <= set(zc):
             return []
-        flags = frame_flags(frame, zc["setpoint"], (zc["z_min"], zc["z_max"]), previous=self._last_frame)
+        flags = frame_flags(frame, feedback_setpoint(frame, zc), (zc["z_min"], zc["z_max"]), previous=self._last_frame)
         self._last_frame = frame
         self.frame_flags_history.append((frame.index, flags))
         del self.frame_flags_history[:-16]
