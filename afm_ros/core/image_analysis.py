@@ -219,3 +219,33 @@ def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]
                              options={"xatol": 1e-3, "fatol": 1e-12, "initial_simplex":
                                       [start, [start[0] + 0.5, start[1]], [start[0], start[1] + 0.5]]})
     return float(best.x[0]), float(best.x[1])
+
+
+FM_CONTRAST_CHANNELS = ("height", "frequency_shift", "drive", "dissipation", "amplitude")
+
+
+def fm_material_contrast(frame: Frame, sample, artefacts: np.ndarray | None = None, edge: float = 60e-9) -> dict:
+    """An FM frame by material (ground truth of the map under the apex at each pixel): per channel and
+    direction, the median over the pixels at least ``edge`` [m] from another material, per material
+    name, and ``contrast`` = second material - first (e.g. LDPE - PS), in the channel's unit. Pixels of
+    the first line of a frame are left out (the scan's start transient). Channels the frame lacks and
+    materials with no pixel left out."""
+    truth = truth_under_pixels(sample, frame.plan, artefacts)
+    out: dict = {}
+    for d in ("trace", "retrace"):
+        labels = truth[d].material
+        keep = edge_mask(labels, frame.plan, edge)
+        done = frame.lines_done or frame.plan.lines
+        keep[done:, :] = False
+        keep[:1, :] = False
+        for c in FM_CONTRAST_CHANNELS:
+            if c not in frame.channels:
+                continue
+            medians = material_medians(frame.images[d][c].astype(float), labels, keep, sample.materials)
+            entry = {"medians": medians, "pixels": {name: int(np.count_nonzero(keep & (labels == i)))
+                                                    for i, name in enumerate(sample.materials)}}
+            if len(medians) == 2:
+                a, b = (medians[n] for n in sample.materials if n in medians)
+                entry["contrast"] = b - a
+            out.setdefault(c, {})[d] = entry
+    return out

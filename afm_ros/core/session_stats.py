@@ -225,3 +225,37 @@ class SetpointHistory:
         if self.changes and self.on_settled is not None and tracker.inside_since is not None \
                 and tracker.inside_since != before:
             self.on_settled(self.changes[-1], tracker.inside_since)
+
+
+@dataclass
+class FmWindow:
+    """Running mean and spread of the FM loop's outputs over [t0, t1) simulated [s]: df [Hz], drive [N],
+    amplitude [m] and phase error [deg] (:class:`afm_ros.core.fm.FMOutputs` batches)."""
+
+    t0: float
+    t1: float
+    n: int = 0
+    sums: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    squares: np.ndarray = field(default_factory=lambda: np.zeros(4))
+
+    NAMES = ("df", "drive", "amplitude", "phase_error")
+
+    def add(self, t, df, drive, amplitude, phase_error) -> None:
+        t = np.asarray(t, dtype=float)
+        sel = (t >= self.t0) & (t < self.t1)
+        if not sel.any():
+            return
+        block = np.array([np.asarray(v, dtype=float)[sel] for v in (df, drive, amplitude, phase_error)])
+        self.n += int(sel.sum())
+        self.sums += block.sum(axis=1)
+        self.squares += (block * block).sum(axis=1)
+
+    def mean(self, name: str) -> float:
+        return float(self.sums[self.NAMES.index(name)] / self.n) if self.n else math.nan
+
+    def std(self, name: str) -> float:
+        if self.n < 2:
+            return math.nan
+        i = self.NAMES.index(name)
+        m = self.sums[i] / self.n
+        return float(math.sqrt(max(self.squares[i] / self.n - m * m, 0.0) * self.n / (self.n - 1)))

@@ -93,7 +93,7 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
                 record: bool = True, cantilever_overrides: dict | None = None, scanner: bool = False,
                 recorder_overrides: dict | None = None, scanner_overrides: dict | None = None,
                 live_view: bool = False, live_view_overrides: dict | None = None,
-                overrides: dict | None = None) -> dict[str, Node]:
+                overrides: dict | None = None, pll: bool = False) -> dict[str, Node]:
     """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers).
 
     ``overrides``: role -> {parameter: value} for any node; the ``<role>_overrides`` win over it."""
@@ -113,6 +113,9 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     if with_controller:
         from afm_ros.nodes.z_controller_node import ZControllerNode
         nodes["z_controller"] = make(ZControllerNode, "z_controller")
+    if pll:  # FM-AFM: the PLL and amplitude controller (afm_ros.tools.fm_session)
+        from afm_ros.nodes.pll_node import PllNode
+        nodes["pll"] = make(PllNode, "pll")
     if scanner:
         from afm_ros.nodes.scanner_node import ScannerNode
         nodes["scanner"] = make(ScannerNode, "scanner")
@@ -288,7 +291,8 @@ class Instrument:
     def __init__(self, context=None, namespace: str | None = None, executor: str = "events", record: bool = True,
                  attach: bool = False, keep_history: bool = False, scanner: bool = False,
                  cantilever_overrides: dict | None = None, recorder_overrides: dict | None = None,
-                 scanner_overrides: dict | None = None, live_view: bool = False, overrides: dict | None = None):
+                 scanner_overrides: dict | None = None, live_view: bool = False, overrides: dict | None = None,
+                 pll: bool = False):
         self.context = context
         self.attached = attach
         self.namespace = (namespace or "").rstrip("/")
@@ -300,8 +304,9 @@ class Instrument:
             context, namespace, record=record,
             cantilever_overrides={**(cantilever_overrides or {}), "run_until": 0.0, "feedback_sync": "lockstep"},
             scanner=scanner, recorder_overrides=recorder_overrides, scanner_overrides=scanner_overrides,
-            live_view=live_view, overrides=overrides)
+            live_view=live_view, overrides=overrides, pll=pll)
         self.monitor = Monitor(keep_history=keep_history, **kw)
+        self.extra_nodes: list[Node] = []  # a job's own listeners (the FM session's), destroyed with the rest
         self.namespace = self.monitor.get_namespace().rstrip("/")  # includes a -r __ns:= remapping
         self.executor = make_executor(executor, context)
         for node in [*self.nodes.values(), self.monitor]:
@@ -942,7 +947,7 @@ class Instrument:
         return text
 
     def destroy(self) -> None:
-        for node in [*self.nodes.values(), self.monitor]:
+        for node in [*self.nodes.values(), self.monitor, *self.extra_nodes]:
             self.executor.remove_node(node)
             node.destroy_node()
         self.executor.shutdown(timeout_sec=1.0)
@@ -995,8 +1000,15 @@ def parse_args(argv):
                         help="also serve the instrument to Foxglove over WebSocket (the live_view node, "
                              "ws://127.0.0.1:8765 by default, -p live_view:port:=...; docs/live_view.md); "
                              "the scanner node runs too, so scans can be started from Foxglove")
+    parser.add_argument("--fm", action="store_true",
+                        help="the frequency-modulation (non-contact) session: the pll node self-excites a Q 1e4 "
+                             "cantilever at a constant amplitude, the z loop regulates on the frequency shift; lock "
+                             "free, centre the PLL, approach on df, hold --duration, scan a frame of the cut PS/LDPE "
+                             "blend, print df, drive, dissipation and their contrast by material (docs/fm.md)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
+    if args.fm and (args.attach or args.interactive or args.image):
+        parser.error("--fm is a job of its own: not with --attach, --interactive or --image")
     for name in ("duration", "free_time"):
         if not (getattr(args, name) > 0 and math.isfinite(getattr(args, name))):
             parser.error(f"--{name.replace('_', '-')}={getattr(args, name)} s must be > 0")
@@ -1021,6 +1033,21 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     given = {role: ros.node_rules(role) for role in (*ROLES, "scanner", "recorder", "live_view")}
     cantilever, recorder, scanner = given["cantilever"], given["recorder"], given["scanner"]
     notes = []
+    if options.fm:
+        from afm_ros.tools.fm_session import FM_CANTILEVER, FM_SCAN, FM_Z
+        for role, defaults in (("cantilever", FM_CANTILEVER), ("scanner", FM_SCAN),
+                               ("z_controller", {**INSTRUMENT_Z, **FM_Z})):
+            given[role].update({k: v for k, v in defaults.items() if not ros.given(role, k)})
+        if not options.ideal:  # the user compensated the tilt they measured (docs/fm.md)
+            for axis in ("x", "y"):
+                if not ros.given("scanner", f"slope_compensation_{axis}"):
+                    scanner[f"slope_compensation_{axis}"] = scanner.get(
+                        f"tilt_{axis}", ros.value("scanner", f"tilt_{axis}", ARTEFACT_NODE_SPECS[f"tilt_{axis}"].default))
+        c = {k: cantilever.get(k, ros.value("cantilever", k, v)) for k, v in FM_CANTILEVER.items()}
+        notes.append(f"FM-AFM: excitation {c['excitation']} (the pll node), Q {c['quality_factor']:g}, chunks of "
+                     f"{c['chunk_duration']:g} s, sample {c['sample']}, force_model {c['force_model']} (non-contact "
+                     f"dissipation: adhesion hysteresis); z loop on df; {FM_SCAN['pixels_per_line']} x "
+                     f"{FM_SCAN['lines']} pixels at {FM_SCAN['line_rate']:g} lines/s (-p <node>:<name>:=... change them)")
     if options.image:
         scanner.update({k: v for k, v in IMAGE_SCAN.items() if not ros.given("scanner", k)})
         switched = []
@@ -1043,7 +1070,7 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     for role, ideal in (("scanner", IDEAL_ARTEFACTS), ("cantilever", IDEAL_TIP)):
         if options.ideal:
             given[role].update({k: v for k, v in ideal.items() if not ros.given(role, k)})
-    if options.image or options.live_view:
+    if options.image or options.live_view or options.fm:
         notes.append(imperfections_line({**{k: ros.value("scanner", k, spec.default)
                                              for k, spec in ARTEFACT_NODE_SPECS.items()}, **scanner},
                                         {**{k: ros.value("cantilever", k, spec.default)
@@ -1056,6 +1083,9 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
             scanner["output_directory"] = str(run_folder)
     if not options.record_raw and not ros.value("recorder", "exclude") and not ros.value("recorder", "topics"):
         recorder["exclude"] = RAW_EXCLUDE
+        if options.fm:
+            from afm_ros.tools.fm_session import FM_RAW_EXCLUDE
+            recorder["exclude"] = ",".join((RAW_EXCLUDE, *FM_RAW_EXCLUDE))
     return given, notes
 
 
@@ -1118,7 +1148,7 @@ def main(args=None):
     run_folder = None
     try:
         record = not (options.no_record or options.attach)
-        scanner = options.image or options.live_view
+        scanner = options.image or options.live_view or options.fm
         if (record or scanner) and not options.attach:
             try:
                 run_folder = make_run_folder(options.out, ros.namespace)
@@ -1127,11 +1157,12 @@ def main(args=None):
         overrides, notes = _overrides(options, ros, run_folder)
         if not options.verbose and ros.log_level is None:  # the job says what matters; node INFO lines with --verbose
             from rclpy.logging import LoggingSeverity
-            _node_log_level((*ROLES, "scanner", "recorder", "live_view", "afm_instrument_monitor"), ros.namespace,
+            _node_log_level((*ROLES, "pll", "scanner", "recorder", "live_view", "afm_instrument_monitor",
+                             "afm_instrument_fm_monitor"), ros.namespace,
                             LoggingSeverity.WARN)
         instrument = Instrument(executor=options.executor, record=record,
                                 attach=options.attach, namespace=None, scanner=scanner,
-                                overrides=overrides, live_view=options.live_view)
+                                overrides=overrides, live_view=options.live_view, pll=options.fm)
         instrument.run_folder = str(run_folder) if run_folder is not None else ""
         if run_folder is not None:
             print(f"run folder: {run_folder}", flush=True)
@@ -1145,17 +1176,29 @@ def main(args=None):
             print(recording_line(instrument.nodes["recorder"], options.record_raw), flush=True)
         try:  # what the job needs, checked before it starts
             frame_time, frame = 0.0, None
-            if options.image:
+            if options.image or options.fm:
                 instrument.check_scan()
                 plan = ScanPlan.from_values(instrument.nodes["scanner"]._values)
                 frame_time, frame = plan.frame_time, (plan.pixels, plan.lines)
             if not options.interactive:  # a bounded job: its session must fit
-                workflow = WORKFLOW_SIMULATED_S if options.image and not options.ideal else 0.0
+                workflow = WORKFLOW_SIMULATED_S if (options.image and not options.ideal) or options.fm else 0.0
                 instrument.check_recording(options.free_time + options.duration + frame_time + workflow,
                                            options.record_raw, frame)
         except ValueError:
             refused = True
             raise
+        if options.fm:
+            from afm_ros.tools.fm_session import run_fm_job, summary_text
+            fm_summary = instrument.fm_summary = run_fm_job(instrument, options.duration)
+            print(summary_text(fm_summary), flush=True)
+            if options.json:
+                print(json.dumps(fm_summary, default=float), flush=True)
+            if fm_summary["interrupted"]:
+                status = INTERRUPTED_STATUS
+            elif fm_summary["recording"] and not fm_summary["recording"]["complete"]:
+                print("afm_instrument: the recording is incomplete", file=sys.stderr)
+                status = 1
+            return status
         if options.image:
             summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
                                                options.band, workflow=not options.ideal)
