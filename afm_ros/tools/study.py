@@ -212,6 +212,20 @@ SWEEP_COLUMNS = ["direction", "z_base_m", "amplitude_m", "phase_deg", "mean_defl
                  "max_force_N", "min_force_N", "min_gap_m", "indentation_m", "drive_work_J", "damping_loss_J",
                  "dissipated_energy_J", "virial_J", "harmonic2_m", "harmonic3_m", "periods_simulated",
                  "converged", "amplitude_sem_m", "phase_sem_deg"]
+# ``--steady shooting`` rows carry the shooting's convergence after these (a waiting sweep writes
+# SWEEP_COLUMNS only, as before): the method, Newton iterations (Jacobians), transient windows of
+# ceil(Q / pi) periods run before the orbit was taken, Newton's correction of the state [m], the
+# largest Floquet multiplier's modulus and whether all are inside the unit circle
+SHOOTING_COLUMNS = ["steady_method", "newton_iterations", "transient_windows", "correction_m", "spectral_radius",
+                    "stable"]
+STEADY_METHODS = ("wait", "shooting")  # sweep's steady=: wait out the transient, or shoot (core/physics/shooting.py)
+
+
+def sweep_columns(steady: str = "wait") -> list[str]:
+    """The columns of sweep.csv for ``steady`` (``wait``: SWEEP_COLUMNS; ``shooting``: + SHOOTING_COLUMNS)."""
+    return SWEEP_COLUMNS + (SHOOTING_COLUMNS if steady == "shooting" else [])
+
+
 DETECTOR_NOISE_SPEC = NOISE_SPECS["detector_noise_density"]
 NOISE_BLOCKS = 10  # sub-windows of a noisy average: their scatter gives the standard errors
 
@@ -226,6 +240,30 @@ def _sweep_row(direction: str, z_base: float, result, sem=(0.0, 0.0)) -> dict:
             "harmonic2_m": float(a.harmonics[1]), "harmonic3_m": float(a.harmonics[2]),
             "periods_simulated": result.periods_simulated, "converged": result.converged,
             "amplitude_sem_m": sem[0], "phase_sem_deg": sem[1]}
+
+
+def _shooting_row(direction: str, z_base: float, orbit) -> dict:
+    """A sweep row of a :class:`~afm_ros.core.physics.shooting.PeriodicOrbit`: its one-period analysis,
+    ``periods_simulated`` all the periods it integrated, ``converged`` its own flag, and SHOOTING_COLUMNS."""
+    from afm_ros.core.physics.analysis import SteadyStateResult
+    row = _sweep_row(direction, z_base, SteadyStateResult(orbit.analysis, orbit.samples, orbit.periods,
+                                                          orbit.converged))
+    row.update({"steady_method": "shooting", "newton_iterations": orbit.iterations,
+                "transient_windows": orbit.restarts, "correction_m": orbit.correction,
+                "spectral_radius": orbit.spectral_radius, "stable": orbit.stable})
+    return row
+
+
+def shooting_summary(rows: list[dict]) -> str:
+    """One line on a shooting sweep's convergence: points converged and stable, the worst Newton
+    correction, periods in all and at most per point, Newton iterations and transient windows."""
+    worst = max(rows, key=lambda r: r["correction_m"])
+    periods = [r["periods_simulated"] for r in rows]
+    return (f"shooting: {sum(bool(r['converged']) for r in rows)}/{len(rows)} points converged, "
+            f"{sum(bool(r['stable']) for r in rows)} stable; worst correction {worst['correction_m']:.2g} m "
+            f"(z_base {worst['z_base_m']:.4g} m, {worst['direction']}); {sum(periods)} periods in all "
+            f"(at most {max(periods)} per point), {sum(r['newton_iterations'] for r in rows)} Newton iterations, "
+            f"{sum(r['transient_windows'] for r in rows)} transient windows")
 
 
 def noisy_average(sim: Simulation, average_periods: int, detector_density: float = 0.0,
@@ -269,7 +307,7 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
           method: str = CANTILEVER_SPECS["integrator"].default, retract: bool = False, progress: bool | None = None, amplitude_tol: float = 1e-14,
           phase_tol_deg: float = 1e-5, max_periods: int = 20000, temperature: float = 0.0,
           detector_density: float = 0.0, noise_seed: int = 0, average_periods: int = 200,
-          event_beta: float | None = None) -> list[dict]:
+          event_beta: float | None = None, steady: str = "wait", shooting_tol: float | None = None) -> list[dict]:
     """Steady state at each z_base [m] in order (approach), then optionally back (retract).
 
     One simulation carries its state from point to point (``reconfigure(z_offset=...)``), so a
@@ -280,6 +318,13 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     ``average_periods`` periods with standard errors (:func:`noisy_average`); ``converged`` is
     then False because no convergence test applies. ``event_beta``: rk4_event's near-surface fraction
     (None: the default).
+
+    ``steady``: ``"wait"`` (the above) or ``"shooting"``: each point is the periodic orbit
+    :func:`afm_ros.core.physics.shooting.periodic_orbit` finds from the previous point's state (the
+    orbit the waiting method would reach from there, so branches are followed as by waiting), with
+    Newton's correction below ``shooting_tol`` [m] (None: its default, 1e-14 m, as ``amplitude_tol``);
+    its rows add SHOOTING_COLUMNS and ``converged`` is the orbit's. Deterministic sweeps only (a
+    thermal force or detector noise has no periodic steady state).
     """
     from tqdm import tqdm
 
@@ -293,7 +338,14 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     sim = Simulation(cantilever, drive, force_model, plan[0][1], steps_per_period, method)
     if event_beta is not None:  # rk4_event's near-surface cut (afm_ros.core.physics.events), for studies
         sim.event_beta = float(event_beta)
+    if steady not in STEADY_METHODS:
+        raise ValueError(f"steady={steady!r} is not known; allowed: {', '.join(STEADY_METHODS)}")
     noisy = temperature > 0.0 or detector_density > 0.0
+    if noisy and steady == "shooting":
+        raise ValueError(f"steady='shooting' needs a deterministic sweep (temperature={temperature:g} K, "
+                         f"detector_density={detector_density:g} m/sqrt(Hz)): a noisy run has no periodic steady "
+                         "state; use steady='wait' (it averages), or temperature 0 and detector_density 0")
+    orbit_options = {} if shooting_tol is None else {"tol": shooting_tol}
     sim.set_thermal(temperature, noise_seed)
     if noisy:
         DETECTOR_NOISE_SPEC.validate(detector_density)
@@ -307,6 +359,10 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
         if noisy:
             result, sem = noisy_average(sim, int(average_periods), detector_density)
             rows.append(_sweep_row(direction, z_base, result, sem))
+            continue
+        if steady == "shooting":
+            from afm_ros.core.physics.shooting import periodic_orbit
+            rows.append(_shooting_row(direction, z_base, periodic_orbit(sim, **orbit_options)))
             continue
         result = steady_state(sim, amplitude_tol=amplitude_tol, phase_tol_deg=phase_tol_deg,
                               max_periods=max_periods)
@@ -415,7 +471,14 @@ def cmd_sweep(ns, out: Path) -> int:
     ns.detector_noise = DETECTOR_NOISE_SPEC.validate(ns.detector_noise)
     ns.noise_seed = NOISE_SPECS["noise_seed"].validate(ns.noise_seed)
     model = make_force_model(ns.force_model, sample, **ns.dissipation)
-    if ns.temperature > 0 or ns.detector_noise > 0:  # noisy_average: settling, then the average, recorded
+    noisy = ns.temperature > 0 or ns.detector_noise > 0
+    if ns.steady == "shooting" and noisy:
+        raise ValueError(f"--steady shooting needs a deterministic sweep: --temperature={ns.temperature:g} and "
+                         f"--detector-noise={ns.detector_noise:g} must both be 0 (a noisy run has no periodic "
+                         "steady state); a noisy sweep averages with --steady wait")
+    if ns.steady == "shooting":
+        pass  # one period recorded per map evaluation (at most 1e5 steps), the transient windows unrecorded
+    elif noisy:  # noisy_average: settling, then the average, recorded
         settle = int(math.ceil(10.0 * cantilever.quality_factor / math.pi))
         check_recorded_steps(f"--average-periods={ns.average_periods} at {spp} steps per period",
                              ns.average_periods * spp, f"--average-periods <= {MAX_RECORDED_STEPS // spp}")
@@ -426,12 +489,19 @@ def cmd_sweep(ns, out: Path) -> int:
         _check_steady_state(cantilever, spp)
     rows = sweep(z_bases, cantilever, drive, model, spp, ns.method, ns.retract,
                  progress=None if not ns.no_progress else False, temperature=ns.temperature,
-                 detector_density=ns.detector_noise, noise_seed=ns.noise_seed, average_periods=ns.average_periods)
-    write_csv(out / "sweep.csv", SWEEP_COLUMNS, rows)
+                 detector_density=ns.detector_noise, noise_seed=ns.noise_seed, average_periods=ns.average_periods,
+                 steady=ns.steady)
+    write_csv(out / "sweep.csv", sweep_columns(ns.steady), rows)
     plot_sweep(rows, out / "sweep.png")
-    noisy = ns.temperature > 0 or ns.detector_noise > 0
     not_converged = [] if noisy else [r["z_base_m"] for r in rows if not r["converged"]]
-    if not_converged:
+    if ns.steady == "shooting":
+        print(shooting_summary(rows))
+        if not_converged:
+            print(f"warning: no periodic orbit within the transient windows at z_base {not_converged}", file=sys.stderr)
+        unstable = [r["z_base_m"] for r in rows if r["converged"] and not r["stable"]]
+        if unstable:
+            print(f"warning: unstable orbit at z_base {unstable}", file=sys.stderr)
+    elif not_converged:
         print(f"warning: no steady state within max periods at z_base {not_converged}", file=sys.stderr)
     print(f"wrote {out / 'sweep.csv'} and {out / 'sweep.png'} ({len(rows)} points)")
     return 0
@@ -769,6 +839,11 @@ def build_parser() -> argparse.ArgumentParser:
                          help="z_base values [m]: comma list or start:stop:step (default 80e-9:5e-9:5e-9)")
     sweep_p.add_argument("--retract", action="store_true", help="after the approach, retract back")
     sweep_p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sweep_p.add_argument("--steady", default="wait", choices=STEADY_METHODS,
+                         help="how each point's steady state is found: wait (default: the transient waited out, "
+                              "windows of Q/pi periods until two agree) or shooting (Newton on the one-period map "
+                              "from the previous point's orbit, the orbit waiting would reach; for high Q; adds "
+                              "the convergence columns " + ", ".join(SHOOTING_COLUMNS) + "; deterministic only)")
     noise = sweep_p.add_argument_group("noise (default off: deterministic, as the seed notebook)")
     for name, flag in (("temperature", "--temperature"), ("detector_noise_density", "--detector-noise"),
                        ("noise_seed", "--noise-seed")):
