@@ -35,7 +35,8 @@ PROG = "afm_study reconstruct"
 
 def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
     """(distance [m], df [Hz]) from the CSV at ``path``, sorted by increasing distance; ValueError
-    naming the file, the column or the row for a missing column, a bad number or a non-monotonic curve."""
+    naming the file, the column or the row for a missing column, a bad number or a non-monotonic curve.
+    A ``direction`` column (``afm_study fm-curve --retract``) selects the approach rows."""
     path = Path(path)
     try:
         with open(path, newline="") as fh:
@@ -49,6 +50,8 @@ def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
             distance, df = [], []
             for row_number, row in enumerate(reader, start=2):
                 if not any((v or "").strip() for v in row.values() if isinstance(v, str)):
+                    continue
+                if "direction" in header and (row.get("direction") or "").strip() not in ("", "approach"):
                     continue
                 values = []
                 for column in (DISTANCE_COLUMN, DF_COLUMN):

@@ -7,6 +7,7 @@ figures and CSV tables (header row, SI units in the column names) into ``--out D
 - ``convergence`` L1 error vs time step for Euler, notebook Verlet and RK4 (fitted orders)
 - ``sweep``       steady-state observables vs z_base (approach, optional retract)
 - ``trajectory``  tip position, drive and tip-sample force vs time at one z_base
+- ``fm-curve``    FM: df, drive and dissipation vs distance of the self-excited steady state (shooting)
 - ``bench``       speed benchmark (one JSON object on stdout), see :mod:`afm_ros.tools.bench`
 - ``scan``        image a sample with the wired instrument (.gwy, PNGs, summary), see :mod:`afm_ros.tools.scan`
 
@@ -20,6 +21,7 @@ import csv
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -804,6 +806,72 @@ def make_notebook(out: Path, cantilever: Cantilever | None = None, drive: Drive 
     return written
 
 
+def cmd_fm_curve(ns, out: Path) -> int:
+    """FM curves: the self-excited steady state (amplitude --amplitude, phase --phase) at each z_base by
+    shooting (afm_ros.core.physics.self_excited): df, drive and dissipation vs distance, with Giessibl's
+    first-order df beside it; fm_curve.csv (readable by ``afm_study reconstruct``) and fm_curve.png."""
+    from afm_ros.core.physics.self_excited import FM_CURVE_COLUMNS, fm_curve
+
+    cantilever, drive, sample, spp = physics_from_args(ns)
+    amplitude = CANTILEVER_SPECS["free_amplitude"].validate(_number(ns.amplitude))
+    phase = _number(ns.phase)
+    if isinstance(phase, bool) or not isinstance(phase, (int, float)) or not 0.0 < phase < 180.0:
+        raise ValueError(f"phase={ns.phase!r} deg must be in (0, 180)")
+    if ns.method == "verlet":
+        raise ValueError("method='verlet' (the notebook's scheme) cannot change its drive frequency within a "
+                         "period map; use rk4, rk4_event or euler")
+    text = ns.z_base or f"{amplitude + 5e-9!r}:{max(amplitude - 1e-9, 1e-10)!r}:1e-10"
+    z_bases = parse_z_bases(text)
+    model = make_force_model(ns.force_model, sample, **ns.dissipation)
+    sim = Simulation(cantilever, drive, model, z_bases[0], spp, ns.method)
+    t0 = time.perf_counter()
+    rows, free = fm_curve(z_bases, sim, amplitude, float(phase), retract=ns.retract)
+    wall = time.perf_counter() - t0
+    write_csv(out / "fm_curve.csv", FM_CURVE_COLUMNS, rows)
+    plot_fm_curve(rows, free, out / "fm_curve.png")
+    bad = [r["z_base_m"] for r in rows if not r["converged"]]
+    if bad:
+        print(f"warning: no self-excited orbit found at z_base {bad}", file=sys.stderr)
+    lowest = min(rows, key=lambda r: r["df_Hz"])
+    print(f"free: f = {free.frequency:.6f} Hz, drive {free.force:.6g} N at A = {amplitude:g} m; "
+          f"{len(rows)} points, {len(rows) - len(bad)} converged, {sum(r['periods'] for r in rows)} periods, "
+          f"{sum(r['newton_iterations'] for r in rows)} Newton iterations, {wall:.2f} s; lowest df "
+          f"{lowest['df_Hz']:.4g} Hz at distance {lowest['distance_m']:.4g} m")
+    print(f"wrote {out / 'fm_curve.csv'} and {out / 'fm_curve.png'} ({len(rows)} points)")
+    return 0
+
+
+def plot_fm_curve(rows, free, path: Path):
+    """df (simulated and first-order theory), drive and dissipation against the closest distance."""
+    plt = _plt()
+    fig, axes = plt.subplots(3, 1, figsize=(7, 8.5), sharex=True)
+    for direction, style in (("approach", "-"), ("retract", "--")):
+        sel = [r for r in rows if r["direction"] == direction]
+        if not sel:
+            continue
+        d = np.array([r["distance_m"] for r in sel]) * 1e9
+        axes[0].plot(d, [r["df_Hz"] for r in sel], "b" + style, label=f"df, self-excited orbit ({direction})")
+        axes[0].plot(d, [r["df_theory_Hz"] for r in sel], "k:", label="first-order theory (Giessibl)"
+                     if direction == "approach" else None)
+        axes[1].plot(d, [r["drive_N"] * 1e12 for r in sel], "r" + style, label=f"drive ({direction})")
+        axes[2].plot(d, [r["dissipation_from_drive_J"] * 1e18 for r in sel], "g" + style,
+                     label=f"from the drive ({direction})")
+        axes[2].plot(d, [r["tip_sample_dissipation_J"] * 1e18 for r in sel], "m:",
+                     label="work of the tip-sample force" if direction == "approach" else None)
+    axes[1].axhline(free.force * 1e12, color="0.5", lw=0.8, label="free drive")
+    axes[0].set_ylabel("frequency shift [Hz]")
+    axes[1].set_ylabel("drive [pN]")
+    axes[2].set_ylabel("dissipation per cycle [aJ]")
+    axes[2].set_xlabel("closest tip-sample distance [nm]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0].set_title(f"FM curves: A = {rows[0]['amplitude_m'] * 1e9:.3g} nm, f_free = {free.frequency:.3f} Hz")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 # --- command line ---------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="afm_study", description=__doc__.split("\n")[0])
@@ -860,6 +928,17 @@ def build_parser() -> argparse.ArgumentParser:
     traj_p.add_argument("--from-rest", type=_int_at_least(0), default=None, metavar="P",
                         help="record after P periods from rest instead of after the steady state")
 
+    p = add("fm-curve", "FM curves: df, drive and dissipation vs distance of the self-excited steady state "
+                        "(shooting), with Giessibl's first-order df (fm_curve.csv, fm_curve.png)")
+    p.add_argument("--amplitude", default="5e-9", help="oscillation amplitude A [m] the amplitude controller holds "
+                                                       "(default 5e-9)")
+    p.add_argument("--phase", default="90", help="phase lag the PLL holds [deg] (default 90: the resonance)")
+    p.add_argument("--z-base", default=None, help="z_base values [m]: comma list or start:stop:step (default "
+                                                  "A + 5 nm down to A - 1 nm in 0.1 nm steps)")
+    p.add_argument("--retract", action="store_true", help="after the approach, retract back")
+    p.add_argument("--method", default="rk4", help="integrator: rk4, rk4_event or euler (default rk4)")
+    p.add_argument("--force-model", default="dmt", choices=FORCE_MODELS, help="tip-sample force model (default dmt)")
+
     p = add("bench", "speed benchmark; prints one JSON object", params=False)
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
@@ -886,7 +965,7 @@ EXTERNAL = {"thermal": "thermal_tune", "tune": "drive_tune", "contrast": "contra
             "dataset": "dataset", "reconstruct": "force_reconstruction"}
 
 
-COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep,
+COMMANDS = {"notebook": cmd_notebook, "convergence": cmd_convergence, "sweep": cmd_sweep, "fm-curve": cmd_fm_curve,
             "trajectory": cmd_trajectory, "bench": cmd_bench,
             **{name: _external(module) for name, module in EXTERNAL.items()}}
 
