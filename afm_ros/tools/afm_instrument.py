@@ -752,8 +752,6 @@ class Instrument:
         (``*_partial.gwy``) and returns the summary marked interrupted (a second Ctrl-C stops at once).
         Call :meth:`check_scan` first to refuse a scan that cannot be completed before engaging (the
         scanner refuses it too, but only once engaged)."""
-        from std_srvs.srv import Trigger
-
         if self.attached or "scanner" not in self.nodes:
             raise RuntimeError("the image job runs the scanner in this process (no --attach)")
         engaged = self.run_job(engage_time, free_time, setpoint_ratio, band_fraction,
@@ -762,40 +760,12 @@ class Instrument:
         scanner, cantilever = self.nodes["scanner"], self.cantilever
         wall_scan = time.monotonic()
         job.phase = "starting the scan"
-        self.spin_until(lambda: scanner.lockin_output_rate is not None,
-                        "waiting for the scanner to learn the lock-in's output_rate")
-        rec = self.nodes.get("recorder")
-        if rec is not None:  # every image of every line in the session: subscribed before the first line
-            from afm_ros.nodes.topics import matches
-            images = [p for p in scanner.published_copies if not matches(p.topic_name, rec._exclude)]
-            self.spin_until(lambda: {p.topic_name for p in images} <= set(rec.topics)
-                            and all(p.get_subscription_count() > 0 for p in images),
-                            "waiting for the recorder to subscribe to the scanner's images")
-        response = scanner._start(Trigger.Response(), single=True)
-        if not response.success:
-            raise RuntimeError(f"scanner: {response.message}")
-        # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
-        self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
-        plan = scanner.plan
+        plan = self.start_single_scan()
         artefacts = cantilever.simulation.artefacts.copy()  # the imperfections in force for this plan (truth)
         radius0 = cantilever.engine.wear.radius
         scanner_values = dict(scanner._values)
-        chunk = cantilever.engine.setup.chunk_steps * cantilever.engine.setup.dt
         job.phase = "scanning"
-        show = ScanProgress(plan, scanner, self.monitor) if progress else None
-        interrupted = ""
-        try:
-            self.advance_to(plan.start_time + plan.frame_time + 2 * chunk,  # outputs past the last line
-                            on_poll=show)
-            self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
-        except ExternalShutdownException:
-            if not rclpy.ok(context=self.context):
-                raise
-            interrupted = self._finish_line(scanner, plan, chunk)
-        wall_scan = time.monotonic() - wall_scan
-        scanner.wait_for_writers()
-        if not interrupted:
-            self.wait_recorded()
+        interrupted, wall_scan = self.scan_through(plan, progress, wall_scan)
         complete = scanner.frames_done >= 1
         frame = scanner.accumulator.frames_done[0] if complete else scanner.partial_frame
         sample = cantilever.engine.samples.get(cantilever.engine.values["sample"])
@@ -829,6 +799,50 @@ class Instrument:
                                    workflow=workflow_numbers,
                                    recording=self.recording_status(spin=not interrupted), wall_time_s=wall,
                                    real_time_factor=simulated / wall if wall > 0 else math.inf)
+
+    def start_single_scan(self):
+        """Start one frame with the scanner's settings (the recorder subscribed to every image first) at
+        the cantilever's paused chunk boundary; returns the plan. RuntimeError with the scanner's reason."""
+        from std_srvs.srv import Trigger
+
+        scanner = self.nodes["scanner"]
+        self.spin_until(lambda: scanner.lockin_output_rate is not None,
+                        "waiting for the scanner to learn the lock-in's output_rate")
+        rec = self.nodes.get("recorder")
+        if rec is not None:  # every image of every line in the session: subscribed before the first line
+            from afm_ros.nodes.topics import matches
+            images = [p for p in scanner.published_copies if not matches(p.topic_name, rec._exclude)]
+            self.spin_until(lambda: {p.topic_name for p in images} <= set(rec.topics)
+                            and all(p.get_subscription_count() > 0 for p in images),
+                            "waiting for the recorder to subscribe to the scanner's images")
+        response = scanner._start(Trigger.Response(), single=True)
+        if not response.success:
+            raise RuntimeError(f"scanner: {response.message}")
+        # the cantilever is paused: it takes the plan at this boundary (a defined simulated time)
+        self.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
+        return scanner.plan
+
+    def scan_through(self, plan, progress: bool, wall0: float) -> tuple[str, float]:
+        """Run the started frame to its end (a progress line if ``progress``) and wait for its files and
+        recording; Ctrl-C finishes the current line (:meth:`_finish_line`). Returns (the interruption
+        text, '' if complete; wall seconds since ``wall0``)."""
+        scanner, cantilever = self.nodes["scanner"], self.cantilever
+        chunk = cantilever.engine.setup.chunk_steps * cantilever.engine.setup.dt
+        show = ScanProgress(plan, scanner, self.monitor) if progress else None
+        interrupted = ""
+        try:
+            self.advance_to(plan.start_time + plan.frame_time + 2 * chunk,  # outputs past the last line
+                            on_poll=show)
+            self.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
+        except ExternalShutdownException:
+            if not rclpy.ok(context=self.context):
+                raise
+            interrupted = self._finish_line(scanner, plan, chunk)
+        wall = time.monotonic() - wall0
+        scanner.wait_for_writers()
+        if not interrupted:
+            self.wait_recorded()
+        return interrupted, wall
 
     def _finish_line(self, scanner, plan, chunk: float) -> str:
         """Ctrl-C while scanning: run to the end of the current line, stop the scan and keep the lines

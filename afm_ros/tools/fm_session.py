@@ -80,11 +80,8 @@ def _measure(instrument, fm: FmMonitor, seconds: float) -> FmWindow:
 def run_fm_job(instrument, duration: float, progress: bool = True) -> dict:
     """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument` built with
     the pll and scanner nodes in this process; returns the summary's numbers (SI units)."""
-    from std_srvs.srv import Trigger
-
     from afm_ros.core.fm import dissipation_from_drive
     from afm_ros.core.image_analysis import fm_material_contrast
-    from afm_ros.tools.instrument_summary import ScanProgress
 
     if instrument.attached or not {"pll", "scanner"} <= set(instrument.nodes):
         raise RuntimeError("the FM session runs the pll and scanner nodes in this process (no --attach)")
@@ -127,37 +124,10 @@ def run_fm_job(instrument, duration: float, progress: bool = True) -> dict:
     out["hold"]["window_s"] = [hold.t0, hold.t1]
     # 5: scan
     scanner = instrument.nodes["scanner"]
-    instrument.spin_until(lambda: scanner.lockin_output_rate is not None,
-                          "waiting for the scanner to learn the lock-in's output_rate")
-    rec = instrument.nodes.get("recorder")
-    if rec is not None:  # every image of every line in the session
-        images = [p for p in scanner.published_copies if not topics.matches(p.topic_name, rec._exclude)]
-        instrument.spin_until(lambda: {p.topic_name for p in images} <= set(rec.topics)
-                              and all(p.get_subscription_count() > 0 for p in images),
-                              "waiting for the recorder to subscribe to the scanner's images")
-    response = scanner._start(Trigger.Response(), single=True)
-    if not response.success:
-        raise RuntimeError(f"scanner: {response.message}")
-    instrument.spin_until(lambda: scanner.state == "scanning", "waiting for the cantilever to start the scan")
-    plan = scanner.plan
-    artefacts = cantilever.simulation.artefacts.copy()
-    chunk = cantilever.engine.setup.chunk_steps * cantilever.engine.setup.dt
-    show = ScanProgress(plan, scanner, instrument.monitor) if progress else None
     wall_scan = time.monotonic()
-    interrupted = ""
-    from rclpy.executors import ExternalShutdownException
-    import rclpy
-    try:
-        instrument.advance_to(plan.start_time + plan.frame_time + 2 * chunk, on_poll=show)
-        instrument.spin_until(lambda: scanner.frames_done >= 1, "waiting for the last line of the frame")
-    except ExternalShutdownException:
-        if not rclpy.ok(context=instrument.context):
-            raise
-        interrupted = instrument._finish_line(scanner, plan, chunk)
-    wall_scan = time.monotonic() - wall_scan
-    scanner.wait_for_writers()
-    if not interrupted:
-        instrument.wait_recorded()
+    plan = instrument.start_single_scan()
+    artefacts = cantilever.simulation.artefacts.copy()
+    interrupted, wall_scan = instrument.scan_through(plan, progress, wall_scan)
     frame = scanner.accumulator.frames_done[0] if scanner.frames_done >= 1 else scanner.partial_frame
     image = {"pixels": plan.pixels, "lines": plan.lines, "line_rate_Hz": plan.line_rate, "size_m": plan.size_x,
              "scan_start_s": plan.start_time, "frame_time_s": plan.frame_time, "scan_wall_s": wall_scan,

@@ -56,8 +56,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afm_ros.core.physics.analysis import PeriodAnalysis, analyze
-from afm_ros.core.physics.forces import NoForce
-from afm_ros.core.physics.parameters import Cantilever, Drive
 from afm_ros.core.physics.simulation import Samples, Simulation
 
 DEFAULT_TOL = 1e-14  # [m]: as steady_state's amplitude_tol (successive windows within 1e-14 m)
