@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -35,9 +36,11 @@ from conftest import EXACT_PHYSICS
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_DIR = ROOT / "test" / "foxglove_client"
 LAYOUT = ROOT / "config" / "foxglove" / "afm_live_view.json"
+FM_LAYOUT = ROOT / "config" / "foxglove" / "afm_live_view_fm.json"
 DECIMATION = 5
 SAMPLES = 1800  # per chunk at the defaults (900 kS/s, 2 ms)
 PER_OUTPUT = ("lockin/amplitude", "lockin/phase", "z_controller/z_piezo", "z_controller/error")
+FM_PER_OUTPUT = ("pll/frequency_shift", "pll/phase_error", "pll/drive")  # from pll/outputs
 
 
 # --- the client ------------------------------------------------------------------------------------
@@ -168,10 +171,10 @@ def instrument():
         rclpy.try_shutdown(context=context)
 
 
-def _layout_scripts() -> dict[str, dict]:
-    """The shipped layout's user scripts by output topic: {"inputs": [...], "source": TypeScript}."""
+def _layout_scripts(layout: Path = LAYOUT) -> dict[str, dict]:
+    """A shipped layout's user scripts by output topic: {"inputs": [...], "source": TypeScript}."""
     scripts = {}
-    for node in json.loads(LAYOUT.read_text())["userNodes"].values():
+    for node in json.loads(layout.read_text())["userNodes"].values():
         source = node["sourceCode"]
         inputs = json.loads(re.search(r"export const inputs = (\[[^\]]*\]);", source).group(1))
         output = re.search(r'export const output = "([^"]+)";', source).group(1)
@@ -180,10 +183,10 @@ def _layout_scripts() -> dict[str, dict]:
     return scripts
 
 
-def _layout_names() -> tuple[set[str], set[str]]:
-    """(topics, services) the shipped layout names; a user script's output stands for its inputs."""
-    layout = json.loads(LAYOUT.read_text())
-    scripts = _layout_scripts()
+def _layout_names(path: Path = LAYOUT) -> tuple[set[str], set[str]]:
+    """(topics, services) a shipped layout names; a user script's output stands for its inputs."""
+    layout = json.loads(path.read_text())
+    scripts = _layout_scripts(path)
     found, services = set(), set()
 
     def add(path: str) -> None:
@@ -583,3 +586,164 @@ def test_afm_instrument_has_the_live_view_flag():
     from afm_ros.tools.afm_instrument import parse_args
     assert parse_args(["--live-view", "--interactive"]).live_view
     assert not parse_args([]).live_view
+
+
+# --- FM-AFM: the pll node's outputs and parameters ---------------------------------------------------
+class _FmProbe:
+    """The PLL's own per-output messages (it publishes them while subscribed), as float64 bytes."""
+
+    def __init__(self, context, namespace: str):
+        import rclpy
+        from std_msgs.msg import Float64
+
+        from afm_ros.nodes import topics
+        self.node = rclpy.create_node("fm_probe", context=context, namespace=namespace)
+        self.values: dict[str, set] = {t: set() for t in FM_PER_OUTPUT}
+        for t in FM_PER_OUTPUT:
+            self.node.create_subscription(Float64, t, lambda m, t=t: self.values[t].add(_bits(m.data)),
+                                          topics.CONSUMER_QOS)
+
+
+def _bits(value: float) -> bytes:
+    return np.float64(value).tobytes()
+
+
+@pytest.fixture(scope="module")
+def fm_instrument():
+    """The FM instrument (afm_instrument --fm --live-view's nodes) engaged 8 nm above the blend, as in
+    test_fm_ros: the PLL locks, the z loop regulates df."""
+    import rclpy
+
+    from afm_ros.nodes.node_main import make_executor
+    from afm_ros.tools.afm_instrument import build_nodes
+    from afm_ros.tools.fm_session import FM_CANTILEVER
+
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    namespace = f"/t_live_view_fm_{os.getpid()}"
+    cantilever = {**FM_CANTILEVER, **EXACT_PHYSICS, "sample": "ps_ldpe_blend", "force_model": "viscoelastic_dmt",
+                  "z_base": 8e-9, "feedback_sync": "lockstep"}
+    nodes = build_nodes(context, namespace, record=False, scanner=True, pll=True, live_view=True,
+                        overrides={"z_controller": {"feedback_signal": "frequency_shift", "df_setpoint": -20.0}},
+                        cantilever_overrides=cantilever,
+                        scanner_overrides={"write_files": False, "pixels_per_line": 8, "lines": 2},
+                        live_view_overrides={"port": 0, "discovery_period": 0.2, "deflection_decimation": DECIMATION})
+    probe = _FmProbe(context, namespace)
+    executor = make_executor("events", context)
+    for node in [*nodes.values(), probe.node]:
+        executor.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set() and context.ok():
+            executor.spin_once(timeout_sec=0.1)
+
+    thread = threading.Thread(target=spin, name="executor", daemon=True)
+    thread.start()
+    live = nodes["live_view"]
+    try:
+        # cantilever, lockin, z_controller, pll and scanner read; the PLL's outputs flowing
+        assert _wait(lambda: len(live._params) == 5 and all(probe.values.values()), 30.0), (list(live._params),)
+        yield SimpleNamespace(context=context, namespace=namespace, nodes=nodes, live=live, probe=probe,
+                              url=f"ws://127.0.0.1:{live.port}")
+    finally:
+        stop.set()
+        thread.join(10.0)
+        for node in [*nodes.values(), probe.node]:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=context)
+
+
+def test_fm_outputs_are_served_from_the_pll_batches_bit_for_bit(fm_instrument, foxglove_client):
+    """pll/frequency_shift, pll/phase_error and pll/drive reach the viewer from the one pll/outputs
+    subscription (the live view never subscribes to the PLL's per-output copies) with the values the
+    PLL publishes on them, bit for bit; a pll parameter change is pushed to a subscribed viewer."""
+    from rclpy.parameter import Parameter
+
+    ns, live, pll = fm_instrument.namespace, fm_instrument.live, fm_instrument.nodes["pll"]
+    topics = [f"{ns}/{t}" for t in FM_PER_OUTPUT]
+    name = f"{ns}/pll.frequency_range"
+    count = 20
+    viewer = _Viewer(foxglove_client, {"url": fm_instrument.url, "topics": topics, "count": count,
+                                       "timeoutMs": 60000, "subscribeParameters": [name],
+                                       "awaitAfter": [{"name": name, "value": 400.0}]})
+    try:
+        viewer.wait_for("parametersSubscribed")  # every topic has delivered `count` messages; still subscribed
+        assert _wait(lambda: set(topics) <= live.serving)
+        assert ("derived", f"{ns}/pll/outputs") in live._subs
+        assert not any(key[0] == "direct" and key[1] in topics for key in live._subs)
+        pll.set_parameters([Parameter("frequency_range", value=400.0)])
+        viewer.wait_for("done")
+    finally:
+        viewer.close()
+        pll.set_parameters([Parameter("frequency_range", value=500.0)])
+    messages = [e for e in viewer.events if e["event"] == "message"]
+    probe = fm_instrument.probe
+    for relative, topic in zip(FM_PER_OUTPUT, topics):
+        got = [e["value"]["data"] for e in messages if e["topic"] == topic]
+        assert len(got) == count and all(e["schemaName"] == "std_msgs/msg/Float64" for e in messages
+                                         if e["topic"] == topic)
+        assert all(math.isfinite(v) for v in got)
+        assert _wait(lambda: {_bits(v) for v in got} <= probe.values[relative]), relative
+    df = [e["value"]["data"] for e in messages if e["topic"] == topics[0]]
+    drive = [e["value"]["data"] for e in messages if e["topic"] == topics[2]]
+    assert all(abs(v) < 500.0 for v in df) and all(0.0 <= v <= 1e-9 for v in drive)  # lock range, drive_max
+
+
+def test_fm_pll_parameters_are_listed_and_validated_by_the_pll(fm_instrument, foxglove_client):
+    from afm_ros.core.fm import FM_SPECS
+
+    ns, pll = fm_instrument.namespace, fm_instrument.nodes["pll"]
+    name = f"{ns}/pll.frequency_range"
+    events = foxglove_client({"url": fm_instrument.url, "getParameters": [],
+                              "setParameters": [[{"name": name, "value": -5.0, "type": "float64"}]]})
+    listed = {p["name"]: p["value"] for p in _one(events, "parameters", id="get")["parameters"]}
+    assert {f"{ns}/pll.{n}" for n in FM_SPECS} <= set(listed)  # the Parameters panel lists the PLL's
+    assert listed[f"{ns}/pll.amplitude_setpoint"] == 5e-9 and listed[f"{ns}/z_controller.df_setpoint"] == -20.0
+    bad = _one(events, "parameters", id="set0")
+    assert bad["parameters"] == [{"name": name, "type": "float64", "value": 500.0}]  # kept
+    assert [s["message"] for s in bad["statuses"]] == [
+        f"{name}=-5.0 refused: frequency_range=-5.0 Hz is out of range; allowed range (0, 1e+06] Hz"]
+    assert pll.get_parameter("frequency_range").value == 500.0
+
+
+def test_fm_layout_names_only_topics_of_the_running_fm_instrument(fm_instrument, foxglove_client):
+    """The FM layout's plots, FM image channels, scripts and buttons exist in the running FM instrument
+    (the FM image topics from its first scan, started with the layout's button); its scripts give
+    1e9 (nm) or 1e12 (pN) times their input."""
+    from afm_ros.core.imaging import FM_CHANNELS
+
+    topics, services = _layout_names(FM_LAYOUT)
+    assert {"/pll/frequency_shift", "/pll/phase_error", "/pll/drive", "/z_controller/error"} <= topics
+    images = {t for t in topics if t.startswith("/scanner/image/")}
+    assert images == {f"/scanner/image/{c}/{d}" for c in ("height", "frequency_shift", "drive", "dissipation")
+                      for d in ("trace", "retrace")} and {t.split("/")[3] for t in images} <= set(FM_CHANNELS)
+    assert services == {"/scanner/start", "/scanner/scan_frame", "/scanner/stop"}
+    ns, live = fm_instrument.namespace, fm_instrument.live
+    started = foxglove_client({"url": fm_instrument.url, "services": [f"{ns}/scanner/scan_frame"]})
+    assert _one(started, "service", name=f"{ns}/scanner/scan_frame")["value"]["success"]
+    assert _wait(lambda: {ns + t for t in images} <= set(live._channels), 30.0)
+    events = foxglove_client({"url": fm_instrument.url, "topics": [ns + t for t in sorted(topics)],
+                              "services": [ns + s for s in sorted(services)], "listOnly": True})
+    channels = {c["topic"]: c for c in _one(events, "channels")["channels"]}
+    assert all(channels[ns + t]["schemaName"] == "foxglove.RawImage" for t in images)
+    scripts = _layout_scripts(FM_LAYOUT)
+    assert set(scripts) == {"/studio_script/cantilever/deflection_nm", "/studio_script/lockin/amplitude_nm",
+                            "/studio_script/z_controller/z_piezo_nm", "/studio_script/pll/drive_pN"}
+    inputs = sorted({ns + t for s in scripts.values() for t in s["inputs"]})
+    events = foxglove_client({"url": fm_instrument.url, "topics": inputs, "count": 2,
+                              "scripts": [{"source": s["source"], "namespace": ns} for s in scripts.values()]})
+    runs = [e for e in events if e["event"] == "script"]
+    assert len(runs) == 2 * len(scripts)
+    for run in runs:
+        if run["input"] == "/cantilever/deflection":
+            offset = run["value"]["layout"]["data_offset"]
+            assert run["result"]["data"] == [v * 1e9 for v in run["value"]["data"][offset:]]
+        else:
+            scale = 1e12 if run["input"] == "/pll/drive" else 1e9
+            assert run["result"] == {"data": run["value"]["data"] * scale}
+    drive = [r["result"]["data"] for r in runs if r["input"] == "/pll/drive"]
+    assert all(0.0 < v < 1000.0 for v in drive)  # pN

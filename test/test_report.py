@@ -108,6 +108,9 @@ def test_full_session_report(sessions, tmp_path):
     # agrees with the parameter to within the lock-in's output jitter between the two topics
     # (a few % of the setpoint on a loop that has not settled).
     assert rep.numbers["setpoint_from_error_m"] == pytest.approx(rep.numbers["setpoint_m"], rel=0.1)
+    # a tapping session (no pll/outputs, z on the amplitude): no FM section or figure
+    assert "fm" not in rep.numbers and "## FM-AFM" not in md and not (tmp_path / "fm.png").exists()
+    assert not data.fm_feedback and data.fm is None
 
 
 def test_truncated_session_report(sessions, tmp_path):

@@ -15,11 +15,12 @@ Foxglove channels. What a screen cannot show is decimated here:
   are 0. Foxglove shows them without a value range to set.
 
 - ``lockin/amplitude``, ``lockin/phase``, ``z_controller/z_piezo`` and ``z_controller/error`` (one
-  std_msgs/Float64 per lock-in output, 1 kHz) are served in full but built from the batch topics
-  ``lockin/outputs`` and ``z_controller/trace`` (:data:`DERIVED`, 500 messages/s each, always
-  published), with the values the lock-in and the z controller publish on them, bit for bit: those
-  nodes publish their per-output copies only while subscribed (~10 us each), so a viewer costs
-  them nothing.
+  std_msgs/Float64 per lock-in output, 1 kHz) and, in FM-AFM, ``pll/frequency_shift`` [Hz],
+  ``pll/phase_error`` [deg] and ``pll/drive`` [N] are served in full but built from the batch topics
+  ``lockin/outputs``, ``z_controller/trace`` and ``pll/outputs`` (:data:`DERIVED`, one message per
+  input chunk, always published), with the values the lock-in, the z controller and the PLL publish
+  on them, bit for bit: those nodes publish their per-output copies only while subscribed (~10 us
+  each), so a viewer costs them nothing.
 
 Everything else is forwarded as received: the ROS 2 message bytes (CDR) with the ``ros2msg``
 definition the recorder writes, which Foxglove decodes natively.
@@ -53,13 +54,16 @@ LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 )}
 
 DEFLECTION_TOPICS = ("cantilever/deflection", "cantilever/tip_sample_force")  # relative to the namespace
-PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "scanner", "recorder")
+PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "pll", "scanner", "recorder")
 SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
 IMAGE_PREFIX = "scanner/image/"
-# per-output topics (1 kHz) served from the batch topics the loop always publishes, so the lock-in and
-# the z controller never publish per-output copies for a viewer: topic -> (source topic, field)
+# per-output topics served from the batch topics the loop always publishes, so the lock-in, the z
+# controller and the PLL never publish per-output copies for a viewer: topic -> (source topic, field)
 DERIVED = {"lockin/amplitude": ("lockin/outputs", "amplitude"), "lockin/phase": ("lockin/outputs", "phase"),
-           "z_controller/z_piezo": ("z_controller/trace", "z"), "z_controller/error": ("z_controller/trace", "error")}
+           "z_controller/z_piezo": ("z_controller/trace", "z"), "z_controller/error": ("z_controller/trace", "error"),
+           "pll/frequency_shift": ("pll/outputs", "df"), "pll/phase_error": ("pll/outputs", "phase_error"),
+           "pll/drive": ("pll/outputs", "drive")}
+FM_FIELDS = ("df", "phase_error", "drive")  # blocks of a pll/outputs batch served as they are
 PARAMETER_SEPARATOR = "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
 
 # foxglove.RawImage as JSON (Foxglove decodes its well-known schemas in JSON encoding too)
@@ -127,9 +131,13 @@ _CDR_HEADER = b"\x00\x01\x00\x00"
 def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[float], float]:
     """(simulated times [s], values, batch end time [s]) of ``field`` from a batch's data:
     ``amplitude`` / ``phase`` from a ``lockin/outputs`` batch, ``z`` / ``error`` from a
-    ``z_controller/trace``; computed exactly as the lock-in and the z controller compute the
-    values they publish on the per-output topics (bit for bit)."""
+    ``z_controller/trace``, ``df`` [Hz] / ``phase_error`` [deg] / ``drive`` [N] from a
+    ``pll/outputs`` batch; computed exactly as the lock-in, the z controller and the PLL compute
+    the values they publish on the per-output topics (bit for bit)."""
     from afm_ros.formats import chunk_layout
+    if field in FM_FIELDS:
+        fm = chunk_layout.unpack_fm_outputs(data)
+        return fm.t.tolist(), getattr(fm, field).tolist(), fm.input_end_time
     if field in ("amplitude", "phase"):
         b = chunk_layout.unpack_outputs(data)
         xs, ys = b.x.tolist(), b.y.tolist()

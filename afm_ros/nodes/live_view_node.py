@@ -6,8 +6,9 @@ topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxgl
 its full ROS name, as foxglove_bridge does: the ROS 2
 message bytes (CDR) with the ``ros2msg`` definition the recorder writes, except the scanner's
 images, which go out as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s
-deflection and force, of which one chunk in ``deflection_decimation`` is forwarded
-(:mod:`afm_ros.core.live_view`).
+deflection and force, of which one chunk in ``deflection_decimation`` is forwarded, and the
+per-output scalar topics (``lockin/amplitude`` ..., in FM ``pll/frequency_shift``, ``pll/phase_error``,
+``pll/drive``), built from the batch topics (:mod:`afm_ros.core.live_view`).
 
 A ROS subscription exists only while a viewer subscribes to its channel, and it never slows the
 loop: it does not acknowledge (the cantilever never waits for it), it is best effort with a short
@@ -15,7 +16,7 @@ KEEP_LAST queue (latched state topics: reliable, transient local, depth 1), its 
 received bytes to the SDK, and the SDK queues at most ``message_backlog`` messages per viewer and
 drops the oldest view frames beyond that.
 
-Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``scanner`` and
+Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pll``, ``scanner`` and
 ``recorder`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>`` (foxglove_bridge's
 names), read from the nodes and kept current from ``/parameter_events`` (each change is pushed once
 to the viewers subscribed to it); a write goes to the node's ``set_parameters`` service, so the node

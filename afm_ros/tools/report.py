@@ -15,7 +15,13 @@
   z_offset (chunk preamble) + deflection, force from the tip_sample_force chunk with the same
   sample index (at most :data:`MAX_SCATTER_POINTS` exact pairs, evenly spaced in the sample index);
 - ``images.png`` (imaging sessions): the last well-formed ``scanner/image/<channel>/<direction>``
-  of each topic in display units, heights plane-levelled, colour range 2-98 % of the pixels;
+  of each topic in display units, heights plane-levelled, colour range 2-98 % of the pixels (FM
+  frames: the FM channels, df, drive, dissipation, ...);
+- ``fm.png`` (FM-AFM sessions, ``pll/outputs`` recorded): df, drive, amplitude and phase error of
+  every PLL output vs simulated time, and an FM section in report.md: mean and std per window (free,
+  engaged before the scan, the scan) and the dissipation per cycle from the drive
+  (:mod:`afm_ros.tools.report_fm`). With the z loop on df (``feedback_signal`` 'frequency_shift')
+  there is no amplitude setpoint: the setpoint tracking is left out and the error is plotted in Hz;
 - ``report.md``: file status, ERROR statuses recorded on /diagnostics (a blow-up with the parameters
   in force) at the top, topics, stream completeness, the setpoint-tracking numbers (free amplitude,
   settling after engaging, every setpoint change with its own settling time, the state at the end),
@@ -97,6 +103,7 @@ ROLES = {
     "error": "z_controller/error",
     "outputs": "lockin/outputs",  # the batches: every lock-in output (t, X, Y) of one input chunk
     "z_trace": "z_controller/trace",  # every z controller output (t, z piezo, error) of one lock-in batch
+    "fm_outputs": "pll/outputs",  # FM-AFM: every PLL output (t, df, drive, phase error, amplitude) of one batch
     "clock": "clock",  # /clock, or /<ns>/clock of an instrument in a namespace
     "parameter_events": "/parameter_events",
 }
@@ -110,6 +117,7 @@ EXPECTED_TYPES = {
     "xy": "geometry_msgs/msg/Vector3Stamped",
     "outputs": "std_msgs/msg/Float64MultiArray",
     "z_trace": "std_msgs/msg/Float64MultiArray",
+    "fm_outputs": "std_msgs/msg/Float64MultiArray",
     "clock": "rosgraph_msgs/msg/Clock",
     "parameter_events": "rcl_interfaces/msg/ParameterEvent",
 }
@@ -117,7 +125,8 @@ CHUNK_ROLES = ("deflection", "force")
 SCALAR_ROLES = ("amplitude", "phase", "z_piezo", "error")
 BATCH_ROLES = {"outputs": ("amplitude", "phase"), "z_trace": ("z_piezo", "error")}  # batch -> series it holds
 LAYOUT_NAMES = {"deflection": "sample chunk", "force": "sample chunk", "outputs": "lock-in output batch",
-                "z_trace": "z controller trace"}
+                "z_trace": "z controller trace", "fm_outputs": "PLL output batch"}
+FM_ROLE = "fm_outputs"  # pll/outputs: read by afm_ros.tools.report_fm
 SETPOINT_REL_TOL = 1e-9  # amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
 SETPOINT_ABS_TOL = 1e-18  # [m]
 CHANGES_CAP = 10_000  # setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
@@ -747,6 +756,8 @@ class SessionData:
     tune: dict | None = None  # the last lockin/tune_result, checked
     spectroscopy: object = None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
     skipped: dict = field(default_factory=dict)  # topic -> why it was left out (one line each)
+    fm: object = None  # afm_ros.tools.report_fm.FmData when pll/outputs is recorded
+    fm_feedback: bool = False  # the z loop regulates the frequency shift (no amplitude setpoint tracking)
 
 
 # --- pass 1: survey -----------------------------------------------------------------------
@@ -758,7 +769,8 @@ IMAGE_ENCODING = "32FC1"
 GEOMETRY_TOPIC = "/scanner/geometry"
 TUNE_TOPIC = "/lockin/tune_result"
 SPECTROSCOPY_TOPIC = "/z_controller/spectroscopy"
-EXTRA_ROLES = ("image", "geometry", "tune", "spectroscopy", "diagnostics")  # read when present and well-formed, skipped with a note if not
+STAGE_TOPIC = "/z_controller/stage"
+EXTRA_ROLES = ("image", "geometry", "tune", "spectroscopy", "diagnostics", "stage")  # read when present and well-formed, skipped with a note if not
 DISPLAY_MAX_PIXELS = 1024  # an image is reduced to at most this many pixels per side for the figure
 
 
@@ -771,6 +783,8 @@ def _extra_role(topic: str, type_name: str) -> str | None:
         return "tune"
     if topic.endswith(SPECTROSCOPY_TOPIC):
         return "spectroscopy"
+    if topic.endswith(STAGE_TOPIC):
+        return "stage"
     if topic == "/diagnostics" or topic.endswith("/diagnostics"):
         return "diagnostics"
     return None
@@ -868,6 +882,10 @@ def _survey_extra(survey: "_Survey", role: str, m, k: int) -> None:
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
             return
         setattr(survey, role, (m.topic, k, bytes(m.data)))
+    elif role == "stage":  # only its times are read (the FM windows); anything else is ignored
+        if m.type_name == "std_msgs/msg/String":
+            from afm_ros.tools.report_fm import stage_times
+            stage_times(m.data, survey.stage)
     elif role == "spectroscopy":
         if m.type_name != "std_msgs/msg/Float64MultiArray":
             survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/Float64MultiArray"
@@ -907,6 +925,7 @@ class _Survey:
     geometry: tuple | None = None  # (topic, message number, CDR bytes) of the last scanner/geometry
     tune: tuple | None = None  # the same for the last lockin/tune_result
     spectroscopy: tuple | None = None  # the same for the last z_controller/spectroscopy
+    stage: dict = field(default_factory=dict)  # the last approach start and engage time [s] on z_controller/stage
     skipped: dict = field(default_factory=dict)  # topic -> why it is left out (one line)
 
 
@@ -966,6 +985,13 @@ def _survey(path) -> _Survey:
                     pairing = survey.setpoints[prefix] = SetpointFromData()
                 pairing.add(role, end, t.tolist(), amplitude_phase(u, v)[0].tolist() if role == "outputs"
                             else v.tolist())
+            elif role == FM_ROLE:
+                from afm_ros.tools.report_fm import cdr_fm_batch
+                b = cdr_fm_batch(m.data)
+                s = survey.batches.get(m.topic)
+                if s is None:
+                    s = survey.batches[m.topic] = BatchStream(m.topic, role, receive=TimeMapTable())
+                s.survey(b.input_first_index, b.input_end_index, b.input_end_time, b.t, m.log_time)
             elif role == "parameter_events":
                 from rclpy.serialization import deserialize_message
                 from rcl_interfaces.msg import ParameterEvent
@@ -1060,6 +1086,18 @@ def _current(data: SessionData, node_suffix: str, name: str, at: float | None = 
     return value
 
 
+def _current_text(data: SessionData, node_suffix: str, name: str) -> str | None:
+    """The last value of the string parameter ``name`` of the node whose name ends with ``node_suffix``."""
+    value = None
+    for node, values in data.initial_parameters.items():
+        if node.endswith(node_suffix) and name in values:
+            value = str(values[name]).strip("'\"")
+    for _, node, pname, v in data.changes:
+        if node.endswith(node_suffix) and pname == name and isinstance(v, str):
+            value = v
+    return value
+
+
 def _same_setpoint(a: float, b: float) -> bool:
     return abs(a - b) <= SETPOINT_REL_TOL * max(abs(a), abs(b)) + SETPOINT_ABS_TOL
 
@@ -1071,7 +1109,11 @@ def _setpoint_history(data: SessionData, plan: _Plan) -> float | None:
     From the data when the lock-in batches and the z trace are recorded: amplitude + error at every
     output, a change at the exact simulated time of the first output computed with the new value (the
     value itself from the matching /parameter_events change, exact, when there is one). Otherwise from
-    the /parameter_events changes, placed by their receive time (to within the delivery latency)."""
+    the /parameter_events changes, placed by their receive time (to within the delivery latency).
+    None in FM (the z loop regulates df, not the amplitude)."""
+    if data.fm_feedback:
+        data.setpoint_data = None
+        return None
     events = [(lt, t, float(v)) for (lt, node, name, v), t in zip(data.changes, data.change_times)
               if node.endswith("z_controller") and name == "setpoint" and isinstance(v, (int, float))
               and not isinstance(v, bool)]
@@ -1155,6 +1197,7 @@ def _plan(data: SessionData, events: list) -> _Plan:
         data.time_axis = "wall time since first message [s]"
     plan = _Plan(ref, t0)
     data.change_times = [float(plan.map(lt)) for lt, *_ in data.changes]
+    data.fm_feedback = _current_text(data, "z_controller", "feedback_signal") == "frequency_shift"
 
     xy = data.series.get("xy")
     for role, s in data.series.items():
@@ -1508,6 +1551,9 @@ class _Collector:
                     self.flush(role, final=True)
         if self.tracking_only:
             return
+        if self.data.fm is not None:
+            from afm_ros.tools.report_fm import flush
+            flush(self.data.fm)
         self._resolve_errors(final=True)
         for s in (self.data.deflection, self.data.force):
             if s is not None and s.topic in self.zoom:
@@ -1543,6 +1589,9 @@ class _Collector:
                     self.chunk(role, streams[role], m.data)
                 elif role in BATCH_ROLES:
                     self.batch(role, m.data)
+                elif role == FM_ROLE:
+                    from afm_ros.tools.report_fm import add_batch
+                    add_batch(self.data.fm, m.data)
                 elif role == "xy":
                     self.xy(m.data)
                 else:
@@ -1779,12 +1828,16 @@ def load_session(path) -> SessionData:
     _tune(survey, data)
     _spectroscopy(survey, data)
     plan = data.plan = _plan(data, survey.events)
+    if FM_ROLE in data.topics:
+        from afm_ros.tools.report_fm import prepare
+        data.fm = prepare(data, survey.batches.get(data.topics[FM_ROLE]), survey.stage)
     collector = _Collector(data, plan)
     roles = ["deflection", "force", *(r for r in BATCH_ROLES if r in data.batches),
-             *(r for r in ("xy", *SCALAR_ROLES) if r in data.series and data.series[r].batch is None)]
+             *(r for r in ("xy", *SCALAR_ROLES) if r in data.series and data.series[r].batch is None),
+             *([FM_ROLE] if data.fm is not None else [])]
     collector.run(path, roles, survey.counts)
     data.passes = 2
-    if plan.setpoint is None and collector.median.seen and "amplitude" in data.series:
+    if plan.setpoint is None and not data.fm_feedback and collector.median.seen and "amplitude" in data.series:
         # no setpoint parameter recorded: the setpoint is rebuilt from the error, and the tracking
         # numbers that compare with it need the amplitude once more
         plan.setpoint = float(np.median(collector.median.arrays()[0]))
@@ -1796,7 +1849,11 @@ def load_session(path) -> SessionData:
         collector.tail, collector.after_n, collector.settling, collector.ta0 = \
             again.tail, again.after_n, again.settling, again.ta0
         collector.seg_first, collector.tail_lo = again.seg_first, again.tail_lo
-    data.tracking = _tracking(data, plan, collector)
+    if data.fm_feedback:  # no amplitude setpoint: the FM section reports the loop; engage and scan for the figures
+        from afm_ros.tools.report_fm import markers
+        data.tracking = markers(data.fm) if data.fm is not None else {}
+    else:
+        data.tracking = _tracking(data, plan, collector)
     if not plan.exact_bounds and "free_amplitude_m" in data.tracking:
         amp = data.series["amplitude"]
         stride = (amp.batch.times if amp.batch is not None else amp.times).stride
@@ -1885,9 +1942,9 @@ def write_figures(data: SessionData, out: Path) -> list[Path]:
         fig.savefig(figures[-1], dpi=110)
         plt.close(fig)
 
+    error = (1.0, "df error = df setpoint - df [Hz]") if data.fm_feedback else (1e9, "error = setpoint - amplitude [nm]")
     rows = [(r, sc, lab) for r, sc, lab in (("amplitude", 1e9, "amplitude [nm]"), ("phase", 1.0, "phase [deg]"),
-                                             ("z_piezo", 1e9, "z piezo [nm]"),
-                                             ("error", 1e9, "error = setpoint - amplitude [nm]"))
+                                             ("z_piezo", 1e9, "z piezo [nm]"), ("error", *error))
             if r in data.series and data.series[r].envelope is not None]
     if rows:
         numbers = data.tracking
@@ -2092,8 +2149,12 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images=Non
                       f"the last lock-in batch, recorded before its answer), {sd.mismatched} pairs with other output "
                       "times (not used)."]
 
-    numbers = data.tracking
-    lines += ["", "## Setpoint tracking", ""]
+    if data.fm is not None:
+        from afm_ros.tools.report_fm import markdown_lines
+        lines += markdown_lines(data.fm)
+    numbers = {} if data.fm_feedback else data.tracking  # FM: the z loop regulates df (the FM section)
+    if not data.fm_feedback:
+        lines += ["", "## Setpoint tracking", ""]
     if numbers:
         settle = numbers.get("settling_time_s")
         changes = numbers.get("setpoint_changes", [])
@@ -2133,7 +2194,7 @@ def write_markdown(data: SessionData, figures: list[Path], out: Path, images=Non
                      False: "**not settled** (outside the band at the end)."}[numbers["settled_at_end"]]
             lines += ["", f"State at the end{span}: setpoint {_fmt(numbers.get('setpoint_m'), 'nm', 1e9)}, amplitude "
                           f"{_fmt(numbers.get('reached_amplitude_m'), 'nm', 1e9)}, {state}"]
-    else:
+    elif not data.fm_feedback:
         lines.append("No lock-in amplitude recorded.")
     skipped = [f"{s.non_finite} non-finite {role.replace('_', ' ')} samples" for role, s in data.series.items()
                if s.non_finite]
@@ -2205,8 +2266,9 @@ def _shown_images(data: SessionData) -> list[ImageTopic]:
     shown = [it for it in data.images.values() if it.array is not None]
     if not shown:
         return shown  # (and no import of the imaging core: numba costs ~50 MB)
-    from afm_ros.core.imaging import CHANNELS, DIRECTIONS
-    order = {c: i for i, c in enumerate(CHANNELS)}
+    from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS
+    fm = any(it.channel in FM_CHANNELS and it.channel not in CHANNELS for it in shown)
+    order = {c: i for i, c in enumerate(dict.fromkeys((*FM_CHANNELS, *CHANNELS) if fm else CHANNELS))}
     rank = {d: i for i, d in enumerate(DIRECTIONS)}
     return sorted(shown, key=lambda it: (order.get(it.channel, len(order)), it.channel, rank.get(it.direction, 9),
                                          it.direction))
@@ -2318,6 +2380,9 @@ def make_report(session, out_dir=None) -> Report:
     data = load_session(session)
     out.mkdir(parents=True, exist_ok=True)
     figures = write_figures(data, out)
+    if data.fm is not None:
+        from afm_ros.tools.report_fm import write_figure
+        figures.append(write_figure(data, out))
     image_figure = write_image_figure(data, out)
     if image_figure is not None:
         figures.append(image_figure)
@@ -2354,6 +2419,9 @@ def make_report(session, out_dir=None) -> Report:
         numbers["tune"] = {k: v for k, v in data.tune.items() if not isinstance(v, np.ndarray)}
     if data.spectroscopy is not None:
         numbers["spectroscopy"] = spectroscopy_numbers(data.spectroscopy)
+    if data.fm is not None:
+        from afm_ros.tools.report_fm import numbers as fm_numbers
+        numbers["fm"] = fm_numbers(data.fm)
     return Report(md, figures, numbers, data)
 
 
