@@ -137,7 +137,7 @@ def test_lockstep_gate_holds_the_loop_until_the_answer_arrives():
     e, _, _ = engine(feedback_sync="lockstep", feedback_latency=1)
     e.gate.receive(ZCommand(0, 0.0, 2e-9))  # the controller's answer to "nothing yet"
     first = step(e)
-    assert first is not None and first.header.z_offset == pytest.approx(e.values["z_base"] + 2e-9)
+    assert first is not None and first.header.z_offset == pytest.approx(e.values["z_base"] + 2e-9, rel=1e-12, abs=0)
     assert step(e) is None  # chunk 1 needs the answer to chunk 0
     assert e.wait_reason == f"waiting for z_command answering sample index {first.end}"
     e.clock.now += 3.0
@@ -146,7 +146,7 @@ def test_lockstep_gate_holds_the_loop_until_the_answer_arrives():
     e.gate.receive(ZCommand(first.end, first.t, 5e-9))
     second = step(e)
     assert second.header.first_sample_index == first.end and second.header.z_offset == pytest.approx(
-        e.values["z_base"] + 5e-9)
+        e.values["z_base"] + 5e-9, rel=1e-12, abs=0)
     assert e.wait_wall_s["feedback"] == pytest.approx(3.0) and e.waiting_since is None
 
 

@@ -192,9 +192,9 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     h_new = col.chunks[k][0]
     n_old = s_old.shape[0]
     # first new sample is one (new) step-grid interval after the last old one, drive phase continuous
-    assert h_new.t_start == pytest.approx(h_old.t_start + n_old * h_old.sample_interval, rel=1e-12)
+    assert h_new.t_start == pytest.approx(h_old.t_start + n_old * h_old.sample_interval, rel=1e-12, abs=0)
     new = build({**default_values(), "drive_frequency": 44e3})
-    assert h_new.sample_interval == pytest.approx(new.decimation / (44e3 * new.steps_per_period), rel=1e-12)
+    assert h_new.sample_interval == pytest.approx(new.decimation / (44e3 * new.steps_per_period), rel=1e-12, abs=0)
     expected_phase = (h_old.drive_phase + 2 * math.pi * h_old.drive_frequency * n_old * h_old.sample_interval)
     assert math.remainder(h_new.drive_phase - expected_phase, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
     # deflection has no jump: consecutive samples differ by at most ~ A w dt_s (0.34 A at 20 samples/period)
@@ -211,7 +211,8 @@ def test_z_command_input_moves_the_gap(ros_context, ros_executor, ros_namespace)
     spin_until(ros_executor, lambda: pub.get_subscription_count() > 0)
     pub.publish(Float64MultiArray(data=[-1.0, 0.0, 20e-9]))
     # gap = z_base + z_piezo + z: positive z_piezo retracts, z_offset = 40 + 20 nm
-    spin_until(ros_executor, lambda: col.chunks and col.chunks[-1][0].z_offset == pytest.approx(60e-9))
+    spin_until(ros_executor,
+               lambda: col.chunks and col.chunks[-1][0].z_offset == pytest.approx(60e-9, rel=1e-12, abs=0))
     n = len(col.chunks)
     spin_until(ros_executor, lambda: len(col.chunks) >= n + 20)
     idx, t, z, off, phase = col.stream(start_chunk=n + 10)

@@ -31,7 +31,7 @@ def test_engage_at_80_percent_settles_and_z_matches_the_physics_core(instrument)
     a_free, phi_free = steady_amplitude_phase(Cantilever(), Drive.from_free_amplitude(Cantilever(), 60e-9))
     assert summary.free_amplitude_m == pytest.approx(a_free, rel=1e-3)
     assert summary.free_phase_deg == pytest.approx(math.degrees(phi_free), abs=0.1)
-    assert summary.setpoint_m == pytest.approx(0.8 * summary.free_amplitude_m, rel=1e-12)
+    assert summary.setpoint_m == pytest.approx(0.8 * summary.free_amplitude_m, rel=1e-12, abs=0)
 
     # settles: the PI (i_gain 100 1/s) approaches from z_max = 100 nm at about i_gain * 12 nm error
     # = 1.2 um/s, i.e. ~0.1 s to contact; it must enter and stay within +-1 % of the setpoint within
@@ -97,7 +97,7 @@ def test_a_setpoint_change_is_placed_and_settled_in_the_summary(instrument):
     assert change["old_m"] == 48e-9 and change["new_m"] == pytest.approx(40e-9, abs=1e-15)
     assert t_change - 1e-9 <= change["time_s"] <= t_change + 1e-3 + 1e-9
     assert change["settling_time_s"] is not None and change["settling_time_s"] < 0.2
-    assert change["band_m"] == pytest.approx(0.01 * 40e-9)
+    assert change["band_m"] == pytest.approx(0.01 * 40e-9, rel=1e-12, abs=0)
     assert s.reached_amplitude_m == pytest.approx(40e-9, rel=1e-3)
     assert "setpoint change      t=" in s.text() and "48.000 -> 40.000 nm" in s.text()
     assert s.parameter_changes == []  # the job's own steps are not listed as changes by others

@@ -1058,10 +1058,12 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
                     scanner[f"slope_compensation_{axis}"] = scanner.get(
                         f"tilt_{axis}", ros.value("scanner", f"tilt_{axis}", ARTEFACT_NODE_SPECS[f"tilt_{axis}"].default))
         c = {k: cantilever.get(k, ros.value("cantilever", k, v)) for k, v in FM_CANTILEVER.items()}
-        notes.append(f"FM-AFM: excitation {c['excitation']} (the pll node), Q {c['quality_factor']:g}, chunks of "
-                     f"{c['chunk_duration']:g} s, sample {c['sample']}, force_model {c['force_model']} (non-contact "
-                     f"dissipation: adhesion hysteresis); z loop on df; {FM_SCAN['pixels_per_line']} x "
-                     f"{FM_SCAN['lines']} pixels at {FM_SCAN['line_rate']:g} lines/s (-p <node>:<name>:=... change them)")
+        f = {k: scanner.get(k, ros.value("scanner", k, v)) for k, v in FM_SCAN.items()}
+        c, f = ({k: f"{v:g}" if isinstance(v, float) else v for k, v in d.items()} for d in (c, f))
+        notes.append(f"FM-AFM: excitation {c['excitation']} (the pll node), Q {c['quality_factor']}, chunks of "
+                     f"{c['chunk_duration']} s, sample {c['sample']}, force_model {c['force_model']} (non-contact "
+                     f"dissipation: adhesion hysteresis); z loop on df; {f['pixels_per_line']} x {f['lines']} "
+                     f"pixels at {f['line_rate']} lines/s (-p <node>:<name>:=... change them)")
     if options.image:
         scanner.update({k: v for k, v in IMAGE_SCAN.items() if not ros.given("scanner", k)})
         switched = []
