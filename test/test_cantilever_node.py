@@ -247,7 +247,7 @@ def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, 
     for h, s in col.chunks[-5:]:
         hf, sf = f_by_index[h.first_sample_index]
         assert hf.t_start == h.t_start
-        np.testing.assert_allclose(sf, model.force(h.z_offset + s), rtol=1e-12, atol=1e-18)
+        np.testing.assert_allclose(sf, model.force(h.z_offset + s), rtol=1e-12, atol=0)
 
 
 def test_paced_run_follows_the_clock_and_reports_diagnostics(ros_context, ros_executor, ros_namespace):

@@ -79,7 +79,7 @@ def test_the_job_runs_the_operating_workflow(runs):
     # (prediction image_dissipation_J): 15 % (a 32 x 16 frame at 10 lines/s, loop not fully settled)
     report_ = summary["image"]["report"]
     ps = report_["dissipation_J"]["trace"]["polystyrene"]
-    assert ps == pytest.approx(report_["prediction"]["polystyrene"]["image_dissipation_J"], rel=0.15)
+    assert ps == pytest.approx(report_["prediction"]["polystyrene"]["image_dissipation_J"], rel=0.15, abs=0)
 
 
 def test_the_job_runs_a_real_instruments_imperfections_and_reports_their_truth(runs):
@@ -93,8 +93,9 @@ def test_the_job_runs_a_real_instruments_imperfections_and_reports_their_truth(r
     truth = summary["image"]["truth"]
     assert truth["imperfections"]
     vx, vy, vz = truth["drift_m_per_s"]
-    assert math.hypot(vx, vy) == pytest.approx(5e-11, rel=1e-12) and abs(vz) == pytest.approx(8e-12, rel=1e-12)
-    assert truth["hysteresis_width_m"] == pytest.approx(225e-9, rel=1e-12)
+    assert math.hypot(vx, vy) == pytest.approx(5e-11, rel=1e-12, abs=0)
+    assert abs(vz) == pytest.approx(8e-12, rel=1e-12, abs=0)
+    assert truth["hysteresis_width_m"] == pytest.approx(225e-9, rel=1e-12, abs=0)
     assert truth["tilt"] == [0.008, -0.005] and truth["slope_compensation"] == [0.008, -0.005]
     grown = truth["tip_radius_end_m"] - truth["tip_radius_start_m"]
     assert 18e-12 < grown < 72e-12

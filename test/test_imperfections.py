@@ -72,7 +72,8 @@ def test_drift_between_two_frames_is_the_configured_rate():
     (first, second), w = _frames(ISLANDS, AREA, imperfect, count=2)
     plan = ScanPlan.from_values(AREA)
     vx, vy, vz = artefacts.drift_velocity(artefacts.validate(imperfect))
-    assert math.hypot(vx, vy) == pytest.approx(1e-8) and abs(vz) == pytest.approx(1e-9)
+    assert math.hypot(vx, vy) == pytest.approx(1e-8, rel=1e-12, abs=0)
+    assert abs(vz) == pytest.approx(1e-9, rel=1e-12, abs=0)
     a = first.images["trace"]["height"].astype(float)
     b = second.images["trace"]["height"].astype(float)
     rows, cols = image_shift(a, b)
@@ -82,7 +83,7 @@ def test_drift_between_two_frames_is_the_configured_rate():
     # what an instrument sees of it: the drift flag, with the measured shift over the frame time
     from afm_ros.core.flags import frame_flags
     flags = {f.name: f for f in frame_flags(second, 48e-9, (-200e-9, 100e-9), previous=first)}
-    assert flags["drift_detected"].values["shift_x_m"] == pytest.approx(cols * plan.pixel_size)
+    assert flags["drift_detected"].values["shift_x_m"] == pytest.approx(cols * plan.pixel_size, rel=1e-12, abs=0)
     # the sample rose by vz T: the z piezo retracts by as much (z is the height image)
     rise = float(np.median(b - a))
     assert rise == pytest.approx(vz * t, rel=0.05, abs=0.1e-9)

@@ -476,7 +476,7 @@ def test_node_set_parameters(ros_context, ros_executor, ros_namespace):
     # tau 2 us, order 1: the 2f term passes with |H(2f)| ~ 0.66; in steady state X+iY is the
     # signal plus a vector of exactly that length rotating at 2f
     err_fast = vector_error(5)  # first 5 outputs: 250 us >> 2 us settling
-    assert err_fast == pytest.approx(np.full(err_fast.shape, amp * gain(2 * F_DRIVE, DT, 2e-6, 1)), rel=1e-6)
+    assert err_fast == pytest.approx(np.full(err_fast.shape, amp * gain(2 * F_DRIVE, DT, 2e-6, 1)), rel=1e-6, abs=0)
 
     results = set_params(Parameter("filter_order", value=9))
     # (rclpy checks the descriptor's integer range before our callback; either way the reason

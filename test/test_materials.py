@@ -62,7 +62,8 @@ def test_explicit_values_override_the_material():
     sample, _, h_r = sample_for("polystyrene", tip="silicon")
     si = MATERIALS["silicon"]
     assert (sample.tip_youngs_modulus, sample.tip_poisson_ratio) == (si.youngs_modulus, si.poisson_ratio)
-    assert sample.hamaker_constant == pytest.approx(math.sqrt(si.hamaker_constant * ps.hamaker_constant), rel=1e-15)
+    assert sample.hamaker_constant == pytest.approx(math.sqrt(si.hamaker_constant * ps.hamaker_constant),
+                                                    rel=1e-15, abs=0)
     assert sample_for("polystyrene", tip="silicon", hamaker_constant=1e-20)[0].hamaker_constant == 1e-20
 
 

@@ -61,16 +61,16 @@ def test_forces_follow_their_definitions():
     visco = MODELS["viscous 500 Pa s"]
     indenting = -1e-3  # gap shrinking at 1 mm/s
     assert visco.force(gap, indenting) == pytest.approx(
-        -dmt.adhesion_force + hertz + 500.0 * math.sqrt(r * delta) * 1e-3, rel=1e-12)
+        -dmt.adhesion_force + hertz + 500.0 * math.sqrt(r * delta) * 1e-3, rel=1e-12, abs=0)
     leaving_fast = 1.0
-    assert visco.force(gap, leaving_fast) == pytest.approx(-dmt.adhesion_force, rel=1e-12)  # clipped
+    assert visco.force(gap, leaving_fast) == pytest.approx(-dmt.adhesion_force, rel=1e-12, abs=0)  # clipped
     assert visco.force(2 * a0, leaving_fast) == dmt.force(2 * a0)  # no viscosity out of contact
     # hysteresis: H on approach, H_retract on retraction (rate >= 0), outside and inside contact
     hyst = MODELS["hysteresis 5 H"]
     for d in (5e-9, gap):
-        assert hyst.force(d, -1e-3) == pytest.approx(dmt.force(d), rel=1e-12)
-    assert hyst.force(5e-9, 1e-3) == pytest.approx(5 * dmt.force(5e-9), rel=1e-12)
-    assert hyst.force(gap, 1e-3) - hyst.force(gap, -1e-3) == pytest.approx(-4 * dmt.adhesion_force, rel=1e-12)
+        assert hyst.force(d, -1e-3) == pytest.approx(dmt.force(d), rel=1e-12, abs=0)
+    assert hyst.force(5e-9, 1e-3) == pytest.approx(5 * dmt.force(5e-9), rel=1e-12, abs=0)
+    assert hyst.force(gap, 1e-3) - hyst.force(gap, -1e-3) == pytest.approx(-4 * dmt.adhesion_force, rel=1e-12, abs=0)
     with pytest.raises(ValueError, match="force_model"):
         make_force_model("jkr", SAMPLE)
 
@@ -110,7 +110,7 @@ def test_hysteresis_dissipation_is_the_area_between_the_force_curves(fine_runs):
             gap = res.samples.gap
             d_min, d_max = float(gap.min()), float(gap.max())
             area = (factor - 1) * SAMPLE.hamaker_constant * r / 6.0 * ((a0 - d_min) / a0 ** 2 + 1 / a0 - 1 / d_max)
-            assert res.analysis.tip_sample_dissipation == pytest.approx(area, rel=3e-4), (factor, zb)
+            assert res.analysis.tip_sample_dissipation == pytest.approx(area, rel=3e-4, abs=0), (factor, zb)
 
 
 def test_default_step_count_is_accurate_for_the_dissipative_models():

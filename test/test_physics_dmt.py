@@ -49,9 +49,9 @@ def test_force_continuous_at_a0_and_adhesion_value():
     eps = A0 * 1e-9
     above, at, below = MODEL.force(A0 + eps), MODEL.force(A0), MODEL.force(A0 - eps)
     # both branches meet at -H R / (6 a0^2); a jump would exceed the O(eps) slope change
-    assert at == pytest.approx(-adhesion, rel=1e-14)
-    assert above == pytest.approx(-adhesion, rel=1e-8) and below == pytest.approx(-adhesion, rel=1e-8)
-    assert MODEL.adhesion_force == pytest.approx(adhesion, rel=1e-14)
+    assert at == pytest.approx(-adhesion, rel=1e-14, abs=0)
+    assert above == pytest.approx(-adhesion, rel=1e-8, abs=0) and below == pytest.approx(-adhesion, rel=1e-8, abs=0)
+    assert MODEL.adhesion_force == pytest.approx(adhesion, rel=1e-14, abs=0)
 
 
 @pytest.mark.parametrize("gap", [30e-9, 2e-9, 0.5e-9, 0.21e-9, 0.19e-9, 0.0, -1e-9, -15e-9])
@@ -67,13 +67,13 @@ def test_force_is_minus_potential_derivative(gap):
 def test_potential_vanishes_far_away_and_force_attractive_outside_contact():
     # U = -H R / (6 d) outside contact: vanishes as 1/d (1e-3 m: 2e-7 of its value at a0)
     hr6 = SAMPLE.hamaker_constant * SAMPLE.tip_radius / 6
-    assert MODEL.potential(1e-3) == pytest.approx(-hr6 / 1e-3, rel=1e-14)
+    assert MODEL.potential(1e-3) == pytest.approx(-hr6 / 1e-3, rel=1e-14, abs=0)
     assert abs(MODEL.potential(1e-3)) < 1e-6 * abs(MODEL.potential(A0))
     gaps = np.linspace(A0 * 1.0001, 100e-9, 1000)
     assert (MODEL.force(gaps) < 0).all()
     # van der Waals law -H R / (6 d^2), independent of the packed constants
     assert MODEL.force(10e-9) == pytest.approx(-SAMPLE.hamaker_constant * SAMPLE.tip_radius / (6 * 1e-16),
-                                               rel=1e-14)
+                                               rel=1e-14, abs=0)
 
 
 def test_hertz_limit():
@@ -81,7 +81,7 @@ def test_hertz_limit():
     e_star = 1 / ((1 - 0.3 ** 2) / 130e9 + (1 - 0.3 ** 2) / 70e6)
     for delta in (1e-9, 5e-9, 20e-9):
         hertz = 4 / 3 * e_star * math.sqrt(SAMPLE.tip_radius) * delta ** 1.5
-        assert MODEL.force(A0 - delta) + MODEL.adhesion_force == pytest.approx(hertz, rel=1e-12)
+        assert MODEL.force(A0 - delta) + MODEL.adhesion_force == pytest.approx(hertz, rel=1e-12, abs=0)
     # Hertz scaling: doubling the indentation multiplies the elastic force by 2^1.5
     f1 = MODEL.force(A0 - 4e-9) + MODEL.adhesion_force
     f2 = MODEL.force(A0 - 8e-9) + MODEL.adhesion_force

@@ -131,7 +131,7 @@ def test_the_dissipated_energy_integrated_with_the_stages(steady_states, name):
         s.advance_periods(periods - 1)
         got[method] = analyze(s.advance(spp), s).tip_sample_dissipation
     assert e_ref > 1e-18  # [J] these models dissipate
-    assert got["rk4_event"] == pytest.approx(e_ref, rel=2e-4), (got, e_ref)
+    assert got["rk4_event"] == pytest.approx(e_ref, rel=2e-4, abs=0), (got, e_ref)
     assert abs(got["rk4"] - e_ref) > 0.01 * e_ref, (got, e_ref)
 
 
@@ -142,7 +142,8 @@ def test_energy_balance_with_the_energies_integrated_with_the_stages(name):
     integrated with the RK4 stages (rk4_event) the balance holds within 1e-6 of the drive work at the
     default (the issue asks 1e-5); the samples' rectangle rule (rk4) leaves 2e-5 to 1e-3. The mean
     tip-sample force, the stages' impulse per period, equals k <z> (the equation of motion averaged
-    over whole periods: the drive, the inertia and the damping average out) within 1e-6."""
+    over whole periods: the drive, the inertia and the damping average out) within 1e-6 of the drive's
+    force amplitude F0 (see the assertion)."""
     from afm_ros.core.physics.analysis import analyze
 
     c = Cantilever()
@@ -152,8 +153,13 @@ def test_energy_balance_with_the_energies_integrated_with_the_stages(name):
     samples = s.advance(4 * s.steps_per_period)
     a = analyze(samples, s)
     assert abs(a.drive_work - a.damping_loss - a.tip_sample_dissipation) < 1e-6 * a.drive_work
-    # <z> from the samples: a rectangle rule, but z is smooth (its kinks are three derivatives down)
-    assert a.mean_force == pytest.approx(c.spring_constant * samples.z.mean(), rel=1e-6)
+    # <z> from the samples: a rectangle rule, but z is smooth (its kinks are three derivatives down).
+    # This is the plain period mean of the equation of motion, as the energy balance above is its
+    # v-weighted mean: both are exact for the ODE, and numerically off by the same step discretization
+    # error (fourth order: refining every step 2 x cuts it >= 16 x), so both are held to 1e-6 of the drive's
+    # scale: the work per period there, the force amplitude F0 here. Relative to the mean force itself
+    # (~F0 / 3 here, and it can be any fraction of F0) 1e-6 would be an unmotivated, tighter bound.
+    assert a.mean_force == pytest.approx(c.spring_constant * samples.z.mean(), rel=0, abs=1e-6 * d.force)
 
 
 def test_scanning_kernel_over_a_flat_map_is_the_flat_kernel():

@@ -103,7 +103,7 @@ def test_full_session_report(sessions, tmp_path):
     assert rep.numbers["min_force_n"] <= force.min()
     # the setpoint is read from the recorded z_controller parameters
     from afm_ros.core.controller import Z_CONTROLLER_SPECS
-    assert rep.numbers["setpoint_m"] == pytest.approx(Z_CONTROLLER_SPECS["setpoint"].default)
+    assert rep.numbers["setpoint_m"] == pytest.approx(Z_CONTROLLER_SPECS["setpoint"].default, rel=1e-6, abs=0)
     # error = setpoint - amplitude: the setpoint rebuilt from the recorded error and amplitude
     # agrees with the parameter to within the lock-in's output jitter between the two topics
     # (a few % of the setpoint on a loop that has not settled).
@@ -174,7 +174,7 @@ def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespa
     # both average the same lock-in output of a settled state, over slightly different windows
     # (last half of the free window / last quarter of the hold vs last 20 %): 0.1 % and 0.05 deg
     assert numbers["free_amplitude_m"] == pytest.approx(live.free_amplitude_m, rel=1e-3)
-    assert numbers["setpoint_m"] == pytest.approx(live.setpoint_m, rel=1e-12)  # same parameter value
+    assert numbers["setpoint_m"] == pytest.approx(live.setpoint_m, rel=1e-12, abs=0)  # same parameter value
     assert numbers["reached_amplitude_m"] == pytest.approx(live.reached_amplitude_m, rel=1e-3)
     assert numbers["contact_phase_deg"] == pytest.approx(live.contact_phase_deg, abs=0.05)
     assert numbers["contact_z_piezo_m"] == pytest.approx(live.z_piezo_m, abs=0.1e-9)

@@ -123,7 +123,8 @@ def test_crafted_imaging_file_gives_a_report_of_what_is_intact(tmp_path, case, c
     # every intact image is in the figure and the table; a damaged last image falls back to the one before
     assert set(numbers["images"]) == {f"{c}/{d}" for c, d in GOOD}
     assert (out / "images.png").stat().st_size > 10_000
-    assert numbers["images"]["height/trace"]["min"] == pytest.approx(float(frame("height").astype("<f4").min()))
+    assert numbers["images"]["height/trace"]["min"] == pytest.approx(
+        float(frame("height").astype("<f4").min()), rel=1e-6, abs=0)
     geometry_ok = spec.get("topic") != "/scanner/geometry"
     assert ("over 4 x 3 µm" in md) == geometry_ok
 

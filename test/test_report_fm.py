@@ -77,7 +77,7 @@ def test_fm_numbers_agree_with_the_sessions_own_summary(fm_report):
     assert engaged["dissipation_J"] > 0  # hysteresis_dmt dissipates
 
     free, session_free = fm["windows"]["free"], s["free"]
-    assert free["drive"]["mean"] == pytest.approx(session_free["drive_N"], rel=0.01)
+    assert free["drive"]["mean"] == pytest.approx(session_free["drive_N"], rel=0.01, abs=0)
     assert free["amplitude"]["mean"] == pytest.approx(session_free["amplitude_m"], rel=1e-3)
     assert free["quality_factor_measured"] == pytest.approx(session_free["quality_factor_measured"], rel=0.01)
     assert abs(free["oscillator_Hz"] - session_free["resonance_Hz"]) <= free["df"]["std"]
@@ -105,7 +105,7 @@ def test_fm_figures_images_and_no_amplitude_tracking(fm_report):
     assert {f"{c}/{d}" for c in FM_CHANNELS for d in DIRECTIONS} <= set(images)
     assert all(images[f"{c}/{d}"]["lines_acquired"] == LINES for c in FM_CHANNELS for d in DIRECTIONS)
     for channel, v in s["image"]["frame"].items():
-        assert images[f"{channel}/trace"]["median"] == pytest.approx(v["median"], rel=1e-6), channel
+        assert images[f"{channel}/trace"]["median"] == pytest.approx(v["median"], rel=1e-6, abs=0), channel
     order = [line.split("|")[1].strip() for line in md.split("## Images")[1].splitlines()
              if line.startswith("| ") and "trace |" in line and "retrace" not in line]
     assert order[:len(FM_CHANNELS)] == list(FM_CHANNELS)

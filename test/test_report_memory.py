@@ -58,7 +58,7 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
     # N equal doubles is exact to a few ulp: 1e-12 relative.
     for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m",
                 "setpoint_from_error_m"):
-        assert numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+        assert numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
     assert numbers["setpoint_m"] == exp["setpoint_m"]
     # Engage time: the parameter event's receive time mapped through /clock receive times; log times
     # near 1.7e18 ns are doubles with a 256 ns step when interpolated: 1e-6 s.
@@ -110,7 +110,7 @@ def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
     assert numbers["amplitude_non_finite"] == 2
     assert rep.data.fd.non_finite == 2 and numbers["force_distance_pairs"] == exp["force_distance_pairs"]
     for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg"):
-        assert math_finite(numbers[key]) and numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+        assert math_finite(numbers[key]) and numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
     assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
     assert numbers["min_gap_m"] == exp["min_gap_m"]
     md = rep.markdown.read_text()
@@ -202,10 +202,10 @@ def test_long_session_of_batches_in_bounded_memory(tmp_path):
     assert numbers["series_source"] == "batches"
     assert numbers["outputs_outputs"] == numbers["z_trace_outputs"] == info["series_samples"]
     for key in ("reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m", "setpoint_from_error_m"):
-        assert numbers[key] == pytest.approx(exp[key], rel=1e-12), key
+        assert numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
     # the free-amplitude window may start up to one kept stride late (the table keeps every 2nd time);
     # the free amplitude is constant: exact anyway
-    assert numbers["free_amplitude_m"] == pytest.approx(exp["free_amplitude_m"], rel=1e-12)
+    assert numbers["free_amplitude_m"] == pytest.approx(exp["free_amplitude_m"], rel=1e-12, abs=0)
     assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
     assert (tmp_path / "rep" / "lockin_z.png").stat().st_size > 5000
 

@@ -33,7 +33,7 @@ def test_sample_pixel_sizes_and_copies():
     h = np.zeros((30, 40))
     s = Sample(h, np.zeros((30, 40), np.uint8), ("silicon",), 4e-6, 6e-6)
     assert s.shape == (30, 40)
-    assert s.pixel_x == pytest.approx(1e-7) and s.pixel_y == pytest.approx(2e-7)
+    assert s.pixel_x == pytest.approx(1e-7, rel=1e-12, abs=0) and s.pixel_y == pytest.approx(2e-7, rel=1e-12, abs=0)
     h[0, 0] = 1.0
     assert s.height[0, 0] == 0.0  # the sample keeps its own copy
     assert s.height.dtype == np.float64 and s.material_index.dtype == np.uint8
@@ -100,7 +100,7 @@ def test_surface_at_wraps_periodically():
     # between the last column's centre and the first's: at x = 0 the average of the two
     y = 0.5 * s.pixel_y
     z, _ = surface_at(s.height, s.material_index, s.size_x, s.size_y, 0.0, y)
-    assert z == pytest.approx(0.5 * (s.height[0, -1] + s.height[0, 0]), rel=1e-12)
+    assert z == pytest.approx(0.5 * (s.height[0, -1] + s.height[0, 0]), rel=1e-12, abs=0)
 
 
 def test_surface_at_far_away_and_non_finite_positions():
@@ -108,7 +108,7 @@ def test_surface_at_far_away_and_non_finite_positions():
     x, y = 1.234e-6, 0.567e-6
     z0, k0 = surface_at(s.height, s.material_index, s.size_x, s.size_y, x, y)
     far = surface_at(s.height, s.material_index, s.size_x, s.size_y, x + 1000 * s.size_x, y - 1000 * s.size_y)
-    assert far[0] == pytest.approx(z0, rel=1e-6) and far[1] == k0
+    assert far[0] == pytest.approx(z0, rel=1e-6, abs=0) and far[1] == k0
     for bad in (math.nan, math.inf, -math.inf):
         z, k = surface_at(s.height, s.material_index, s.size_x, s.size_y, bad, y)
         assert math.isnan(z) and k == 0
@@ -131,14 +131,14 @@ def test_surface_at_runs_inside_another_numba_kernel():
     n = 1000
     mean, count = mean_line(s.height, s.material_index, s.size_x, s.size_y, 1e-6, n)
     pairs = [surface_at(s.height, s.material_index, s.size_x, s.size_y, k * s.size_x / n, 1e-6) for k in range(n)]
-    assert mean == pytest.approx(np.mean([p[0] for p in pairs]), rel=1e-12)
+    assert mean == pytest.approx(np.mean([p[0] for p in pairs]), rel=1e-12, abs=0)
     assert count == sum(p[1] for p in pairs)
 
 
 def test_sample_surface_names_the_material():
     s = random_sample()
     z, name = s.surface((3 + 0.5) * s.pixel_x, (2 + 0.5) * s.pixel_y)
-    assert z == pytest.approx(s.height[2, 3]) and name == s.materials[s.material_index[2, 3]]
+    assert z == pytest.approx(s.height[2, 3], rel=1e-12, abs=0) and name == s.materials[s.material_index[2, 3]]
 
 
 # --- tip dilation ----------------------------------------------------------------------------
@@ -264,12 +264,12 @@ def test_grating_period_step_height_duty_and_materials(orientation):
                 orientation=orientation)
     profile = s.height.mean(axis=0) if orientation == "x" else s.height.mean(axis=1)
     length, px = (s.size_x, s.pixel_x) if orientation == "x" else (s.size_y, s.pixel_y)
-    assert dominant_period(profile, length) == pytest.approx(pitch, rel=1e-9)
+    assert dominant_period(profile, length) == pytest.approx(pitch, rel=1e-9, abs=0)
     # the lines do not change across the orientation
     assert np.all(np.ptp(s.height, axis=0 if orientation == "x" else 1) == 0)
     ordered = np.sort(s.height.ravel())
     upper, lower = ordered[ordered > ordered.mean()], ordered[ordered <= ordered.mean()]
-    assert np.median(upper) - np.median(lower) == pytest.approx(step, rel=1e-12)
+    assert np.median(upper) - np.median(lower) == pytest.approx(step, rel=1e-12, abs=0)
     assert upper.size / ordered.size == pytest.approx(duty, abs=px / pitch)
     line = s.height > step / 2
     assert np.all(np.array(s.materials)[s.material_index[line]] == "silicon_oxide")
@@ -394,7 +394,7 @@ def test_rough_rms_and_gaussian_correlation_length(seed):
     t_px, n = 8, 1024
     s = rough(rms=1.5e-9, correlation_length=t_px * 1e-9, size=n * 1e-9, pixels=n, seed=seed)
     z = s.height
-    assert z.std() == pytest.approx(1.5e-9, rel=1e-12)
+    assert z.std() == pytest.approx(1.5e-9, rel=1e-12, abs=0)
     assert abs(z.mean()) < 1e-12 * 1.5e-9
     rho = autocorrelation(z)
     along = 0.5 * (rho[0, :n // 2] + rho[:n // 2, 0])  # x and y lags averaged
@@ -441,7 +441,8 @@ def test_from_png_scales_full_scale_to_z_scale(tmp_path, dtype, full):
     Image.fromarray(values).save(tmp_path / "map.png")
     s = from_file(tmp_path / "map.png", size=(3e-6, 2e-6), z_scale=50e-9)
     np.testing.assert_allclose(s.height, values / full * 50e-9, rtol=1e-15)
-    assert s.height[0, 0] == 0.0 and s.height[-1, -1] == pytest.approx(50e-9)  # row 0: the image's top
+    # row 0: the image's top
+    assert s.height[0, 0] == 0.0 and s.height[-1, -1] == pytest.approx(50e-9, rel=1e-12, abs=0)
 
 
 def test_from_png_rejects_colour_and_missing_scale(tmp_path):

@@ -58,7 +58,7 @@ def test_cli_writes_gwy_previews_and_summary(cli):
             assert data.startswith(PNG_SIGNATURE) and len(data) > 1000
     summary = json.loads((out / "scan_summary.json").read_text())
     assert summary["scan"]["pixels_per_line"] == 16 and summary["scan"]["lines"] == 8
-    assert summary["scan"]["speed_m_per_s"] == pytest.approx(2 * 2.5e-6 * 8, rel=1e-12)
+    assert summary["scan"]["speed_m_per_s"] == pytest.approx(2 * 2.5e-6 * 8, rel=1e-12, abs=0)
     assert summary["step"]["true_m"] == pytest.approx(10e-9, rel=0, abs=1e-15)
     assert summary["step"]["level_materials"] == ["polystyrene", "ldpe"]
     assert summary["edge_exclusion_m"] > 0 and summary["kept_pixels"] > 0
@@ -82,7 +82,8 @@ def test_gwy_read_back_with_gwyfile(cli, frame):
         assert obj[f"/{n}/data/title"] == title
         assert (field["xres"], field["yres"]) == (16, 8)
         assert field["xreal"] == plan.size_x and field["yreal"] == plan.size_y
-        assert field["xoff"] == pytest.approx(4.75e-6, rel=1e-12) and field["yoff"] == pytest.approx(1.75e-6, rel=1e-12)
+        assert field["xoff"] == pytest.approx(4.75e-6, rel=1e-12, abs=0)
+        assert field["yoff"] == pytest.approx(1.75e-6, rel=1e-12, abs=0)
         assert field["xoff"] == plan.x_left and field["yoff"] == plan.y_low
         assert field["si_unit_xy"]["unitstr"] == "m"
         assert field["si_unit_z"]["unitstr"] == unit
@@ -231,8 +232,8 @@ def test_ctrl_c_keeps_the_completed_lines_and_exits_130(tmp_path):
         field = obj[f"/{n}/data"]
         assert obj[f"/{n}/data/title"] == title
         assert (field["xres"], field["yres"]) == (16, done)
-        assert field["yreal"] == pytest.approx(done * pitch, rel=1e-12)
-        assert field["yoff"] == pytest.approx(full.plan.y_low, rel=1e-12)
+        assert field["yreal"] == pytest.approx(done * pitch, rel=1e-12, abs=0)
+        assert field["yoff"] == pytest.approx(full.plan.y_low, rel=1e-12, abs=0)
         data = np.asarray(field["data"], dtype=float).reshape(done, 16)
         assert np.array_equal(data, values[:done]), title
 

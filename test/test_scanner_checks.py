@@ -171,11 +171,12 @@ def test_completed_part_of_a_frame_keeps_its_rows_and_geometry():
         frame.lines_done = done
         part = frame.completed()
         assert part.partial and part.info() == {"partial": True, "lines_done": 3, "lines_planned": 8}
-        assert part.plan.lines == done and part.plan.size_y == pytest.approx(done * plan.line_pitch, rel=1e-12)
+        assert part.plan.lines == done
+        assert part.plan.size_y == pytest.approx(done * plan.line_pitch, rel=1e-12, abs=0)
         rows = [plan.row_of_line(k) for k in range(done)]
-        assert part.plan.y_low == pytest.approx(plan.y_low + min(rows) * plan.line_pitch, rel=1e-12)
+        assert part.plan.y_low == pytest.approx(plan.y_low + min(rows) * plan.line_pitch, rel=1e-12, abs=0)
         for k in range(done):  # every completed line at its own y in the cropped plan
-            assert part.plan.line_y(k) == pytest.approx(plan.line_y(k), rel=1e-12)
+            assert part.plan.line_y(k) == pytest.approx(plan.line_y(k), rel=1e-12, abs=0)
             np.testing.assert_array_equal(part.images["trace"]["height"][part.plan.row_of_line(k)],
                                           frame.images["trace"]["height"][plan.row_of_line(k)])
         assert all(np.isfinite(part.images[d][ch]).all() for d in DIRECTIONS for ch in CHANNELS)
@@ -283,8 +284,9 @@ def test_a_stopped_scan_writes_its_completed_lines_as_a_partial_frame(stopped):
         for d in DIRECTIONS:
             f = fields[channel_title(c, d)]
             assert f.data.shape == (done, plan.pixels)
-            assert f.yreal == pytest.approx(done * plan.line_pitch, rel=1e-12)
-            assert f.yoff == pytest.approx(plan.y_low, rel=1e-12) and f.xoff == pytest.approx(plan.x_left, rel=1e-12)
+            assert f.yreal == pytest.approx(done * plan.line_pitch, rel=1e-12, abs=0)
+            assert f.yoff == pytest.approx(plan.y_low, rel=1e-12, abs=0)
+            assert f.xoff == pytest.approx(plan.x_left, rel=1e-12, abs=0)
             assert np.isfinite(f.data).all()
             np.testing.assert_array_equal(f.data, full.images[d][c][:done].astype(np.float64), err_msg=f"{c} {d}")
     kept = stopped["partial_frame"]  # what an in-process caller summarises

@@ -23,8 +23,8 @@ def read_csv(path):
 def test_parse_z_bases():
     assert study.parse_z_bases("80e-9,40e-9, 5e-9") == [80e-9, 40e-9, 5e-9]
     # start:stop:step includes stop; the direction comes from start -> stop
-    assert np.allclose(study.parse_z_bases("80e-9:5e-9:5e-9"), np.arange(80, 4, -5) * 1e-9)
-    assert np.allclose(study.parse_z_bases("10e-9:20e-9:5e-9"), [10e-9, 15e-9, 20e-9])
+    assert np.allclose(study.parse_z_bases("80e-9:5e-9:5e-9"), np.arange(80, 4, -5) * 1e-9, rtol=1e-12, atol=0)
+    assert np.allclose(study.parse_z_bases("10e-9:20e-9:5e-9"), [10e-9, 15e-9, 20e-9], rtol=1e-12, atol=0)
     for bad, field in (("abc", "z_base"), ("1e-9:2e-9", "z_base"), ("1e-9:2e-9:0", "step"), ("1.0", "z_base")):
         with pytest.raises(ValueError, match=field):
             study.parse_z_bases(bad)
@@ -38,7 +38,7 @@ def test_convergence_subcommand(tmp_path, capsys):
     assert list(rows[0]) == ["method", "steps_per_period", "dt_s", "l1_error_m"]
     assert {r["method"] for r in rows} == {"euler", "verlet", "rk4"}
     for r in rows:  # dt = 1 / (f spp)
-        assert float(r["dt_s"]) == pytest.approx(1 / (45e3 * int(r["steps_per_period"])), rel=1e-12)
+        assert float(r["dt_s"]) == pytest.approx(1 / (45e3 * int(r["steps_per_period"])), rel=1e-12, abs=0)
     out = capsys.readouterr().out
     orders = json.loads((tmp_path / "convergence_orders.json").read_text())
     assert f"fitted order rk4: {orders['rk4']:.3f}" in out
@@ -58,8 +58,8 @@ def test_sweep_subcommand_approach_and_retract(tmp_path):
         assert col in ("direction", "periods_simulated", "converged") or col.endswith(UNITS), col
     approach = [r for r in rows if r["direction"] == "approach"]
     retract = [r for r in rows if r["direction"] == "retract"]
-    assert [float(r["z_base_m"]) for r in approach] == pytest.approx([70e-9, 50e-9, 30e-9, 10e-9])
-    assert [float(r["z_base_m"]) for r in retract] == pytest.approx([30e-9, 50e-9, 70e-9])
+    assert [float(r["z_base_m"]) for r in approach] == pytest.approx([70e-9, 50e-9, 30e-9, 10e-9], rel=1e-12, abs=0)
+    assert [float(r["z_base_m"]) for r in retract] == pytest.approx([30e-9, 50e-9, 70e-9], rel=1e-12, abs=0)
     amp = [float(r["amplitude_m"]) for r in approach]
     # far away the free amplitude; then the amplitude falls toward the sample (tapping)
     free, _ = steady_amplitude_phase(Cantilever(), Drive.from_free_amplitude(Cantilever(), 60e-9))
@@ -98,7 +98,7 @@ def test_trajectory_subcommand(tmp_path):
     drive = np.array([float(r["drive_force_N"]) for r in rows])
     t = np.array([float(r["t_s"]) for r in rows])
     assert np.allclose(gap, 30e-9 + z, rtol=0, atol=1e-20)
-    assert np.allclose(np.diff(t), 1 / (45e3 * 100), rtol=1e-9)
+    assert np.allclose(np.diff(t), 1 / (45e3 * 100), rtol=1e-9, atol=0)
     assert np.max(np.abs(drive)) == pytest.approx(10 * 60e-9 / 25, rel=1e-3)  # F0 = k A0 / Q
     assert (tmp_path / "trajectory.png").stat().st_size > 1000
 
@@ -161,7 +161,7 @@ def test_drive_force_flag_is_the_same_drive_as_free_amplitude():
     parser = study.build_parser()
     by_force = study.physics_from_args(parser.parse_args(["sweep", "--drive-force", "1.2e-8"]))[1]
     by_amplitude = study.physics_from_args(parser.parse_args(["sweep", "--free-amplitude", "3e-8"]))[1]
-    assert by_force.force == pytest.approx(by_amplitude.force, rel=1e-12)
+    assert by_force.force == pytest.approx(by_amplitude.force, rel=1e-12, abs=0)
     assert by_force.frequency == by_amplitude.frequency
 
 

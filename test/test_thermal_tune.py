@@ -54,10 +54,16 @@ def test_sho_thermal_spectrum_is_the_equation_of_motion_and_obeys_equipartition(
     for f in (1e3, 20e3, 44e3, 45e3, 46e3, 130e3):
         w = 2 * math.pi * f
         direct = 4 * BOLTZMANN * T * c / abs(k - m * w * w + 1j * c * w) ** 2
-        assert sho_thermal_psd(f, f0, q, k, T) == pytest.approx(direct, rel=1e-12)
+        assert sho_thermal_psd(f, f0, q, k, T) == pytest.approx(direct, rel=1e-12, abs=0)
+    # integrated over x = f / f0 in units of kB T / k: an O(1) integrand, which quad's default absolute
+    # tolerance (1.5e-8) and its infinite-range transform (a tail decaying over x ~ 1) are made for. In SI
+    # units (S ~ 1e-25 m^2/Hz, a tail decaying over ~1e6 Hz) it accepts first estimates (5e-5 off over
+    # 50 kHz-1 MHz) and misses the tail above 1 MHz (7.7e-7 of the area: 2 f0^3 / (3 pi Q f^3)) altogether.
     pieces = [(0, 40e3), (40e3, 50e3), (50e3, 1e6), (1e6, np.inf)]
-    area = sum(quad(lambda f: sho_thermal_psd(f, f0, q, k, T), a, b, limit=200)[0] for a, b in pieces)
-    assert area == pytest.approx(BOLTZMANN * T / k, rel=1e-6)
+    unit = BOLTZMANN * T / k
+    area = sum(quad(lambda x: f0 * sho_thermal_psd(f0 * x, f0, q, k, T) / unit, a / f0, b / f0, limit=200)[0]
+               for a, b in pieces)
+    assert area == pytest.approx(1.0, rel=1e-6, abs=0)  # kB T / k
 
 
 def _check_fit(result):
@@ -89,7 +95,7 @@ def test_fit_recovers_f0_q_k_and_the_floor_with_detector_noise(tune_floor):
     _check_fit(tune_floor)
     fit = tune_floor.fit
     assert abs(fit.white - DETECTOR ** 2) < 4 * fit.white_err
-    assert fit.white == pytest.approx(DETECTOR ** 2, rel=0.02)
+    assert fit.white == pytest.approx(DETECTOR ** 2, rel=0.02, abs=0)
     peak = sho_thermal_psd(fit.f0, fit.f0, fit.q, fit.k, T)
     assert 100 < peak / fit.white < 1000  # visible, but well below the peak
 
@@ -243,7 +249,7 @@ def test_the_streamed_record_is_the_one_long_run():
     f, psd = welch(z, fs=fs, window="hann", nperseg=nperseg, noverlap=nperseg // 2)
     np.testing.assert_array_equal(record.spectrum.f, f)
     np.testing.assert_allclose(record.spectrum.psd, psd, rtol=1e-12)  # summed in batches: rounding only
-    assert record.variance == pytest.approx(np.var(z), rel=1e-12)
+    assert record.variance == pytest.approx(np.var(z), rel=1e-12, abs=0)
 
 
 def test_the_accumulator_fed_in_any_pieces_is_scipys_welch():
@@ -262,7 +268,7 @@ def test_the_accumulator_fed_in_any_pieces_is_scipys_welch():
         spectrum = acc.spectrum()
         assert spectrum.segments == (z.size - 8000) // 4000 + 1 and acc.samples == z.size
         np.testing.assert_allclose(spectrum.psd, reference, rtol=1e-12)
-        assert acc.variance == pytest.approx(np.var(z), rel=1e-12)
+        assert acc.variance == pytest.approx(np.var(z), rel=1e-12, abs=0)
         results.append((spectrum.psd, acc.variance))
     # the same batches whatever the pieces: bit for bit
     assert all(np.array_equal(r[0], results[0][0]) and r[1] == results[0][1] for r in results)

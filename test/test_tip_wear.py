@@ -75,7 +75,7 @@ def test_tapping_above_the_threshold_wears_the_tip_and_below_it_does_not():
     # dR = c x (F_peak - threshold) per tap; the force of each chunk is its own peak
     expected = sum(1e-5 * max(0.0, r.force_peak - 0.5 * peak) * (w.setup.chunk_steps / w.setup.steps_per_period)
                    for r in w.records if r.t_end > t0 + 1e-12)
-    assert w.wear.radius - r0 == pytest.approx(expected, rel=1e-9) and expected > 1e-9
+    assert w.wear.radius - r0 == pytest.approx(expected, rel=1e-9, abs=0) and expected > 1e-9
 
 
 def test_a_worn_tip_widens_a_step_as_the_grown_sphere_predicts():

@@ -31,7 +31,7 @@ def test_tune_finds_f0_and_q_of_the_configured_cantilever():
     assert r.f0_error < 0.05 and r.q_error < 0.01
     assert r.drive_frequency == pytest.approx(45e3 * math.sqrt(1 - 0.5 / 25 ** 2), abs=0.05)
     peak, lag = analytic(r.drive_frequency, 45e3, 25.0, 60e-9)
-    assert peak == pytest.approx(60e-9 / math.sqrt(1 - 1 / (4 * 25 ** 2)), rel=1e-9)
+    assert peak == pytest.approx(60e-9 / math.sqrt(1 - 1 / (4 * 25 ** 2)), rel=1e-9, abs=0)
     assert r.drive_scale == pytest.approx(50e-9 / peak, rel=1e-4)
     assert r.phase_offset_deg == pytest.approx(lag - 90.0, abs=0.01)
     # the measured points are the analytic response
@@ -130,7 +130,8 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(ros_
         assert controller.stage_state == "withdrawn"  # the feedback stays held until an approach engages
         spin_until(lambda: cantilever.get_parameter("drive_frequency").value == pytest.approx(
             ros_result.drive_frequency, rel=1e-12), what="the working drive frequency")
-        assert cantilever.get_parameter("free_amplitude").value == pytest.approx(60e-9 * ros_result.drive_scale)
+        assert cantilever.get_parameter("free_amplitude").value == pytest.approx(60e-9 * ros_result.drive_scale,
+                                                                                  rel=1e-12, abs=0)
         t = cantilever.sim_time
         spin_until(lambda: cantilever.sim_time > t + 0.02, what="20 ms at the working point")
         amplitude, phase = [], []

@@ -275,7 +275,7 @@ def test_node_parameters(ros_context, ros_executor, ros_namespace):
     # accepted: a new setpoint shows in the error (setpoint - amplitude), and the node kept running
     assert set_params(Parameter("setpoint", value=40e-9))[0].successful
     feed(ros_executor, harness, [50e-9] * 3, 5_000_000, 1_000_000)
-    assert harness.error[-1] == pytest.approx(40e-9 - 50e-9, rel=1e-12)
+    assert harness.error[-1] == pytest.approx(40e-9 - 50e-9, rel=1e-12, abs=0)
     # disable with withdraw: z_max is published at once, without waiting for a sample
     n = len(harness.z)
     results = set_params(Parameter("disabled_action", value="withdraw"), Parameter("enabled", value=False))
@@ -298,7 +298,7 @@ def test_node_answers_every_chunk_in_order(ros_context, ros_executor, ros_namesp
     answered = [c.answered_end_index for c in harness.commands[1:]]
     assert answered == [Harness.CHUNK * (k + 1) for k in range(200)]
     expected = z0 + I * (SETPOINT - 55e-9) * 0.199
-    assert harness.z[-1] == pytest.approx(expected, rel=1e-9)
+    assert harness.z[-1] == pytest.approx(expected, rel=1e-9, abs=0)
     assert harness.commands[-1].z == harness.z[-1]
     assert node.lost_samples == 0 and node.stale_batches == 0
 
@@ -311,4 +311,4 @@ def test_non_finite_samples_and_time_going_back():
     assert ctrl.rejected_samples == 2 and math.isfinite(ctrl.integrator)
     # the simulation restarts at t = 0: no step for the jump, then integration resumes
     assert ctrl.update(55e-9, 0.0) == z and ctrl.non_monotonic_samples == 1
-    assert ctrl.update(55e-9, 0.001) == pytest.approx(z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9)
+    assert ctrl.update(55e-9, 0.001) == pytest.approx(z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9, abs=0)
