@@ -156,9 +156,15 @@ def teardown_within(teardown: Callable[[], None], program: str, status: int,
     is destroyed under the EventsExecutor (seen rarely, at the end of a finished job): the work
     is done and flushed by then, so the process must not hang on it.
     """
+    import faulthandler
+
+    # a hang that holds the GIL (inside rclpy's C code) would stop the join below as well: a C watchdog
+    # (it needs no GIL) dumps every thread's stack and exits the process if even that deadline passes
+    faulthandler.dump_traceback_later(2 * deadline + 10.0, exit=True)
     worker = threading.Thread(target=teardown, name="teardown", daemon=True)
     worker.start()
     worker.join(deadline)
+    faulthandler.cancel_dump_traceback_later()
     if worker.is_alive():
         print(f"{program}: rclpy did not finish shutting down within {deadline:g} s; exiting anyway "
               f"(everything was already written)", file=sys.stderr, flush=True)
