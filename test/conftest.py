@@ -100,3 +100,28 @@ def instrument_nodes(namespace: str, monkeypatch, domain_id: str, cantilever: di
             node.destroy_node()
         executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown(context=ctx)
+
+
+# one small `afm_instrument --fm` session, recorded, shared by test_fm_session.py and test_report_fm.py
+FM_SESSION_ARGS = ["--fm", "--json", "--ros-args", "-p", "scanner:pixels_per_line:=16", "-p", "scanner:lines:=4",
+                   "-p", "cantilever:real_time_factor:=0.0"]
+
+
+@pytest.fixture(scope="session")
+def fm_session_run(tmp_path_factory):
+    """(working folder, the session's JSON summary, the printed text) of FM_SESSION_ARGS."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cwd = tmp_path_factory.mktemp("fm_session")
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    proc = subprocess.run([str(Path(sys.executable).parent / "afm_instrument"), *FM_SESSION_ARGS], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
+    assert "Traceback" not in proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    return cwd, json.loads(lines[-1]), "\n".join(lines[:-1])
+

@@ -10,11 +10,6 @@ dissipation is the larger.
 """
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
@@ -23,21 +18,10 @@ from afm_ros.formats.frames import channel_title
 from afm_ros.formats.gwy import read_gwy
 from afm_ros.formats.mcap_io import read_session
 
-BIN = Path(sys.executable).parent
-ARGS = ["--fm", "--json", "--ros-args", "-p", "scanner:pixels_per_line:=16",
-        "-p", "scanner:lines:=4", "-p", "cantilever:real_time_factor:=0.0"]
-
-
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    cwd = tmp_path_factory.mktemp("fm")
-    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.run([str(BIN / "afm_instrument"), *ARGS], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
-    assert "Traceback" not in proc.stderr
-    lines = proc.stdout.strip().splitlines()
-    return cwd, json.loads(lines[-1]), "\n".join(lines[:-1])
+def session(fm_session_run):
+    """The shared small FM session (conftest: 16 x 4 pixels, as fast as possible, recorded)."""
+    return fm_session_run
 
 
 def test_free_lock_centres_the_pll_and_measures_q(session):

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -24,20 +23,15 @@ from afm_ros.tools import report
 
 BIN = Path(sys.executable).parent
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-LINES = 4
-ARGS = ["--fm", "--json", "--ros-args", "-p", "scanner:pixels_per_line:=16", "-p", f"scanner:lines:={LINES}",
-        "-p", "cantilever:real_time_factor:=0.0"]
+LINES = 4  # the shared session's frame (conftest: FM_SESSION_ARGS)
+
 
 
 @pytest.fixture(scope="module")
-def fm_report(tmp_path_factory):
-    """(session summary, report numbers, report folder, afm_report's stdout)."""
-    cwd = tmp_path_factory.mktemp("fm_report")
-    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.run([str(BIN / "afm_instrument"), *ARGS], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
-    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+def fm_report(fm_session_run):
+    """(session summary, report numbers, report folder, afm_report's stdout) of the shared FM session
+    (conftest: FM_SESSION_ARGS)."""
+    cwd, summary, _ = fm_session_run
     assert summary["recording"]["complete"]
     out = cwd / "report"
     done = subprocess.run([str(BIN / "afm_report"), str(cwd / summary["recording"]["file"]), "--out", str(out),
