@@ -58,6 +58,7 @@ HOLD_WAIT_S = 3.0  # longest wait for the cantilever to confirm the recorder's h
 CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
 DIAGNOSTICS_PERIOD_S = 1.0
 RATE_WINDOW_S = 10.0  # the write rate is measured over the last this many wall seconds
+RATE_MIN_SPAN_S = 1.0  # [s] wall: no rate before the samples span this long (the start's schemas and snapshots skew it)
 BUDGET_ADVICE = {
     "max_size": "to record longer, raise max_size (0 = unlimited), exclude topics (the raw cantilever/* "
                 "streams take most of the bytes) or free disk space",
@@ -436,14 +437,17 @@ class RecorderNode(Node):
 
     def write_rate(self) -> tuple[float | None, float | None]:
         """(bytes per wall second, bytes per simulated second) over the last RATE_WINDOW_S wall
-        seconds; None until measured (the simulated rate needs a recorded clock, chunk or lock-in
-        batch stream)."""
+        seconds; None until the samples span RATE_MIN_SPAN_S (the simulated rate needs a recorded
+        clock, chunk or lock-in batch stream over that span)."""
         samples = list(self._rate_samples)  # appended by the writer thread
         if len(samples) < 2:
             return None, None
-        (w0, s0, b0), (w1, s1, b1) = samples[0], samples[-1]
-        per_wall = (b1 - b0) / (w1 - w0) if w1 > w0 else None
-        per_sim = (b1 - b0) / (s1 - s0) if s0 is not None and s1 is not None and s1 > s0 else None
+        (w0, _, b0), (w1, s1, b1) = samples[0], samples[-1]
+        per_wall = (b1 - b0) / (w1 - w0) if w1 - w0 >= RATE_MIN_SPAN_S else None
+        timed = [x for x in samples if x[1] is not None]
+        per_sim = None
+        if s1 is not None and timed and w1 - timed[0][0] >= RATE_MIN_SPAN_S and s1 > timed[0][1]:
+            per_sim = (b1 - timed[0][2]) / (s1 - timed[0][1])
         return per_wall, per_sim
 
     def _sample_rate(self) -> None:
