@@ -25,14 +25,18 @@ PACKAGE = Path(afm_ros.__file__).resolve().parent
 # --- choice of the cache directory (in process) -----------------------------------------------
 @pytest.fixture
 def clean_cache_state(monkeypatch):
-    """configure() may set NUMBA_CACHE_DIR and numba's config: restore both after the test."""
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    """configure() may set NUMBA_CACHE_DIR and numba's config: restore both after the test (else every
+    later compile and every later child process of the suite uses a deleted temporary cache: cold)."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # records the original state (delenv of an unset name would not)
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setattr(numba_cache, "chosen", numba_cache.chosen)
     monkeypatch.setattr(numba_cache, "reason", numba_cache.reason)
     config = sys.modules.get("numba.core.config")
+    before = config.CACHE_DIR if config is not None else os.environ.get("NUMBA_CACHE_DIR", "")
+    yield monkeypatch
+    config = sys.modules.get("numba.core.config")  # the test may have imported numba
     if config is not None:
-        monkeypatch.setattr(config, "CACHE_DIR", config.CACHE_DIR)
-    return monkeypatch
+        config.CACHE_DIR = before
 
 
 def test_user_set_numba_cache_dir_wins(clean_cache_state, tmp_path):
