@@ -39,7 +39,7 @@ from conftest import EXACT_PHYSICS
 # a vacuum cantilever (Q 1e4) self-excited at 5 nm (the PLL's amplitude setpoint), 8 nm above the blend,
 # with the nodes' real tip (wear) and scanner (drift, tilt, creep, hysteresis), given to the wired one too
 CANTILEVER = {**EXACT_PHYSICS, **INSTRUMENT_TIP, "force_model": "viscoelastic_dmt", "sample": "ps_ldpe_blend", "excitation": "pll",
-              "quality_factor": 1e4, "chunk_duration": 1e-3, "z_base": 8e-9}
+              "quality_factor": 1e4, "chunk_duration": 2e-3, "z_base": 8e-9}
 Z_LOOP = {"feedback_signal": "frequency_shift", "df_setpoint": -20.0}
 # FM scans slowly: the z loop on df is held below the PLL's bandwidth (docs/fm.md); 1 um at 1 line/s
 SCAN = dict(scan_size_x=1e-6, scan_size_y=1e-6, scan_center_x=5e-6, scan_center_y=5e-6, pixels_per_line=8,

@@ -34,8 +34,9 @@ from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 
 FREE_LOCK_S = 0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
-# a vacuum cantilever, PLL-excited, 1 ms chunks (the PLL's gains are designed for its 2.6 ms loop delay)
-FM_CANTILEVER = {"excitation": "pll", "quality_factor": 1e4, "chunk_duration": 1e-3,
+# a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of phase
+# margin at its 4.6 ms loop delay, 57 deg at 1 ms chunks, where the ROS loop is not real time on 2 cores)
+FM_CANTILEVER = {"excitation": "pll", "quality_factor": 1e4, "chunk_duration": 2e-3,
                  "sample": "ps_ldpe_microtomed", "force_model": "hysteresis_dmt"}
 FM_Z = {"feedback_signal": "frequency_shift", "approach_start_distance": 100e-9, "approach_speed": 50e-9}
 # 1.5 um across an LDPE island at 1 line/s: ~3 um/s, what the z loop on df follows (docs/fm.md)
