@@ -66,3 +66,47 @@ def test_the_gwy_file_and_the_session_hold_the_fm_channels(session):
     topics = {m.topic for m in read_session(cwd / s["recording"]["file"])}
     assert {"/pll/outputs", "/pll/excitation", "/lockin/outputs", "/z_controller/z_command"} <= topics
     assert s["withdraw"]["withdrawn_s"] > s["image"]["scan_start_s"]
+
+
+def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_path):
+    """--fm --interactive: lock, centre, approach on df and hold as the job does, then run until Ctrl-C
+    with FM status lines (df, amplitude, drive); the summary's last second before Ctrl-C holds df at its
+    setpoint (the hold's tolerance, 0.5 Hz) and the amplitude at 5 nm (0.1 %, the amplitude controller's
+    integral action), the exit status is 0 and the recording is complete."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([str(Path(sys.executable).parent / "afm_instrument"), "--fm", "--interactive", "--json",
+                             "--duration", "0.2", "--ros-args", "-p", "real_time_factor:=0.0"],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    try:
+        deadline = time.monotonic() + 300
+        while not any("running until Ctrl-C" in line for line in lines):
+            line = proc.stdout.readline()
+            assert (line or proc.poll() is None) and time.monotonic() < deadline, proc.communicate()[1][-3000:]
+            lines.append(line)
+        status = proc.stdout.readline()  # after 5 s of wall time: running on its own after the hold
+        assert status.startswith("t=") and "df=" in status and "(setpoint -20)" in status and "drive=" in status, status
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err[-3000:]
+    assert "Traceback" not in err
+    s = json.loads(out.strip().splitlines()[-1])
+    last = s["last_second"]
+    assert s["simulated_s"] > s["approach"]["engaged_s"] + 1.0  # a whole second after the hold
+    assert last["window_s"][1] - last["window_s"][0] == pytest.approx(1.0, rel=1e-9)
+    assert abs(last["df"]["mean"] - s["df_setpoint_Hz"]) < 0.5
+    assert last["amplitude"]["mean"] == pytest.approx(5e-9, rel=1e-3, abs=0)
+    assert last["dissipation_J"] > 0  # hysteresis_dmt: adhesion hysteresis dissipates at every cycle
+    assert s["recording"]["complete"] and "last second before Ctrl-C" in out

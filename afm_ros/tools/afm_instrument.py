@@ -906,8 +906,10 @@ class Instrument:
         if values["write_files"]:
             check_output_directory(values["output_directory"], need_bytes=needs.file_bytes, create=True)
 
-    def _run_until_interrupted(self) -> None:
-        """Interactive: run without a pause until Ctrl-C, with a status line every 5 s of wall time."""
+    def _run_until_interrupted(self, status=None) -> None:
+        """Interactive: run without a pause until Ctrl-C, with a status line (``status()``, default
+        :meth:`status_line`) every 5 s of wall time."""
+        status = status or self.status_line
         self.set("cantilever", run_until=-1.0)
         print("running until Ctrl-C; tune it from another terminal with afm_ctl (no ROS install needed), e.g. "
               f"'afm_ctl{self._ns_flag()} set z_controller setpoint 40e-9', 'afm_ctl{self._ns_flag()} list', "
@@ -920,7 +922,7 @@ class Instrument:
                 node_main.serve(self.executor, stop, done=lambda: time.monotonic() - last >= STATUS_PERIOD_S)
                 if time.monotonic() - last >= STATUS_PERIOD_S:
                     last = time.monotonic()
-                    print(self.status_line(), flush=True)
+                    print(status(), flush=True)
                     if not rate_said:
                         rate_said = self._say_recording_rate()
         finally:
@@ -1018,11 +1020,12 @@ def parse_args(argv):
                         help="the frequency-modulation (non-contact) session: the pll node self-excites a Q 1e4 "
                              "cantilever at a constant amplitude, the z loop regulates on the frequency shift; lock "
                              "free, centre the PLL, approach on df, hold --duration, scan a frame of the cut PS/LDPE "
-                             "blend, print df, drive, dissipation and their contrast by material (docs/fm.md)")
+                             "blend, print df, drive, dissipation and their contrast by material (docs/fm.md); with "
+                             "--interactive: after the hold, run until Ctrl-C (scan with afm_ctl)")
     parser.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     args = parser.parse_args(argv)
-    if args.fm and (args.attach or args.interactive or args.image):
-        parser.error("--fm is a job of its own: not with --attach, --interactive or --image")
+    if args.fm and (args.attach or args.image):
+        parser.error("--fm is a job of its own: not with --attach or --image")
     for name in ("duration", "free_time"):
         if not (getattr(args, name) > 0 and math.isfinite(getattr(args, name))):
             parser.error(f"--{name.replace('_', '-')}={getattr(args, name)} s must be > 0")
@@ -1205,7 +1208,8 @@ def main(args=None):
             raise
         if options.fm:
             from afm_ros.tools.fm_session import run_fm_job, summary_text
-            fm_summary = instrument.fm_summary = run_fm_job(instrument, options.duration)
+            fm_summary = instrument.fm_summary = run_fm_job(instrument, options.duration,
+                                                            interactive=options.interactive)
             print(summary_text(fm_summary), flush=True)
             if options.json:
                 print(json.dumps(fm_summary, default=float), flush=True)

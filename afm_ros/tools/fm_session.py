@@ -16,6 +16,10 @@ controller regulates on the frequency shift (``feedback_signal`` 'frequency_shif
    contrast; .gwy + PNG as in tapping;
 6. withdraw.
 
+With ``--interactive`` steps 5-6 are the user's: after the hold it runs until Ctrl-C (scan, tune and
+withdraw with ``afm_ctl``; a status line with df, amplitude and drive every 5 s) and then prints the
+summary with the statistics of the last simulated second before Ctrl-C and the frames written.
+
 Defaults the job sets unless given with -p: :data:`FM_CANTILEVER`, :data:`FM_Z`, :data:`FM_SCAN`, and
 the scanner's slope compensation equal to the sample's tilt (a user who compensated the tilt they
 measured: an integrating z loop on df otherwise follows the tilt's ramp with an error of v / K_I).
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
 import numpy as np
 from rclpy.node import Node
@@ -53,6 +58,8 @@ class FmMonitor(Node):
         self.windows: list[FmWindow] = []
         self.end_time = -math.inf  # simulated end [s] of the input chunk the newest batch answered
         self.latest = None
+        self.recent_span = 0.0  # [s] simulated: > 0 keeps the batches of that last span (interactive)
+        self.recent: deque = deque()
         self.create_subscription(Float64MultiArray, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS)
 
     def _on_batch(self, msg: Float64MultiArray) -> None:
@@ -61,6 +68,37 @@ class FmMonitor(Node):
             w.add(out.t, out.df, out.drive, out.amplitude, out.phase_error)
         self.end_time = max(self.end_time, out.input_end_time)
         self.latest = out
+        if self.recent_span > 0 and out.t.shape[0]:
+            self.recent.append(out)
+            while self.recent and self.recent[0].t[-1] < out.t[-1] - self.recent_span:
+                self.recent.popleft()
+
+    def recent_window(self) -> FmWindow:
+        """Statistics of the last ``recent_span`` simulated seconds of outputs."""
+        if not self.recent:
+            return FmWindow(math.nan, math.nan)
+        t1 = float(self.recent[-1].t[-1])
+        w = FmWindow(t1 - self.recent_span, math.nextafter(t1, math.inf))
+        for out in self.recent:
+            w.add(out.t, out.df, out.drive, out.amplitude, out.phase_error)
+        return w
+
+    def status_line(self, instrument) -> str:
+        """One line of the FM loop's state for --interactive."""
+        out = self.latest
+        if out is None or not out.t.shape[0]:
+            return "t=? (no PLL output yet)"
+        mon = instrument.monitor
+        rtf = mon.diagnostic_values(instrument._fqn("cantilever"), "simulation").get("real_time_factor_achieved")
+        text = (f"t={out.t[-1]:.3f} s  df={out.df[-1]:.3f} Hz (setpoint "
+                f"{float(instrument.get('z_controller', 'df_setpoint')):g})  amplitude={out.amplitude[-1] * 1e9:.4f} nm  "
+                f"drive={out.drive[-1] * 1e12:.4g} pN  z_piezo={mon.z * 1e9:.3f} nm")
+        if rtf is not None:
+            text += f"  {float(rtf):.2f}x real time"
+        rec = instrument.nodes.get("recorder")
+        if rec is not None and getattr(rec, "bytes_written", None) is not None:
+            text += f"  recorded {rec.bytes_written / 1e6:.1f} MB"
+        return text
 
     def window(self, t0: float, t1: float) -> FmWindow:
         w = FmWindow(t0, t1)
@@ -78,9 +116,13 @@ def _measure(instrument, fm: FmMonitor, seconds: float) -> FmWindow:
     return w
 
 
-def run_fm_job(instrument, duration: float, progress: bool = True) -> dict:
+INTERACTIVE_SPAN_S = 1.0  # [s] simulated: --interactive's summary covers the last second before Ctrl-C
+
+
+def run_fm_job(instrument, duration: float, progress: bool = True, interactive: bool = False) -> dict:
     """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument` built with
-    the pll and scanner nodes in this process; returns the summary's numbers (SI units)."""
+    the pll and scanner nodes in this process; returns the summary's numbers (SI units). ``interactive``:
+    after the hold, run until Ctrl-C instead of scanning and withdrawing."""
     from afm_ros.core.fm import dissipation_from_drive
     from afm_ros.core.image_analysis import fm_material_contrast
 
@@ -123,8 +165,24 @@ def run_fm_job(instrument, duration: float, progress: bool = True) -> dict:
     out["hold"] = {name: {"mean": hold.mean(name), "std": hold.std(name)} for name in FmWindow.NAMES}
     out["hold"]["dissipation_J"] = float(dissipation_from_drive(hold.mean("drive"), hold.mean("amplitude"), k, q_set))
     out["hold"]["window_s"] = [hold.t0, hold.t1]
-    # 5: scan
     scanner = instrument.nodes["scanner"]
+    if interactive:
+        fm.recent_span = INTERACTIVE_SPAN_S
+        instrument._run_until_interrupted(status=lambda: fm.status_line(instrument))
+        last = fm.recent_window()
+        out["last_second"] = {name: {"mean": last.mean(name), "std": last.std(name)} for name in FmWindow.NAMES}
+        out["last_second"]["dissipation_J"] = float(dissipation_from_drive(
+            last.mean("drive"), last.mean("amplitude"), k, q_set))
+        out["last_second"]["window_s"] = [last.t0, last.t1]
+        out["image"] = {"files": [str(p) for p in scanner.frames_written],
+                        "flags": {f.name: f.message for f in scanner.flags}}
+        out["interrupted"] = ""  # Ctrl-C is how an interactive session ends
+        out["simulated_s"] = fm.end_time
+        out["wall_s"] = time.monotonic() - wall0
+        out["real_time_factor"] = out["simulated_s"] / out["wall_s"]
+        out["recording"] = instrument.recording_status(spin=False)
+        return out
+    # 5: scan
     wall_scan = time.monotonic()
     plan = instrument.start_single_scan()
     artefacts = cantilever.simulation.artefacts.copy()
@@ -170,9 +228,16 @@ def summary_text(s: dict) -> str:
              f"{hold['amplitude']['mean'] * 1e9:.4f} +- {hold['amplitude']['std'] * 1e12:.2f} pm, drive "
              f"{hold['drive']['mean']:.4g} N ({hold['drive']['mean'] / free['drive_N']:.3g} x free): "
              f"dissipation {hold['dissipation_J']:.3g} J per cycle"]
-    lines.append(f"  frame: {img['pixels']} x {img['lines']} pixels over {img['size_m'] * 1e6:.3g} um at "
-                 f"{img['line_rate_Hz']:g} lines/s, {img['scan_wall_s']:.1f} s wall for {img['frame_time_s']:.3g} s "
-                 f"simulated")
+    if "last_second" in s:
+        last = s["last_second"]
+        lines.append(f"  last second before Ctrl-C ({last['window_s'][0]:.3f}-{last['window_s'][1]:.3f} s): df "
+                     f"{last['df']['mean']:.3f} +- {last['df']['std']:.3f} Hz, amplitude "
+                     f"{last['amplitude']['mean'] * 1e9:.4f} +- {last['amplitude']['std'] * 1e12:.2f} pm, drive "
+                     f"{last['drive']['mean']:.4g} N: dissipation {last['dissipation_J']:.3g} J per cycle")
+    if "pixels" in img:
+        lines.append(f"  frame: {img['pixels']} x {img['lines']} pixels over {img['size_m'] * 1e6:.3g} um at "
+                     f"{img['line_rate_Hz']:g} lines/s, {img['scan_wall_s']:.1f} s wall for {img['frame_time_s']:.3g} s "
+                     f"simulated")
     if "frame" in img:
         for ch, unit, scale in (("frequency_shift", "Hz", 1.0), ("drive", "pN", 1e12), ("dissipation", "aJ", 1e18)):
             v = img["frame"][ch]
