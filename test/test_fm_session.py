@@ -70,9 +70,10 @@ def test_the_gwy_file_and_the_session_hold_the_fm_channels(session):
 
 def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_path):
     """--fm --interactive: lock, centre, approach on df and hold as the job does, then run until Ctrl-C
-    with FM status lines (df, amplitude, drive); the summary's last second before Ctrl-C holds df at its
-    setpoint (the hold's tolerance, 0.5 Hz) and the amplitude at 5 nm (0.1 %, the amplitude controller's
-    integral action), the exit status is 0 and the recording is complete."""
+    with FM status lines (df, amplitude, drive); a frame asked for with ``afm_ctl scan frame`` from another
+    process (localhost DDS, this test's ROS_DOMAIN_ID 83) is scanned in FM and listed; the summary's last
+    second before Ctrl-C holds df at its setpoint (the hold's tolerance, 0.5 Hz) and the amplitude at 5 nm
+    (0.1 %, the amplitude controller's integral action), the exit status is 0 and the recording is complete."""
     import json
     import os
     import signal
@@ -81,9 +82,10 @@ def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_pat
     import time
     from pathlib import Path
 
-    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": "83", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([str(Path(sys.executable).parent / "afm_instrument"), "--fm", "--interactive", "--json",
-                             "--duration", "0.2", "--ros-args", "-p", "real_time_factor:=0.0"],
+                             "--duration", "0.2", "--ros-args", "-p", "real_time_factor:=0.0",
+                             "-p", "scanner:pixels_per_line:=8", "-p", "scanner:lines:=2"],
                             cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = []
     try:
@@ -94,6 +96,9 @@ def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_pat
             lines.append(line)
         status = proc.stdout.readline()  # after 5 s of wall time: running on its own after the hold
         assert status.startswith("t=") and "df=" in status and "(setpoint -20)" in status and "drive=" in status, status
+        ctl = subprocess.run([str(Path(sys.executable).parent / "afm_ctl"), "scan", "frame", "--wait", "--timeout", "60"],
+                             env=env, capture_output=True, text=True, timeout=300)
+        assert ctl.returncode == 0, ctl.stdout[-2000:] + ctl.stderr[-2000:]
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=120)
     finally:
@@ -110,3 +115,6 @@ def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_pat
     assert last["amplitude"]["mean"] == pytest.approx(5e-9, rel=1e-3, abs=0)
     assert last["dissipation_J"] > 0  # hysteresis_dmt: adhesion hysteresis dissipates at every cycle
     assert s["recording"]["complete"] and "last second before Ctrl-C" in out
+    (gwy,) = s["image"]["files"]
+    titles = set(read_gwy(tmp_path / gwy).channels)
+    assert {channel_title(c, d) for c in FM_CHANNELS for d in DIRECTIONS} <= titles

@@ -174,6 +174,7 @@ def run_fm_job(instrument, duration: float, progress: bool = True, interactive: 
         out["last_second"]["dissipation_J"] = float(dissipation_from_drive(
             last.mean("drive"), last.mean("amplitude"), k, q_set))
         out["last_second"]["window_s"] = [last.t0, last.t1]
+        scanner.wait_for_writers(30.0)  # a frame that just finished is still being written
         out["image"] = {"files": [str(p) for p in scanner.frames_written],
                         "flags": {f.name: f.message for f in scanner.flags}}
         out["interrupted"] = ""  # Ctrl-C is how an interactive session ends
