@@ -952,9 +952,13 @@ class Instrument:
         recent = job.recent if job is not None else None
         amp = recent.amplitude if recent is not None else math.nan
         setpoint = mon.setpoints.setpoint if mon.setpoints is not None else math.nan
+        return (f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  amplitude={amp * 1e9:.3f} nm "
+                f"(setpoint {setpoint * 1e9:.3f} nm)  outputs={mon.outputs}" + self.status_tail())
+
+    def status_tail(self) -> str:
+        """The end of a status line: the achieved real-time factor and the recording's size, where known."""
+        text = ""
         rtf = self.monitor.diagnostic_values(self._fqn("cantilever"), "simulation").get("real_time_factor_achieved")
-        text = (f"t={mon.answer_time:.3f} s  z_piezo={mon.z * 1e9:.3f} nm  amplitude={amp * 1e9:.3f} nm "
-                f"(setpoint {setpoint * 1e9:.3f} nm)  outputs={mon.outputs}")
         if rtf is not None:
             text += f"  {float(rtf):.2f}x real time"
         rec = self.nodes.get("recorder")

@@ -88,17 +88,10 @@ class FmMonitor(Node):
         out = self.latest
         if out is None or not out.t.shape[0]:
             return "t=? (no PLL output yet)"
-        mon = instrument.monitor
-        rtf = mon.diagnostic_values(instrument._fqn("cantilever"), "simulation").get("real_time_factor_achieved")
-        text = (f"t={out.t[-1]:.3f} s  df={out.df[-1]:.3f} Hz (setpoint "
+        return (f"t={out.t[-1]:.3f} s  df={out.df[-1]:.3f} Hz (setpoint "
                 f"{float(instrument.get('z_controller', 'df_setpoint')):g})  amplitude={out.amplitude[-1] * 1e9:.4f} nm  "
-                f"drive={out.drive[-1] * 1e12:.4g} pN  z_piezo={mon.z * 1e9:.3f} nm")
-        if rtf is not None:
-            text += f"  {float(rtf):.2f}x real time"
-        rec = instrument.nodes.get("recorder")
-        if rec is not None and getattr(rec, "bytes_written", None) is not None:
-            text += f"  recorded {rec.bytes_written / 1e6:.1f} MB"
-        return text
+                f"drive={out.drive[-1] * 1e12:.4g} pN  z_piezo={instrument.monitor.z * 1e9:.3f} nm"
+                + instrument.status_tail())
 
     def window(self, t0: float, t1: float) -> FmWindow:
         w = FmWindow(t0, t1)
