@@ -12,6 +12,7 @@ The instrument (cantilever, lock-in, z controller, scanner and the live view, as
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import math
@@ -129,11 +130,41 @@ def _digest(values) -> bytes:
     return hashlib.blake2b(np.asarray(values, dtype="<f8").tobytes(), digest_size=16).digest()
 
 
+@contextlib.contextmanager
+def _spinning(context, nodes):
+    """``nodes`` on an EventsExecutor in a thread (as afm_instrument serves them); afterwards the
+    nodes destroyed and the context shut down."""
+    import rclpy
+
+    from afm_ros.nodes.node_main import make_executor
+
+    executor = make_executor("events", context)
+    for node in nodes:
+        executor.add_node(node)
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set() and context.ok():
+            executor.spin_once(timeout_sec=0.1)
+
+    thread = threading.Thread(target=spin, name="executor", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(10.0)
+        for node in nodes:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=context)
+
+
 @pytest.fixture(scope="module")
 def instrument():
     import rclpy
 
-    from afm_ros.nodes.node_main import make_executor
     from afm_ros.tools.afm_instrument import build_nodes
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
@@ -144,31 +175,12 @@ def instrument():
                         cantilever_overrides=dict(EXACT_PHYSICS), live_view=True,
                         live_view_overrides={"port": 0, "discovery_period": 0.2, "deflection_decimation": DECIMATION})
     probe = _Probe(context, namespace)
-    executor = make_executor("events", context)
-    for node in [*nodes.values(), probe.node]:
-        executor.add_node(node)
-    stop = threading.Event()
-
-    def spin():
-        while not stop.is_set() and context.ok():
-            executor.spin_once(timeout_sec=0.1)
-
-    thread = threading.Thread(target=spin, name="executor", daemon=True)
-    thread.start()
     live = nodes["live_view"]
-    try:
+    with _spinning(context, [*nodes.values(), probe.node]):
         # every parameter node discovered and read, the data flowing
         assert _wait(lambda: len(live._params) == 4 and len(probe.chunks) >= 1, 20.0), (list(live._params),)
         yield SimpleNamespace(context=context, namespace=namespace, nodes=nodes, live=live, probe=probe,
                               url=f"ws://127.0.0.1:{live.port}")
-    finally:
-        stop.set()
-        thread.join(10.0)
-        for node in [*nodes.values(), probe.node]:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown(context=context)
 
 
 def _layout_scripts(layout: Path = LAYOUT) -> dict[str, dict]:
@@ -614,7 +626,6 @@ def fm_instrument():
     test_fm_ros: the PLL locks, the z loop regulates df."""
     import rclpy
 
-    from afm_ros.nodes.node_main import make_executor
     from afm_ros.tools.afm_instrument import build_nodes
     from afm_ros.tools.fm_session import FM_CANTILEVER
 
@@ -630,31 +641,12 @@ def fm_instrument():
                         scanner_overrides={"write_files": False, "pixels_per_line": 8, "lines": 2},
                         live_view_overrides={"port": 0, "discovery_period": 0.2, "deflection_decimation": DECIMATION})
     probe = _FmProbe(context, namespace)
-    executor = make_executor("events", context)
-    for node in [*nodes.values(), probe.node]:
-        executor.add_node(node)
-    stop = threading.Event()
-
-    def spin():
-        while not stop.is_set() and context.ok():
-            executor.spin_once(timeout_sec=0.1)
-
-    thread = threading.Thread(target=spin, name="executor", daemon=True)
-    thread.start()
     live = nodes["live_view"]
-    try:
+    with _spinning(context, [*nodes.values(), probe.node]):
         # cantilever, lockin, z_controller, pll and scanner read; the PLL's outputs flowing
         assert _wait(lambda: len(live._params) == 5 and all(probe.values.values()), 30.0), (list(live._params),)
         yield SimpleNamespace(context=context, namespace=namespace, nodes=nodes, live=live, probe=probe,
                               url=f"ws://127.0.0.1:{live.port}")
-    finally:
-        stop.set()
-        thread.join(10.0)
-        for node in [*nodes.values(), probe.node]:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown(context=context)
 
 
 def test_fm_outputs_are_served_from_the_pll_batches_bit_for_bit(fm_instrument, foxglove_client):

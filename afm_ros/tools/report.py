@@ -177,27 +177,33 @@ def _cdr_vector3_stamped(data) -> tuple[float, float, float]:
 _cdr_chunk = cdr_chunk  # the chunk parser lives with the layout (afm_ros.formats.chunk_layout)
 
 
+def cdr_layout_batch(data, preamble_length: int, what: str, unpack):
+    """A serialized batch of the afm_ros layout (``unpack``: a chunk_layout unpacker; the result has
+    ``t`` and ``input_end_time``). ValueError if not a Float64MultiArray, ChunkLayoutError if not in
+    the layout (data_offset, lengths, finite increasing output times)."""
+    offset, arr = cdr_float64_array(data)
+    if offset != preamble_length:
+        raise ChunkLayoutError(f"layout.data_offset {offset} (the afm_ros {what} has {preamble_length})")
+    try:
+        b = unpack(arr)
+    except (ValueError, OverflowError) as exc:  # a wrong length, a NaN index
+        raise ChunkLayoutError(str(exc)) from None
+    times = b.t.tolist()  # a few outputs per batch: cheaper in Python than in numpy
+    if not (math.isfinite(b.input_end_time) and all(map(math.isfinite, times))
+            and all(map(float.__lt__, times, times[1:]))):
+        raise ChunkLayoutError("output times not finite and increasing")
+    return b
+
+
 def _cdr_batch(role: str, data) -> tuple[int | None, int, float, np.ndarray, np.ndarray, np.ndarray]:
     """A serialized lockin/outputs (``role`` "outputs") or z_controller/trace ("z_trace") batch:
     (input_first_index or None, input_end_index, input_end_time [s], t [s], X or z [m], Y or error [m]).
     ValueError if not a Float64MultiArray, ChunkLayoutError if not in the afm_ros layout."""
-    offset, arr = cdr_float64_array(data)
-    want = chunk_layout.OUTPUTS_PREAMBLE_LENGTH if role == "outputs" else chunk_layout.Z_TRACE_PREAMBLE_LENGTH
-    if offset != want:
-        raise ChunkLayoutError(f"layout.data_offset {offset} (the afm_ros {LAYOUT_NAMES[role]} has {want})")
-    try:
-        if role == "outputs":
-            b = chunk_layout.unpack_outputs(arr)
-            first, end, end_time, t, u, v = b.input_first_index, b.input_end_index, b.input_end_time, b.t, b.x, b.y
-        else:
-            b = chunk_layout.unpack_z_trace(arr)
-            first, end, end_time, t, u, v = None, b.input_end_index, b.input_end_time, b.t, b.z, b.error
-    except (ValueError, OverflowError) as exc:  # a wrong length, a NaN index
-        raise ChunkLayoutError(str(exc)) from None
-    times = t.tolist()  # a few outputs per batch: cheaper in Python than in numpy
-    if not (math.isfinite(end_time) and all(map(math.isfinite, times)) and all(map(float.__lt__, times, times[1:]))):
-        raise ChunkLayoutError("output times not finite and increasing")
-    return first, end, end_time, t, u, v
+    if role == "outputs":
+        b = cdr_layout_batch(data, chunk_layout.OUTPUTS_PREAMBLE_LENGTH, LAYOUT_NAMES[role], chunk_layout.unpack_outputs)
+        return b.input_first_index, b.input_end_index, b.input_end_time, b.t, b.x, b.y
+    b = cdr_layout_batch(data, chunk_layout.Z_TRACE_PREAMBLE_LENGTH, LAYOUT_NAMES[role], chunk_layout.unpack_z_trace)
+    return None, b.input_end_index, b.input_end_time, b.t, b.z, b.error
 
 
 def amplitude_phase(x, y) -> tuple[np.ndarray, np.ndarray]:
@@ -412,6 +418,15 @@ class Envelope:
     @property
     def is_raw(self) -> bool:
         return self.raw is not None
+
+    def draw(self, ax, scale: float) -> None:
+        """On ``ax``, times scale: every point when kept raw, else the min/max band."""
+        if self.is_raw:
+            t, v = self.points()
+            ax.plot(t, v * scale, lw=0.9)
+        else:
+            tb, lo, hi = self.bands()
+            ax.fill_between(tb, lo * scale, hi * scale, color="C0", alpha=0.8, lw=0.3, edgecolor="C0")
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         if not self.raw:
@@ -1073,27 +1088,25 @@ def _parse_float(text):
         return None
 
 
-def _current(data: SessionData, node_suffix: str, name: str, at: float | None = None):
-    """Value of parameter ``name`` of the node whose name ends with ``node_suffix`` at time ``at``."""
+def _parsed(raw):
+    """A parameter value as recorded in a snapshot (text): bool, float or None."""
+    return {"true": True, "false": False}.get(raw, _parse_float(raw))
+
+
+def _text(raw) -> str:
+    """A string parameter value as recorded in a snapshot (its YAML quotes removed)."""
+    return str(raw).strip("'\"")
+
+
+def _current(data: SessionData, node_suffix: str, name: str, at: float | None = None, parse=_parsed):
+    """Value of parameter ``name`` of the node whose name ends with ``node_suffix`` at time ``at``
+    (the snapshot's text through ``parse``, then the recorded changes)."""
     value = None
     for node, values in data.initial_parameters.items():
         if node.endswith(node_suffix) and name in values:
-            raw = values[name]
-            value = {"true": True, "false": False}.get(raw, _parse_float(raw))
+            value = parse(values[name])
     for (lt, node, pname, v), t in zip(data.changes, data.change_times):
         if node.endswith(node_suffix) and pname == name and (at is None or t <= at):
-            value = v
-    return value
-
-
-def _current_text(data: SessionData, node_suffix: str, name: str) -> str | None:
-    """The last value of the string parameter ``name`` of the node whose name ends with ``node_suffix``."""
-    value = None
-    for node, values in data.initial_parameters.items():
-        if node.endswith(node_suffix) and name in values:
-            value = str(values[name]).strip("'\"")
-    for _, node, pname, v in data.changes:
-        if node.endswith(node_suffix) and pname == name and isinstance(v, str):
             value = v
     return value
 
@@ -1197,7 +1210,7 @@ def _plan(data: SessionData, events: list) -> _Plan:
         data.time_axis = "wall time since first message [s]"
     plan = _Plan(ref, t0)
     data.change_times = [float(plan.map(lt)) for lt, *_ in data.changes]
-    data.fm_feedback = _current_text(data, "z_controller", "feedback_signal") == "frequency_shift"
+    data.fm_feedback = _current(data, "z_controller", "feedback_signal", parse=_text) == "frequency_shift"
 
     xy = data.series.get("xy")
     for role, s in data.series.items():
@@ -1951,12 +1964,7 @@ def write_figures(data: SessionData, out: Path) -> list[Path]:
         fig, axes = plt.subplots(len(rows), 1, figsize=(9, 2.4 * len(rows)), sharex=True, squeeze=False)
         for ax, (role, sc, lab) in zip(axes[:, 0], rows):
             env = data.series[role].envelope
-            if env.is_raw:
-                t, v = env.points()
-                ax.plot(t, v * sc, lw=0.9)
-            else:
-                tb, lo, hi = env.bands()
-                ax.fill_between(tb, lo * sc, hi * sc, color="C0", alpha=0.8, lw=0.3, edgecolor="C0")
+            env.draw(ax, sc)
             ax.set_ylabel(lab, fontsize=8 if role == "error" else None)
             if role == "amplitude" and "setpoint_m" in numbers:
                 _plot_setpoint(ax, data, env, sc)

@@ -27,10 +27,8 @@ import numpy as np
 
 from afm_ros.core.session_stats import FmWindow
 from afm_ros.formats import chunk_layout
-from afm_ros.formats.chunk_layout import ChunkLayoutError, cdr_byte_order, cdr_float64_array
+from afm_ros.formats.chunk_layout import cdr_byte_order
 
-FM_ROLE = "fm_outputs"  # the report's role of pll/outputs
-STAGE_TOPIC = "/z_controller/stage"
 BLOCKS = FmWindow.NAMES  # df, drive, amplitude, phase_error
 # block -> (display scale, unit shown, axis label)
 DISPLAY = {"df": (1.0, "Hz", "df [Hz]"), "drive": (1e12, "pN", "drive [pN]"),
@@ -41,19 +39,9 @@ SI_UNITS = {"df": "Hz", "drive": "N", "amplitude": "m", "phase_error": "deg"}
 def cdr_fm_batch(data) -> chunk_layout.FMBatch:
     """A serialized ``pll/outputs`` batch; ValueError if not a Float64MultiArray, ChunkLayoutError if
     not in the afm_ros layout (data_offset, lengths, finite increasing output times)."""
-    offset, arr = cdr_float64_array(data)
-    if offset != chunk_layout.OUTPUTS_PREAMBLE_LENGTH:
-        raise ChunkLayoutError(f"layout.data_offset {offset} (the afm_ros FM output batch has "
-                               f"{chunk_layout.OUTPUTS_PREAMBLE_LENGTH})")
-    try:
-        b = chunk_layout.unpack_fm_outputs(arr)
-    except (ValueError, OverflowError) as exc:
-        raise ChunkLayoutError(str(exc)) from None
-    times = b.t.tolist()
-    if not (math.isfinite(b.input_end_time) and all(map(math.isfinite, times))
-            and all(map(float.__lt__, times, times[1:]))):
-        raise ChunkLayoutError("output times not finite and increasing")
-    return b
+    from afm_ros.tools.report import LAYOUT_NAMES, cdr_layout_batch
+    return cdr_layout_batch(data, chunk_layout.OUTPUTS_PREAMBLE_LENGTH, LAYOUT_NAMES["fm_outputs"],
+                            chunk_layout.unpack_fm_outputs)
 
 
 def stage_times(raw, stage: dict) -> None:
@@ -302,13 +290,7 @@ def write_figure(data, out: Path) -> Path | None:
     shades = {"free": "C0", "engaged": "C2", "scan": "C4", "last_half": "C7"}
     for ax, b in zip(axes[:, 0], BLOCKS):
         scale, _, label = DISPLAY[b]
-        env = fm.envelopes[b]
-        if env.is_raw:
-            t, v = env.points()
-            ax.plot(t, v * scale, lw=0.9)
-        else:
-            tb, lo, hi = env.bands()
-            ax.fill_between(tb, lo * scale, hi * scale, color="C0", alpha=0.8, lw=0.3, edgecolor="C0")
+        fm.envelopes[b].draw(ax, scale)
         ax.set_ylabel(label)
         if b == "df" and fm.feedback and fm.df_setpoint is not None and fm.engaged is not None:
             ax.hlines(fm.df_setpoint, fm.engaged, fm.stream.t_max, color="k", ls="--", lw=0.8, label="df setpoint")
