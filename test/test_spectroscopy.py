@@ -28,7 +28,10 @@ from afm_ros.tools.study import sweep
 from conftest import EXACT_PHYSICS
 
 RATE = 50e-9  # [m/s] a slow ramp: 10 nm up, 30 nm down and back (1.6 s simulated)
-VALUES = {"spectroscopy_rate": RATE, "spectroscopy_retract": 10e-9, "spectroscopy_distance": 30e-9}
+# the loop has settled already (SETTLE): the ramp holds at once (the settling before a curve is tested
+# on its own below)
+VALUES = {"spectroscopy_rate": RATE, "spectroscopy_retract": 10e-9, "spectroscopy_distance": 30e-9,
+          "spectroscopy_settle_time": 0.0}
 SETTLE = 0.1  # [s] the loop engages at z_base and settles (26 ms settling time) before the curve
 LOCKIN_DELAY = 4 * 20e-6  # [s] the lock-in's 4 stages of 20 us each (the default filter)
 RIPPLE_AMPLITUDE = 0.02e-9  # [m] lock-in ripple and the staircase's settling left in one output
@@ -244,14 +247,17 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
     w = WiredInstrument(cantilever=EXACT_PHYSICS)
     w.run_until(start)
     wired = w.spectroscopy(values)
-    assert ros_curve.missing_chunks == 0 and ros_curve.t.shape[0] == 39  # outputs after the start, before the end: 40 ms at 1 kHz
+    # the loop settled 0.1 s (the default) and held at the output where that ended; then every output after
+    # the hold and before the end of the 40 ms path at 1 kHz (the one on the end itself by float rounding)
+    assert ros_curve.t_start == pytest.approx(start + 0.1, abs=1.5e-3)
+    assert ros_curve.missing_chunks == 0 and ros_curve.t.shape[0] in (39, 40)
     assert ros_curve.equal(wired), {k: (v, wired.to_dict()[k]) for k, v in ros_curve.to_dict().items()
                                     if not isinstance(v, list) and v != wired.to_dict()[k]}
     assert math.isfinite(ros_curve.chunk_force.sum())
     rep = report.make_report(session, tmp_path / "report")
     g = rep.numbers["spectroscopy"]
     a = ros_curve.branch("approach")
-    assert g["outputs"] == 39 and g["missing_chunks"] == 0
+    assert g["outputs"] == ros_curve.t.shape[0] and g["missing_chunks"] == 0
     assert g["amplitude_top_m"] == ros_curve.amplitude[a][0] and g["amplitude_bottom_m"] == ros_curve.amplitude[a][-1]
     assert g["max_mean_force_N"] == np.nanmax(ros_curve.chunk_force)
     # 1 um/s: the curve lags 2.18 to 6.18 nm (latency 2 chunks of 2 ms, Q/(pi f0) = 0.18 ms)

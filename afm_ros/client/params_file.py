@@ -12,14 +12,13 @@ import re
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from afm_ros.formats import user_files
 from afm_ros.tools.config_gen import yaml_value  # doubles that rcl and YAML 1.1 read as doubles
 
 PARAMETERS_KEY = "ros__parameters"
 
 
-class ParamsFileError(ValueError):
+class ParamsFileError(user_files.UserFileError):
     """A parameter file that cannot be used; the message names the file and what is wrong."""
 
 
@@ -47,6 +46,15 @@ def _flatten(values: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def read(path: str | Path):
+    """The parameter file's YAML, bounded in size, depth and aliases (:mod:`afm_ros.formats.user_files`);
+    ParamsFileError naming the file."""
+    try:
+        return user_files.load(path, "parameter file")
+    except user_files.UserFileError as exc:
+        raise ParamsFileError(str(exc)) from None
+
+
 def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
     """The values ``path`` holds for node ``fqn`` (dotted names), as YAML typed them.
 
@@ -54,13 +62,7 @@ def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
     ParamsFileError naming the file if it cannot be read, is not a parameter file, or has no
     entry for the node.
     """
-    try:
-        content = yaml.safe_load(Path(path).read_text())
-    except OSError as exc:
-        raise ParamsFileError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ParamsFileError(f"{path} is not valid YAML: {first}") from None
+    content = read(path)
     if not isinstance(content, dict) or not content:
         raise ParamsFileError(f"{path} is not a ROS parameter file (expected '<node>: {{{PARAMETERS_KEY}: ...}}')")
     matching = [k for k in content if isinstance(k, str) and key_matches(k, fqn)]

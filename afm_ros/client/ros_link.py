@@ -31,13 +31,13 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.srv import (DescribeParameters, GetParameters, ListParameters, SetParameters,
                                 SetParametersAtomically)
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.parameter import get_parameter_value, parameter_value_to_python
+from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from afm_ros.client import params_file
-from afm_ros.formats import chunk_layout
+from afm_ros.formats import chunk_layout, user_files
 
 DEFAULT_TIMEOUT_S = 10.0
 POLL_S = 0.05  # executor wait per loop while waiting for discovery or an answer
@@ -45,6 +45,7 @@ POLL_S = 0.05  # executor wait per loop while waiting for discovery or an answer
 # three node processes) 0.4 to 3.8 s after the link started, the late ones after Fast DDS's
 # periodic participant announcement (3 s)
 DISCOVERY_WINDOW_S = 4.5
+LIVENESS_MIN_S = 5.0  # [s] wall: silence shorter than this is not a dead instrument (diagnostics at 1 Hz)
 # parameters every rclpy node declares itself (not the instrument's)
 RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
 RCLPY_PREFIXES = ("qos_overrides.",)
@@ -176,18 +177,38 @@ def parameter_info(node: str, name: str, descriptor: ParameterDescriptor, value:
                          not descriptor.read_only, text)
 
 
+INT64 = (-2 ** 63, 2 ** 63 - 1)
+
+
 def typed_value(text: str, type_name: str) -> ParameterValue:
     """A value typed on a command line, as a ParameterValue: the text itself for a string
-    parameter; otherwise parsed as YAML 1.1 like ``ros2 param set`` (``30e-9``, having no dot, stays
-    text: the afm_ros nodes convert numeric text to their parameter's type themselves)."""
+    parameter; otherwise read as YAML 1.1 like ``ros2 param set`` (``30e-9``, having no dot, stays
+    text: the afm_ros nodes convert numeric text to their parameter's type themselves). Whatever
+    ROS cannot carry as typed (a YAML tag, a map, an integer beyond 64 bits) goes as the text, for the
+    node to refuse with its own reason (field, unit, range)."""
     if type_name == "string":
         return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=text)
-    return get_parameter_value(text)
+    try:
+        value = user_files.parse_yaml(text, "the value")
+    except user_files.UserFileError:
+        value = text
+    return python_value(text if value is None else value, text)
 
 
-def python_value(value: Any) -> ParameterValue:
-    """A Python value (e.g. from a YAML file) as a ParameterValue of its own type."""
-    return rclpy.parameter.Parameter("_", value=value).get_parameter_value()
+def python_value(value: Any, text: str | None = None) -> ParameterValue:
+    """A Python value (e.g. from a YAML file) as a ParameterValue of its own type; a value no
+    parameter type holds (see :func:`typed_value`) goes as ``text`` (default ``str(value)``)."""
+    def fits(v) -> bool:
+        return isinstance(v, (bool, float, str)) or (isinstance(v, int) and INT64[0] <= v <= INT64[1])
+
+    if fits(value) or (isinstance(value, (list, tuple)) and value and all(fits(v) for v in value)
+                       and len({type(v) for v in value}) == 1):
+        try:
+            return rclpy.parameter.Parameter("_", value=list(value) if isinstance(value, tuple) else value
+                                             ).get_parameter_value()
+        except (TypeError, ValueError, AssertionError):
+            pass
+    return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=str(value) if text is None else text)
 
 
 def same_value(wanted: Any, current: Any, type_name: str) -> bool:
@@ -288,6 +309,28 @@ class RosLink:
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self._clients: dict[str, Any] = {}  # service clients by service name
+        # when a node of the namespace last spoke: every afm_ros node publishes /diagnostics about once
+        # a second, also while paused, so a long silence means the instrument stopped (killed, ended)
+        self._started = time.monotonic()
+        self.last_heard = -math.inf
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._hear, DIAGNOSTICS_QOS)
+
+    def _hear(self, msg: DiagnosticArray) -> None:
+        if any(split_fqn(status_node(s))[0] == self.namespace for s in msg.status):
+            self.last_heard = time.monotonic()
+
+    def silence(self) -> float:
+        """Wall seconds since a node of the namespace last published /diagnostics (since the link
+        started if none did yet)."""
+        return time.monotonic() - max(self.last_heard, self._started)
+
+    def check_alive(self) -> None:
+        """:class:`NoAnswer` if no node of the namespace spoke for ``timeout`` s (at least
+        LIVENESS_MIN_S: they speak once a second): the instrument stopped or was killed."""
+        limit = max(self.timeout, LIVENESS_MIN_S)
+        if self.silence() > limit:
+            raise NoAnswer(f"the instrument in {self.namespace} (no /diagnostics from any of its nodes for "
+                           f"{self.silence():.0f} s: it stopped or was killed)", limit)
 
     def __enter__(self) -> "RosLink":
         return self
@@ -307,11 +350,14 @@ class RosLink:
             rclpy.try_shutdown(context=self.context)
 
     # --- waiting ---------------------------------------------------------------------------------
-    def spin_for(self, seconds: float) -> None:
-        """Serve this link's callbacks (subscriptions, answers) for ``seconds`` of wall time."""
+    def spin_for(self, seconds: float, alive: bool = False) -> None:
+        """Serve this link's callbacks (subscriptions, answers) for ``seconds`` of wall time;
+        ``alive``: :meth:`check_alive` all the while (a wait on the instrument's own pace)."""
         end = time.monotonic() + seconds
         while True:
             self._check_interrupted()
+            if alive:
+                self.check_alive()
             remaining = end - time.monotonic()
             if remaining <= 0:
                 return
@@ -502,8 +548,8 @@ class RosLink:
         node checks them together (a refusal raises :class:`ParameterRefused`, nothing changes).
         """
         name = self.resolve(node)
+        wanted = params_file.parameters_for(path, name)  # the file first: a bad one is refused at once
         self.wait_for_node(name)
-        wanted = params_file.parameters_for(path, name)
         for n, v in wanted.items():
             if v is None:
                 raise params_file.ParamsFileError(f"{path}: {n} has no value")

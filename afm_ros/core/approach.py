@@ -60,6 +60,7 @@ APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 INSTRUMENT_Z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True}
 
 ARM_TIMEOUT_S = 0.5  # [s] simulated: the free oscillation must rise above the setpoint within this
+RING_UP_TIME_CONSTANTS = 5  # an oscillation moved away from the surface is free after 5 Q/(pi f0)
 Z_NODE_SPECS: dict[str, ParamSpec] = {}  # the z controller node's parameters (filled below)
 STATES = ("idle", "extending", "retracting", "stepping", "engaged", "failed", "withdrawn")
 
@@ -69,6 +70,19 @@ Z_NODE_SPECS.update({**Z_CONTROLLER_SPECS, **APPROACH_SPECS, **SPECTROSCOPY_SPEC
 
 def validate(values: dict) -> dict:
     return validate_values(APPROACH_SPECS, values, "an approach")
+
+
+def blind_time(chunk_duration: float, feedback_latency: int, quality_factor: float,
+               resonance_frequency: float) -> float:
+    """[s] simulated after a jump of the z command during which the loop's outputs still tell of the
+    position before it: the command reaches the cantilever ``feedback_latency`` chunks later, the
+    lock-in output of a chunk reads it a chunk after that, and the oscillation needs a few time
+    constants Q / (pi f0) to ring to its new amplitude."""
+    return ((feedback_latency + 2) * chunk_duration
+            + RING_UP_TIME_CONSTANTS * quality_factor / (math.pi * resonance_frequency))
+
+
+SIGNALS = {False: ("amplitude", "m"), True: ("frequency shift", "Hz")}  # the loop's signal: tapping, FM
 
 
 @dataclass
@@ -87,8 +101,12 @@ class AutoApproach:
     and returns the z piezo command [m]; :attr:`motor` [m] is the motor's position."""
 
     def __init__(self, values: dict, z_min: float, z_max: float, setpoint: float, z_base: float, t: float,
-                 motor: float | None = None):
+                 motor: float | None = None, blind_until: float = -math.inf, fm: bool = False):
+        """``blind_until`` [s]: outputs before it are not judged (they come from chunks integrated
+        before the approach moved the z command); ``fm``: the signal is the frequency shift [Hz]."""
         self.values = v = validate(values)
+        self.blind_until = float(blind_until)
+        self.signal, self.unit = SIGNALS[fm]
         if not z_min < z_max:
             raise ValueError(f"z_min={z_min!r} m must be below z_max={z_max!r} m")
         self.z_min, self.z_max, self.setpoint = float(z_min), float(z_max), float(setpoint)
@@ -120,6 +138,8 @@ class AutoApproach:
 
     def update(self, amplitude: float, t: float) -> float:
         v = self.values
+        if t < self.blind_until:  # an output of the position before the approach moved it
+            return self.z
         if self.state == "extending" and not self.armed:
             # the oscillation must first be there (free, above the setpoint); it rings up in a few Q/(pi f0)
             if math.isfinite(amplitude) and amplitude > self.setpoint:
@@ -127,8 +147,9 @@ class AutoApproach:
                 self._phase_t = t
             elif t - self.log.started_at > ARM_TIMEOUT_S:
                 self.state = "failed"
-                self.reason = (f"the amplitude stayed at or below the setpoint {self.setpoint:g} m for {ARM_TIMEOUT_S:g} s "
-                               "before moving: is the tip already on the surface (withdraw first) or the drive off?")
+                self.reason = (f"the {self.signal} stayed at or below the setpoint {self.setpoint:g} {self.unit} for "
+                               f"{ARM_TIMEOUT_S:g} s before moving: is the tip already on the surface (withdraw "
+                               "first) or the drive off?")
             return self.z
         if self.state == "extending":
             self.z = max(self.z_min, self._phase_z - v["approach_speed"] * (t - self._phase_t))
@@ -184,6 +205,7 @@ class ZStage:
         self.reason = ""
         self._withdraw: dict | None = None
         self.ramp: SpectroscopyRamp | None = None  # the z spectroscopy running or last run
+        self.settling: dict | None = None  # a spectroscopy's settling under feedback before it holds
         self._held_params: dict | None = None  # the controller's settings before a spectroscopy
         self.t_last: float | None = None  # simulated time of the last lock-in output [s]
 
@@ -195,7 +217,7 @@ class ZStage:
     def z(self) -> float:
         if self.state == "approaching":
             return self.auto.z
-        if self.state == "spectroscopy":
+        if self.state == "spectroscopy" and self.settling is None:
             return self.ramp.z_at(self.ramp.t0 if self.t_last is None else self.t_last)
         return self.controller.z
 
@@ -203,12 +225,17 @@ class ZStage:
     def engaged(self) -> bool:
         return self.state == "engaged"
 
-    def start_approach(self, values: dict, t: float) -> AutoApproach:
+    def start_approach(self, values: dict, t: float, blind: float = 0.0) -> AutoApproach:
         """Start an approach from ``approach_start_distance`` at time t [s] (ValueError naming the
-        field for bad values; nothing changes then)."""
+        field for bad values; nothing changes then). ``blind`` [s] (:func:`blind_time`): if the start
+        moves the z command (from engaged, or a motor elsewhere), the outputs of the next ``blind``
+        seconds still come from the old position and are not taken as the approach's."""
         c = self.controller.params
-        auto = AutoApproach(values, c["z_min"], c["z_max"], self.controller.setpoint, self.z_base, t)
-        self.auto = auto
+        auto = AutoApproach(values, c["z_min"], c["z_max"], self.controller.setpoint, self.z_base, t,
+                            fm=self.controller.fm)
+        if auto.z + auto.motor != self.command:
+            auto.blind_until = t + blind
+        self.auto, self.settling = auto, None
         self.controller.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
         self.controller.z = self.controller.integrator = auto.z
         self.motor = auto.motor
@@ -231,31 +258,79 @@ class ZStage:
         v = validate(values if values is not None else (self.auto.values if self.auto is not None else {}))
         if self.state == "spectroscopy":  # abandoned: the piezo retracts from where the ramp is
             self.controller.z = self.controller.integrator = self.z
+        self.settling = None
         self.controller.configure(enabled=False, disabled_action="withdraw", max_slew_rate=v["retract_speed"])
         steps = int(round(v["withdraw_distance"] / v["motor_step"]))
         self._withdraw = {"values": v, "steps": steps, "t_motor": None}
         self.state, self.reason = "withdrawing", ""
 
     def start_spectroscopy(self, values: dict, t: float, meta: dict) -> SpectroscopyRamp:
-        """Hold the feedback where it is and start a z spectroscopy ramp at time t [s]
-        (:mod:`afm_ros.core.spectroscopy`); ``meta`` completes the curve's set-up (x, y,
-        spring_constant, ...). ValueError with the reason when the stage is not engaged or a value is
-        bad (nothing changes then)."""
+        """A z spectroscopy (:mod:`afm_ros.core.spectroscopy`) requested at time t [s]: the feedback
+        first regulates for ``spectroscopy_settle_time`` (after a move the loop needs it to reach the
+        setpoint at the new point), then holds where it is and the ramp starts (at once without
+        settling). ``meta`` completes the curve's set-up (x, y, spring_constant, ...). ValueError with
+        the reason when the stage is not engaged or a value is bad (nothing changes then); the ramp
+        is returned (its path is placed when the hold begins)."""
         if self.state != "engaged":
             raise ValueError(f"spectroscopy refused: the z stage is {self.state}"
                              + (f" ({self.reason})" if self.reason else "") + "; it needs the tip engaged (approach first)")
         c = self.controller
         ramp = SpectroscopyRamp(values, c.z, t, c.params["z_min"], c.params["z_max"], self.z_base + self.motor,
                                 {**meta, "setpoint": c.params["setpoint"]})
-        self._held_params = {k: c.params[k] for k in ("enabled", "disabled_action", "max_slew_rate")}
-        c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+        settle = ramp.values["spectroscopy_settle_time"]
         self.ramp, self.state, self.reason = ramp, "spectroscopy", ""
+        if settle > 0.0:
+            self.settling = {"until": t + settle}
+        else:
+            self._hold(ramp)
         return ramp
 
+    def _hold(self, ramp: SpectroscopyRamp) -> None:
+        c = self.controller
+        self._held_params = {k: c.params[k] for k in ("enabled", "disabled_action", "max_slew_rate")}
+        c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+
+    def stop(self, why: str) -> str:
+        """Stop what the stage is doing now (an interrupted verb, Motor.StopMove): an approach or
+        withdraw leaves the piezo and motor where they are with the feedback off (state ``stopped``,
+        ``reason`` = ``why``); a spectroscopy resumes the feedback from where the ramp is (state
+        engaged; its curve is abandoned). Returns the state it stopped ('' if nothing ran)."""
+        was = self.state
+        c = self.controller
+        if was in ("approaching", "withdrawing"):
+            z = self.z
+            c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+            c.z = c.integrator = z
+            self.state, self.reason = "stopped", why
+            self._withdraw = None
+            return was
+        if was == "spectroscopy":
+            z = self.z
+            if self.settling is None:
+                c.z = c.integrator = z
+                c.configure(**self._held_params)
+            self.settling = None
+            self.ramp.done, self.ramp.t_end = True, math.nan
+            self.state, self.reason = "engaged", why
+            return was
+        return ""
     def update(self, amplitude: float, t: float, phase: float = math.nan) -> float:
         """Take one lock-in output (amplitude [m], time [s], phase [deg]: recorded by a spectroscopy)
         and return the z piezo position [m]."""
         self.t_last = t
+        if self.settling is not None:  # a spectroscopy's settling: the loop regulates, then holds
+            z = self.controller.update(amplitude, t)
+            if t >= self.settling["until"]:
+                self.settling = None
+                ramp = self.ramp
+                try:
+                    ramp.place(self.controller.z, t)
+                except ValueError as exc:  # the loop settled where the ramp does not fit the z range
+                    self.state, self.reason = "engaged", f"spectroscopy abandoned: {exc}"
+                    ramp.done, ramp.t_end, ramp.failed = True, math.nan, str(exc)
+                    return z
+                self._hold(ramp)
+            return z
         if self.state == "spectroscopy":
             c = self.controller
             z = self.ramp.update(amplitude, phase, t)

@@ -18,12 +18,13 @@ material, the mounted sample's plane) and every drawn parameter. SI units throug
 from __future__ import annotations
 
 import copy
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from afm_ros.formats import user_files
 
 DRAWS = ("uniform", "log_uniform", "choice")
 MAX_FRAMES = 10_000_000
@@ -55,18 +56,8 @@ INSTRUMENT = {
 
 def load_spec(path) -> dict:
     """The spec in a .yaml/.yml/.json file, validated (:func:`validate`); ValueError naming the file."""
-    import yaml
-
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ValueError(f"dataset spec {str(p)!r}: cannot be read ({exc.strerror})") from None
-    try:
-        spec = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)
-    except (ValueError, yaml.YAMLError) as exc:
-        raise ValueError(f"dataset spec {str(p)!r}: not valid {'JSON' if p.suffix == '.json' else 'YAML'}: "
-                         f"{str(exc).splitlines()[0]}") from None
+    spec = user_files.load(p, "dataset spec")  # bounded in size, depth and aliases; one line if refused
     try:
         return validate(spec, base_dir=str(p.parent))
     except ValueError as exc:

@@ -4,6 +4,8 @@ What a real AFM's "Z spectroscopy" (Nanonis) or afspm's spectroscopy action does
 (:class:`afm_ros.core.approach.ZStage`) while it is engaged: the z loop's output is frozen where it
 is (z_held), then the z piezo is commanded along a path in simulated time at ``spectroscopy_rate``:
 
+0. **settle**: the loop regulates for ``spectroscopy_settle_time`` (the tip may just have moved
+   there), then its output is frozen (z_held);
 1. **lift**: up by ``spectroscopy_retract`` to the start z_start = z_held + retract;
 2. **approach**: down by ``spectroscopy_distance`` towards the sample;
 3. **retract**: back up to z_start;
@@ -38,6 +40,10 @@ SPECTROSCOPY_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "spectroscopy_distance - spectroscopy_retract below z_held)", 0.0, 10e-6, low_open=True),
     ParamSpec("spectroscopy_rate", 200e-9, "m/s", "z spectroscopy: z piezo speed of every leg of the ramp",
               1e-10, 1e-3),
+    ParamSpec("spectroscopy_settle_time", 0.1, "s",
+              "z spectroscopy: the feedback regulates this long at the point before it is held and the ramp "
+              "starts (after a move the loop needs it to reach the setpoint there; Nanonis' initial settling)",
+              0.0, 100.0),
 )}
 
 DIRECTIONS = ("lift", "approach", "retract", "return")  # the legs, in order (column value = index)
@@ -156,23 +162,30 @@ class SpectroscopyRamp:
         self.values = v = validate(values)
         self.rate, self.retract, self.distance = (v["spectroscopy_rate"], v["spectroscopy_retract"],
                                                   v["spectroscopy_distance"])
-        self.z_held, self.t0, self.z_offset = float(z_held), float(t0), float(z_offset)
-        self.z_start = self.z_held + self.retract
-        self.z_low = self.z_start - self.distance
-        if self.z_start > z_max:
-            raise ValueError(f"spectroscopy_retract={self.retract:g} m lifts the z piezo from {self.z_held:g} m above "
-                             f"z_max={z_max:g} m; allowed up to {max(0.0, z_max - self.z_held):g} m here")
-        if self.z_low < z_min:
-            raise ValueError(f"spectroscopy_distance={self.distance:g} m reaches z piezo {self.z_low:g} m, below "
-                             f"z_min={z_min:g} m; allowed up to {self.z_start - z_min:g} m here")
-        legs = (self.retract, self.distance, self.distance, self.retract)
-        self.breaks = tuple(self.t0 + sum(legs[:i + 1]) / self.rate for i in range(4))  # end time of each leg [s]
+        self.z_offset, self.z_range = float(z_offset), (float(z_min), float(z_max))
+        self.place(z_held, t0)
         self.meta = dict(meta)
         self.rows: list[tuple] = []  # (t, z piezo, amplitude, phase, direction)
         self.expected: list[int] = []  # first sample index of every chunk of the ramp, in order
         self.chunks: dict[int, dict] = {}
         self.done = False
+        self.failed = ""  # why the ramp never ran (the settled z left no room for it in the z range)
         self.t_end = math.nan
+
+    def place(self, z_held: float, t0: float) -> None:
+        """The path from the held z piezo ``z_held`` [m] at time ``t0`` [s] (where the settling ended);
+        ValueError naming the field if it leaves the z range."""
+        z_min, z_max = self.z_range
+        z_start, z_low = float(z_held) + self.retract, float(z_held) + self.retract - self.distance
+        if z_start > z_max:
+            raise ValueError(f"spectroscopy_retract={self.retract:g} m lifts the z piezo from {z_held:g} m above "
+                             f"z_max={z_max:g} m; allowed up to {max(0.0, z_max - z_held):g} m here")
+        if z_low < z_min:
+            raise ValueError(f"spectroscopy_distance={self.distance:g} m reaches z piezo {z_low:g} m, below "
+                             f"z_min={z_min:g} m; allowed up to {z_start - z_min:g} m here")
+        self.z_held, self.t0, self.z_start, self.z_low = float(z_held), float(t0), z_start, z_low
+        legs = (self.retract, self.distance, self.distance, self.retract)
+        self.breaks = tuple(self.t0 + sum(legs[:i + 1]) / self.rate for i in range(4))  # end time of each leg [s]
 
     def leg_at(self, t: float) -> int:
         """Index into DIRECTIONS of the path at time t [s] (before the start: lift; after: return)."""
@@ -262,8 +275,13 @@ class SpectroscopyRamp:
 
     @property
     def duration(self) -> float:
-        """The path's length in simulated time [s]."""
+        """The path's length in simulated time [s] (the settling not included)."""
         return self.breaks[3] - self.t0
+
+    @property
+    def total_time(self) -> float:
+        """Settling and path [s]: what a spectroscopy takes of simulated time."""
+        return self.values["spectroscopy_settle_time"] + self.duration
 
 
 def expected_lag(chunk_duration: float, feedback_latency: int, quality_factor: float, resonance_frequency: float,

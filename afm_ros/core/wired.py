@@ -13,11 +13,13 @@ therefore equals this one (test/test_scan_ros.py).
 from __future__ import annotations
 
 import math
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_ros.core.approach import ApproachLog, ZStage
+from afm_ros.core.approach import ApproachLog, ZStage, blind_time
 from afm_ros.core.artefacts import Imperfections, check_plan
 from afm_ros.core.cantilever_engine import excite, measure, retune, sample_surface, wear_by_chunk
 from afm_ros.core.fm import OscillationController
@@ -107,6 +109,8 @@ class WiredInstrument:
         self.chunks = 0
         self.images: ImageAccumulator | None = None
         self.records: list[ChunkRecord] = []
+        self.stopped_frame = None  # the frame of a scan stopped before its end (its lines_done are whole)
+        self.wall_in_steps = 0.0  # [s] wall time spent integrating chunks, for estimates of long work
 
     def pick_up(self, offset_x: float, offset_y: float, height: float) -> None:
         """A double tip from now (a second apex at that offset [m], ``height`` [m] higher)."""
@@ -146,12 +150,13 @@ class WiredInstrument:
         the feedback is held, the approach commands z and the motor until the amplitude reaches the
         setpoint, then the z loop takes over. Returns the log; RuntimeError with the reason if it
         fails (e.g. the motor's travel ends) or ``timeout`` [s] of simulated time passes."""
-        auto = self.stage.start_approach({**self.approach_values, **(values or {})}, self.sim.t)
+        auto = self.stage.start_approach({**self.approach_values, **(values or {})}, self.sim.t, self.blind_time)
         if self.chunks == 0:
             self.z_initial = auto.z  # the first chunks already start at the start distance
         t_end = self.sim.t + timeout
-        while self.stage.state == "approaching" and self.sim.t < t_end:
-            self.step()
+        with self._stopped_if_interrupted("approach"):
+            while self.stage.state == "approaching" and self.sim.t < t_end:
+                self.step()
         if self.stage.state != "engaged":
             raise RuntimeError(f"approach {self.stage.state} at t={self.sim.t:.6g} s after {auto.log.steps} motor "
                                f"steps ({auto.motor_start - self.motor:.4g} m)"
@@ -179,8 +184,9 @@ class WiredInstrument:
         withdraw_distance (motor_step_time per step)."""
         self.stage.start_withdraw(values, self.sim.t)
         t_end = self.sim.t + timeout
-        while self.stage.state == "withdrawing" and self.sim.t < t_end:
-            self.step()
+        with self._stopped_if_interrupted("withdraw"):
+            while self.stage.state == "withdrawing" and self.sim.t < t_end:
+                self.step()
 
     def spectroscopy(self, values: dict | None = None, timeout: float = 600.0) -> SpectroscopyCurve:
         """Z spectroscopy at the parked tip position (:mod:`afm_ros.core.spectroscopy`; ``values``:
@@ -197,12 +203,46 @@ class WiredInstrument:
             "quality_factor": c.quality_factor, "resonance_frequency": c.resonance_frequency,
             "chunk_duration": self.values["chunk_duration"], "feedback_latency": self.latency})
         t_end = self.sim.t + timeout
-        while self.stage.state == "spectroscopy" and self.sim.t < t_end:
-            self.step()
+        with self._stopped_if_interrupted("spectroscopy"):
+            while self.stage.state == "spectroscopy" and self.sim.t < t_end:
+                self.step()
+        if ramp.failed:
+            raise ValueError(f"spectroscopy abandoned after settling: {ramp.failed}")
         if not ramp.done:
             raise RuntimeError(f"spectroscopy not finished after {timeout:g} s of simulated time "
                                f"(the stage is {self.stage.state})")
         return ramp.curve()
+
+    @property
+    def blind_time(self) -> float:
+        """[s] after a jump of the z command that the loop's outputs still show the old position
+        (:func:`afm_ros.core.approach.blind_time`)."""
+        c = self.setup.cantilever
+        return blind_time(self.values["chunk_duration"], self.latency, c.quality_factor, c.resonance_frequency)
+
+    @contextmanager
+    def _stopped_if_interrupted(self, what: str):
+        """A context in which an exception (Ctrl-C above all) stops the stage's ``what`` where it is
+        (:meth:`afm_ros.core.approach.ZStage.stop`), so the next verb finds a state it can work from."""
+        try:
+            yield
+        except BaseException as exc:
+            self.stage.stop(f"{what} interrupted at t={self.sim.t:.6g} s ({type(exc).__name__})")
+            raise
+
+    def stop_scan(self) -> None:
+        """Stop a running scan at once: the lines done stay in :attr:`stopped_frame`, the tip is
+        parked where the scan was commanded last (the scan's centre before the first line)."""
+        if self.images is None or self.images.done:
+            return
+        self.stopped_frame = self.images.frame
+        plan = self.images.plan
+        self.images = None
+        self.park(plan.center_x, plan.center_y)
+
+    def seconds_per_simulated_second(self) -> float:
+        """Wall seconds this process took per simulated second so far (nan before a chunk ran)."""
+        return self.wall_in_steps / self.sim.t if self.sim.t > 0 else math.nan
 
     def start_scan(self, plan_values: dict) -> ScanPlan:
         """Start a scan at the current simulated time (the next chunk boundary); returns the plan."""
@@ -223,6 +263,13 @@ class WiredInstrument:
 
     def step(self) -> ChunkRecord:
         """Integrate, demodulate and feed back one chunk (lockstep semantics)."""
+        wall = time.perf_counter()
+        try:
+            return self._step()
+        finally:
+            self.wall_in_steps += time.perf_counter() - wall
+
+    def _step(self) -> ChunkRecord:
         s, sim = self.setup, self.sim
         k = self.chunks
         z_piezo = self.answers[k - self.latency] if k >= self.latency else self.z_initial + self.motor
@@ -238,7 +285,8 @@ class WiredInstrument:
         out = self.lock_in.process(header, measured)
         z_out, errors = np.empty(len(out)), np.empty(len(out))
         amplitude = np.hypot(out.x, out.y)
-        ramp = self.stage.ramp if self.stage.state == "spectroscopy" else None
+        # a spectroscopy's chunks: those whose outputs all come after the settling (the hold)
+        ramp = self.stage.ramp if self.stage.state == "spectroscopy" and self.stage.settling is None else None
         fm_out = None
         if self.pll is not None:  # as the PLL node does
             fm_out = self.pll.process(out.t, out.x, out.y)
@@ -290,14 +338,18 @@ class WiredInstrument:
         ``lines_done`` (``Frame.completed()`` gives them as a frame of their own)."""
         plan_values = {**plan_values, "continuous": False}
         self.start_scan(plan_values)
-        while not self.images.done:
-            self.step()
-            if progress is not None:
-                progress(self.images)
-            if stop is not None:
-                lines = stop(self)
-                if lines is not None and self.images.frame.lines_done >= lines and not self.images.done:
-                    return self.images.frame
+        try:
+            while not self.images.done:
+                self.step()
+                if progress is not None:
+                    progress(self.images)
+                if stop is not None:
+                    lines = stop(self)
+                    if lines is not None and self.images.frame.lines_done >= lines and not self.images.done:
+                        return self.images.frame
+        except BaseException:  # Ctrl-C above all: the scan stops, its lines done are kept
+            self.stop_scan()
+            raise
         return self.images.frames_done[0]
 
     @property

@@ -46,7 +46,7 @@ from afm_ros.formats import chunk_layout, spectroscopy_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
-from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, validate as approach_validate
+from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, blind_time, validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, chunk_mean, phase_deg, validate as spectroscopy_validate
 
@@ -110,6 +110,7 @@ class ZControllerNode(Node):
         self.create_service(Trigger, "z_controller/approach", self._approach)
         self.create_service(Trigger, "z_controller/withdraw", self._withdraw)
         self.create_service(Trigger, "z_controller/spectroscopy", self._spectroscopy)
+        self.create_service(Trigger, "z_controller/stop", self._stop)
         self.pub_curve = self.create_publisher(Float64MultiArray, SPECTROSCOPY_TOPIC, topics.LATCHED_QOS)
         self._stage_reported = None
         self._report_stage()
@@ -181,7 +182,7 @@ class ZControllerNode(Node):
                 return response
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             try:
-                auto = self.stage.start_approach(self.approach_values, t)
+                auto = self.stage.start_approach(self.approach_values, t, self._blind_time())
                 self._abandon_spectroscopy()
             except ValueError as exc:
                 response.success = False
@@ -191,6 +192,32 @@ class ZControllerNode(Node):
         response.success = True
         response.message = (f"approaching from {self.approach_values['approach_start_distance']:g} m "
                             f"(motor at {auto.motor:g} m, z piezo range {auto.range:g} m)")
+        self.get_logger().info(response.message)
+        return response
+
+    def _blind_time(self) -> float:
+        """[s] the loop's outputs show the old position after the z command jumps (approach.blind_time)."""
+        info = self.cantilever_info
+        try:
+            return blind_time(float(info["chunk_duration_s"]), int(info.get("feedback_latency_chunks", 2)),
+                              float(info["quality_factor"]), float(info["resonance_frequency_Hz"]))
+        except (KeyError, TypeError, ValueError):
+            return 0.0
+
+    def _stop(self, request, response):
+        """Stop the approach, withdraw or spectroscopy running now (ZStage.stop): the piezo and motor
+        stay where they are (state stopped), a spectroscopy resumes the feedback (no curve)."""
+        with self._lock:
+            if self.stage is None:
+                response.success, response.message = True, "nothing to stop: the z stage is engaged"
+                return response
+            was = self.stage.stop("stopped by z_controller/stop")
+            if was == "spectroscopy":
+                self._abandon_spectroscopy()
+            self._report_stage()
+        response.success = True
+        response.message = (f"stopped the {was}: the z stage is {self.stage.state}" if was else
+                            f"nothing to stop: the z stage is {self.stage.state}")
         self.get_logger().info(response.message)
         return response
 
@@ -247,7 +274,8 @@ class ZControllerNode(Node):
             self._report_stage()
         v = self.spectroscopy_values
         response.success = True
-        response.message = (f"spectroscopy at ({info['park'][0]:g}, {info['park'][1]:g}) m: z up "
+        response.message = (f"spectroscopy at ({info['park'][0]:g}, {info['park'][1]:g}) m: settling "
+                            f"{v['spectroscopy_settle_time']:g} s under feedback, then z up "
                             f"{v['spectroscopy_retract']:g} m, down {v['spectroscopy_distance']:g} m and back at "
                             f"{v['spectroscopy_rate']:g} m/s ({ramp.duration:.4g} s), then the feedback resumes")
         self.get_logger().info(response.message)
@@ -270,8 +298,10 @@ class ZControllerNode(Node):
 
     def _abandon_spectroscopy(self) -> None:
         """A withdraw or approach ends a running ramp: no curve; the raw topics are left. Under the lock."""
-        if self.spectroscopy_ramp is not None and not self.spectroscopy_ramp.done:
-            self.get_logger().warning("spectroscopy abandoned (withdraw or approach): no curve published")
+        ramp = self.spectroscopy_ramp
+        if ramp is not None and (not ramp.done or ramp.failed or math.isnan(ramp.t_end)):
+            if not ramp.failed:
+                self.get_logger().warning("spectroscopy abandoned (stop, withdraw or approach): no curve published")
             self.spectroscopy_ramp = None
             for sub in self._raw_subs:
                 self.destroy_subscription(sub)
@@ -375,7 +405,9 @@ class ZControllerNode(Node):
         want_z = self.pub_z.get_subscription_count() > 0  # per-output copies of the trace: while subscribed
         want_error = self.pub_error.get_subscription_count() > 0
         with self._lock:
-            ramp = self.stage.ramp if self.stage is not None and self.stage.state == "spectroscopy" else None
+            # a spectroscopy's chunks: those whose outputs all come after the settling (the hold)
+            ramp = self.stage.ramp if (self.stage is not None and self.stage.state == "spectroscopy"
+                                       and self.stage.settling is None) else None
             for i, (ti, a, ph) in enumerate(zip(t.tolist(), signal, phase)):
                 if self.stage is None:
                     z_msg.data = zs[i] = self.controller.update(a, ti)
@@ -392,6 +424,9 @@ class ZControllerNode(Node):
             self._send_command(input_end_index, input_end_time)
             if ramp is not None:
                 ramp.expect(input_first_index)
+            if self.spectroscopy_ramp is not None and self.spectroscopy_ramp.failed:
+                self.get_logger().warning(self.stage.reason)
+                self._abandon_spectroscopy()
             if self.spectroscopy_ramp is not None and self.spectroscopy_ramp.done:
                 self._batches_since_done += 1
                 self._finish_spectroscopy()

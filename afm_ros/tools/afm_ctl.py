@@ -46,8 +46,10 @@ EXAMPLES = """examples:
 # units shown with an SI prefix as well (e.g. 4.8e-08 m (48 nm)); the prefix goes on the first unit
 _PREFIXED_UNITS = {"m", "s", "Hz", "J", "Pa", "N", "m/s", "m/sqrt(Hz)", "Pa s"}
 _PREFIXES = {-18: "a", -15: "f", -12: "p", -9: "n", -6: "u", -3: "m", 0: "", 3: "k", 6: "M", 9: "G", 12: "T"}
-# a negative number typed as a value: a value, not an option (argparse only knows -5 and -.5 forms)
-_NEGATIVE_NUMBER = re.compile(r"^-(?:\d|\.\d)")
+# a negative number typed as a value: a value, not an option (argparse only knows -5 and -.5 forms);
+# also the infinities and NaN as YAML and Python spell them (-inf, -.inf, -nan, -Infinity)
+_NEGATIVE_NUMBER = re.compile(r"^-(?:\d|\.\d|\.?(?:inf|infinity|nan)$)", re.IGNORECASE)
+MAX_PERIOD_S = 3600.0  # [s] watch --period: a line at least once an hour
 
 
 # --- formatting -------------------------------------------------------------------------------------
@@ -284,7 +286,7 @@ def watch(link, out, period: float = 1.0, until_frame_done: bool = False, count:
               flush=True)
         lines = 0
         while True:
-            link.spin_for(period)
+            link.spin_for(period, alive=True)  # NoAnswer if the instrument stops speaking
             a = np.concatenate(window["a"]) if window["a"] else np.empty(0)
             p = np.concatenate(window["p"]) if window["p"] else np.empty(0)
             window["a"].clear()
@@ -358,7 +360,7 @@ def cmd_workflow(link, args, out) -> int:
         print(link.trigger(service, node=node), file=out, flush=True)
         busy = {"approaching", "withdrawing"}
         while len(seen) <= before or (args.command != "tune" and seen[-1].get("state") in busy):
-            link.spin_for(0.2)
+            link.spin_for(0.2, alive=True)
         last = seen[-1]
         if args.command == "tune":
             print(f"tuned: f0 = {last['f0_Hz']:.3f} +- {last['f0_error_Hz']:.2g} Hz, Q = {last['Q']:.4f} +- "
@@ -491,8 +493,8 @@ def parse_args(argv) -> argparse.Namespace:
     if args.command == "watch":
         if args.count is not None and args.count < 1:
             parser.error(f"--count={args.count} must be >= 1")
-        if not (args.period > 0 and math.isfinite(args.period)):
-            parser.error(f"--period={args.period:g} s must be > 0")
+        if not (0 < args.period <= MAX_PERIOD_S):
+            parser.error(f"--period={args.period:g} s is out of range; allowed (0, {MAX_PERIOD_S:g}] s")
     if not re.fullmatch(r"/?([A-Za-z_][A-Za-z0-9_]*/?)*", args.ns):
         parser.error(f"--ns={args.ns!r} is not a ROS namespace (e.g. /afm1)")
     return args

@@ -18,7 +18,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
+from afm_ros.formats import user_files
 
 RUNS_DIR = "afm_runs"
 _MISSING = object()
@@ -27,8 +27,8 @@ _MISSING = object()
 def _parse_value(text: str):
     """A ``-p`` value as rcl reads it (YAML)."""
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
+        return user_files.parse_yaml(text, "a -p value")
+    except user_files.UserFileError:
         return text
 
 

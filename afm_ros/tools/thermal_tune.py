@@ -319,15 +319,16 @@ DEFLECTION_SUFFIX = "cantilever/deflection"
 
 
 def _session_value(params: dict, name: str, path) -> float:
-    import yaml
+    from afm_ros.formats.user_files import parse_yaml
 
     if name not in params:
         raise ValueError(f"{path}: the session's cantilever parameters lack {name!r} "
                          f"(recorded by an afm_ros recorder? it stores them as metadata)")
-    value = yaml.safe_load(params[name])
-    if isinstance(value, str):
-        value = float(value)
-    return float(value)
+    value = parse_yaml(str(params[name])[:1000], f"{path}: parameter {name}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: parameter {name}={params[name]!r} is not a number") from None
 
 
 def record_from_session(path, namespace: str | None = None) -> ThermalRecord:

@@ -12,10 +12,10 @@ Missing parameters take the generator's defaults; :func:`describe` gives the com
 from __future__ import annotations
 
 import copy
-import json
 import os
 
 from afm_ros.core.physics.parameters import DMT_SPECS, parse_number
+from afm_ros.formats import user_files
 from afm_ros.core.samples.generators import GENERATORS, MAP_EXTENSIONS, PAIRS, SPECS, from_file
 from afm_ros.core.samples.surface import Sample, dilate
 
@@ -69,21 +69,9 @@ def load_sample_file(path) -> Sample:
     Errors name the file: OSError if it cannot be read, ValueError for its contents.
     """
     path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-    except OSError as e:
-        raise OSError(e.errno, f"cannot read sample description {path}: {e.strerror}") from e
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not a text file ({e})") from None
-    try:
-        if path.lower().endswith(".json"):
-            data = json.loads(text)
-        else:
-            import yaml
-            data = yaml.safe_load(text)
-    except Exception as e:  # yaml.YAMLError / json.JSONDecodeError
-        raise ValueError(f"{path}: not valid {'JSON' if path.lower().endswith('.json') else 'YAML'}: {e}") from None
+    if not os.path.exists(path):
+        raise OSError(2, f"cannot read sample description {path}: No such file or directory")
+    data = user_files.load(path, "sample description")  # bounded: size, depth, aliases; ValueError
     try:
         return sample_from_description(data, base_dir=os.path.dirname(os.path.abspath(path)))
     except ValueError as e:
