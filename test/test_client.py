@@ -19,13 +19,16 @@ import pytest
 import xarray as xr
 
 from afm_ros.client import Microscope, NodeNotFound, NotEngaged, Refused
-from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, drift_velocity
+from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, IDEAL_ARTEFACTS, drift_velocity
+from afm_ros.core.tip import IDEAL_TIP
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.formats.frames import channel_title
 from afm_ros.formats.gwy import read_gwy
 from conftest import instrument_nodes
 
 DOMAIN_ID = "59"
+EXACT_IDEAL = {"temperature": 0.0, "detector_noise_density": 0.0, **IDEAL_TIP}  # Microscope.local(ideal=True)
+IDEAL_SCANNER = dict(IDEAL_ARTEFACTS)
 SMALL = dict(center=(5e-6, 5e-6), size=(2e-6, 1e-6), pixels=16, lines=8, line_rate=10.0)
 
 
@@ -184,3 +187,171 @@ def test_a_script_with_an_approach_repeats_bit_for_bit_over_ros(monkeypatch, ros
     assert frames[0].attrs["start_time_s"] == frames[1].attrs["start_time_s"]
     for name in frames[0].data_vars:
         np.testing.assert_array_equal(frames[0][name].values, frames[1][name].values, err_msg=name)
+
+
+# --- found from outside (issue 28) -----------------------------------------------------------------------
+def test_bad_arguments_are_client_errors_naming_the_argument_before_anything_is_sent():
+    from afm_ros.client import ClientError
+    from afm_ros.client.microscope import BadArgument
+
+    with Microscope.local(withdrawn=False, ideal=True) as afm:
+        cases = [(lambda: afm.set_scan(size=2e-6), r"size=2e-06 must be a pair"),
+                 (lambda: afm.set_scan(center=(1e-6, "x")), r"center\[1\]='x' is not a number"),
+                 (lambda: afm.set_scan(pixels=64.5), r"pixels=64.5 is not an integer"),
+                 (lambda: afm.wait(-1), r"seconds=-1 s is out of range; allowed \[0, inf\] s"),
+                 (lambda: afm.wait(float("nan")), r"seconds=nan"),
+                 (lambda: afm.move_tip("a", 1e-6), r"x='a' is not a number"),
+                 (lambda: afm.spectroscopy(x=1e-6), r"both x and y"),
+                 (lambda: afm.spectroscopy(spectroscopy_speed=1e-7), r"'spectroscopy_speed' is not a spectroscopy"),
+                 (lambda: afm.scan(progress=3), r"progress=3 must be a function")]
+        for call, match in cases:
+            with pytest.raises(BadArgument, match=match) as caught:
+                call()
+            assert isinstance(caught.value, ClientError) and isinstance(caught.value, ValueError)
+        assert afm.state()["t_s"] == 0.0  # nothing ran
+
+
+def test_work_of_more_than_a_minute_says_so_with_an_estimate_before_it_starts():
+    """wait(1e9) and a spectroscopy at 1e-10 m/s (~800 s simulated) warn with the simulated time and
+    the wall time it will take at the measured rate; as errors here, so nothing long runs."""
+    import warnings
+
+    from afm_ros.client.microscope import LongWork
+
+    with Microscope.local(withdrawn=False, ideal=True) as afm:
+        afm.wait(0.01)  # the rate is measured from here on
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", LongWork)
+            with pytest.raises(LongWork, match=r"wait\(1e\+09\) simulates 1e\+09 s: about [0-9.]+ (years|days) of wall "
+                                               r"time at the [0-9.]+ s of wall time per simulated second measured"):
+                afm.wait(1e9)
+            with pytest.raises(LongWork, match=r"spectroscopy\(\) simulates 800.1 s"):
+                afm.spectroscopy(spectroscopy_rate=1e-10)
+            afm.wait(0.01)  # short work says nothing
+        assert afm.state()["stage"] == "engaged"
+
+
+def _interrupt_after(seconds: float):
+    """Ctrl-C in the main thread after ``seconds`` of wall time (as a person pressing it)."""
+    import _thread
+    import threading
+
+    timer = threading.Timer(seconds, _thread.interrupt_main)
+    timer.start()
+    return timer
+
+
+def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
+    """Ctrl-C inside a slow spectroscopy (800 s simulated: still running whenever the key comes) and
+    inside an approach: the spectroscopy gives the feedback back (engaged), the approach stops where it
+    is (stopped); then the next verbs work."""
+    import warnings
+
+    from afm_ros.client.microscope import LongWork
+
+    with Microscope.local(withdrawn=False, ideal=True) as afm:
+        afm.wait(0.05)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LongWork)
+            timer = _interrupt_after(1.0)
+            with pytest.raises(KeyboardInterrupt):
+                afm.spectroscopy(spectroscopy_rate=1e-10)
+            timer.join()
+        assert afm.state()["stage"] == "engaged"
+        afm.set_scan(**SMALL)
+        frame = afm.scan()
+        assert abs(float(frame.amplitude.median()) - 48e-9) < 1e-9  # regulating again at the setpoint
+        curve = afm.spectroscopy()  # and a spectroscopy runs to its end
+        assert set(curve.branch.values) == {"lift", "approach", "retract", "return"}
+        timer = _interrupt_after(1.0)  # an approach from 5 um takes ~3 s simulated
+        with pytest.raises(KeyboardInterrupt):
+            afm.approach()
+        timer.join()
+        assert afm.state()["stage"] == "stopped"
+        with pytest.raises(NotEngaged):
+            afm.scan()
+        assert afm.approach()["state"] == "engaged" and afm.state()["stage"] == "engaged"
+
+
+def _approach_again_and_scan(afm) -> tuple[dict, list[dict], xr.Dataset]:
+    """An approach, then, engaged and settled (the amplitude at the setpoint with noise around it), more
+    approaches: before the fix the outputs of the old position (two chunks in flight) armed the approach
+    (one above the setpoint) and engaged it (the next one below) at once, 5 um from the surface; after
+    0.2 and 0.3 s of this instrument's noise both happened."""
+    first = afm.approach()
+    again = []
+    for seconds in (0.3, 0.2):
+        afm.wait(seconds)
+        again.append(afm.approach())  # engaged already: from the start distance again, a real approach
+    afm.set_scan(**SMALL)
+    return first, again, afm.scan()
+
+
+def _check_again(first: dict, again: list[dict], frame: xr.Dataset, z_min: float) -> None:
+    """The approach from engaged goes back to the start distance and engages as the first did (not at
+    once on the outputs of the old position), and the frame after it is taken in contact."""
+    for second in again:
+        assert (second["cycles"], second["motor_steps"]) == (first["cycles"], first["motor_steps"])
+        # the same extension from z_max (~1 s at 2 um/s), later by at most the blind time (10 ms: the
+        # outputs of the position before the jump are not judged) and the ring-up
+        assert 0 <= second["duration_s"] - first["duration_s"] < 0.02, (first, second)
+        assert second["engaged_z_m"] == pytest.approx(first["engaged_z_m"], abs=20e-9)
+    assert abs(float(frame.amplitude.median()) - 48e-9) < 1e-9
+    assert float(frame.height.min()) > z_min + 1e-9
+
+
+def test_an_approach_while_engaged_is_a_real_approach_in_process():
+    with Microscope.local(approach={"approach_start_distance": 2e-6}) as afm:
+        first, again, frame = _approach_again_and_scan(afm)
+    _check_again(first, again, frame, -3e-6)
+
+
+def test_an_approach_while_engaged_is_a_real_approach_over_ros(monkeypatch, ros_namespace):
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
+    z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever, z_controller=z):
+        with Microscope.connect(ros_namespace, timeout=30.0) as afm:
+            first, again, frame = _approach_again_and_scan(afm)
+    _check_again(first, again, frame, -3e-6)
+
+
+def test_spectroscopy_at_a_point_moves_settles_then_holds_the_same_over_ros_and_in_process(monkeypatch,
+                                                                                           ros_namespace):
+    """On the tilted sample, 4.2 um from the centre: the tip moves, the loop settles 0.1 s at the new point,
+    then holds; the curve starts at the setpoint, and both backends give it bit for bit."""
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend",
+                  "force_model": "viscoelastic_dmt"}
+
+    def script(afm):
+        afm.wait(0.3)
+        return afm.spectroscopy(x=8e-6, y=8e-6)
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever):
+        with Microscope.connect(ros_namespace, timeout=30.0) as afm:
+            over_ros = script(afm)
+    with Microscope.local(withdrawn=False) as afm:
+        local = script(afm)
+    assert over_ros.attrs["t_start"] == local.attrs["t_start"]
+    for name in local.data_vars:
+        np.testing.assert_array_equal(over_ros[name].values, local[name].values, err_msg=name)
+    first = float(local.amplitude.isel(t=0))
+    assert abs(first - 48e-9) < 0.5e-9, first  # at the setpoint (it was 40.5 nm without the settling)
+
+
+def _two_small_frames(afm) -> list:
+    afm.set_scan(center=(5e-6, 5e-6), size=(1e-6, 0.25e-6), pixels=8, lines=2, line_rate=4.0)
+    return [afm.scan(), afm.scan()]
+
+
+def test_a_second_frame_of_two_lines_is_scanned_and_flagged_in_process_and_over_ros(monkeypatch, ros_namespace):
+    """1-7 lines are allowed: the frame check skips the drift registration (it needs 8 x 8); before, it
+    raised inside the scanner's callback and took the instrument down (and the in-process frame was lost)."""
+    cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=cantilever):
+        with Microscope.connect(ros_namespace, timeout=30.0) as afm:
+            over_ros = _two_small_frames(afm)
+            assert afm.state()["stage"] == "engaged"
+    with Microscope.local(withdrawn=False) as afm:
+        local = _two_small_frames(afm)
+    for frames in (over_ros, local):
+        assert [f.height.shape for f in frames] == [(2, 2, 8), (2, 2, 8)]
+        assert "drift_detected" not in frames[1].attrs["flags"]

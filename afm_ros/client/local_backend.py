@@ -2,8 +2,6 @@
 nodes run, with the nodes' parameters and refusals (no ROS)."""
 from __future__ import annotations
 
-import math
-
 from afm_ros.client.frames import curve_dataset, frame_dataset
 from afm_ros.client.microscope import Refused, WorkflowFailed, refusal
 from afm_ros.core import artefacts
@@ -11,6 +9,7 @@ from afm_ros.core.approach import APPROACH_SPECS, INSTRUMENT_Z
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.flags import feedback_setpoint, frame_flags
 from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values
+from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, validate as spectroscopy_validate
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
 from afm_ros.core.tune import TUNE_SPECS
 
@@ -50,12 +49,20 @@ class LocalBackend:
         except ValueError as exc:
             raise Refused("instrument", str(exc)) from None
         self.sample_name = sample
+        self.spectroscopy_values = spectroscopy_validate({k: v for k, v in zc.items() if k in SPECTROSCOPY_SPECS})
         self.tune_values: dict = {}
         self.last_frame = None
         self.last_flags: dict = {}
 
     def close(self) -> None:
         pass
+
+    def recover(self, verb: str) -> None:
+        """After an interrupted verb: nothing to do, the wired instrument's verbs stop where they are
+        (ZStage.stop, stop_scan) and the tune restores the drive itself."""
+
+    def wall_per_simulated_second(self) -> float:
+        return self.w.seconds_per_simulated_second()
 
     # --- parameters -----------------------------------------------------------------------------------
     @staticmethod
@@ -88,12 +95,15 @@ class LocalBackend:
             return
         try:
             if node == "z_controller":
-                unknown = set(values) - set(Z_CONTROLLER_SPECS) - set(APPROACH_SPECS)
+                unknown = set(values) - set(Z_CONTROLLER_SPECS) - set(APPROACH_SPECS) - set(SPECTROSCOPY_SPECS)
                 if unknown:
                     raise ValueError(f"{sorted(unknown)[0]!r} is not a z_controller parameter")
                 approach = {k: APPROACH_SPECS[k].validate(v) for k, v in values.items() if k in APPROACH_SPECS}
+                spectroscopy = spectroscopy_validate({**self.spectroscopy_values, **{
+                    k: v for k, v in values.items() if k in SPECTROSCOPY_SPECS}})
                 w.controller.configure(**{k: v for k, v in values.items() if k in Z_CONTROLLER_SPECS})
                 w.approach_values.update(approach)
+                self.spectroscopy_values = spectroscopy
             elif node == "lockin":
                 tune = {k: v for k, v in values.items() if k in TUNE_SPECS}
                 w.lock_in.configure(**{k: v for k, v in values.items() if k not in TUNE_SPECS})
@@ -117,7 +127,8 @@ class LocalBackend:
 
     def get_values(self, node: str, names: list[str]) -> dict:
         w = self.w
-        source = {"scanner": self.scanner, "z_controller": {**w.controller.params, **w.approach_values},
+        source = {"scanner": self.scanner,
+                  "z_controller": {**w.controller.params, **w.approach_values, **self.spectroscopy_values},
                   "lockin": {**w.lock_in.params, **self.tune_values}, "cantilever": w.values}.get(node)
         if source is None:
             raise Refused(node, "no such node (cantilever, lockin, z_controller, scanner)")
@@ -138,8 +149,6 @@ class LocalBackend:
         return {"t_s": self.w.t, "stage": self.w.stage.state}
 
     def advance(self, seconds: float) -> None:
-        if not (seconds >= 0 and math.isfinite(seconds)):
-            raise ValueError(f"seconds={seconds!r} must be >= 0 and finite")
         self.w.run_until(self.w.t + seconds)
 
     def tune(self) -> dict:
@@ -218,7 +227,7 @@ class LocalBackend:
             raise refusal("z_controller/spectroscopy", f"spectroscopy refused: not engaged: the z stage is "
                                                        f"{w.stage.state}; approach first")
         try:
-            curve = w.spectroscopy(values or None)
+            curve = w.spectroscopy({**self.spectroscopy_values, **values})
         except ValueError as exc:
             raise refusal("z_controller/spectroscopy", str(exc)) from None
         return curve_dataset(curve, {"source": "local"})

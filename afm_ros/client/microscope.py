@@ -22,10 +22,16 @@ forever: every wait has a timeout, and the simulated time must keep advancing.
 """
 from __future__ import annotations
 
+import math
+import numbers
+import os
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 
 from afm_ros.client.ros_link import ClientError
 
+LONG_WALL_S = 60.0  # [s] wall: a verb expected to take longer says so first (LongWork)
+ASSUMED_WALL_PER_SIMULATED = 1.0  # [s/s] before the instrument has run: real time
 
 class Refused(ClientError):
     """The instrument refused a setting or an action; ``reason`` is the node's own words."""
@@ -43,13 +49,63 @@ class WorkflowFailed(ClientError):
     """A workflow step (tune, approach, withdraw) ended without reaching its goal; the message says why."""
 
 
+class BadArgument(ClientError, ValueError):
+    """A verb's argument of the wrong type or out of its range (checked before anything is sent);
+    the message names the argument and what is allowed."""
+
+
+class LongWork(UserWarning):
+    """A verb whose work will take more than a minute of wall time (or a GB): said before it starts,
+    with the estimate (simulated time and the wall time per simulated second measured so far)."""
+
+
+def _number(name: str, value, low: float = -math.inf, high: float = math.inf, low_open: bool = False,
+            unit: str = "") -> float:
+    """``value`` as a finite float in the range; BadArgument naming ``name`` otherwise."""
+    lb, unit_text = "(" if low_open or low == -math.inf else "[", f" {unit}" if unit else ""
+    allowed = f"{lb}{low:g}, {high:g}]{unit_text}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise BadArgument(f"{name}={value!r} is not a number; allowed {allowed}")
+    v = float(value)
+    if not math.isfinite(v) or v < low or v > high or (low_open and v == low):
+        raise BadArgument(f"{name}={value!r}{unit_text} is out of range; allowed {allowed}")
+    return v
+
+
+def _pair(name: str, value, unit: str = "m") -> tuple[float, float]:
+    """``value`` as two finite floats (x, y); BadArgument naming ``name`` otherwise."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise BadArgument(f"{name}={value!r} must be a pair (x, y) [{unit}], e.g. {name}=(2e-6, 2e-6)")
+    return _number(f"{name}[0]", value[0], unit=unit), _number(f"{name}[1]", value[1], unit=unit)
+
+
+def _integer(name: str, value) -> int:
+    """``value`` as an int (its range is the node's to check); BadArgument naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise BadArgument(f"{name}={value!r} is not an integer")
+    return int(value)
+
+
+def _duration_text(seconds: float) -> str:
+    for unit, size in (("years", 3.156e7), ("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
 def refusal(what: str, reason: str) -> Refused:
     """:class:`NotEngaged` if the reason says so, else :class:`Refused`."""
     return (NotEngaged if "not engaged" in reason or "needs the tip engaged" in reason else Refused)(what, reason)
 
 
 class Microscope:
-    """The instrument as a program sees it; build it with :meth:`connect` or :meth:`local`."""
+    """The instrument as a program sees it; build it with :meth:`connect` or :meth:`local`.
+
+    Every verb checks its arguments before anything is sent (:class:`BadArgument`), says before it
+    starts when its work will take more than a minute (:class:`LongWork`, a warning with the
+    estimate), and when Ctrl-C interrupts it leaves the instrument where the next verb works: an
+    approach, withdraw or spectroscopy stops where it is (the z stage ``stopped``, or engaged again
+    after a spectroscopy), a scan stops (its tip parked), a tune restores the drive."""
 
     def __init__(self, backend):
         self._backend = backend
@@ -63,7 +119,9 @@ class Microscope:
         runs it in lockstep, so a script gives the same results every time; False: it runs freely."""
         from afm_ros.client.ros_backend import RosBackend
 
-        return cls(RosBackend(namespace, timeout, hold))
+        if not isinstance(namespace, str):
+            raise BadArgument(f"namespace={namespace!r} must be a string, e.g. '/afm1'")
+        return cls(RosBackend(namespace, _number("timeout", timeout, 0.0, 1e6, low_open=True, unit="s"), hold))
 
     @classmethod
     def local(cls, sample: str = "ps_ldpe_blend", force_model: str = "viscoelastic_dmt", ideal: bool = False,
@@ -78,7 +136,13 @@ class Microscope:
         imperfections, no wear. The dicts override parameters by name (the nodes' tables)."""
         from afm_ros.client.local_backend import LocalBackend
 
-        return cls(LocalBackend(sample, force_model, ideal, withdrawn, cantilever or {}, lockin or {},
+        for name, value in (("cantilever", cantilever), ("lockin", lockin), ("z_controller", z_controller),
+                            ("scanner", scanner), ("approach", approach), ("tip", tip)):
+            if value is not None and not isinstance(value, dict):
+                raise BadArgument(f"{name}={value!r} must be a dict of parameter values by name")
+        if not isinstance(sample, (str, os.PathLike)):
+            raise BadArgument(f"sample={sample!r} must be a name or a file path")
+        return cls(LocalBackend(os.fspath(sample), force_model, ideal, withdrawn, cantilever or {}, lockin or {},
                                 z_controller or {}, scanner or {}, approach or {}, tip or {}))
 
     # --- life cycle ---------------------------------------------------------------------------------
@@ -95,6 +159,26 @@ class Microscope:
     def _submit(self, fn, *args, **kwargs) -> Future:
         return self._pool.submit(fn, *args, **kwargs)
 
+    def _run(self, verb: str, *args):
+        """The backend's ``verb``; on Ctrl-C the backend puts the instrument where the next verb works
+        (its ``recover``), then the KeyboardInterrupt goes on."""
+        try:
+            return getattr(self._backend, verb)(*args)
+        except KeyboardInterrupt:
+            self._backend.recover(verb)
+            raise
+
+    def _announce(self, what: str, simulated_s: float) -> None:
+        """A :class:`LongWork` warning if ``simulated_s`` of simulated time will take over a minute."""
+        per = self._backend.wall_per_simulated_second()
+        measured = math.isfinite(per) and per > 0
+        wall = simulated_s * (per if measured else ASSUMED_WALL_PER_SIMULATED)
+        if wall > LONG_WALL_S:
+            basis = (f"the {per:.3g} s of wall time per simulated second measured so far" if measured else
+                     "real time (nothing measured yet)")
+            warnings.warn(LongWork(f"{what} simulates {simulated_s:.4g} s: about {_duration_text(wall)} of wall time "
+                                   f"at {basis}; Ctrl-C stops it and leaves the instrument usable"), stacklevel=3)
+
     # --- settings -------------------------------------------------------------------------------------
     def set_scan(self, center: tuple[float, float] | None = None, top_left: tuple[float, float] | None = None,
                  size: tuple[float, float] | None = None, pixels: int | None = None, lines: int | None = None,
@@ -106,29 +190,33 @@ class Microscope:
         the centre), ``pixels`` per line, ``lines``, ``line_rate`` [lines/s], ``slow_scan_direction``
         ('up' or 'down'). All or nothing: a refused value (:class:`Refused`, the node's reason)
         changes none. Returns the scan settings."""
-        import math
-
         if center is not None and top_left is not None:
-            raise ValueError("give center or top_left, not both")
+            raise BadArgument("give center or top_left, not both")
         values: dict = {}
-        current = self.scan_settings() if top_left is not None else {}
         if size is not None:
-            values["scan_size_x"], values["scan_size_y"] = (float(v) for v in size)
+            values["scan_size_x"], values["scan_size_y"] = _pair("size", size)
         if angle is not None:
-            values["scan_angle"] = float(angle)
+            values["scan_angle"] = _number("angle", angle, unit="deg")
         if center is not None:
-            values["scan_center_x"], values["scan_center_y"] = (float(v) for v in center)
+            values["scan_center_x"], values["scan_center_y"] = _pair("center", center)
         if top_left is not None:
+            corner = _pair("top_left", top_left)
+            current = self.scan_settings()
             sx = values.get("scan_size_x", current.get("scan_size_x"))
             sy = values.get("scan_size_y", current.get("scan_size_y"))
             turn = math.radians(values.get("scan_angle", current.get("scan_angle", 0.0)))
             u, v = 0.5 * sx, -0.5 * sy  # the centre from the top-left corner, in the scan's own frame
-            values["scan_center_x"] = float(top_left[0]) + u * math.cos(turn) - v * math.sin(turn)
-            values["scan_center_y"] = float(top_left[1]) + u * math.sin(turn) + v * math.cos(turn)
-        for name, value in (("pixels_per_line", pixels), ("lines", lines), ("line_rate", line_rate),
-                            ("slow_scan_direction", slow_scan_direction)):
+            values["scan_center_x"] = corner[0] + u * math.cos(turn) - v * math.sin(turn)
+            values["scan_center_y"] = corner[1] + u * math.sin(turn) + v * math.cos(turn)
+        for name, value in (("pixels", pixels), ("lines", lines)):
             if value is not None:
-                values[name] = value
+                values["pixels_per_line" if name == "pixels" else name] = _integer(name, value)
+        if line_rate is not None:
+            values["line_rate"] = _number("line_rate", line_rate, unit="lines/s")
+        if slow_scan_direction is not None:
+            if slow_scan_direction not in ("up", "down"):
+                raise BadArgument(f"slow_scan_direction={slow_scan_direction!r}; allowed 'up' or 'down'")
+            values["slow_scan_direction"] = slow_scan_direction
         self._backend.set_values("scanner", values)
         return self.scan_settings()
 
@@ -140,7 +228,7 @@ class Microscope:
                      i_gain: float | None = None) -> dict:
         """The z loop's ``setpoint`` [m] (amplitude), ``p_gain`` [1] and ``i_gain`` [1/s]; all or
         nothing (:class:`Refused` with the node's reason). Returns the feedback settings."""
-        values = {k: float(v) for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
+        values = {k: _number(k, v) for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
                   if v is not None}
         self._backend.set_values("z_controller", values)
         return self.feedback()
@@ -151,10 +239,14 @@ class Microscope:
 
     def set(self, node: str, **values) -> None:
         """Any parameters of one node by name (the README's tables), all or nothing."""
+        if not isinstance(node, str):
+            raise BadArgument(f"node={node!r} must be a node name (cantilever, lockin, z_controller, scanner)")
         self._backend.set_values(node, values)
 
     def get(self, node: str, *names: str) -> dict:
         """Parameter values of one node by name."""
+        if not isinstance(node, str) or not all(isinstance(n, str) for n in names):
+            raise BadArgument(f"get(node, *names) takes names as strings; got {node!r}, {names!r}")
         return self._backend.get_values(node, list(names))
 
     # --- actions ----------------------------------------------------------------------------------------
@@ -162,13 +254,13 @@ class Microscope:
         """Sweep the drive around the resonance with the tip free, fit f0 [Hz] and Q, and set the
         working point (drive frequency, drive for the free amplitude, phase zero). Refused while
         engaged (withdraw first)."""
-        return self._backend.tune()
+        return self._run("tune")
 
     def approach(self) -> dict:
         """Coarse approach and engage: the motor and z piezo bring the tip down until the amplitude
         falls to the setpoint, then the z loop regulates. Returns the approach's numbers
         (cycles, motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
-        return self._backend.approach()
+        return self._run("approach")
 
     def engage(self) -> dict:
         """Engaged on the surface: approaches if the z stage is not engaged already."""
@@ -177,14 +269,22 @@ class Microscope:
 
     def withdraw(self) -> dict:
         """Feedback off, z piezo retracted, the motor backs off: the tip is safe to move."""
-        return self._backend.withdraw()
+        return self._run("withdraw")
 
     def scan(self, progress=None, save=None):
         """Scan one frame with the scan settings from now; returns it as an xarray Dataset
         (:mod:`afm_ros.client.frames`). ``progress(lines_done, lines)`` is called as lines finish;
         ``save``: also write it as a Gwyddion file there (the values the .gwy holds are the
         Dataset's). :class:`NotEngaged` if the tip is not on the surface."""
-        frame = self._backend.scan(progress)
+        if progress is not None and not callable(progress):
+            raise BadArgument(f"progress={progress!r} must be a function progress(lines_done, lines) or None")
+        if save is not None and not isinstance(save, (str, os.PathLike)):
+            raise BadArgument(f"save={save!r} must be a file path or None")
+        if self.state()["stage"] == "engaged":  # (else refused at once: nothing long to announce)
+            settings = self.scan_settings()
+            self._announce(f"scan() of {settings['lines']} lines at {settings['line_rate']:g} lines/s",
+                           settings["lines"] / settings["line_rate"])
+        frame = self._run("scan", progress)
         if save is not None:
             from afm_ros.client.frames import save_frame
 
@@ -193,22 +293,41 @@ class Microscope:
 
     def move_tip(self, x: float, y: float) -> None:
         """Move the tip to (x, y) [m] (sample coordinates) and hold it there (not while scanning)."""
-        self._backend.move_tip(float(x), float(y))
+        self._backend.move_tip(_number("x", x, unit="m"), _number("y", y, unit="m"))
 
     def spectroscopy(self, x: float | None = None, y: float | None = None, **values):
         """Amplitude, phase, mean deflection and mean force vs z at (x, y) [m] (default: where the
-        tip is): the feedback is held, z ramps toward the sample and back at ``spectroscopy_rate``
-        [m/s] (the z controller's spectroscopy_* parameters; ``values`` override them for this curve),
-        then the loop resumes. Returns an xarray Dataset over time with z [m] beside it."""
+        tip is): the tip moves there, the feedback regulates for ``spectroscopy_settle_time`` [s]
+        and is then held, z ramps toward the sample and back at ``spectroscopy_rate`` [m/s] (the z
+        controller's spectroscopy_* parameters; ``values`` override them for this curve), then the
+        loop resumes. Returns an xarray Dataset over time with z [m] beside it."""
+        from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
+
         if (x is None) != (y is None):
-            raise ValueError("give both x and y, or neither")
+            raise BadArgument("give both x and y, or neither")
+        unknown = [k for k in values if k not in SPECTROSCOPY_SPECS]
+        if unknown:
+            raise BadArgument(f"{unknown[0]!r} is not a spectroscopy parameter; allowed: {', '.join(SPECTROSCOPY_SPECS)}")
+        v = {**self.get("z_controller", *SPECTROSCOPY_SPECS), **values}
+        try:
+            rate = _number("spectroscopy_rate", v["spectroscopy_rate"], 0.0, math.inf, low_open=True, unit="m/s")
+            legs = 2 * (_number("spectroscopy_retract", v["spectroscopy_retract"], unit="m")
+                        + _number("spectroscopy_distance", v["spectroscopy_distance"], unit="m"))
+            settle = _number("spectroscopy_settle_time", v["spectroscopy_settle_time"], 0.0, unit="s")
+        except BadArgument:
+            rate, legs, settle = 1.0, 0.0, 0.0  # the node refuses it with its own reason
+        if x is not None:
+            x, y = _number("x", x, unit="m"), _number("y", y, unit="m")
+        self._announce("spectroscopy()", settle + legs / rate)
         if x is not None:
             self.move_tip(x, y)
-        return self._backend.spectroscopy(values)
+        return self._run("spectroscopy", values)
 
     def wait(self, seconds: float) -> None:
         """Let ``seconds`` [s] of simulated time pass with the instrument as it is."""
-        self._backend.advance(float(seconds))
+        seconds = _number("seconds", seconds, 0.0, unit="s")
+        self._announce(f"wait({seconds:g})", seconds)
+        self._run("advance", seconds)
 
     def flags(self) -> dict:
         """The problem flags of the last frame, by name (what an instrument could see: feedback,

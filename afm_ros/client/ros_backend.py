@@ -22,7 +22,7 @@ from std_msgs.msg import Float64MultiArray, String
 
 from afm_ros.client.frames import curve_dataset, frame_dataset
 from afm_ros.client.microscope import WorkflowFailed, refusal
-from afm_ros.client.ros_link import NoAnswer, ParameterRefused, RosLink, ServiceFailed, status_node
+from afm_ros.client.ros_link import ClientError, NoAnswer, ParameterRefused, RosLink, ServiceFailed, status_node
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.formats import chunk_layout
@@ -43,6 +43,7 @@ class RosBackend:
     def __init__(self, namespace: str, timeout: float, hold: bool):
         self.link = RosLink(namespace, timeout)
         self.hold = hold
+        self._advance_sim = self._advance_wall = 0.0  # [s] simulated and wall time of the advances so far
         try:
             self._subscribe()
             for node in NODES:
@@ -59,6 +60,26 @@ class RosBackend:
 
     def close(self) -> None:
         self.link.close()
+
+    def recover(self, verb: str) -> None:
+        """After an interrupted verb, where the next one works: a z-stage verb (approach, withdraw,
+        spectroscopy) stopped where it is (z_controller/stop), a scan stopped (scanner/stop, the tip
+        parked); a tune runs to the end of its sweep (under a second simulated) and applies its
+        working point, as the lock-in has no stop of its own."""
+        try:
+            if verb in ("approach", "withdraw", "spectroscopy"):
+                self.link.trigger("z_controller/stop", node="z_controller")
+            elif verb == "scan":
+                self.link.trigger("scanner/stop", node="scanner")
+            elif verb == "tune" and self.latest["tune_plan"]:
+                plan = self.latest["tune_plan"]
+                self.advance_to(plan["start_time"] + len(plan["frequencies"]) * plan["point_time"] + 3 * self.chunk)
+        except (ClientError, KeyboardInterrupt):
+            pass  # the instrument went away, or a second Ctrl-C: nothing more to do here
+
+    def wall_per_simulated_second(self) -> float:
+        """Wall seconds per simulated second of this client's advances so far (nan before one)."""
+        return self._advance_wall / self._advance_sim if self._advance_sim > 0 else math.nan
 
     # --- what the nodes say ------------------------------------------------------------------------------
     def _subscribe(self) -> None:
@@ -146,11 +167,18 @@ class RosBackend:
     def advance(self, seconds: float) -> None:
         """``seconds`` [s] of simulated time: with hold, run to the first chunk boundary after it and
         pause; without, wait until it passed."""
-        if not (seconds >= 0 and math.isfinite(seconds)):
-            raise ValueError(f"seconds={seconds!r} must be >= 0 and finite")
         self.advance_to(self.now() + seconds)
 
     def advance_to(self, t: float) -> None:
+        wall, start = time.monotonic(), self.now()
+        try:
+            self._advance_to(t)
+        finally:
+            if self.now() > start:
+                self._advance_sim += self.now() - start
+                self._advance_wall += time.monotonic() - wall
+
+    def _advance_to(self, t: float) -> None:
         if self.hold:
             self.link.set_parameters("cantilever", {"run_until": t})
         last, since = self.now(), time.monotonic()
@@ -268,7 +296,9 @@ class RosBackend:
         self.set_values("z_controller", values)
         try:
             seen = self.counts["curve"]
-            self._run_stage("z_controller/spectroscopy", "spectroscopy")
+            stage = self._run_stage("z_controller/spectroscopy", "spectroscopy")
+            if stage.get("reason", "").startswith("spectroscopy abandoned"):
+                raise refusal("z_controller/spectroscopy", stage["reason"])
             self._wait(lambda: self.counts["curve"] > seen, "the curve (z_controller/spectroscopy)")
         finally:
             if old:

@@ -14,7 +14,8 @@ whether a flag was right, so detection software can be scored against it.
   clipped there.
 - ``drift_detected``: the frame is shifted against the previous frame of the same area by more
   than ``drift_pixels`` (sub-pixel image registration of the height images,
-  :func:`afm_ros.core.image_analysis.image_shift`); reported as a shift [m] and a rate [m/s].
+  :func:`afm_ros.core.image_analysis.image_shift`); reported as a shift [m] and a rate [m/s]. Frames
+  of fewer than 8 lines or pixels are too small to register: no drift check.
 - ``tip_change_suspected``: on the lines with features (height steps above ``FEATURE_FRACTION`` of
   the frame's upper quartile: a flat line images the same with any tip), the trace/retrace mismatch
   relative to the line's height steps (the rms height difference over the rms pixel-to-pixel step:
@@ -29,6 +30,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from afm_ros.core.image_analysis import MIN_SHIFT_SIZE, image_shift
 
 LIMIT_TOLERANCE_M = 1e-12
 FEATURE_FRACTION = 0.2  # a line whose height steps are below this fraction of the frame's upper quartile is flat
@@ -87,8 +90,8 @@ def frame_flags(frame, setpoint: float, z_limits: tuple[float, float], previous=
                           f"{n} of {height.size} pixels at a z limit ({z_lo * 1e9:.4g} or {z_hi * 1e9:.4g} nm): "
                           "the surface left the z piezo's range and the image is clipped there",
                           {"pixels": n, "fraction": n / height.size}))
-    if previous is not None and previous.plan.values() == frame.plan.values() and not frame.partial:
-        from afm_ros.core.image_analysis import image_shift
+    if (previous is not None and previous.plan.values() == frame.plan.values() and not frame.partial
+            and min(frame.plan.lines, frame.plan.pixels) >= MIN_SHIFT_SIZE):  # a smaller frame: no drift check
         a = previous.images["trace"]["height"].astype(float)
         b = tr["height"].astype(float)
         if np.isfinite(a).all() and np.isfinite(b).all():

@@ -178,6 +178,9 @@ def level_plane(image: np.ndarray) -> np.ndarray:
     return image - (offset + gx * cols + gy * rows)
 
 
+MIN_SHIFT_SIZE = 8  # pixels along each axis image_shift needs (a correlation peak and its refinement)
+
+
 def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]:
     """(rows, columns) by which ``moved`` is shifted against ``reference`` (same shape): a feature at
     (r, c) of the reference is at (r + dr, c + dc) of ``moved``.
@@ -190,8 +193,8 @@ def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]
     """
     from scipy import ndimage, optimize
 
-    if reference.shape != moved.shape or reference.ndim != 2 or min(reference.shape) < 8:
-        raise ValueError(f"image_shift needs two images of the same shape, at least 8 x 8 (got "
+    if reference.shape != moved.shape or reference.ndim != 2 or min(reference.shape) < MIN_SHIFT_SIZE:
+        raise ValueError(f"image_shift needs two images of the same shape, at least {MIN_SHIFT_SIZE} x {MIN_SHIFT_SIZE} (got "
                          f"{reference.shape} and {moved.shape})")
     a = np.nan_to_num(level_plane(reference))
     b = np.nan_to_num(level_plane(moved))

@@ -32,7 +32,6 @@ import numpy as np
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -47,6 +46,7 @@ from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_value
 from afm_ros.formats.chunk_layout import (PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_excitation,
                                          unpack_z_command)
 from afm_ros.nodes.node_main import run_node
+from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.physics.simulation import Simulation
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
@@ -87,7 +87,7 @@ def _time_msg(t: float) -> TimeMsg:
     return TimeMsg(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
 
 
-class CantileverNode(Node):
+class CantileverNode(GuardedNode):
     """Tapping cantilever over a DMT sample, integrated in paced, gated chunks (see module docstring)."""
 
     def __init__(self, **kwargs):

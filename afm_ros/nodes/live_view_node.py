@@ -34,7 +34,6 @@ import numpy as np
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.client import Client
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events
@@ -51,6 +50,7 @@ from afm_ros.core.live_view import (DEFLECTION_TOPICS, DERIVED, IMAGE_PREFIX, LI
 from afm_ros.formats.mcap_io import message_definition
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.nodes.guard import GuardedNode
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 LATCHED_TYPES = ("std_msgs/msg/String", IMAGE_TYPE)
@@ -112,7 +112,7 @@ def _foxglove_parameter(foxglove, name: str, value):
     return foxglove.Parameter(name, value=value)
 
 
-class LiveViewNode(Node):
+class LiveViewNode(GuardedNode):
     """Foxglove WebSocket live view; parameters :data:`afm_ros.core.live_view.LIVE_VIEW_SPECS`."""
 
     def __init__(self, **kwargs):

@@ -23,7 +23,6 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
@@ -39,6 +38,7 @@ from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TunePlan, TuneRun, 
 TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.nodes.guard import GuardedNode
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
 CHUNK_QOS = topics.CONSUMER_QOS
@@ -50,7 +50,7 @@ DIAGNOSTICS_PERIOD_S = 1.0
 WARNING_PERIOD_S = 5.0
 
 
-class LockInNode(Node):
+class LockInNode(GuardedNode):
     """Lock-in amplifier node; parameters :data:`afm_ros.core.tune.LOCKIN_NODE_SPECS` (the lock-in's
     and the tune's; all live). Service ``lockin/tune`` (std_srvs/Trigger): the drive-frequency tune
     (:mod:`afm_ros.core.tune`) on this lock-in's own outputs, refused while the z stage is engaged

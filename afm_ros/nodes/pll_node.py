@@ -23,7 +23,6 @@ import threading
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
 from afm_ros.core.fm import FM_SPECS, OscillationController, validate
@@ -31,11 +30,12 @@ from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.nodes.guard import GuardedNode
 
 DIAGNOSTICS_PERIOD_S = 1.0
 
 
-class PllNode(Node):
+class PllNode(GuardedNode):
     """PLL + amplitude controller node (module docstring)."""
 
     def __init__(self, **kwargs):

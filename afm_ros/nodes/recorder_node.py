@@ -30,7 +30,6 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -45,6 +44,7 @@ from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, 
                                     SessionWriter, default_output_path, message_class, qos_profiles_yaml,
                                     serialize_exact)
 from afm_ros.nodes import node_main
+from afm_ros.nodes.guard import GuardedNode
 
 PARAMETER_EVENTS = "/parameter_events"
 GLOBAL_TOPICS = ("/diagnostics", "/rosout")
@@ -123,7 +123,7 @@ def _value_text(value) -> str:
     return repr(value)
 
 
-class RecorderNode(Node):
+class RecorderNode(GuardedNode):
     """Records topics (raw CDR) and parameters into ``output_path`` (a rosbag2-layout .mcap)."""
 
     def __init__(self, **kwargs):

@@ -23,7 +23,6 @@ import time
 import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -35,6 +34,7 @@ from afm_ros.formats.mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan
                                     read_session, read_summary)
 from afm_ros.nodes.topics import matches, split_patterns
 from afm_ros.nodes import node_main
+from afm_ros.nodes.guard import GuardedNode
 
 CLOCK = "/clock"
 
@@ -81,7 +81,7 @@ def session_channels(path) -> SessionScan:
     return scan
 
 
-class ReplayNode(Node):
+class ReplayNode(GuardedNode):
     """Plays ``file`` into the graph (see module docstring); ``done`` is set when playback ends."""
 
     def __init__(self, **kwargs):

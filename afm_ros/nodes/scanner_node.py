@@ -31,7 +31,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.qos import qos_profile_parameter_events
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
@@ -53,6 +52,7 @@ from afm_ros.nodes import topics
 from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.nodes.guard import GuardedNode
 
 MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -78,7 +78,7 @@ def image_topic(channel: str, direction: str) -> str:
     return f"scanner/image/{channel}/{direction}"
 
 
-class ScannerNode(Node):
+class ScannerNode(GuardedNode):
     """Scan generator + image acquisition; parameters :data:`afm_ros.core.scanner.SCANNER_NODE_SPECS`."""
 
     def __init__(self, **kwargs):

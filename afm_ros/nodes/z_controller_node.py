@@ -36,7 +36,6 @@ import threading
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
@@ -46,6 +45,7 @@ from afm_ros.formats import chunk_layout, spectroscopy_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, blind_time, validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, chunk_mean, phase_deg, validate as spectroscopy_validate
@@ -69,7 +69,7 @@ RAW_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 SPECTROSCOPY_GRACE_BATCHES = 50
 
 
-class ZControllerNode(Node):
+class ZControllerNode(GuardedNode):
     """Z feedback node; parameters :data:`afm_ros.core.approach.Z_NODE_SPECS` (the controller's and the
     approach's; all live)."""
 

@@ -38,6 +38,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+
+from afm_ros.nodes.guard import GuardedNode
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import qos_profile_parameter_events
@@ -128,7 +130,7 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     return nodes
 
 
-class Monitor(Node):
+class Monitor(GuardedNode):
     """The job's eyes: consumes ``lockin/outputs`` and ``z_controller/z_command`` (acknowledging
     what it handled) and ``z_controller/trace``, keeps running statistics over simulated-time
     windows (memory does not grow with the session), the setpoint in force with each change's

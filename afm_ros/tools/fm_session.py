@@ -31,12 +31,12 @@ import time
 from collections import deque
 
 import numpy as np
-from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
 from afm_ros.core.session_stats import FmWindow
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
+from afm_ros.nodes.guard import GuardedNode
 
 FREE_LOCK_S = 0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
 # a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of phase
@@ -50,7 +50,7 @@ FM_SCAN = {"pixels_per_line": 32, "lines": 16, "line_rate": 1.0, "scan_size_x": 
 FM_RAW_EXCLUDE = ("pll/frequency_shift", "pll/phase_error", "pll/drive")  # per-output copies of pll/outputs
 
 
-class FmMonitor(Node):
+class FmMonitor(GuardedNode):
     """Listens to ``pll/outputs`` and fills the FM windows the session asks for (no history kept)."""
 
     def __init__(self, **kwargs):
