@@ -394,3 +394,83 @@ def test_tune_approach_and_withdraw_from_the_command_line(monkeypatch, ctl_env, 
         assert r.returncode == 0 and "z stage withdrawn" in r.stdout, r.stdout + r.stderr
         r = ctl(ctl_env, "scan", "frame", ns=ros_namespace)
         assert r.returncode == 1 and "not engaged: the z stage is withdrawn" in r.stderr, r.stdout + r.stderr
+
+
+# --- found from outside (issue 28) -----------------------------------------------------------------------
+def test_values_argparse_or_ros_cannot_type_reach_the_node_and_get_its_reason(monkeypatch, ctl_env, ros_namespace):
+    """-inf, -.inf and -nan are values, not options; an integer beyond 64 bits and a YAML tag go as text:
+    each is refused by the node with its own reason, in one line, no traceback, the old value kept."""
+    with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED) as n:
+        zc, scanner = n["z_controller"], n["scanner"]
+        cases = [(("z_controller", "z_min", "-inf"), "z_min='-inf' is not a number"),
+                 (("z_controller", "z_min", "-.inf"), "z_min=-inf is not finite"),
+                 (("z_controller", "z_min", "-nan"), "z_min='-nan' is not a number"),
+                 (("scanner", "pixels_per_line", "99999999999999999999999"),
+                  "pixels_per_line=99999999999999999999999 is out of range"),
+                 (("z_controller", "setpoint", "!!python/object/apply:os.system [ls]"), "is not a number")]
+        for args, reason in cases:
+            r = ctl(ctl_env, "set", *args, ns=ros_namespace)
+            assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+            assert len(r.stderr.splitlines()) == 1 and reason in r.stderr, (args, r.stderr)
+        assert zc.get_parameter("z_min").value == Z_CONTROLLER_SPECS["z_min"].default
+        assert scanner.get_parameter("pixels_per_line").value == SCANNER_NODE_SPECS["pixels_per_line"].default
+
+
+def test_a_hostile_parameter_file_is_refused_at_once_in_one_line(ctl_env, tmp_path):
+    """Before any node is waited for (none runs here): a billion-laughs file (it grew afm_ctl to 24 GB),
+    5000 nested lists (a RecursionError traceback), a binary file (a UnicodeDecodeError traceback)."""
+    laughs = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n"
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        laughs += f"{name}: &{name} [" + ", ".join([f"*{prev}"] * 9) + "]\n"
+    cases = {"bomb.yaml": (laughs.encode(), "expands to more than 100000 values"),
+             "deep.yaml": (b"[" * 5000 + b"]" * 5000, "nested deeper than 64 levels"),
+             "binary.yaml": (bytes(range(256)), "not a text file")}
+    for name, (content, reason) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(content)
+        start = time.monotonic()
+        r = ctl(ctl_env, "load", "z_controller", str(path), ns="/nobody_here", timeout="30")
+        assert r.returncode == 1 and len(r.stderr.splitlines()) == 1, r.stderr
+        assert reason in r.stderr and str(path) in r.stderr, r.stderr
+        assert time.monotonic() - start < 25  # refused before the 30 s discovery wait
+
+
+def _silent_node_killed(ctl_env, ns: str, executable: str, *args):
+    """``executable`` (a node of the instrument) runs in ``ns`` while ``afm_ctl *args`` follows it; the
+    node is killed (SIGKILL) once afm_ctl printed a line; afm_ctl's exit status, output and the wall
+    seconds from the kill to its end."""
+    node = subprocess.Popen([str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}", "-p", "run_until:=0.0"]
+                            if executable == "cantilever_node" else
+                            [str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}"], env=ctl_env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    watch = subprocess.Popen([sys.executable, "-m", "afm_ros.tools.afm_ctl", "--timeout", "5", "--ns", ns, *args],
+                             env=ctl_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = watch.stdout.readline()  # the header: it found the node and follows it
+        assert first, watch.stderr.read()
+        node.kill()
+        node.wait()
+        killed = time.monotonic()
+        out, err = watch.communicate(timeout=120)
+        return watch.returncode, first + out, err, time.monotonic() - killed
+    finally:
+        for p in (node, watch):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+
+@pytest.mark.parametrize("executable, args", [("lockin_node", ("watch",)),
+                                              ("scanner_node", ("watch", "--until-frame-done"))])
+def test_watch_ends_with_exit_3_when_the_instrument_dies(ctl_env, ros_namespace, executable, args):
+    """SIGKILL the instrument under `afm_ctl watch` (and --until-frame-done, the wait of scan frame --wait):
+    it ends naming the silence, exit 3, within its --timeout (5 s) plus a poll (it never ended before)."""
+    status, out, err, after = _silent_node_killed(ctl_env, ros_namespace, executable, *args)
+    assert status == 3, (out, err)
+    assert f"the instrument in {ros_namespace} (no /diagnostics from any of its nodes" in err, err
+    assert len(err.strip().splitlines()) == 1 and after < 30, (err, after)
+
+
+def test_watch_period_beyond_an_hour_is_refused(ctl_env):
+    r = ctl(ctl_env, "watch", "--period", "1e9", ns="/nobody_here")
+    assert r.returncode == 2 and "--period=1e+09 s is out of range; allowed (0, 3600] s" in r.stderr, r.stderr

@@ -85,6 +85,8 @@ def reference(spec_file, tmp_path_factory):
     ({"instrument": {"imperfections": {"drift_x": 1.0}}}, "instrument.imperfections.drift_x: not known"),
     ({"colour": "red"}, "unknown key(s) 'colour'"),
     ({"pixels": 512, "line_rate": 50.0, "lockin_output_rate": 1000.0}, "pixels=512 at line_rate=50 Hz"),
+    ({"sample": {"generator": "from_file", "path": "/nonexistent/map.npy", "size": [1e-6, 1e-6]}},
+     "sample.path: cannot read sample file /nonexistent/map.npy"),
 ])
 def test_bad_spec_is_refused_naming_the_field_before_any_work(tmp_path, change, field):
     import yaml
@@ -219,3 +221,53 @@ def test_with_imperfections_the_truth_is_where_the_apex_really_was(tmp_path):
         rows = np.floor(np.mod(ys, sample.size_y) / sample.pixel_y).astype(int) % sample.height.shape[0]
         np.testing.assert_array_equal(ds["true_height"][0, d].values, sample.height[rows, cols].astype(np.float32))
         np.testing.assert_array_equal(ds["material"][0, d].values, sample.material_index[rows, cols])
+
+
+def _refused(spec_path, out, field: str) -> None:
+    code = subprocess.run([str(BIN / "afm_study"), "dataset", str(spec_path), "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    lines = code.stderr.strip().splitlines()
+    assert code.returncode == 2 and len(lines) == 1 and field in lines[0], code.stderr
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_naming_out(spec_file, tmp_path):
+    _refused(spec_file, "/proc/never.zarr", "--out='/proc/never.zarr': cannot write in /proc")
+    (tmp_path / "a_file").write_text("")
+    _refused(spec_file, tmp_path / "a_file", "is a file, not a folder")
+
+
+def test_a_hostile_spec_is_refused_in_one_line(tmp_path):
+    """Nine levels of nine aliases (a billion laughs), 5000 nested lists, a binary file, a huge file."""
+    laughs = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n"
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        laughs += f"{name}: &{name} [" + ", ".join([f"*{prev}"] * 9) + "]\n"
+    cases = {"bomb.yaml": (laughs, "expands to more than 100000 values"),
+             "deep.yaml": ("[" * 5000 + "]" * 5000, "nested deeper than 64 levels"),
+             "binary.yaml": (b"\x89PNG\r\n\x1a\n\x00\xff", "not a text file"),
+             "huge.yaml": ("#" * (2 << 20), "allowed at most 1048576 bytes")}
+    for name, (content, field) in cases.items():
+        path = tmp_path / name
+        (path.write_bytes if isinstance(content, bytes) else path.write_text)(content)
+        _refused(path, tmp_path / "never.zarr", field)
+        assert not (tmp_path / "never.zarr").exists()
+
+
+def test_ten_million_frames_say_what_they_cost_before_the_work_and_the_store_is_made_at_once(tmp_path):
+    """The store of 1e7 frames is metadata only (it took over a minute, silently, when every chunk was
+    planned); the plan line gives frame 0's time, the CPU the rest takes and the bytes, before the work."""
+    import xarray as xr
+    import yaml
+
+    spec = {**yaml.safe_load(SPEC), "frames": 10_000_000}
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    out = tmp_path / "big.zarr"
+    lines = []
+    summary = make_dataset(load_spec(path), out, workers=1, max_frames=2, say=lines.append)
+    assert summary["done"] == 2 and not summary["interrupted"]
+    plan = lines[0]
+    assert plan.startswith("dataset: 10000000 frames of 16 x 8 pixels; frame 0 took ") and "days of CPU" in plan
+    assert "GB stored" in plan and "this run stops at 2 frames (--max-frames)" in plan
+    store = xr.open_zarr(str(out))
+    assert store.sizes["frame"] == 10_000_000
+    assert np.flatnonzero(dataset_store.done_frames(out)).tolist() == [0, 1]

@@ -379,3 +379,16 @@ def test_bad_start_values_give_one_line_and_no_traceback(args, field, tmp_path):
     ours = [line for line in result.stderr.splitlines() if line.startswith(exe.replace("_node", "") + ":")
             or line.startswith(exe + ":")]
     assert len(ours) == 1 and field in ours[0], result.stderr
+
+
+def test_an_fm_df_setpoint_of_the_wrong_sign_is_refused_at_the_start_naming_the_field(tmp_path):
+    """A positive df is only reached past the df minimum, where the z loop's sign is inverted: refused
+    (before, the session started and its approach failed reading 20 Hz as 20 m of amplitude)."""
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
+    result = subprocess.run([str(BIN / "afm_instrument"), "--fm", "--no-record", "--ros-args", "-p",
+                             "z_controller:df_setpoint:=20.0"], env=env, capture_output=True, text=True,
+                            timeout=120, cwd=tmp_path)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    ours = [line for line in result.stderr.splitlines() if line.startswith("afm_instrument:")]
+    assert len(ours) == 1 and "df_setpoint=20.0 Hz is out of range; allowed range [-100000, 0) Hz" in ours[0], ours
+    assert not (tmp_path / "afm_runs").exists()  # a refused start leaves nothing behind

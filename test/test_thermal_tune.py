@@ -308,6 +308,13 @@ def test_ctrl_c_tunes_on_the_record_so_far_and_says_so(tmp_path):
             proc.wait()
     assert proc.returncode == 130, "".join(err)[-2000:]
     assert "interrupted (Ctrl-C) after" in out and "of the 300 s requested" in out and "Traceback" not in "".join(err)
+    # before most of the work, one line said what all of it takes at the rate measured here (after the
+    # first block, which compiles the kernel), consistent with that rate
+    said = re.findall(r"300 s of record take about ([\d.]+) (s|min|h) here \(([\d.e+-]+) s per second of record",
+                      "".join(err))
+    assert len(said) == 1, "".join(err)[-2000:]
+    total = float(said[0][0]) * {"s": 1, "min": 60, "h": 3600}[said[0][1]]
+    assert 0.5 < total / (300 * float(said[0][2])) < 1.5
     summary = json.loads((tmp_path / "thermal_tune.json").read_text())
     assert summary["interrupted"] and 1.0 <= summary["seconds_s"] < 300
     assert summary["fit"]["quality_factor"] == pytest.approx(25.0, rel=0.10)

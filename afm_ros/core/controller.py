@@ -37,8 +37,9 @@ Z_CONTROLLER_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "(FM-AFM, df_setpoint/df_p_gain/df_i_gain, the PLL's df)", kind=str,
               choices=("amplitude", "frequency_shift")),
     ParamSpec("df_setpoint", -20.0, "Hz",
-              "frequency shift setpoint (FM); negative = attractive regime. Stable only on the branch where df "
-              "falls as the tip approaches (farther than the df minimum)", -1e5, 1e5),
+              "frequency shift setpoint (FM), negative: the z loop regulates on the attractive branch, where df "
+              "falls below 0 as the tip approaches (farther than the df minimum); a df of 0 or above is only "
+              "reached past that minimum, where the loop's sign is inverted", -1e5, 0.0, high_open=True),
     ParamSpec("df_p_gain", 1e-11, "m/Hz", "FM proportional gain: metres of z per Hz of df error", 0.0, 1e-3),
     ParamSpec("df_i_gain", 1e-9, "m/(Hz s)",
               "FM integral gain: z moves at df_i_gain*error [m/s] per Hz of error", 0.0, 1e-1),

@@ -286,7 +286,10 @@ def frame_config(spec: dict, index: int | None = None, draws: dict | None = None
                    "pixels_per_line": int(s["pixels"]), "lines": int(s["lines"]), "line_rate": float(s["line_rate"]),
                    "scan_angle": float(s["scan_angle"]), "continuous": False}
     description = dict(s["sample"])
-    sample = sample_from_description(description)
+    try:
+        sample = sample_from_description(description)
+    except OSError as exc:  # a from_file map that cannot be read: the spec's field
+        raise ValueError(f"sample.path: {exc.strerror or exc}") from None
     plan_values["scan_center_x"] = 0.5 * sample.size_x
     plan_values["scan_center_y"] = 0.5 * sample.size_y
     imp = inst.get("imperfections", False)

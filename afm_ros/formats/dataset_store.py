@@ -13,61 +13,79 @@ so a frame is whole or not at all, and a run continues where one stopped.
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import os
 
 import numpy as np
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
+from afm_ros.formats.folders import check_output_directory
 
 FORMAT = "afm_ros dataset 1"
 # names of the force models in the store (an index variable, the names as an attribute)
 FORCE_MODELS = ("dmt", "viscoelastic_dmt", "hysteresis_dmt")
 
 
-def _template(spec: dict, first: dict, frames: int):
-    """The lazy (dask) Dataset of the whole store, shaped by frame 0's arrays."""
-    import dask.array as da
-    import xarray as xr
-
-    def lazy(shape, dtype, fill=0):
-        return da.full((frames, *shape), fill, dtype=dtype, chunks=(1, *shape))
-
+def _layout(first: dict) -> dict:
+    """name -> (dimensions after ``frame``, shape per frame, dtype, fill value) of every variable,
+    shaped by frame 0's arrays ``first``."""
     lines, pixels = first["measured"].shape[-2:]
-    data = {
-        "measured": (("frame", "direction", "channel", "y", "x"), lazy((2, len(CHANNELS), lines, pixels), np.float32,
-                                                                       np.nan)),
-        "true_height": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float32, np.nan)),
-        "dilated_height": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float32, np.nan)),
-        "material": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.uint8, 255)),
-        "sample_plane": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float32, np.nan)),
-        "apex_x_m": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float64, np.nan)),
-        "apex_y_m": (("frame", "direction", "y", "x"), lazy((2, lines, pixels), np.float64, np.nan)),
-        "x_m": (("frame", "x"), lazy((pixels,), np.float64, np.nan)),
-        "y_m": (("frame", "y"), lazy((lines,), np.float64, np.nan)),
-        "imperfections_packed": (("frame", "art"), lazy((first["imperfections_packed"].shape[0],), np.float64, np.nan)),
-        "tip_radius_end_m": (("frame",), lazy((), np.float64, np.nan)),
-        "done": (("frame",), lazy((), bool, False)),
+    image = (("direction", "y", "x"), (2, lines, pixels))
+    out = {
+        "measured": (("direction", "channel", "y", "x"), (2, len(CHANNELS), lines, pixels), np.float32, np.nan),
+        "true_height": (*image, np.float32, np.nan),
+        "dilated_height": (*image, np.float32, np.nan),
+        "material": (*image, np.uint8, 0),
+        "sample_plane": (*image, np.float32, np.nan),
+        "apex_x_m": (*image, np.float64, np.nan),
+        "apex_y_m": (*image, np.float64, np.nan),
+        "x_m": (("x",), (pixels,), np.float64, np.nan),
+        "y_m": (("y",), (lines,), np.float64, np.nan),
+        "imperfections_packed": (("art",), (first["imperfections_packed"].shape[0],), np.float64, np.nan),
+        "tip_radius_end_m": ((), (), np.float64, np.nan),
+        "done": ((), (), bool, None),
     }
     for name, value in first["values"].items():
         if name == "force_model":
-            data["force_model"] = (("frame",), lazy((), np.int8, -1))
+            out["force_model"] = ((), (), np.int8, None)
         elif isinstance(value, int):
-            data[name] = (("frame",), lazy((), np.int64, -1))
+            out[name] = ((), (), np.int64, None)
         else:
-            data[name] = (("frame",), lazy((), np.float64, np.nan))
-    ds = xr.Dataset({k: xr.Variable(dims, arr) for k, (dims, arr) in data.items()},
-                    coords={"direction": list(DIRECTIONS), "channel": list(CHANNELS)})
-    ds.attrs.update(format=FORMAT, spec=json.dumps(spec, sort_keys=True), materials=json.dumps(first["materials"]),
-                    force_models=json.dumps(FORCE_MODELS),
-                    units=json.dumps({"measured": "per channel: height m, amplitude m, phase deg, amplitude_error m, "
-                                                  "dissipation J", "true_height": "m", "dilated_height": "m",
-                                      "sample_plane": "m", "x_m": "m", "y_m": "m"}))
-    return ds
+            out[name] = ((), (), np.float64, np.nan)
+    return out
+
+
+def bytes_per_frame(first: dict) -> int:
+    """Uncompressed bytes one frame takes in the store (an upper bound of what it writes)."""
+    return sum(int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+               for _, shape, dtype, _ in _layout(first).values())
 
 
 def create(path, spec: dict, first: dict) -> None:
-    """Make the (empty) store at ``path`` for ``spec``, shaped by frame 0's data ``first``."""
-    _template(spec, first, spec["frames"]).to_zarr(str(path), mode="w-", compute=False, zarr_format=2)
+    """Make the (empty) store at ``path`` for ``spec``, shaped by frame 0's data ``first``: only
+    metadata, whatever the number of frames (a chunk is written when its frame is). The group's
+    ``format`` attribute is written last: an interrupted creation is not a store (:func:`spec_of`)."""
+    import zarr
+
+    frames = spec["frames"]
+    group = zarr.open_group(str(path), mode="w-", zarr_format=2)
+    for name, values in (("direction", list(DIRECTIONS)), ("channel", list(CHANNELS))):
+        coord = group.create_array(name, shape=(len(values),), chunks=(len(values),),
+                                   dtype=f"<U{max(map(len, values))}", fill_value=None)
+        coord[:] = np.array(values)
+        coord.attrs["_ARRAY_DIMENSIONS"] = [name]
+    for name, (dims, shape, dtype, fill) in _layout(first).items():
+        # floats: NaN where no frame was written; integers and flags without a fill value (xarray would
+        # otherwise mask them into floats): their unwritten chunks read 0 (done: False)
+        fill = fill if np.dtype(dtype).kind == "f" else None
+        array = group.create_array(name, shape=(frames, *shape), chunks=(1, *shape), dtype=dtype, fill_value=fill)
+        array.attrs["_ARRAY_DIMENSIONS"] = ["frame", *dims]
+    group.attrs.update(spec=json.dumps(spec, sort_keys=True), materials=json.dumps(first["materials"]),
+                       force_models=json.dumps(FORCE_MODELS),
+                       units=json.dumps({"measured": "per channel: height m, amplitude m, phase deg, amplitude_error "
+                                                     "m, dissipation J", "true_height": "m", "dilated_height": "m",
+                                         "sample_plane": "m", "x_m": "m", "y_m": "m"}))
+    group.attrs["format"] = FORMAT
+    zarr.consolidate_metadata(str(path), zarr_format=2)
 
 
 def spec_of(path) -> dict | None:
@@ -84,10 +102,20 @@ def spec_of(path) -> dict | None:
 
 
 def done_frames(path) -> np.ndarray:
-    """The ``done`` flags of every frame."""
+    """The ``done`` flags of every frame. A frame's flag chunk exists only once it was written, so
+    on a local store the chunk files are listed (the time of the frames written, not of the frames
+    planned: 1e7 frames read as 1e7 chunks took minutes) and only they are read."""
     import zarr
 
-    return np.asarray(zarr.open_group(str(path), mode="r")["done"][:], dtype=bool)
+    done = zarr.open_group(str(path), mode="r")["done"]
+    folder = os.path.join(str(path), "done")
+    if not os.path.isdir(folder):
+        return np.asarray(done[:], dtype=bool)
+    flags = np.zeros(done.shape[0], dtype=bool)
+    written = sorted(int(entry.name) for entry in os.scandir(folder) if entry.name.isdigit())
+    if written:
+        flags[written] = np.asarray(done.get_coordinate_selection(np.asarray(written)), dtype=bool)
+    return flags
 
 
 def write_frame(path, index: int, data: dict) -> None:
@@ -118,10 +146,6 @@ def open_dataset(path, only_done: bool = True):
 
 
 def check_output(path) -> None:
-    """ValueError naming ``path`` if it cannot hold a store (a file, or an unwritable parent)."""
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise ValueError(f"--out {str(p)!r}: exists and is not a directory (a Zarr store is one)")
-    parent = p.parent if not p.exists() else p
-    if not parent.exists():
-        raise ValueError(f"--out {str(p)!r}: its folder {str(parent)!r} does not exist")
+    """ValueError naming ``--out`` if ``path`` cannot hold a store: the one folder rule of
+    :func:`afm_ros.formats.folders.check_output_directory` (not a file, its parent exists, writable)."""
+    check_output_directory(path, create=False, probe_write=True, field="--out")

@@ -200,8 +200,8 @@ def cmd_dump(link, args, out) -> int:
 
 
 def cmd_load(link, args, out) -> int:
-    node = link.wait_for_node(args.node)
-    result = link.load_parameters(node, args.file)
+    node = link.resolve(args.node)
+    result = link.load_parameters(node, args.file)  # the file is read (and refused) before the node is waited for
     print(f"loaded {args.file} into {node}: {len(result.changed)} changed, {len(result.unchanged)} already had "
           f"that value" + (f", read-only and already set: {', '.join(result.read_only_skipped)}"
                            if result.read_only_skipped else ""), file=out)

@@ -1253,6 +1253,7 @@ def main(args=None):
     except (ValueError, TimeoutError, RuntimeError, OSError) as exc:  # RecordingError is a RuntimeError
         print(f"afm_instrument: {exc}", file=sys.stderr)
         status = 1
+        refused = refused or instrument is None  # a bad start value: the run folder made for it goes again
     finally:
         def teardown():
             if instrument is not None:

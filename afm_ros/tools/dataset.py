@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -49,7 +50,7 @@ class Progress:
         rate = self.new / max(now - self.start, 1e-9)
         left = (self.total - self.done) / rate if rate > 0 else float("inf")
         self.say(f"dataset: frame {index} written, {self.done}/{self.total} done ({100 * self.done / self.total:.0f} %), "
-                 f"{rate * 3600:.0f} frames/h, ~{left:.0f} s left")
+                 f"{rate * 3600:.0f} frames/h, ~{_hours(left)} left")
 
 
 def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | None = None,
@@ -68,9 +69,24 @@ def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | N
                          f"else choose a new folder")
     t0 = time.monotonic()
     if existing is None:
-        first = make_frame(spec, 0)
-        store.create(out, _jsonable(spec), first)
-        store.write_frame(out, 0, first)
+        try:
+            first = make_frame(spec, 0)
+        except KeyboardInterrupt:
+            say(f"dataset: INTERRUPTED while making frame 0: nothing written ({out} not created)")
+            return {"store": out, "frames": spec["frames"], "done": 0, "wall_s": time.monotonic() - t0,
+                    "interrupted": True}
+        say(plan_text(spec, first, time.monotonic() - t0, scheduler or workers or os.cpu_count() or 1,
+                      max_frames))
+        created = not Path(out).exists()
+        try:
+            store.create(out, _jsonable(spec), first)
+            store.write_frame(out, 0, first)
+        except KeyboardInterrupt:
+            if created:  # a half-made store is not one: it goes, so the same command can start again
+                shutil.rmtree(out, ignore_errors=True)
+            say(f"dataset: INTERRUPTED while creating the store: nothing kept ({out} removed)")
+            return {"store": out, "frames": spec["frames"], "done": 0, "wall_s": time.monotonic() - t0,
+                    "interrupted": True}
     done = store.done_frames(out)
     todo = [i for i in range(spec["frames"]) if not done[i]]
     if max_frames is not None:  # stop once this many frames are in the store
@@ -121,6 +137,34 @@ def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | N
         say(f"dataset: {summary['done']} of {spec['frames']} frames in {out} ({summary['wall_s']:.1f} s); "
             f"open it with xarray.open_zarr({out!r})")
     return summary
+
+
+def plan_text(spec: dict, first: dict, frame_s: float, workers, max_frames: int | None) -> str:
+    """The work ahead, said before it starts: the frames, the time frame 0 took and what the others will
+    take on ``workers`` (a count, or a scheduler's address), the bytes stored, and where --max-frames stops."""
+    from afm_ros.formats.dataset_store import bytes_per_frame
+
+    frames = spec["frames"]
+    total = frames * bytes_per_frame(first)
+    text = f"dataset: {frames} frames of {spec['pixels']} x {spec['lines']} pixels; frame 0 took {frame_s:.2g} s"
+    cpu = (frames - 1) * frame_s
+    if frames > 1:
+        text += f"; the other {frames - 1} about {_hours(cpu)} of CPU"
+        text += (f" (~{_hours(cpu / workers)} on {workers} worker{'s' if workers > 1 else ''})"
+                 if isinstance(workers, int) else f" (on the workers of {workers})")
+    text += f", up to {total / 1e9:.3g} GB stored (uncompressed)"
+    if max_frames is not None and max_frames < frames:
+        text += f"; this run stops at {max_frames} frames (--max-frames)"
+    elif cpu > 60 or total > 1e9:
+        text += "; Ctrl-C stops with every finished frame kept, the same command continues"
+    return text
+
+
+def _hours(seconds: float) -> str:
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
 
 
 def _jsonable(spec: dict) -> dict:

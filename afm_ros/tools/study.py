@@ -936,7 +936,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--z-base", default=None, help="z_base values [m]: comma list or start:stop:step (default "
                                                   "A + 5 nm down to A - 1 nm in 0.1 nm steps)")
     p.add_argument("--retract", action="store_true", help="after the approach, retract back")
-    p.add_argument("--method", default="rk4", help="integrator: rk4, rk4_event or euler (default rk4)")
+    p.add_argument("--method", default=CANTILEVER_SPECS["integrator"].default,
+                   help=f"integrator: rk4_event, rk4 or euler (default {CANTILEVER_SPECS['integrator'].default}, as "
+                        "everywhere: plain rk4 steps over the contact's kink, 1.5 %% off in df at 80 steps per period)")
     p.add_argument("--force-model", default="dmt", choices=FORCE_MODELS, help="tip-sample force model (default dmt)")
 
     p = add("bench", "speed benchmark; prints one JSON object", params=False)

@@ -37,6 +37,7 @@ import math
 import signal
 import sys
 import threading
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +68,13 @@ BLOCK_SAMPLES = 2 ** 18  # deflection samples simulated at once (2 MB; ~0.3 s of
 MAX_SECONDS = 1e4  # [s]
 CPU_PER_SECOND = 0.48  # [s of CPU per s of record] measured: 1 s record 0.47-0.49 s
 PROGRESS_SECONDS = 30.0  # [s] records longer than this show a progress bar
+
+
+def _duration_text(seconds: float) -> str:
+    for unit, size in (("h", 3600.0), ("min", 60.0)):
+        if seconds >= size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
 
 
 # --- model --------------------------------------------------------------------------------------
@@ -265,7 +273,8 @@ def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float,
     if seconds > MAX_SECONDS:
         tau = 2.0 * cantilever.quality_factor / cantilever.omega0
         raise ValueError(f"--seconds={seconds:g} s is too long: at most {MAX_SECONDS:g} s (about "
-                         f"{MAX_SECONDS * CPU_PER_SECOND / 60:.0f} min of CPU; the uncertainties of Q and k shrink "
+                         f"{MAX_SECONDS * CPU_PER_SECOND / 60:.0f} min of CPU on an idle core of the project's "
+                         f"machine, hours on a busy one; the uncertainties of Q and k shrink "
                          f"only as 1/sqrt(seconds), to {100 * math.sqrt(tau / MAX_SECONDS):.2g} % there)")
     detector_density = _check_positive(detector_density, "--detector-noise", "m/sqrt(Hz)", allow_zero=True)
     if steps_per_period % samples_per_period:
@@ -283,15 +292,24 @@ def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float,
     with _ctrl_c_stops(interactive) as stop, \
             tqdm(total=count, unit="S", unit_scale=True, desc="thermal tune", file=sys.stderr,
                  disable=not interactive or seconds <= PROGRESS_SECONDS) as bar:
-        for first in range(0, count, BLOCK_SAMPLES):
+        wall0 = time.monotonic()
+        for block, first in enumerate(range(0, count, BLOCK_SAMPLES)):
             if stop.is_set():
                 break
             n = min(BLOCK_SAMPLES, count - first)
+            started = time.monotonic()
             z = sim.advance(n * decimation, decimation).z  # n samples: every decimation-th step
             if detector_density > 0.0:
                 z = z + detector_noise(seed, first, n, detector_density, 1.0 / fs)
             acc.add(z)
             bar.update(n)
+            if block == 1 and interactive and seconds > PROGRESS_SECONDS:
+                # the second block (the first compiled the kernel): this machine's rate, said once
+                rate = (time.monotonic() - started) / (n / fs)
+                left = (count - first - n) / fs * rate
+                bar.write(f"thermal tune: {seconds:g} s of record take about "
+                          f"{_duration_text(time.monotonic() - wall0 + left)} here ({rate:.3g} s per second of "
+                          f"record measured now); Ctrl-C stops and fits what is done", file=sys.stderr)
     interrupted = acc.samples < count
     if interrupted and acc.available_segments < MIN_SEGMENTS:
         raise KeyboardInterrupt  # nothing worth tuning on yet
