@@ -144,8 +144,10 @@ def test_blow_up_is_caught_in_its_chunk_reported_and_recovered(ros_context, ros_
 def test_instrument_with_a_blow_up_reports_it_instead_of_a_summary(tmp_path):
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     args = [a for name, value in BLOW_UP for a in ("-p", f"{name}:={value!r}")]
-    result = subprocess.run([str(BIN / "afm_instrument"), "--ros-args", *args], env=env, capture_output=True,
-                            text=True, timeout=120, cwd=tmp_path)
+    # the engaged start on the flat sample of these force constants (the modes' default is the blend, whose
+    # materials table sets them, approached from 5 um)
+    result = subprocess.run([str(BIN / "afm_instrument"), "--ideal", "--ros-args", "-p", "sample:=flat", *args],
+                            env=env, capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert result.returncode == 1
     assert "Traceback" not in result.stderr
     assert "afm_instrument summary" not in result.stdout  # no settling time or amplitude over garbage
@@ -277,7 +279,7 @@ def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file
     from afm_ros.formats.mcap_io import SessionScan, read_session
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     # ~1 MB per simulated second at the defaults: the 3 MB disk fills up after a few seconds
-    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--interactive", "--record-raw", "--ros-args",
+    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--interactive", "--ideal", "--record-raw", "--ros-args",
                              "-p", "real_time_factor:=0.0", "-p", "recorder:flush_interval:=0.25",
                              # the disk is far below the default min_free_space (the recorder would not start)
                              "-p", "recorder:min_free_space:=0.0",
@@ -327,7 +329,9 @@ def test_long_session_memory_stays_flat(tmp_path):
     # a fixed mmap threshold: the recorder's 4 MB chunk buffers go back to the OS when freed instead
     # of raising glibc's heap high-water mark in steps, so RSS measures live memory
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "MALLOC_MMAP_THRESHOLD_": "262144"}
-    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--duration", "60", "--json", "--ros-args",
+    # --ideal: the engaged start, no imperfections or tip wear (what this bound was calibrated on: the loop and
+    # the recorder; the default instrument adds one step of ~3 MB when its worn tip's map is rebuilt)
+    proc = subprocess.Popen([str(BIN / "afm_instrument"), "--duration", "60", "--json", "--ideal", "--ros-args",
                              "-p", "real_time_factor:=0.0"], env=env, cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     samples = []

@@ -550,13 +550,14 @@ class Instrument:
                 "streams": rec.stream_report()}
 
     def run_job(self, duration: float, free_time: float, setpoint_ratio: float | None,
-                band_fraction: float = 0.01, interactive: bool = False, workflow: bool = False) -> Summary:
+                band_fraction: float = 0.01, interactive: bool = False, workflow: bool = False,
+                withdraw: bool = False) -> Summary:
         """Withdraw, measure free, engage, hold ``duration`` simulated seconds; return the summary.
 
         ``workflow`` (the z controller started withdrawn, far from the sample): tune the drive first
         (lockin/tune), measure free, then approach and engage (z_controller/approach) instead of
-        enabling the feedback from z_max. ``self.job`` holds what is known so far, so
-        :meth:`summary` can also describe a job that Ctrl-C interrupted."""
+        enabling the feedback from z_max; ``withdraw``: and withdraw after the hold. ``self.job``
+        holds what is known so far, so :meth:`summary` can also describe a job that Ctrl-C interrupted."""
         job = self.job = JobState(wall0=time.monotonic(), duration=duration, interactive=interactive)
         mon = self.monitor
         self.wait_ready()
@@ -609,8 +610,17 @@ class Instrument:
             wall_hold = time.monotonic()
             self.advance_to(job.t_enable + duration)
             self.hold_sim_wall = (self.t_paused - job.t_enable, time.monotonic() - wall_hold)
+            summary = self.summary()  # the hold's numbers, before the withdraw moves the tip away
+            if workflow and withdraw:
+                job.phase = "withdrawing"
+                job.workflow["withdraw"] = self._withdraw()
             self.wait_recorded()
             job.t_end = self.t_paused
+            wall = time.monotonic() - job.wall0
+            simulated = job.t_end - job.t_start
+            return dataclasses.replace(summary, workflow=dict(job.workflow), simulated_time_s=simulated,
+                                       recording=self.recording_status(), wall_time_s=wall,
+                                       real_time_factor=simulated / wall if wall > 0 else math.inf)
         return self.summary()
 
     def _start_far(self) -> None:
@@ -630,7 +640,9 @@ class Instrument:
         """lockin/tune: sweep, fit, working point applied; returns the tune's numbers."""
         from std_srvs.srv import Trigger
 
-        lockin = self.nodes["lockin"]
+        lockin, zc = self.nodes["lockin"], self.nodes["z_controller"]
+        # the lock-in refuses while it believes the z stage engaged: until it heard the withdrawn start
+        self.spin_until(lambda: lockin.z_stage == zc.stage_state, "waiting for the lock-in to hear the z stage")
         answer = lockin._start_tune(Trigger.Request(), Trigger.Response())
         if not answer.success:
             raise RuntimeError(f"lockin: {answer.message}")
@@ -1073,7 +1085,7 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
                      f"{c['chunk_duration']} s, sample {c['sample']}, force_model {c['force_model']} (non-contact "
                      f"dissipation: adhesion hysteresis); z loop on df; {f['pixels_per_line']} x {f['lines']} "
                      f"pixels at {f['line_rate']} lines/s (-p <node>:<name>:=... change them)")
-    if options.image:
+    if not options.fm and not options.attach:  # every tapping mode: the blend, its frame, a real session
         scanner.update({k: v for k, v in IMAGE_SCAN.items() if not ros.given("scanner", k)})
         switched = []
         if not ros.given("cantilever", "sample"):
@@ -1095,7 +1107,7 @@ def _overrides(options, ros: RosArgs, run_folder: Path | None) -> tuple[dict, li
     for role, ideal in (("scanner", IDEAL_ARTEFACTS), ("cantilever", IDEAL_TIP)):
         if options.ideal:
             given[role].update({k: v for k, v in ideal.items() if not ros.given(role, k)})
-    if options.image or options.live_view or options.fm:
+    if not options.attach:
         notes.append(imperfections_line({**{k: ros.value("scanner", k, spec.default)
                                              for k, spec in ARTEFACT_NODE_SPECS.items()}, **scanner},
                                         {**{k: ros.value("cantilever", k, spec.default)
@@ -1173,13 +1185,20 @@ def main(args=None):
     run_folder = None
     try:
         record = not (options.no_record or options.attach)
-        scanner = options.image or options.live_view or options.fm
+        scanner = not options.attach  # every mode has one: afm_ctl scan frame from a second terminal
         if (record or scanner) and not options.attach:
             try:
                 run_folder = make_run_folder(options.out, ros.namespace)
             except OSError as exc:
                 raise ValueError(f"--out: cannot create the run folder: {exc}") from None
         overrides, notes = _overrides(options, ros, run_folder)
+        # the operating workflow (tune, approach, withdraw) runs from a withdrawn start: not --ideal, not
+        # attached, and not when the user started the z stage engaged (-p z_controller:start_withdrawn:=false)
+        workflow = (not options.ideal and not options.attach
+                    and overrides.get("z_controller", {}).get("start_withdrawn", ros.value(
+                        "z_controller", "start_withdrawn", False)) is True)
+        if not workflow and not options.ideal and not options.attach and not options.fm:
+            notes.append("workflow: none (the z stage starts engaged at z_base: start_withdrawn is false)")
         if not options.verbose and ros.log_level is None:  # the job says what matters; node INFO lines with --verbose
             from rclpy.logging import LoggingSeverity
             _node_log_level((*ROLES, "pll", "scanner", "recorder", "live_view", "afm_instrument_monitor",
@@ -1206,8 +1225,8 @@ def main(args=None):
                 plan = ScanPlan.from_values(instrument.nodes["scanner"]._values)
                 frame_time, frame = plan.frame_time, (plan.pixels, plan.lines)
             if not options.interactive:  # a bounded job: its session must fit
-                workflow = WORKFLOW_SIMULATED_S if (options.image and not options.ideal) or options.fm else 0.0
-                instrument.check_recording(options.free_time + options.duration + frame_time + workflow,
+                workflow_s = WORKFLOW_SIMULATED_S if workflow or options.fm else 0.0
+                instrument.check_recording(options.free_time + options.duration + frame_time + workflow_s,
                                            options.record_raw, frame)
         except ValueError:
             refused = True
@@ -1227,10 +1246,10 @@ def main(args=None):
             return status
         if options.image:
             summary = instrument.run_image_job(options.duration, options.free_time, options.setpoint_ratio,
-                                               options.band, workflow=not options.ideal)
+                                               options.band, workflow=workflow)
         else:
             summary = instrument.run_job(options.duration, options.free_time, options.setpoint_ratio, options.band,
-                                         interactive=options.interactive)
+                                         interactive=options.interactive, workflow=workflow, withdraw=True)
         print(summary.text(), flush=True)
         if options.json:
             print(json.dumps(asdict(summary)), flush=True)
@@ -1241,15 +1260,19 @@ def main(args=None):
             status = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         status = INTERRUPTED_STATUS
-        if instrument is not None and instrument.job is not None and not options.interactive:
-            summary = instrument.summary(interrupted=instrument.interruption())
+        job = instrument.job if instrument is not None else None
+        if job is not None:
+            # --interactive ends with Ctrl-C once running; before (the tune, the approach) it was interrupted
+            ended = options.interactive and job.phase == "running"
+            status = 0 if ended else INTERRUPTED_STATUS
+            summary = instrument.summary(interrupted="" if ended else instrument.interruption())
             print(summary.text(), flush=True)
             if options.json:
                 print(json.dumps(asdict(summary)), flush=True)
-        elif not (options.interactive and instrument is not None and instrument.job is not None):
+        elif not (options.fm and options.interactive and instrument is not None):
             print("afm_instrument: interrupted while starting", file=sys.stderr)
         else:
-            status = 0  # --interactive ends with Ctrl-C
+            status = 0  # --fm --interactive ends with Ctrl-C
     except (ValueError, TimeoutError, RuntimeError, OSError) as exc:  # RecordingError is a RuntimeError
         print(f"afm_instrument: {exc}", file=sys.stderr)
         status = 1
