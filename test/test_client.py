@@ -263,14 +263,25 @@ def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
         assert abs(float(frame.amplitude.median()) - 48e-9) < 1e-9  # regulating again at the setpoint
         curve = afm.spectroscopy()  # and a spectroscopy runs to its end
         assert set(curve.branch.values) == {"lift", "approach", "retract", "return"}
-        timer = _interrupt_after(1.0)  # an approach from 5 um takes ~3 s simulated
+        afm.set("z_controller", approach_speed=1e-7)  # 30 s simulated per extension: still running at the key
+        timer = _interrupt_after(1.0)
         with pytest.raises(KeyboardInterrupt):
             afm.approach()
         timer.join()
+        afm.set("z_controller", approach_speed=2e-6)
         assert afm.state()["stage"] == "stopped"
         with pytest.raises(NotEngaged):
             afm.scan()
         assert afm.approach()["state"] == "engaged" and afm.state()["stage"] == "engaged"
+        afm.set_scan(pixels=64, lines=64, line_rate=0.5)  # 128 s simulated
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LongWork)
+            timer = _interrupt_after(1.0)
+            with pytest.raises(KeyboardInterrupt):
+                afm.scan()
+            timer.join()
+        curve = afm.spectroscopy()  # the scan stopped (it was refused as "a scan is running" before)
+        assert curve.amplitude.size > 0 and afm.state()["stage"] == "engaged"
 
 
 def _approach_again_and_scan(afm) -> tuple[dict, list[dict], xr.Dataset]:

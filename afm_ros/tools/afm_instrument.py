@@ -1228,6 +1228,8 @@ def main(args=None):
                 workflow_s = WORKFLOW_SIMULATED_S if workflow or options.fm else 0.0
                 instrument.check_recording(options.free_time + options.duration + frame_time + workflow_s,
                                            options.record_raw, frame)
+                say_long_job(options.free_time + options.duration + frame_time + workflow_s,
+                             ros.value("cantilever", "real_time_factor", 1.0))
         except ValueError:
             refused = True
             raise
@@ -1286,6 +1288,20 @@ def main(args=None):
         if refused and run_folder is not None and options.out is None:
             _remove_unused_run_folder(run_folder)
     return status
+
+
+def say_long_job(simulated_s: float, real_time_factor) -> None:
+    """A bounded job of more than a minute says how long it takes, before it starts."""
+    try:
+        rate = float(real_time_factor)
+    except (TypeError, ValueError):
+        return  # a bad value: the cantilever says why
+    if rate > 0 and simulated_s / rate > 60.0:
+        print(f"job: {simulated_s:.4g} s simulated: about {simulated_s / rate / 3600:.3g} h at the cantilever's "
+              f"real_time_factor {rate:g} (Ctrl-C ends it with the summary of what was done)", flush=True)
+    elif rate == 0 and simulated_s > 60.0:
+        print(f"job: {simulated_s:.4g} s simulated as fast as this machine goes (about 0.5-2 s of wall time per "
+              f"simulated second on 2 cores; Ctrl-C ends it with the summary of what was done)", flush=True)
 
 
 def _remove_unused_run_folder(folder: Path) -> None:

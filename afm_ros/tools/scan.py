@@ -202,12 +202,23 @@ def imperfection_values(instrument: bool, assignments: list[str]) -> tuple[dict,
 
 
 def _progress_printer(lines: int):
+    """A line at every tenth of the frame; once the second line is done (the first compiled the
+    kernels), the time the rest takes at this pace if it is over a minute."""
     marks = {max(1, round(lines * k / 10)) for k in range(1, 11)}
     seen = set()
     start = time.perf_counter()
+    line_ends: dict[int, float] = {}
 
     def report(images) -> None:
         done = images.frame.lines_done if not images.done else lines
+        if done not in line_ends:
+            line_ends[done] = time.perf_counter()
+            if done == 2 and 1 in line_ends and lines > 2:
+                left = (lines - 2) * (line_ends[2] - line_ends[1])
+                if left > 60.0:
+                    print(f"{PROG}: {lines} lines: about {left / 60:.3g} min more at the pace of line 2 "
+                          f"({line_ends[2] - line_ends[1]:.3g} s per line); Ctrl-C keeps the lines done",
+                          file=sys.stderr, flush=True)
         if done in marks and done not in seen:
             seen.add(done)
             print(f"{PROG}: line {done}/{lines} ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
