@@ -565,7 +565,7 @@ def test_description_file_errors_name_the_file(tmp_path):
         load_sample_file(tmp_path / "nothing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("generator: [unclosed\n")
-    with pytest.raises(ValueError, match="bad.yaml: not valid YAML"):
+    with pytest.raises(ValueError, match="bad.yaml is not valid YAML"):
         load_sample_file(bad)
     listed = tmp_path / "list.yaml"
     listed.write_text("- generator: grating\n")

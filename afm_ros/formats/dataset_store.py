@@ -136,12 +136,14 @@ def write_frame(path, index: int, data: dict) -> None:
 
 
 def open_dataset(path, only_done: bool = True):
-    """The store as an xarray Dataset (lazy); with ``only_done`` the frames not (yet) written are left out."""
+    """The store as an xarray Dataset (lazy); with ``only_done`` the frames not (yet) written are left
+    out. Without dask chunks (``chunks=None``: arrays read on access), so a store planned for millions
+    of frames opens at once (dask makes a task per frame and variable: a minute per 1e7 frames)."""
     import xarray as xr
 
-    ds = xr.open_zarr(str(path))
+    ds = xr.open_zarr(str(path), chunks=None)
     if only_done:
-        ds = ds.isel(frame=np.flatnonzero(ds["done"].values))
+        ds = ds.isel(frame=np.flatnonzero(done_frames(path)))
     return ds
 
 

@@ -13,7 +13,8 @@ its node registers (subscriptions, services, timers, parameter callbacks) so tha
 - and leaves the node running with the state it had (the callback's work up to the fault stands;
   the next message is handled normally).
 
-KeyboardInterrupt and SystemExit are not caught: they are how a process is meant to stop.
+KeyboardInterrupt and SystemExit are not caught: they are how a process is meant to stop; nor
+rclpy's ParameterException, which its parameter services turn into the answer themselves.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import traceback
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 
 from afm_ros.nodes import topics
@@ -58,6 +60,8 @@ class GuardedNode(Node):
         def pre_set(parameters):
             try:
                 return callback(parameters)
+            except ParameterException:  # rclpy's own answer (e.g. an unknown name, worded by ros_params)
+                raise
             except Exception as exc:  # noqa: BLE001 - the on-set callback still judges the values
                 self._fault("parameter conversion", exc)
                 return parameters
@@ -69,6 +73,8 @@ class GuardedNode(Node):
         def guarded(*args):
             try:
                 return callback(*args)
+            except ParameterException:  # rclpy answers these itself (its parameter protocol)
+                raise
             except Exception as exc:  # noqa: BLE001 - the point of this module
                 cause = self._fault(where, exc)
                 if answer_type is SetParametersResult:

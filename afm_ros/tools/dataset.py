@@ -135,7 +135,7 @@ def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | N
             f"same command again to continue")
     else:
         say(f"dataset: {summary['done']} of {spec['frames']} frames in {out} ({summary['wall_s']:.1f} s); "
-            f"open it with xarray.open_zarr({out!r})")
+            f"open it with xarray.open_zarr({out!r}{', chunks=None' if spec['frames'] > 100_000 else ''})")
     return summary
 
 
