@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from afm_ros.tools.config_gen import node_key, node_specs, table_text, yaml_text
+from afm_ros.core.specs import node_key, node_specs, table_text, yaml_text
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -125,7 +125,7 @@ def test_bad_params_file_fails_with_a_clear_error(install, tmp_path):
 
 
 def test_afm_instrument_runs_the_main_job_and_prints_the_summary(tmp_path):
-    from afm_ros.tools.config_gen import yaml_text  # the text of config/afm.yaml, from the same specs
+    from afm_ros.core.specs import yaml_text  # the text of config/afm.yaml, from the same specs
     params = tmp_path / "afm.yaml"
     params.write_text(yaml_text())
     result = subprocess.run(

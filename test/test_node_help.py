@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from afm_ros.tools.config_gen import node_specs
+from afm_ros.core.specs import node_specs
 
 BIN = Path(sys.executable).parent
 EXECUTABLES = {"cantilever_node": "cantilever", "lockin_node": "lockin", "z_controller_node": "z_controller",

@@ -16,7 +16,7 @@ import yaml
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType
 
-from afm_ros.tools.config_gen import node_specs
+from afm_ros.core.specs import node_specs
 
 TIMEOUT = 30.0
 TYPE_OF_KIND = {float: ParameterType.PARAMETER_DOUBLE, int: ParameterType.PARAMETER_INTEGER,

@@ -9,7 +9,7 @@ the nodes' own validation, calls services and follows the instrument's topics; `
 (afm_ros.tools.afm_ctl) is its command line.
 """
 from afm_ros.client.microscope import Microscope, NotEngaged, Refused, WorkflowFailed
-from afm_ros.client.params_file import ParamsFileError
+from afm_ros.formats.params_file import ParamsFileError
 from afm_ros.client.ros_link import (Change, ClientError, Interrupted, LoadResult, NoAnswer, NodeNotFound, Outputs,
                                      ParameterInfo, ParameterRefused, RosLink, ServiceFailed, UnknownParameter,
                                      ZTrace)

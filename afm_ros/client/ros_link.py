@@ -36,8 +36,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from afm_ros.client import params_file
-from afm_ros.formats import chunk_layout, user_files
+from afm_ros.formats import chunk_layout, params_file, user_files
 
 DEFAULT_TIMEOUT_S = 10.0
 POLL_S = 0.05  # executor wait per loop while waiting for discovery or an answer
@@ -540,7 +539,7 @@ class RosLink:
                                             f"read it back")
 
     def load_parameters(self, node: str, path: str | Path, atomic: bool = True) -> LoadResult:
-        """Set what the parameter file ``path`` holds for ``node`` (see :mod:`afm_ros.client.params_file`).
+        """Set what the parameter file ``path`` holds for ``node`` (see :mod:`afm_ros.formats.params_file`).
 
         Checked before anything is sent (:class:`params_file.ParamsFileError`,
         :class:`UnknownParameter`, :class:`ParameterRefused` for a read-only parameter whose value

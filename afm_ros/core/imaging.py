@@ -29,15 +29,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from afm_ros.core.scanner import ScanPlan, bin_into
+from afm_ros.formats.channels import CHANNELS, DIRECTIONS, FM_CHANNELS, UNITS  # noqa: F401 - re-exported
 
-CHANNELS = ("height", "amplitude", "phase", "amplitude_error", "dissipation")
-# FM-AFM frames (afm_ros.core.fm): the PLL's frequency shift, the amplitude controller's drive and the
-# dissipation from it, the amplitude and phase error the loops leave, and the z loop's df error
-FM_CHANNELS = ("height", "frequency_shift", "drive", "dissipation", "amplitude", "phase_error",
-               "frequency_shift_error")
-UNITS = {"height": "m", "amplitude": "m", "phase": "deg", "amplitude_error": "m", "dissipation": "J",
-         "frequency_shift": "Hz", "drive": "N", "phase_error": "deg", "frequency_shift_error": "Hz"}
-DIRECTIONS = ("trace", "retrace")
 _LOCKIN_CHANNELS = ("amplitude", "phase", "dissipation")
 _Z_CHANNELS = ("height", "amplitude_error")
 _FM_LOOP_CHANNELS = ("frequency_shift", "drive", "dissipation", "amplitude", "phase_error")

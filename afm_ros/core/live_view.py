@@ -34,6 +34,7 @@ import struct
 import numpy as np
 
 from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.formats.channels import IMAGE_TAIL_CUT, tail_cut_limits  # noqa: F401 - re-exported
 
 LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
@@ -150,26 +151,11 @@ def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[floa
     return tr.t.tolist(), (tr.z if field == "z" else tr.error).tolist(), tr.input_end_time
 
 
-IMAGE_TAIL_CUT = 0.02  # fraction of an image's pixels clipped at each end of its grey scale
 
 
 def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:
     """True for the chunks a viewer gets: chunk number ``first_index // samples`` a multiple of ``decimation``."""
     return (first_index // samples) % decimation == 0
-
-
-def tail_cut_limits(values: np.ndarray, fraction: float = IMAGE_TAIL_CUT) -> tuple[float, float]:
-    """(low, high): the finite values of rank ``k`` from either end of ``values``, ``k = floor(fraction
-    * n)`` for ``n`` finite values (the plain minimum and maximum below 1 / fraction values), so a
-    few spikes do not set a grey or colour scale; (nan, nan) without a finite value."""
-    values = np.asarray(values).ravel()
-    values = values[np.isfinite(values)]
-    n = values.size
-    if n == 0:
-        return float("nan"), float("nan")
-    k = int(fraction * n)
-    ordered = np.partition(values, (k, n - 1 - k))
-    return float(ordered[k]), float(ordered[n - 1 - k])
 
 
 def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:

@@ -17,7 +17,7 @@ import os
 
 import numpy as np
 
-from afm_ros.core.imaging import CHANNELS, DIRECTIONS
+from afm_ros.formats.channels import CHANNELS, DIRECTIONS
 from afm_ros.formats.folders import check_output_directory
 
 FORMAT = "afm_ros dataset 1"

@@ -177,10 +177,10 @@ HELP_FLAGS = ("-h", "--help")
 
 def help_text(program: str, node: str, doc: str | None) -> str:
     """``program --help``: what the node does (the first paragraph of its module docstring), how
-    to pass parameters, and its parameter table from the specs (:mod:`afm_ros.tools.config_gen`)."""
+    to pass parameters, and its parameter table from the specs (:mod:`afm_ros.core.specs`)."""
     import textwrap
 
-    from afm_ros.tools.config_gen import NODE_SPECS, node_key, node_specs, spec_cells
+    from afm_ros.core.specs import NODE_SPECS, node_key, node_specs, spec_cells
 
     wrap = lambda text, indent="": textwrap.fill(" ".join(text.split()), 100, initial_indent=indent,
                                                   subsequent_indent=indent)

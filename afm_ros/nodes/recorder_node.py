@@ -40,7 +40,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from afm_ros.nodes import ros_params, topics
 from afm_ros.nodes.topics import matches, split_patterns  # noqa: F401 (also used by tools)
 from afm_ros.formats.chunk_layout import cdr_chunk, cdr_clock_seconds, cdr_float64_array
-from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, RECORDER_SPECS, BudgetReached, RecordingError,
+from afm_ros.core.recording import RECORDER_SPECS
+from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, BudgetReached, RecordingError,
                                     SessionWriter, default_output_path, message_class, qos_profiles_yaml,
                                     serialize_exact)
 from afm_ros.nodes import node_main

@@ -30,7 +30,8 @@ from std_msgs.msg import Float64MultiArray
 
 from afm_ros.nodes import ros_params
 from afm_ros.formats.chunk_layout import unpack
-from afm_ros.formats.mcap_io import (REPLAY_SPECS, SessionFileError, SessionScan, check_mcap_file, message_class,
+from afm_ros.core.recording import REPLAY_SPECS
+from afm_ros.formats.mcap_io import (SessionFileError, SessionScan, check_mcap_file, message_class,
                                     read_session, read_summary)
 from afm_ros.nodes.topics import matches, split_patterns
 from afm_ros.nodes import node_main

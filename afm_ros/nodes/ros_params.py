@@ -255,7 +255,7 @@ def _warn_unknown(node: Node, specs: dict[str, ParamSpec], overrides: dict[str, 
     if not unknown:
         return
     try:
-        from afm_ros.tools.config_gen import node_specs
+        from afm_ros.core.specs import node_specs
         others = {name: node_name for node_name, s in node_specs().items() for name in s}
     except Exception:  # the warning must never stop a node
         others = {}

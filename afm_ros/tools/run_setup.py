@@ -76,7 +76,7 @@ class RosArgs:
     def _file_values(self, node: str) -> dict:
         """What the params files give ``node`` of this namespace, matched as rcl matches node keys
         (wildcards first, the node's own key last; a later file wins)."""
-        from afm_ros.client.params_file import ParamsFileError, parameters_for
+        from afm_ros.formats.params_file import ParamsFileError, parameters_for
 
         values: dict = {}
         for path in self.files:

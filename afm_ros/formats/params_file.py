@@ -12,10 +12,31 @@ import re
 from pathlib import Path
 from typing import Any
 
-from afm_ros.formats import user_files
-from afm_ros.tools.config_gen import yaml_value  # doubles that rcl and YAML 1.1 read as doubles
+from afm_ros.formats import user_files  # doubles that rcl and YAML 1.1 read as doubles
 
 PARAMETERS_KEY = "ros__parameters"
+
+
+def yaml_value(value) -> str:
+    """``value`` as YAML text that rcl and YAML 1.1 (PyYAML) read back as the same type: doubles keep a
+    '.' and a signed exponent, strings are single-quoted."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        text = repr(value)
+        if "e" in text:
+            mantissa, exponent = text.split("e")
+            if "." not in mantissa:
+                mantissa += ".0"
+            if exponent[0] not in "+-":
+                exponent = "+" + exponent
+            return f"{mantissa}e{exponent}"
+        return text if "." in text else text + ".0"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
 
 
 class ParamsFileError(user_files.UserFileError):
@@ -81,7 +102,7 @@ def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
 def dump_text(key: str, values: dict[str, Any], comments: dict[str, str] | None = None, header: str = "") -> str:
     """A parameter file with ``values`` (dotted names nested) under node key ``key``; each value
     preceded by ``# comments[name]`` if given. Doubles keep a '.' so that YAML reads them back as
-    doubles (see :func:`afm_ros.tools.config_gen.yaml_value`)."""
+    doubles (see :func:`yaml_value`)."""
     lines = [f"# {line}" for line in header.splitlines()] + [f"{key}:", f"  {PARAMETERS_KEY}:"]
     opened: list[str] = []
     for name in sorted(values):
