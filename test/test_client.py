@@ -192,7 +192,7 @@ def test_a_script_with_an_approach_repeats_bit_for_bit_over_ros(monkeypatch, ros
 # --- found from outside (issue 28) -----------------------------------------------------------------------
 def test_bad_arguments_are_client_errors_naming_the_argument_before_anything_is_sent():
     from afm_ros.client import ClientError
-    from afm_ros.client.microscope import BadArgument
+    from afm_ros.client import BadArgument
 
     with Microscope.local(withdrawn=False, ideal=True) as afm:
         cases = [(lambda: afm.set_scan(size=2e-6), r"size=2e-06 must be a pair"),
@@ -216,7 +216,7 @@ def test_work_of_more_than_a_minute_says_so_with_an_estimate_before_it_starts():
     the wall time it will take at the measured rate; as errors here, so nothing long runs."""
     import warnings
 
-    from afm_ros.client.microscope import LongWork
+    from afm_ros.client import LongWork
 
     with Microscope.local(withdrawn=False, ideal=True) as afm:
         afm.wait(0.01)  # the rate is measured from here on
@@ -247,7 +247,7 @@ def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
     is (stopped); then the next verbs work."""
     import warnings
 
-    from afm_ros.client.microscope import LongWork
+    from afm_ros.client import LongWork
 
     with Microscope.local(withdrawn=False, ideal=True) as afm:
         afm.wait(0.05)

@@ -3,9 +3,10 @@ nodes run, with the nodes' parameters and refusals (no ROS)."""
 from __future__ import annotations
 
 from afm_ros.client.frames import curve_dataset, frame_dataset
-from afm_ros.client.microscope import Refused, WorkflowFailed, refusal
+from afm_ros.client.errors import Refused, WorkflowFailed, refusal
 from afm_ros.core import artefacts
 from afm_ros.core.approach import APPROACH_SPECS, INSTRUMENT_Z
+from afm_ros.core.refusals import ENGAGED, NOT_ENGAGED, Refusal, code_of
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.flags import feedback_setpoint, frame_flags
 from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values
@@ -76,11 +77,11 @@ class LocalBackend:
             try:
                 merged[name] = specs[name].validate(value)
             except ValueError as exc:
-                raise refusal(node, str(exc)) from None
+                raise refusal(node, exc) from None
         try:
             check_scanner_values(merged)
         except ValueError as exc:
-            raise refusal(node, str(exc)) from None
+            raise refusal(node, exc) from None
         into.update(merged)
 
     def set_values(self, node: str, values: dict) -> None:
@@ -123,7 +124,7 @@ class LocalBackend:
             else:
                 raise ValueError(f"no node {node!r} (cantilever, lockin, z_controller, scanner)")
         except ValueError as exc:
-            raise refusal(node, str(exc)) from None
+            raise refusal(node, exc) from None
 
     def get_values(self, node: str, names: list[str]) -> dict:
         w = self.w
@@ -157,7 +158,8 @@ class LocalBackend:
         w = self.w
         if w.stage.state in ("engaged", "approaching", "withdrawing"):
             raise Refused("lockin/tune", f"tune refused: the z stage is {w.stage.state}; the tune needs the "
-                                         "cantilever free: withdraw first (service z_controller/withdraw)")
+                                         "cantilever free: withdraw first (service z_controller/withdraw)",
+                          ENGAGED)
         t0 = w.t
         try:
             r = sweep_wired(w, self.tune_values)
@@ -189,13 +191,13 @@ class LocalBackend:
     def scan(self, progress):
         w = self.w
         values = dict(self.scanner, continuous=False)
-        if not w.engaged:
-            raise refusal("scanner/scan_frame", f"scan refused: not engaged: the z stage is {w.stage.state}; "
-                                                "approach first (service z_controller/approach)")
         try:
+            if not w.engaged:
+                raise Refusal(NOT_ENGAGED, f"not engaged: the z stage is {w.stage.state}; approach first (service "
+                                           "z_controller/approach)")
             check_scan(values, w.lock_in.params["output_rate"], w.setup.sample_interval)
         except ValueError as exc:
-            raise refusal("scanner/scan_frame", f"scan refused: {exc}") from None
+            raise refusal("scanner/scan_frame", Refusal(code_of(exc), f"scan refused: {exc}")) from None
         done = [0]
 
         def report(images) -> None:
@@ -223,13 +225,10 @@ class LocalBackend:
 
     def spectroscopy(self, values: dict):
         w = self.w
-        if not w.engaged:
-            raise refusal("z_controller/spectroscopy", f"spectroscopy refused: not engaged: the z stage is "
-                                                       f"{w.stage.state}; approach first")
         try:
             curve = w.spectroscopy({**self.spectroscopy_values, **values})
         except ValueError as exc:
-            raise refusal("z_controller/spectroscopy", str(exc)) from None
+            raise refusal("z_controller/spectroscopy", exc) from None
         return curve_dataset(curve, {"source": "local"})
 
     def flags(self) -> dict:

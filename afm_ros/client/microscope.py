@@ -28,36 +28,14 @@ import os
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from afm_ros.client.ros_link import ClientError
+from afm_ros.client.backend import Backend
+from afm_ros.client.errors import BadArgument, LongWork
+from afm_ros.client.local_backend import LocalBackend
+from afm_ros.client.results import (ApproachResult, Feedback, ScanSettings, StageState, Truth, TuneResult,
+                                    WithdrawResult)
 
 LONG_WALL_S = 60.0  # [s] wall: a verb expected to take longer says so first (LongWork)
 ASSUMED_WALL_PER_SIMULATED = 1.0  # [s/s] before the instrument has run: real time
-
-class Refused(ClientError):
-    """The instrument refused a setting or an action; ``reason`` is the node's own words."""
-
-    def __init__(self, what: str, reason: str):
-        super().__init__(f"{what}: {reason}")
-        self.what, self.reason = what, reason
-
-
-class NotEngaged(Refused):
-    """An action that needs the tip on the surface (a scan, a spectroscopy) while the z stage is not engaged."""
-
-
-class WorkflowFailed(ClientError):
-    """A workflow step (tune, approach, withdraw) ended without reaching its goal; the message says why."""
-
-
-class BadArgument(ClientError, ValueError):
-    """A verb's argument of the wrong type or out of its range (checked before anything is sent);
-    the message names the argument and what is allowed."""
-
-
-class LongWork(UserWarning):
-    """A verb whose work will take more than a minute of wall time (or a GB): said before it starts,
-    with the estimate (simulated time and the wall time per simulated second measured so far)."""
-
 
 def _number(name: str, value, low: float = -math.inf, high: float = math.inf, low_open: bool = False,
             unit: str = "") -> float:
@@ -93,11 +71,6 @@ def _duration_text(seconds: float) -> str:
     return f"{seconds:.3g} s"
 
 
-def refusal(what: str, reason: str) -> Refused:
-    """:class:`NotEngaged` if the reason says so, else :class:`Refused`."""
-    return (NotEngaged if "not engaged" in reason or "needs the tip engaged" in reason else Refused)(what, reason)
-
-
 class Microscope:
     """The instrument as a program sees it; build it with :meth:`connect` or :meth:`local`.
 
@@ -107,7 +80,7 @@ class Microscope:
     approach, withdraw or spectroscopy stops where it is (the z stage ``stopped``, or engaged again
     after a spectroscopy), a scan stops (its tip parked), a tune restores the drive."""
 
-    def __init__(self, backend):
+    def __init__(self, backend: Backend):
         self._backend = backend
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="afm-client")
 
@@ -134,8 +107,6 @@ class Microscope:
         imperfections, a wearing tip, a 3 um z piezo range), with the tip ``withdrawn`` 5 um above
         ``sample`` (a built-in name, a description file or a .gwy map); ``ideal``: no noise, no
         imperfections, no wear. The dicts override parameters by name (the nodes' tables)."""
-        from afm_ros.client.local_backend import LocalBackend
-
         for name, value in (("cantilever", cantilever), ("lockin", lockin), ("z_controller", z_controller),
                             ("scanner", scanner), ("approach", approach), ("tip", tip)):
             if value is not None and not isinstance(value, dict):
@@ -183,7 +154,7 @@ class Microscope:
     def set_scan(self, center: tuple[float, float] | None = None, top_left: tuple[float, float] | None = None,
                  size: tuple[float, float] | None = None, pixels: int | None = None, lines: int | None = None,
                  line_rate: float | None = None, slow_scan_direction: str | None = None,
-                 angle: float | None = None) -> dict:
+                 angle: float | None = None) -> ScanSettings:
         """The next scan's region and raster: ``center`` or ``top_left`` (x, y) [m] in sample
         coordinates (the image's top-left corner: its first pixel of the highest row), ``size`` (x, y)
         [m], ``angle`` [deg] (the fast axis turned counterclockwise from the sample's x axis, about
@@ -220,12 +191,12 @@ class Microscope:
         self._backend.set_values("scanner", values)
         return self.scan_settings()
 
-    def scan_settings(self) -> dict:
+    def scan_settings(self) -> ScanSettings:
         """The scan's parameters (the scanner node's names, SI units)."""
         return self._backend.scan_settings()
 
     def set_feedback(self, setpoint: float | None = None, p_gain: float | None = None,
-                     i_gain: float | None = None) -> dict:
+                     i_gain: float | None = None) -> Feedback:
         """The z loop's ``setpoint`` [m] (amplitude), ``p_gain`` [1] and ``i_gain`` [1/s]; all or
         nothing (:class:`Refused` with the node's reason). Returns the feedback settings."""
         values = {k: _number(k, v) for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
@@ -233,7 +204,7 @@ class Microscope:
         self._backend.set_values("z_controller", values)
         return self.feedback()
 
-    def feedback(self) -> dict:
+    def feedback(self) -> Feedback:
         """setpoint [m], p_gain [1], i_gain [1/s], z_min, z_max [m] of the z loop."""
         return self._backend.feedback()
 
@@ -250,24 +221,24 @@ class Microscope:
         return self._backend.get_values(node, list(names))
 
     # --- actions ----------------------------------------------------------------------------------------
-    def tune(self) -> dict:
+    def tune(self) -> TuneResult:
         """Sweep the drive around the resonance with the tip free, fit f0 [Hz] and Q, and set the
         working point (drive frequency, drive for the free amplitude, phase zero). Refused while
         engaged (withdraw first)."""
         return self._run("tune")
 
-    def approach(self) -> dict:
+    def approach(self) -> ApproachResult:
         """Coarse approach and engage: the motor and z piezo bring the tip down until the amplitude
         falls to the setpoint, then the z loop regulates. Returns the approach's numbers
         (cycles, motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
         return self._run("approach")
 
-    def engage(self) -> dict:
+    def engage(self) -> ApproachResult | StageState:
         """Engaged on the surface: approaches if the z stage is not engaged already."""
         state = self.state()["stage"]
         return {"state": state} if state == "engaged" else self.approach()
 
-    def withdraw(self) -> dict:
+    def withdraw(self) -> WithdrawResult:
         """Feedback off, z piezo retracted, the motor backs off: the tip is safe to move."""
         return self._run("withdraw")
 
@@ -334,12 +305,12 @@ class Microscope:
         z range, drift, tip; docs/imperfections.md); {} if it raised none or no frame was scanned."""
         return self._backend.flags()
 
-    def truth(self) -> dict:
+    def truth(self) -> Truth:
         """The emulator's ground truth now: the piezo's hysteresis and creep and the sample's drift
         [m] (zero when off), the tip's radius [m] in force and its pick-up events."""
         return self._backend.truth()
 
-    def state(self) -> dict:
+    def state(self) -> StageState:
         """Simulated time ``t_s`` [s] and the z stage's ``stage`` (engaged, withdrawn, approaching, ...)."""
         return self._backend.state()
 

@@ -21,8 +21,9 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
 
 from afm_ros.client.frames import curve_dataset, frame_dataset
-from afm_ros.client.microscope import WorkflowFailed, refusal
-from afm_ros.client.ros_link import ClientError, NoAnswer, ParameterRefused, RosLink, ServiceFailed, status_node
+from afm_ros.client.errors import (ClientError, NoAnswer, ParameterRefused, ServiceFailed, WorkflowFailed,
+                                   refusal)
+from afm_ros.client.ros_link import RosLink, status_node
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.formats import chunk_layout

@@ -13,7 +13,6 @@ comes back with the node's own reason (:class:`ParameterRefused`, :class:`Servic
 """
 from __future__ import annotations
 
-import difflib
 import json
 import math
 import os
@@ -36,6 +35,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
+from afm_ros.client.errors import (ClientError, Interrupted, NoAnswer, NodeNotFound, ParameterRefused,  # noqa: F401
+                                   ServiceFailed, UnknownParameter)
 from afm_ros.formats import chunk_layout, params_file, user_files
 
 DEFAULT_TIMEOUT_S = 10.0
@@ -67,74 +68,6 @@ DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliabi
 # an afm_ros description: "<text> [<unit>]; allowed <range>[; read-only after start][; ...]"
 _AFM_DESCRIPTION = re.compile(r"(?P<text>.*?)(?: \[(?P<unit>[^\]]*)\])?; allowed (?P<range>.*?)"
                               r"(?:; read-only after start)?(?:; the ROS range shown is closed.*)?", re.S)
-
-
-# --- errors ----------------------------------------------------------------------------------------
-class ClientError(Exception):
-    """Base of the errors of this module; ``str()`` is one line for a person."""
-
-
-class NodeNotFound(ClientError):
-    """Node ``name`` (None: any node) was not discovered in ``namespace`` within ``timeout`` s.
-
-    ``present``: the nodes that were there; ``elsewhere``: for a named node, the nodes of that name
-    in other namespaces; for any node, the namespaces that have nodes (a wrong namespace is the
-    usual cause)."""
-
-    def __init__(self, name: str | None, namespace: str, timeout: float, present: list[str] = (),
-                 elsewhere: list[str] = ()):
-        self.name, self.namespace, self.timeout = name, namespace, timeout
-        self.present, self.elsewhere = list(present), list(elsewhere)
-        if name is None:
-            text = f"no node found in namespace {namespace} within {timeout:g} s"
-            if self.elsewhere:
-                text += f"; there are nodes in {', '.join(self.elsewhere)}"
-        else:
-            text = f"node {name} not found within {timeout:g} s"
-            text += f" (nodes in {namespace}: {', '.join(self.present)})" if self.present else \
-                f" (no nodes in {namespace})"
-            if self.elsewhere:
-                text += f"; found as {', '.join(self.elsewhere)}"
-        super().__init__(text)
-
-
-class NoAnswer(ClientError, TimeoutError):
-    """``what`` (a service, a node's answer) did not come within ``timeout`` seconds."""
-
-    def __init__(self, what: str, timeout: float):
-        self.what, self.timeout = what, timeout
-        super().__init__(f"{what} did not answer within {timeout:g} s")
-
-
-class UnknownParameter(ClientError):
-    """``node`` has no parameter ``name``; ``known`` lists the ones it has."""
-
-    def __init__(self, node: str, name: str, known: list[str] = ()):
-        self.node, self.name, self.known = node, name, list(known)
-        close = difflib.get_close_matches(name, self.known, n=3)
-        hint = f"; did you mean {' or '.join(close)}?" if close else ""
-        super().__init__(f"{node} has no parameter '{name}'{hint}")
-
-
-class ParameterRefused(ClientError):
-    """``node`` refused to set ``names``; ``reason`` is the node's own (it names the field and the
-    allowed range). The node keeps its old values."""
-
-    def __init__(self, node: str, names: list[str], reason: str):
-        self.node, self.names, self.reason = node, list(names), reason
-        super().__init__(f"{node} refused {', '.join(self.names)}: {reason}")
-
-
-class ServiceFailed(ClientError):
-    """A service answered ``success: false``; ``message`` is its reason."""
-
-    def __init__(self, service: str, message: str):
-        self.service, self.message = service, message
-        super().__init__(f"{service} refused: {message}")
-
-
-class Interrupted(KeyboardInterrupt):
-    """The caller's ``interrupted()`` said stop (e.g. Ctrl-C) while waiting."""
 
 
 # --- values -----------------------------------------------------------------------------------------

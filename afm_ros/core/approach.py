@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass, field
 
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
+from afm_ros.core.refusals import NOT_ENGAGED, Refusal
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, SpectroscopyRamp
 
@@ -272,8 +273,8 @@ class ZStage:
         the reason when the stage is not engaged or a value is bad (nothing changes then); the ramp
         is returned (its path is placed when the hold begins)."""
         if self.state != "engaged":
-            raise ValueError(f"spectroscopy refused: the z stage is {self.state}"
-                             + (f" ({self.reason})" if self.reason else "") + "; it needs the tip engaged (approach first)")
+            raise Refusal(NOT_ENGAGED, f"spectroscopy refused: the z stage is {self.state}"
+                          + (f" ({self.reason})" if self.reason else "") + "; it needs the tip engaged (approach first)")
         c = self.controller
         ramp = SpectroscopyRamp(values, c.z, t, c.params["z_min"], c.params["z_max"], self.z_base + self.motor,
                                 {**meta, "setpoint": c.params["setpoint"]})

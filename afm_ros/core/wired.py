@@ -29,6 +29,7 @@ from afm_ros.core.controller import ZController
 from afm_ros.core.imaging import ImageAccumulator
 from afm_ros.core.lockin import LockIn
 from afm_ros.core.physics.simulation import Simulation
+from afm_ros.core.refusals import NOT_ENGAGED, SCANNING, Refusal
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean, phase_deg
 
@@ -195,7 +196,7 @@ class WiredInstrument:
         the reason if not engaged, scanning or a value is bad; RuntimeError after ``timeout`` [s]
         of simulated time."""
         if self.images is not None and not self.images.done:
-            raise ValueError("spectroscopy refused: a scan is running (the tip is not parked)")
+            raise Refusal(SCANNING, "spectroscopy refused: a scan is running (the tip is not parked)")
         c = self.setup.cantilever
         t = self.stage.t_last if self.stage.t_last is not None else self.sim.t
         ramp = self.stage.start_spectroscopy(values or {}, t, {
@@ -249,7 +250,7 @@ class WiredInstrument:
         if self.sample is None:
             raise ValueError("start_scan: no sample map (a flat sample has nothing to image)")
         if not self.engaged:
-            raise ValueError(f"start_scan: not engaged (the z stage is {self.stage.state}); approach first")
+            raise Refusal(NOT_ENGAGED, f"start_scan: not engaged (the z stage is {self.stage.state}); approach first")
         plan = ScanPlan.from_values(plan_values, start_time=self.sim.t)
         check_plan(self.imperfect.values, plan)
         self.imperfect.move(plan.center_x, plan.center_y, self.sim.t)

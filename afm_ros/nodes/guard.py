@@ -26,6 +26,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 
+from afm_ros.core import refusals
 from afm_ros.nodes import topics
 
 FAULT_STATUS = "callbacks"  # the /diagnostics status name suffix of callback faults
@@ -84,7 +85,7 @@ class GuardedNode(Node):
                     if hasattr(response, "success"):
                         response.success = False
                     if hasattr(response, "message"):
-                        response.message = f"internal error in {cause}"
+                        response.message = refusals.tagged(refusals.INTERNAL, f"internal error in {cause}")
                     return response
                 return None
         guarded.__name__ = getattr(callback, "__name__", "callback")

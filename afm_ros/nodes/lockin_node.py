@@ -38,6 +38,7 @@ from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TunePlan, TuneRun, 
 TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
@@ -131,23 +132,26 @@ class LockInNode(GuardedNode):
     def _start_tune(self, request, response):
         if self.z_stage in ("engaged", "approaching", "withdrawing", "spectroscopy"):
             response.success = False
-            response.message = (f"tune refused: the z stage is {self.z_stage}; the tune needs the cantilever free: "
-                                "withdraw first (service z_controller/withdraw)")
+            response.message = refusals.tagged(refusals.ENGAGED, f"tune refused: the z stage is {self.z_stage}; the "
+                                               "tune needs the cantilever free: withdraw first (service "
+                                               "z_controller/withdraw)")
             return response
         if self.tune_state == "running":
-            response.success, response.message = False, "tune refused: a tune is already running"
+            response.success = False
+            response.message = refusals.tagged(refusals.BUSY, "tune refused: a tune is already running")
             return response
         c = self._cantilever_values
         if c is None:
             response.success = False
-            response.message = ("tune refused: the cantilever's drive is not known yet (no message on cantilever/scan: "
-                                "is the cantilever running in this namespace?)")
+            response.message = refusals.tagged(refusals.NOT_READY, "tune refused: the cantilever's drive is not known "
+                                               "yet (no message on cantilever/scan: is the cantilever running in "
+                                               "this namespace?)")
             return response
         try:
             v = tune_settings(self.tune_values, c["resonance_frequency_Hz"], c["quality_factor"],
                               c["drive_frequency_Hz"], 1.0 / self.lockin.params["output_rate"])
         except ValueError as exc:
-            response.success, response.message = False, f"tune refused: {exc}"
+            response.success, response.message = False, refusals.tagged(refusals.BAD_VALUE, f"tune refused: {exc}")
             return response
         with self._lock:
             start = self._input_end_time + TUNE_START_CHUNKS * c["chunk_duration_s"]

@@ -52,6 +52,7 @@ from afm_ros.nodes import topics
 from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
 
 MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
@@ -178,7 +179,8 @@ class ScannerNode(GuardedNode):
                 where = (f"frame {self.frames_done}, line {self.lines_done % plan.lines} of {plan.lines}"
                          if plan is not None else "waiting for the cantilever to start it")
                 response.success = False
-                response.message = f"a scan is already running ({where}); call scanner/stop first"
+                response.message = refusals.tagged(refusals.BUSY, f"a scan is already running ({where}); call "
+                                                   "scanner/stop first")
                 return response
             values = dict(self._values)
             if single:
@@ -187,7 +189,7 @@ class ScannerNode(GuardedNode):
                 plan = self.check_start(values)
             except ValueError as exc:
                 response.success = False
-                response.message = f"scan refused: {exc}"
+                response.message = refusals.tagged(refusals.code_of(exc), f"scan refused: {exc}")
                 self.get_logger().error(response.message)
                 return response
             self._request_id += 1
@@ -219,11 +221,11 @@ class ScannerNode(GuardedNode):
         stage = self.z_stage
         if stage is not None and stage.get("state") != "engaged":
             reason = f" ({stage['reason']})" if stage.get("reason") else ""
-            raise ValueError(f"not engaged: the z stage is {stage.get('state')}{reason}; approach first "
-                             "(service z_controller/approach)")
+            raise refusals.Refusal(refusals.NOT_ENGAGED, f"not engaged: the z stage is {stage.get('state')}{reason}; "
+                                   "approach first (service z_controller/approach)")
         if self.lockin_output_rate is None:
             reachable = self._settings_clients["lockin"].services_are_ready()
-            raise ValueError(f"the lock-in's output_rate is not known yet ({self._lockin_fqn} "
+            raise refusals.Refusal(refusals.NOT_READY, f"the lock-in's output_rate is not known yet ({self._lockin_fqn} "
                              + ("answers; asked for it, try again in a second)" if reachable else
                                 "is not reachable: is the lock-in node running in this namespace?)")
                              + "; every pixel needs one lock-in output")
@@ -237,7 +239,7 @@ class ScannerNode(GuardedNode):
         with self._lock:
             if self.state != "idle":
                 response.success = False
-                response.message = "the tip is scanning; call scanner/stop first"
+                response.message = refusals.tagged(refusals.SCANNING, "the tip is scanning; call scanner/stop first")
                 return response
             self._request_id += 1
             park = {"id": self._request_id, "park": [self._values["tip_x"], self._values["tip_y"]]}
@@ -251,7 +253,7 @@ class ScannerNode(GuardedNode):
         result = self._stop_scan(values["write_partial_frames"])
         if result is None:
             response.success = False
-            response.message = "no scan is running"
+            response.message = refusals.tagged(refusals.NOT_READY, "no scan is running")
             return response
         park, frame, _ = result
         response.success = True

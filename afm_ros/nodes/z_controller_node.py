@@ -45,6 +45,7 @@ from afm_ros.formats import chunk_layout, spectroscopy_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
+from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.approach import APPROACH_SPECS, Z_NODE_SPECS, ZStage, blind_time, validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController, check_limits
@@ -173,12 +174,13 @@ class ZControllerNode(GuardedNode):
         with self._lock:
             if self.stage is None:
                 response.success = False
-                response.message = ("approach refused: the cantilever's z_base is not known yet (no message on "
-                                    "cantilever/scan: is the cantilever running in this namespace?)")
+                response.message = refusals.tagged(refusals.NOT_READY, "approach refused: the cantilever's z_base is "
+                                                   "not known yet (no message on cantilever/scan: is the cantilever "
+                                                   "running in this namespace?)")
                 return response
             if self.stage.state == "approaching":
                 response.success = False
-                response.message = "approach refused: an approach is already running"
+                response.message = refusals.tagged(refusals.BUSY, "approach refused: an approach is already running")
                 return response
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             try:
@@ -186,7 +188,7 @@ class ZControllerNode(GuardedNode):
                 self._abandon_spectroscopy()
             except ValueError as exc:
                 response.success = False
-                response.message = f"approach refused: {exc}"
+                response.message = refusals.tagged(refusals.code_of(exc), f"approach refused: {exc}")
                 return response
             self._report_stage()
         response.success = True
@@ -242,16 +244,19 @@ class ZControllerNode(GuardedNode):
             info = self.cantilever_info
             if self.stage is None or not info:
                 response.success = False
-                response.message = ("spectroscopy refused: the cantilever's set-up is not known yet (no message "
-                                    "on cantilever/scan: is the cantilever running in this namespace?)")
+                response.message = refusals.tagged(refusals.NOT_READY, "spectroscopy refused: the cantilever's set-up "
+                                                   "is not known yet (no message on cantilever/scan: is the "
+                                                   "cantilever running in this namespace?)")
                 return response
             if self.spectroscopy_ramp is not None:
                 response.success = False
-                response.message = "spectroscopy refused: a spectroscopy is already running"
+                response.message = refusals.tagged(refusals.BUSY, "spectroscopy refused: a spectroscopy is already "
+                                                   "running")
                 return response
             if "park" not in info:
                 response.success = False
-                response.message = "spectroscopy refused: a scan is running (the tip is not parked)"
+                response.message = refusals.tagged(refusals.SCANNING, "spectroscopy refused: a scan is running (the "
+                                                   "tip is not parked)")
                 return response
             t = self.stage.t_last if self.stage.t_last is not None else 0.0
             try:
@@ -262,7 +267,7 @@ class ZControllerNode(GuardedNode):
                     "feedback_latency": info.get("feedback_latency_chunks", 2)})
             except ValueError as exc:
                 response.success = False
-                response.message = str(exc)
+                response.message = refusals.tagged(refusals.code_of(exc), str(exc))
                 return response
             self.spectroscopy_ramp, self._first_raw_index = ramp, self.answered_end_index
             self._batches_since_done = 0

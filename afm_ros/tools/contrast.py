@@ -39,6 +39,7 @@ from afm_ros.core.physics.forces import make_force_model
 from afm_ros.core.physics.materials import MATERIALS, Material, material, sample_for
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever, Drive
 from afm_ros.core.physics.simulation import Simulation
+from afm_ros.tools.figures import pyplot, write_csv
 
 CONTRAST_COLUMNS = ["setpoint_ratio", "material", "z_base_m", "amplitude_m", "phase_deg", "dissipated_energy_J",
                     "peak_force_N", "indentation_m", "phase_difference_deg", "sin_phase_cleveland",
@@ -195,8 +196,7 @@ def contrast_study(materials, force_model: str = "viscoelastic_dmt", ratios=(0.9
 
 
 def plot_contrast(rows, path: Path, title: str = ""):
-    from afm_ros.tools.study import _plt
-    plt = _plt()
+    plt = pyplot()
     names = list(dict.fromkeys(r["material"] for r in rows))
     fig, axes = plt.subplots(1, 5, figsize=(20, 4.2))
     panels = [("phase_deg", 1.0, "phase lag [deg]"), ("dissipated_energy_J", 1e18, "E_dis per cycle [aJ]"),
@@ -311,7 +311,6 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"afm_study contrast: error: {exc}", file=sys.stderr)
         return 2
-    from afm_ros.tools.study import write_csv
     write_csv(out / "contrast.csv", CONTRAST_COLUMNS, rows)
     plot_contrast(rows, out / "contrast.png",
                   f"{args.force_model}: {', '.join(m.name for m in mats)}; A0 = {a0 * 1e9:g} nm, {spp} spp")

@@ -3,13 +3,13 @@ node's ``lockin/tune`` runs it: sweep, fit, working point; writes tune.csv and t
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
 
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, parse_number
 from afm_ros.core.tune import TUNE_SPECS, sweep_wired
+from afm_ros.tools.figures import write_csv
 
 LEVER = ("spring_constant", "resonance_frequency", "quality_factor", "drive_frequency", "free_amplitude")
 NOISE = {"temperature": 295.0, "detector_noise_density": 100e-15}  # the instrument's defaults
@@ -48,10 +48,8 @@ def run(args) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "tune.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["drive_frequency_Hz", "amplitude_m", "phase_deg"])
-        w.writerows(zip(result.frequency.tolist(), result.amplitude.tolist(), result.phase_deg.tolist()))
+    write_csv(out / "tune.csv", ["drive_frequency_Hz", "amplitude_m", "phase_deg"],
+              zip(result.frequency.tolist(), result.amplitude.tolist(), result.phase_deg.tolist()))
     from afm_ros.tools.tune_figure import plot_tune
     plot_tune(result, out / "tune.png", "Drive tune (afm_study tune, wired instrument)")
     s = result.summary()

@@ -26,6 +26,7 @@ import numpy as np
 from afm_ros.core.physics import fm_theory
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS
 from afm_ros.core.physics.parameters import parse_number as _number
+from afm_ros.tools.figures import pyplot, write_csv
 
 DISTANCE_COLUMN = "distance_m"
 DF_COLUMN = "df_Hz"
@@ -79,17 +80,11 @@ def read_curve(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_force_csv(path: Path, distance, force) -> Path:
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(FORCE_COLUMNS)
-        for d, f in zip(distance, force):
-            writer.writerow([repr(float(d)), repr(float(f))])
-    return path
+    return write_csv(path, FORCE_COLUMNS, ((float(d), float(f)) for d, f in zip(distance, force)))
 
 
 def plot_force(result: fm_theory.Reconstruction, df, path: Path, title: str = "") -> Path:
-    from afm_ros.tools.study import _plt
-    plt = _plt()
+    plt = pyplot()
     d_nm = result.distance * 1e9
     fig, (ax_df, ax_f) = plt.subplots(1, 2, figsize=(11, 4.2))
     ax_df.plot(d_nm, df, "-", color="C0")

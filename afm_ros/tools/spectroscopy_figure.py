@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.tools.figures import pyplot
+
 
 def plot_spectroscopy(curve, path: Path, title: str) -> Path:
     """Write ``path`` (PNG) for a :class:`afm_ros.core.spectroscopy.SpectroscopyCurve`."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(7, 8.5), sharex=True)
     for leg, color in (("approach", "tab:blue"), ("retract", "tab:red")):

@@ -17,7 +17,6 @@ The reusable pieces (:func:`convergence_study`, :func:`fit_order`, :func:`sweep`
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
@@ -33,6 +32,7 @@ from afm_ros.core.physics.forces import FORCE_MODELS
 from afm_ros.core.physics.materials import MATERIALS
 from afm_ros.core.physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC, NOISE_SPECS
 from afm_ros.core.physics.parameters import parse_number as _number
+from afm_ros.tools.figures import pyplot, write_csv
 from afm_ros.core.physics.integrators import METHODS
 from afm_ros.core.physics.simulation import Samples
 
@@ -398,33 +398,9 @@ def trajectory(z_base: float, cantilever: Cantilever | None = None, drive: Drive
 
 
 # --- output helpers -----------------------------------------------------------------------
-def write_csv(path: Path, columns: list[str], rows) -> Path:
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(columns)
-        for row in rows:
-            writer.writerow([_fmt(row[c]) for c in columns])
-    return path
-
-
-def _fmt(value):
-    if isinstance(value, (bool, np.bool_)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    return value
-
-
 def _columns_to_rows(cols: dict):
     names = list(cols)
     return [dict(zip(names, vals)) for vals in zip(*(cols[n] for n in names))]
-
-
-def _plt():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
 
 
 # --- subcommands ----------------------------------------------------------------------------
@@ -450,7 +426,7 @@ def cmd_convergence(ns, out: Path) -> int:
 
 
 def plot_convergence(rows, orders, path: Path, title="L1 error vs time step (free oscillator)"):
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 5))
     for m in orders:
         pts = [(r["dt_s"], r["l1_error_m"]) for r in rows if r["method"] == m]
@@ -510,7 +486,7 @@ def cmd_sweep(ns, out: Path) -> int:
 
 
 def plot_sweep(rows, path: Path):
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
     panels = [("amplitude_m", 1e9, "amplitude [nm]"), ("phase_deg", 1, "phase lag [deg]"),
               ("mean_force_N", 1e9, "mean tip-sample force [nN]"), ("max_force_N", 1e9, "peak force [nN]"),
@@ -552,7 +528,7 @@ def cmd_trajectory(ns, out: Path) -> int:
 
 
 def plot_trajectory(cols, path: Path, title: str):
-    plt = _plt()
+    plt = pyplot()
     fig, (ax1, ax3) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     t_ms = cols["t_s"] * 1e3
     ax1.plot(t_ms, cols["tip_position_m"] * 1e9, "g-")
@@ -596,7 +572,7 @@ def _free_run(cantilever, drive, method, spp, periods=100):
 
 
 def _line_plot(path, title, curves, xlabel="time [ms]", ylabel="z [nm]", ylim=None, xlim=None):
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for x, y, style, label in curves:
         ax.plot(x, y, style, label=label)
@@ -782,7 +758,7 @@ def make_notebook(out: Path, cantilever: Cantilever | None = None, drive: Drive 
                     f"Plot 7: tip response and drive, z_base = {z_base * nm:g} nm (corrected RK4)")
     written.append(out / "plot7_tip_response_drive.png")
     # Plot 8: force-distance curve along the trajectory, with the model curve
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     ax.plot(cols["tip_position_m"] * nm, cols["tip_sample_force_N"] * nm, "b.", ms=2, label="along trajectory")
     gaps = np.linspace(-20e-9, 30e-9, 2001)
@@ -843,7 +819,7 @@ def cmd_fm_curve(ns, out: Path) -> int:
 
 def plot_fm_curve(rows, free, path: Path):
     """df (simulated and first-order theory), drive and dissipation against the closest distance."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(3, 1, figsize=(7, 8.5), sharex=True)
     for direction, style in (("approach", "-"), ("retract", "--")):
         sel = [r for r in rows if r["direction"] == direction]

@@ -48,6 +48,7 @@ from afm_ros.core.cantilever_params import INSTRUMENT_NOISE_SPECS
 from afm_ros.core.physics.noise import BOLTZMANN
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever
 from afm_ros.core.physics.parameters import parse_number as _number
+from afm_ros.tools.figures import pyplot, write_csv
 
 DEFAULT_SECONDS = 1.0  # [s] of simulated record: ~0.5 s of CPU, f0 to ~0.03 %, Q and k to ~1.5 %
 # The tune emulates tuning the instrument, so its defaults are the cantilever node's (room
@@ -604,7 +605,6 @@ CSV_COLUMNS = ["f_Hz", "psd_m2_per_Hz", "fit_m2_per_Hz"]
 
 
 def write_outputs(result: TuneResult, out: Path) -> list[Path]:
-    from afm_ros.tools.study import _plt, write_csv
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -612,7 +612,7 @@ def write_outputs(result: TuneResult, out: Path) -> list[Path]:
     model = fit.model(sp.f)
     paths = [write_csv(out / "thermal_tune.csv", CSV_COLUMNS,
                        ({"f_Hz": a, "psd_m2_per_Hz": b, "fit_m2_per_Hz": c} for a, b, c in zip(sp.f, sp.psd, model)))]
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 5))
     pos = sp.f > 0
     ax.loglog(sp.f[pos], sp.psd[pos], "-", color="0.6", lw=0.7, label="Welch PSD")

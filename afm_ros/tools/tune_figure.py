@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.tools.figures import pyplot
+
 
 def plot_tune(result, path: Path, title: str) -> Path:
     """Write ``path`` (PNG) for a :class:`afm_ros.core.tune.TuneResult` (its points and fit)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     f, a, p = result.frequency, result.amplitude, result.phase_deg
     fine = np.linspace(f.min(), f.max(), 400)

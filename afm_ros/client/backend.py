@@ -1,0 +1,50 @@
+"""What a backend of :class:`afm_ros.client.Microscope` provides: the same verbs over ROS
+(:class:`afm_ros.client.ros_backend.RosBackend`) and in-process
+(:class:`afm_ros.client.local_backend.LocalBackend`). SI units; refusals raise the errors of
+:mod:`afm_ros.client.errors`."""
+from __future__ import annotations
+
+from typing import Any, Callable, Protocol
+
+from afm_ros.client.results import ApproachResult, Feedback, ScanSettings, StageState, Truth, TuneResult, \
+    WithdrawResult
+
+
+class Backend(Protocol):
+    def close(self) -> None: ...
+
+    def recover(self, verb: str) -> None:
+        """After Ctrl-C inside ``verb``: leave the instrument where the next verb works."""
+
+    def wall_per_simulated_second(self) -> float:
+        """Wall seconds per simulated second measured so far (nan before any)."""
+
+    def set_values(self, node: str, values: dict) -> None: ...
+
+    def get_values(self, node: str, names: list[str]) -> dict: ...
+
+    def scan_settings(self) -> ScanSettings: ...
+
+    def feedback(self) -> Feedback: ...
+
+    def state(self) -> StageState: ...
+
+    def advance(self, seconds: float) -> None: ...
+
+    def tune(self) -> TuneResult: ...
+
+    def approach(self) -> ApproachResult: ...
+
+    def withdraw(self) -> WithdrawResult: ...
+
+    def scan(self, progress: Callable[[int, int], None] | None) -> Any:
+        """One frame as an xarray Dataset (afm_ros.client.frames)."""
+
+    def move_tip(self, x: float, y: float) -> None: ...
+
+    def spectroscopy(self, values: dict) -> Any:
+        """One curve as an xarray Dataset (afm_ros.client.frames)."""
+
+    def flags(self) -> dict: ...
+
+    def truth(self) -> Truth: ...
