@@ -13,6 +13,7 @@ from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, validate as spectroscopy_validate
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
 from afm_ros.core.tune import TUNE_SPECS
+from afm_ros.core.angles import wrap_deg
 
 IDEAL_CANTILEVER = {"temperature": 0.0, "detector_noise_density": 0.0}
 WORKFLOW_TIMEOUT_S = 600.0  # [s] simulated: an approach or withdraw that takes longer has failed
@@ -165,7 +166,7 @@ class LocalBackend:
             r = sweep_wired(w, self.tune_values)
         except ValueError as exc:
             raise Refused("lockin/tune", f"tune refused: {exc}") from None
-        offset = float((w.lock_in.params["phase_offset"] + r.phase_offset_deg + 180.0) % 360.0 - 180.0)
+        offset = float(wrap_deg(w.lock_in.params["phase_offset"] + r.phase_offset_deg))
         w.set_drive(r.drive_frequency, w.values["free_amplitude"] * r.drive_scale)
         w.lock_in.configure(phase_offset=offset)
         return {**r.message(), "start_s": t0, "end_s": w.t}

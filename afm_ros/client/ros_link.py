@@ -38,6 +38,7 @@ from std_srvs.srv import Trigger
 from afm_ros.client.errors import (ClientError, Interrupted, NoAnswer, NodeNotFound, ParameterRefused,  # noqa: F401
                                    ServiceFailed, UnknownParameter)
 from afm_ros.formats import chunk_layout, params_file, user_files
+from afm_ros.core.angles import phases_deg
 
 DEFAULT_TIMEOUT_S = 10.0
 POLL_S = 0.05  # executor wait per loop while waiting for discovery or an answer
@@ -531,7 +532,7 @@ class RosLink:
                 b = chunk_layout.unpack_outputs(msg.data)
             except ValueError:
                 return
-            callback(Outputs(b.t, np.hypot(b.x, b.y), np.degrees(np.arctan2(-b.y, b.x))))
+            callback(Outputs(b.t, np.hypot(b.x, b.y), phases_deg(b.x, b.y)))
         return self.node.create_subscription(Float64MultiArray, self.resolve("lockin/outputs"), take, WATCH_QOS)
 
     def on_z_trace(self, callback: Callable[[ZTrace], None]):

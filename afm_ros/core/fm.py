@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
+from afm_ros.core.angles import phase_deg, wrap_deg  # noqa: F401 - wrap_deg re-exported
 
 FM_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("center_frequency", 45e3, "Hz",
@@ -78,11 +79,6 @@ def validate(values: dict) -> dict:
         raise ValueError(f"drive_initial={v['drive_initial']:g} N is above drive_max={v['drive_max']:g} N; "
                          f"allowed: drive_initial in [0, drive_max]")
     return v
-
-
-def wrap_deg(angle):
-    """Angle [deg] wrapped to [-180, 180)."""
-    return (np.asarray(angle) + 180.0) % 360.0 - 180.0
 
 
 def loop_delay(chunk_duration: float, latency: int, output_rate: float, time_constant: float = 0.0,
@@ -171,7 +167,7 @@ class OscillationController:
         dt = 0.0 if self.t_last is None or t <= self.t_last else t - self.t_last
         self.t_last = t
         amplitude = math.hypot(x, y)
-        e = float((math.degrees(math.atan2(-y, x)) - p["phase_setpoint"] + 180.0) % 360.0 - 180.0)
+        e = float(wrap_deg(phase_deg(x, y) - p["phase_setpoint"]))
         self.phase_error, self.amplitude = e, amplitude
         if p["pll_enabled"]:
             lim = p["frequency_range"]

@@ -35,6 +35,7 @@ import numpy as np
 
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.formats.channels import IMAGE_TAIL_CUT, tail_cut_limits  # noqa: F401 - re-exported
+from afm_ros.core.angles import phase_deg
 
 LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
@@ -145,7 +146,7 @@ def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[floa
         if field == "amplitude":
             values = [math.hypot(x, y) for x, y in zip(xs, ys)]
         else:
-            values = [math.degrees(math.atan2(-y, x)) for x, y in zip(xs, ys)]
+            values = [phase_deg(x, y) for x, y in zip(xs, ys)]
         return b.t.tolist(), values, b.input_end_time
     tr = chunk_layout.unpack_z_trace(data)
     return tr.t.tolist(), (tr.z if field == "z" else tr.error).tolist(), tr.input_end_time

@@ -28,6 +28,7 @@ from numba import njit
 
 from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.angles import phases_deg
 
 MAX_ORDER = 8
 
@@ -171,7 +172,7 @@ class LockInOutput:
     @property
     def phase_deg(self) -> np.ndarray:
         """Phase lag behind the reference [deg] in (-180, 180]: atan2(-Y, X)."""
-        return np.degrees(np.arctan2(-self.y, self.x))
+        return phases_deg(self.x, self.y)
 
     @staticmethod
     def concatenate(parts: list["LockInOutput"]) -> "LockInOutput":

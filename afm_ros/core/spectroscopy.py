@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from afm_ros.core.angles import phase_deg  # noqa: F401 - re-exported
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
 from afm_ros.formats.spectroscopy_layout import (CHUNK_COLUMNS, DIRECTIONS, OUTPUT_COLUMNS,  # noqa: F401 - re-exported
                                                  SpectroscopyCurve)
@@ -51,11 +52,6 @@ SPECTROSCOPY_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
 
 def validate(values: dict) -> dict:
     return validate_values(SPECTROSCOPY_SPECS, values, "a spectroscopy")
-
-
-def phase_deg(x: float, y: float) -> float:
-    """The lock-in's phase [deg] of one output (X, Y) [m]: the lag behind the reference."""
-    return math.degrees(math.atan2(-y, x))
 
 
 def chunk_mean(samples) -> float:

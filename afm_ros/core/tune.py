@@ -32,6 +32,7 @@ import numpy as np
 
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.angles import wrap_deg
 
 TUNE_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("tune_center", 0.0, "Hz", "centre of the sweep; 0 = the drive frequency in force", 0.0, 1e8),
@@ -164,7 +165,7 @@ def fit(f: np.ndarray, amplitude: np.ndarray, phase_deg: np.ndarray) -> TuneResu
         q_err = q * math.sqrt(max(cov[1, 1], 0.0))
     except np.linalg.LinAlgError:
         f0_err = q_err = math.inf
-    phase0 = (math.degrees(phi0) + 180.0) % 360.0 - 180.0
+    phase0 = wrap_deg(math.degrees(phi0))
     return TuneResult(np.asarray(f), np.abs(z), -np.degrees(np.angle(z)), f0, q, f0_err, q_err, a_s, phase0,
                       math.sqrt(sigma2))
 
@@ -178,7 +179,7 @@ def choose_working_point(result: TuneResult, v: dict, current_amplitude_scale: f
     result.drive_frequency = f
     result.drive_scale = current_amplitude_scale * v["tune_target_amplitude"] / abs(response)
     phase = -math.degrees(np.angle(response))
-    result.phase_offset_deg = (phase - v["tune_phase_target"] + 180.0) % 360.0 - 180.0
+    result.phase_offset_deg = wrap_deg(phase - v["tune_phase_target"])
     result.settings = dict(v)
     return result
 

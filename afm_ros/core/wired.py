@@ -8,7 +8,8 @@ every published chunk (deflection plus detector noise); the z controller takes e
 the image accumulator bins the lock-in and z outputs. The cantilever's measurement, sample maps,
 drive changes and tip wear are the functions the cantilever node's engine uses
 (:mod:`afm_ros.core.cantilever_engine`). With the same parameters the ROS instrument's frame
-therefore equals this one (test/test_scan_ros.py).
+therefore equals this one (test/test_scanner_node.py::test_ros_frame_equals_the_wired_cores_bit_for_bit,
+test/test_fm_ros.py for FM).
 """
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ from afm_ros.core.lockin import LockIn
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.core.refusals import NOT_ENGAGED, SCANNING, Refusal
 from afm_ros.core.scanner import ScanPlan, parked_plan
-from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean, phase_deg
+from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean
+from afm_ros.core.angles import phase_deg, phases_deg
 
 
 @dataclass
@@ -307,7 +309,7 @@ class WiredInstrument:
         self.answers.append(self.stage.command)
         self.next_index = first + count
         self.chunks += 1
-        phase = np.degrees(np.arctan2(-out.y, out.x))
+        phase = phases_deg(out.x, out.y)
         if self.images is not None:
             if self.images.fm:
                 self.images.add_fm(fm_out.t, fm_out.df, fm_out.drive, fm_out.phase_error, fm_out.amplitude)

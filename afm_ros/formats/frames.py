@@ -32,7 +32,7 @@ from typing import Mapping
 
 import numpy as np
 
-from afm_ros.formats.channels import CHANNELS, DIRECTIONS, IMAGE_TAIL_CUT, UNITS, tail_cut_limits
+from afm_ros.formats.channels import DIRECTIONS, IMAGE_TAIL_CUT, UNITS, tail_cut_limits
 
 CHANNEL_TITLES = {"height": "Height", "amplitude": "Amplitude", "phase": "Phase",
                   "amplitude_error": "Amplitude error", "dissipation": "Dissipation",

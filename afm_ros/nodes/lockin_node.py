@@ -40,6 +40,7 @@ from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.core.angles import phase_deg, wrap_deg
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
 CHUNK_QOS = topics.CONSUMER_QOS
@@ -200,7 +201,7 @@ class LockInNode(GuardedNode):
         r = run.result
         self.tune_result = r
         self.tune_state = "done"
-        offset = float((self._tune_restore["phase_offset"] + r.phase_offset_deg + 180.0) % 360.0 - 180.0)
+        offset = float(wrap_deg(self._tune_restore["phase_offset"] + r.phase_offset_deg))
         amplitude = float(self._tune_restore["free_amplitude"] * r.drive_scale)
         self.tune_applied = {"drive_frequency": float(r.drive_frequency), "free_amplitude": amplitude,
                              "phase_offset": offset}
@@ -267,7 +268,7 @@ class LockInNode(GuardedNode):
                     amp.data = math.hypot(x, y)
                     self.pub_amplitude.publish(amp)
                 if want_phase:
-                    phase.data = math.degrees(math.atan2(-y, x))
+                    phase.data = phase_deg(x, y)
                     self.pub_phase.publish(phase)
                 if want_xy:
                     xy.header.stamp = sim_time_msg(t)

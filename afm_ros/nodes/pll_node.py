@@ -71,7 +71,8 @@ class PllNode(GuardedNode):
     def _send_excitation(self, index: int, t: float) -> None:
         msg = Float64MultiArray()
         msg.layout.dim = [MultiArrayDimension(label=chunk_layout.EXCITATION_LABEL, size=4, stride=4)]
-        msg.data = [float(index), float(t), float(self.loop.frequency), float(self.loop.drive)]
+        msg.data = chunk_layout.pack_excitation(chunk_layout.ExcitationCommand(
+            int(index), float(t), float(self.loop.frequency), float(self.loop.drive))).tolist()
         self.pub_excitation.publish(msg)
 
     def _on_batch(self, msg: Float64MultiArray) -> None:

@@ -54,6 +54,7 @@ from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.core.angles import phases_deg
 
 MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -466,7 +467,7 @@ class ScannerNode(GuardedNode):
             self.sample_interval = (b.input_end_time - last_time) / (b.input_end_index - last_index)
         self._lockin_end = (b.input_end_index, b.input_end_time)
         if not record_only and self.accumulator is not None and not self.accumulator.fm and b.t.shape[0]:
-            self.accumulator.add_lockin(b.t, np.hypot(b.x, b.y), np.degrees(np.arctan2(-b.y, b.x)))
+            self.accumulator.add_lockin(b.t, np.hypot(b.x, b.y), phases_deg(b.x, b.y))
 
     def _add_trace(self, data, record_only: bool = False) -> None:
         try:

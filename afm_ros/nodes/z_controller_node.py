@@ -341,7 +341,8 @@ class ZControllerNode(GuardedNode):
 
     def _send_command(self, answered_end_index: int, answered_end_time: float) -> None:
         z = self.controller.z if self.stage is None else self.stage.command
-        self._command.data = [float(answered_end_index), float(answered_end_time), float(z)]
+        self._command.data = chunk_layout.pack_z_command(
+            chunk_layout.ZCommand(int(answered_end_index), float(answered_end_time), float(z))).tolist()
         self.pub_command.publish(self._command)
 
     def _apply(self, changed: dict) -> None:

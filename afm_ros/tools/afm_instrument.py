@@ -62,6 +62,7 @@ from afm_ros.formats.mcap_io import default_output_path, free_space
 from afm_ros.nodes import node_main, topics
 from afm_ros.nodes.cantilever_node import PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS, CantileverNode
 from afm_ros.nodes.node_main import make_executor
+from afm_ros.core.angles import phases_deg
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
@@ -186,7 +187,7 @@ class Monitor(GuardedNode):
             self.lost_batches += 1
             self.lost_input_samples += b.input_first_index - self.outputs_end_index
         a = np.hypot(b.x, b.y)
-        p = np.degrees(np.arctan2(-b.y, b.x))
+        p = phases_deg(b.x, b.y)
         self.outputs += a.shape[0]
         self.non_finite_outputs += int(np.count_nonzero(~np.isfinite(a)))
         self._amplitudes[b.input_end_index] = (b.t, a, p, b.input_end_time)
@@ -280,7 +281,7 @@ class Monitor(GuardedNode):
         t = np.asarray(self.t)
         sel = (t >= t0) & (t < t1)
         x, y = np.asarray(self.x)[sel], np.asarray(self.y)[sel]
-        return t[sel], np.hypot(x, y), np.degrees(np.arctan2(-y, x))
+        return t[sel], np.hypot(x, y), phases_deg(x, y)
 
 
 class Instrument:

@@ -321,11 +321,6 @@ def run(args) -> int:
     return 0
 
 
-def cmd_contrast(ns, out: Path) -> int:
-    """afm_study's COMMANDS signature (ns, out): ``--out`` is already in ``ns``."""
-    return run(ns)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.contrast", description=__doc__.split("\n")[0])
     _add_arguments(parser)

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from afm_ros.core.physics.simulation import Samples, Simulation
+from afm_ros.core.angles import wrap_deg
 
 
 @dataclass
@@ -120,7 +121,7 @@ def steady_state(sim: Simulation, window_periods: int | None = None, amplitude_t
         result = analyze(samples, sim, n_harmonics)
         if previous is not None:
             d_amp = abs(result.amplitude - previous.amplitude)
-            d_phase = abs((result.phase_deg - previous.phase_deg + 180.0) % 360.0 - 180.0)
+            d_phase = abs(wrap_deg(result.phase_deg - previous.phase_deg))
             if d_amp < amplitude_tol and d_phase < phase_tol_deg:
                 return SteadyStateResult(result, samples, simulated, True)
         if simulated >= max_periods:
