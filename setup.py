@@ -7,7 +7,7 @@ package_name = "afm_ros"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(exclude=["test"]),
+    packages=find_packages(exclude=["test", "benchmarks", "benchmarks.*"]),  # benchmarks/ is not installed
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -16,7 +16,6 @@ setup(
         ("share/" + package_name + "/config/datasets", glob("config/datasets/*.yaml")),
         ("share/" + package_name + "/config/foxglove", glob("config/foxglove/*.json")),
     ],
-    package_data={package_name + ".tools": ["*.c"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="afm_ros developers",

@@ -16,12 +16,18 @@ from __future__ import annotations
 import itertools
 import os
 import re
+import sys
 import threading
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
+
+# the benchmarks (repository root's benchmarks/, not installed) for the tests of their code, also under a plain
+# `pytest` (`python -m pytest` from the root has the root on sys.path already); appended: afm_ros is found as before
+sys.path.append(str(Path(__file__).resolve().parents[1]))
 
 _counter = itertools.count()
 

@@ -40,6 +40,11 @@ def test_every_imported_module_is_an_exec_depend():
     assert not missing, f"package.xml lacks exec_depend for (module: (rosdep key, first importer)) {missing}"
 
 
+def test_the_package_does_not_import_the_benchmarks():
+    # benchmarks/ (repository root) is not installed: the package must not need it
+    assert "benchmarks" not in imported_top_level_modules()
+
+
 def test_the_scan_sees_the_known_imports():
     modules = imported_top_level_modules()
     assert {"rclpy", "numpy", "numba", "mcap", "tqdm", "std_msgs"} <= set(modules)

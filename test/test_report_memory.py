@@ -1,7 +1,7 @@
 """afm_report in bounded memory on a long session, exact numbers from streamed data, non-finite
 samples, and one-line errors for files from other tools (issue 8).
 
-The sessions are synthetic (afm_ros.tools.bench_report.write_synthetic_session): the instrument's message
+The sessions are synthetic (benchmarks.bench_report.write_synthetic_session): the instrument's message
 pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an engage on
 /parameter_events) with known contents, so every number the report makes has an exact expectation.
 """
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from afm_ros.tools import report
-from afm_ros.tools.bench_report import run_measured, write_synthetic_session
+from benchmarks.bench_report import run_measured, write_synthetic_session
 from afm_ros.formats.mcap_io import SessionWriter
 
 BIN = Path(sys.executable).parent

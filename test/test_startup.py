@@ -1,5 +1,5 @@
 """Start-up: numba cache location (read-only installs), one compiled specialisation per kernel,
-no heavy imports on the node paths. Timing itself is measured by ``python -m afm_ros.tools.bench_startup``,
+no heavy imports on the node paths. Timing itself is measured by ``python -m benchmarks.bench_startup``,
 not here.
 """
 from __future__ import annotations

@@ -117,8 +117,10 @@ def test_notebook_subcommand(tmp_path):
     assert 50 < amp_nm < 60
 
 
-def test_bench_subcommand_tiny(capsys):
-    code = study.main(["bench", "--steps", "20000", "--solve-ivp-periods", "12", "--no-startup"])
+def test_bench_benchmark_tiny(capsys):
+    # the speed benchmark (formerly afm_study bench) lives in the repository's benchmarks/, not in the package
+    from benchmarks import bench
+    code = bench.main(["--steps", "20000", "--solve-ivp-periods", "12", "--no-startup"])
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     for key in ("rk4_ns_per_step", "real_time_factor", "solve_ivp_ns_per_step", "speedup_vs_solve_ivp"):
@@ -127,6 +129,15 @@ def test_bench_subcommand_tiny(capsys):
         # the C baseline must be the same computation (bit-identical state), else the ratio is moot
         assert result["c_bit_identical_to_numba"] is True
     assert result["solve_ivp"][result["solve_ivp_method"]]["reached_target"]
+
+
+def test_bench_subcommand_points_to_the_benchmark(capsys):
+    # the installed package has no benchmark: afm_study bench says what to run instead and fails
+    code = study.main(["bench", "--steps", "20000", "--solve-ivp-periods", "12", "--no-startup"])
+    assert code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert "python -m benchmarks.bench --steps 20000 --solve-ivp-periods 12 --no-startup" in captured.err
 
 
 @pytest.mark.parametrize("flag,value,field", [("--quality-factor", "-1", "quality_factor"),

@@ -8,7 +8,7 @@ figures and CSV tables (header row, SI units in the column names) into ``--out D
 - ``sweep``       steady-state observables vs z_base (approach, optional retract)
 - ``trajectory``  tip position, drive and tip-sample force vs time at one z_base
 - ``fm-curve``    FM: df, drive and dissipation vs distance of the self-excited steady state (shooting)
-- ``bench``       speed benchmark (one JSON object on stdout), see :mod:`afm_ros.tools.bench`
+- ``bench``       moved: says to run ``python -m benchmarks.bench`` from the repository (not installed)
 - ``scan``        image a sample with the wired instrument (.gwy, PNGs, summary), see :mod:`afm_ros.tools.scan`
 
 The reusable pieces (:func:`convergence_study`, :func:`fit_order`, :func:`sweep`,
@@ -545,11 +545,16 @@ def plot_trajectory(cols, path: Path, title: str):
     plt.close(fig)
 
 
+BENCH_MOVED = ("the speed benchmark is not part of the installed package (it compiles C baselines kept beside "
+               "it in the repository's benchmarks/ folder); from the root of a checkout of the repository run: ")
+
+
 def cmd_bench(ns, out: Path) -> int:
-    from afm_ros.tools.bench import run_bench
-    result = run_bench(steps=ns.steps, solve_ivp_periods=ns.solve_ivp_periods, startup=not ns.no_startup)
-    print(json.dumps(result, indent=1))
-    return 0
+    """The benchmark lives outside the package (benchmarks/bench.py), which never imports it: say what to
+    run instead, with the flags given here, and fail (exit 2)."""
+    command = f"python -m benchmarks.bench --steps {ns.steps} --solve-ivp-periods {ns.solve_ivp_periods}"
+    print(f"afm_study bench: {BENCH_MOVED}{command}{' --no-startup' if ns.no_startup else ''}", file=sys.stderr)
+    return 2
 
 
 def cmd_notebook(ns, out: Path) -> int:
@@ -917,7 +922,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "everywhere: plain rk4 steps over the contact's kink, 1.5 %% off in df at 80 steps per period)")
     p.add_argument("--force-model", default="dmt", choices=FORCE_MODELS, help="tip-sample force model (default dmt)")
 
-    p = add("bench", "speed benchmark; prints one JSON object", params=False)
+    p = add("bench", "moved: the speed benchmark is python -m benchmarks.bench, run from the repository root "
+                     "(not installed); this only says so and exits with status 2", params=False)
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")

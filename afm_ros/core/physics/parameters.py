@@ -108,7 +108,7 @@ CANTILEVER_SPECS = _specs(
               "and zero piezo)", -1e-6, 1e-4),
     # 80 with rk4_event: amplitude within 0.0002 nm, phase within 0.0012 deg and the dissipated energy
     # within 0.08 of the issue-19 goal (0.5 % or 0.05 aJ) of a converged run over the sweeps of every
-    # model and material (docs/study.md, afm_ros.tools.bench_event); a multiple of 20 keeps the 900 kHz
+    # model and material (docs/study.md, benchmarks.bench_event); a multiple of 20 keeps the 900 kHz
     # output rate exact at 45 kHz. Plain rk4 needs 220 for 0.02 nm / 0.05 deg (and misses E_dis by 10 %).
     ParamSpec("steps_per_period", 80, "1", "integration steps per drive period (the output grid)", 20, 100000,
               kind=int),

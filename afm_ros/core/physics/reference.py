@@ -4,7 +4,7 @@ scipy's DOP853 (rtol 1e-13) restarted at every switch of the force law (contact 
 viscoelastic clip, the hysteresis branch), located by solve_ivp's own event finder, with the force
 laws written again here from their formulas (:mod:`afm_ros.core.physics.forces` documents them):
 nothing of the project's kernels is used. Slow (Python right-hand side); for tests and the
-integrator study (``afm_ros.tools.bench_event``).
+integrator study (``benchmarks.bench_event``).
 """
 from __future__ import annotations
 

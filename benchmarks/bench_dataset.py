@@ -1,6 +1,6 @@
 """Throughput of ``afm_study dataset`` (issue 21; not a test): one JSON object.
 
-``python -m afm_ros.tools.bench_dataset [--frames N]``
+``python -m benchmarks.bench_dataset [--frames N]``
 
 The stated frame: 64 x 64 pixels at 2 lines/s (32 s simulated) of the PS/LDPE blend (viscoelastic
 DMT), a 2 um scan. The same spec (``--frames`` frames after frame 0, which every run makes in its own
@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     from afm_ros.formats import dataset_store
     from afm_ros.tools.dataset import make_dataset
 
-    p = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_dataset", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_dataset", description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=4, help="frames timed per configuration (after frame 0)")
     ns = p.parse_args(argv)
     spec = validate({**SPEC, "frames": ns.frames + 1})

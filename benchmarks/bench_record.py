@@ -1,4 +1,4 @@
-"""Recorder benchmark (prints JSON): ``python -m afm_ros.tools.bench_record [--seconds 4]``.
+"""Recorder benchmark (prints JSON): ``python -m benchmarks.bench_record [--seconds 4]``.
 
 All phases run in this one process, one after the other, each on a fresh private context with
 the instrument's nodes (cantilever, lock-in, z-controller) on one executor (``--executor``

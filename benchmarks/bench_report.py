@@ -1,6 +1,6 @@
 """Benchmark of ``afm_report`` on synthetic sessions of growing length: wall time and peak memory.
 
-``python -m afm_ros.tools.bench_report [--seconds 10 60 600] [--rate 90e3] [--series-rate 1000] [--keep DIR]``
+``python -m benchmarks.bench_report [--seconds 10 60 600] [--rate 90e3] [--series-rate 1000] [--keep DIR]``
 prints one JSON document. For every length it writes a synthetic session (:func:`write_synthetic_session`) into a
 temporary directory (removed afterwards unless ``--keep``) and runs, each in a fresh process:
 
@@ -116,8 +116,8 @@ def write_synthetic_session(path, seconds: float, sample_rate: float = 20e3, chu
 
     Returns the expected report numbers (``expected``) and the construction constants.
     """
-    from afm_ros.formats.mcap_io import SessionWriter
     from afm_ros.core.physics.forces import DMTForce
+    from afm_ros.formats.mcap_io import SessionWriter
 
     n = int(round(sample_rate * chunk_s))
     if n % samples_per_period:
@@ -297,7 +297,7 @@ def report_command(session, out_dir) -> list[str]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_report", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_report", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, nargs="+", default=[10.0, 60.0, 600.0],
                         help="simulated lengths of the synthetic sessions [s]")
     parser.add_argument("--rate", type=float, default=90e3, help="sample rate [S/s] (instrument: 900e3)")

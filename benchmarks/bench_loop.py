@@ -1,6 +1,6 @@
 """Benchmark of the closed loop in its process layouts (prints JSON; writes only to a temp dir).
 
-``python -m afm_ros.tools.bench_loop [--hold 4] [--repeats 2] [--layouts one,one+recorder,three,three+recorder]
+``python -m benchmarks.bench_loop [--hold 4] [--repeats 2] [--layouts one,one+recorder,three,three+recorder]
 [--latencies 2] [--paced-hold 20]``
 
 Every run is the scripted job of ``afm_instrument`` (withdraw, free, engage, hold) with the
@@ -56,6 +56,7 @@ def _executable(name: str) -> str:
 
 def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: float = 0.0) -> dict:
     import rclpy
+
     from afm_ros.tools.afm_instrument import Instrument
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
@@ -85,6 +86,7 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
 
 def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0) -> dict:
     import rclpy
+
     from afm_ros.tools.afm_instrument import Instrument
     ns = f"/bench_three_{os.getpid()}"
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}
@@ -139,7 +141,7 @@ def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: in
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_loop", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_loop", description=__doc__.split("\n\n")[0])
     parser.add_argument("--hold", type=float, default=4.0, help="simulated seconds of the measured hold (default 4)")
     parser.add_argument("--repeats", type=int, default=2, help="runs per layout, interleaved (default 2)")
     parser.add_argument("--layouts", default=",".join(LAYOUTS), help="comma-separated subset of " + ", ".join(LAYOUTS))

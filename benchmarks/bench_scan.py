@@ -1,6 +1,6 @@
 """Benchmark of ``afm_study scan`` (not a test): speed and memory, one JSON object on stdout.
 
-``python -m afm_ros.tools.bench_scan [--full] [--out DIR]``
+``python -m benchmarks.bench_scan [--full] [--out DIR]``
 
 - ``real_time_factor``: simulated / wall time of the scan loop (engage, set-up and file writing
   excluded; the tool's own summary) for a 128 x 128 frame at 1 line/s over 5 um of the PS/LDPE
@@ -112,7 +112,7 @@ def bench_memory(work: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_scan", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_scan", description=__doc__.split("\n")[0])
     parser.add_argument("--full", action="store_true", help="scan all 128 lines (128 s simulated) instead of 16")
     parser.add_argument("--out", default=None, help="keep the scans' files here (default: a temporary folder)")
     args = parser.parse_args(argv)

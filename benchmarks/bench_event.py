@@ -1,6 +1,6 @@
 """Accuracy against cost of the integrators over the contact (issue 19; not a test): one JSON object.
 
-``python -m afm_ros.tools.bench_event [--part trajectory,sweeps,order,speed] [--quick]``
+``python -m benchmarks.bench_event [--part trajectory,sweeps,order,speed] [--quick]``
 
 - ``trajectory``: from each model's hard-tapping steady state (seed cantilever, A0 = 60 nm, z_base
   20 nm, viscosity 20 Pa s, H_retract = 1.5 H), the largest error of z over the sixth period against
@@ -28,7 +28,8 @@ import time
 
 import numpy as np
 
-from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE as Z_HARD, hard_tapping_models
+from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE as Z_HARD
+from afm_ros.core.physics.reference import hard_tapping_models
 
 SWEEP_Z = [z * 1e-9 for z in range(80, 4, -5)]
 # (label, force model, material) of the sweeps: the standard sweep (dmt on the seed sample) and every
@@ -206,7 +207,7 @@ def speed(candidates, lines=4, repeats=2):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_event", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_event", description=__doc__.splitlines()[0])
     p.add_argument("--part", default="trajectory,sweeps,order,speed",
                    help="comma-separated parts: trajectory, sweeps, order, speed")
     p.add_argument("--candidates", default=None,

@@ -1,4 +1,7 @@
-"""Speed benchmark of the RK4 + DMT kernel (``afm_study bench``), with baselines in the same run.
+"""Speed benchmark of the RK4 + DMT kernel, with baselines in the same run (prints one JSON object).
+
+``python -m benchmarks.bench [--steps N] [--solve-ivp-periods P] [--no-startup]`` from the repository
+root (this was ``afm_study bench``; the installed package has neither this module nor its C baselines).
 
 Problem: the seed cantilever (k = 10 N/m, f0 = 45 kHz, Q = 25, A0 = 60 nm) over the DMT sample at
 z_base = 40 nm, RK4 with 200 steps per drive period, started from rest.
@@ -23,8 +26,10 @@ z_base = 40 nm, RK4 with 200 steps per drive period, started from rest.
 """
 from __future__ import annotations
 
+import argparse
 import copy
 import ctypes
+import json
 import math
 import os
 import platform
@@ -80,7 +85,7 @@ EVENT_C_FLAGS = ["-O2", "-fno-fast-math", "-ffp-contract=off"]
 EVENT_REGIMES = (("far", 2e-6), ("tapping", 50e-9), ("hard_tapping", 20e-9))
 
 
-def _build_event_c(tmp: Path):
+def build_event_c(tmp: Path):
     """``advance_event`` of ``bench_event_baseline.c`` via ctypes, or (None, why not)."""
     dll, note = _compile(tmp, "bench_event_baseline.c", EVENT_C_FLAGS)
     if dll is None:
@@ -94,7 +99,7 @@ def _build_event_c(tmp: Path):
     return fn, None
 
 
-def _event_c_call(fn, sim, steps: int, out_w=None):
+def event_c_call(fn, sim, steps: int, out_w=None):
     """``steps`` rk4_event steps in C from the state of ``sim`` (a Simulation with method rk4_event over
     a flat sample; not changed); returns (y [z, v], stats [split steps, extra sub-steps])."""
     ptr = ctypes.POINTER(ctypes.c_double)
@@ -129,7 +134,7 @@ def _event_times(steps: int) -> dict:
            "near_surface_fraction": first.event_beta,
            "z_base_m": {regime: z for regime, z in EVENT_REGIMES}}
     with tempfile.TemporaryDirectory() as tmp:
-        fn, note = _build_event_c(Path(tmp))
+        fn, note = build_event_c(Path(tmp))
         if fn is None:
             out["c_note"] = f"C baseline of rk4_event skipped: {note}"
             return out
@@ -145,7 +150,7 @@ def _event_times(steps: int) -> dict:
                 sim.advance(steps, record=False)
                 numba_times[key].append((time.perf_counter() - t0) / steps)
                 t0 = time.perf_counter()
-                y, stats = _event_c_call(fn, start, steps)
+                y, stats = event_c_call(fn, start, steps)
                 c_times[key].append((time.perf_counter() - t0) / steps)
                 added = sim.event_stats - start.event_stats  # (the warm-up's counts are in both)
                 identical[key] &= bool(y[0] == sim.y[0] and y[1] == sim.y[1] and np.array_equal(stats, added))
@@ -360,7 +365,31 @@ def run_bench(steps: int = 10_000_000, solve_ivp_periods: int = 40, startup: boo
     return out
 
 
-if __name__ == "__main__":
-    import json
+def _int_at_least(minimum: int):
+    """argparse type: an integer >= minimum (argparse reports a bad value and exits with status 2)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer >= {minimum}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} is not an integer >= {minimum}")
+        return value
+    return parse
 
-    print(json.dumps(run_bench(), indent=1))
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench",
+                                     description="speed benchmark; prints one JSON object")
+    parser.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
+    parser.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40,
+                        help="periods integrated by solve_ivp")
+    parser.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
+    ns = parser.parse_args(argv)
+    result = run_bench(steps=ns.steps, solve_ivp_periods=ns.solve_ivp_periods, startup=not ns.no_startup)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,7 +1,7 @@
 """Benchmark of the scanning RK4 kernel with and without imperfections (not a test); JSON on stdout.
 
-``python -m afm_ros.tools.bench_imperfections [--steps N] [--repeats R] [--baseline-tree DIR]``
-``python -m afm_ros.tools.bench_imperfections --job [--repeats R]``
+``python -m benchmarks.bench_imperfections [--steps N] [--repeats R] [--baseline-tree DIR]``
+``python -m benchmarks.bench_imperfections --job [--repeats R]``
 
 Each measurement is a fresh subprocess that integrates ``steps`` steps over the PS/LDPE blend
 while scanning 5 um at 1 line/s (viscoelastic_dmt, the imaging default), after a warm-up call

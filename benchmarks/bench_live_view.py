@@ -13,7 +13,7 @@ lost (the job's monitor, an acknowledging consumer of every lock-in batch; the r
 frames the live view handed to the SDK and the process's CPU time per simulated second (the
 viewer's own CPU, in its node process, is not counted but shares the machine).
 Configurations alternate (``--repeat`` rounds), each in its own process.
-``python -m afm_ros.tools.bench_live_view``.
+``python -m benchmarks.bench_live_view``.
 """
 from __future__ import annotations
 
@@ -28,10 +28,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks import REPO_ROOT, child_env
+
 CONFIGS = ("no live_view", "no viewer", "reading viewer", "stalled viewer")
 VIEW_TOPICS = ("cantilever/deflection", "lockin/amplitude", "lockin/phase", "z_controller/z_piezo",
                "z_controller/error")
-CLIENT_DIR = Path(__file__).resolve().parents[2] / "test" / "foxglove_client"
+CLIENT_DIR = REPO_ROOT / "test" / "foxglove_client"
 
 
 def ensure_client() -> tuple[str, Path]:
@@ -113,7 +115,7 @@ def one_run(config: str, rtf: float, hold: float, record: bool = False) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_live_view", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_live_view", description=__doc__.split("\n\n")[0])
     p.add_argument("--hold", type=float, default=4.0, help="simulated seconds engaged per run (default 4)")
     p.add_argument("--repeat", type=int, default=2, help="rounds of every configuration (default 2)")
     p.add_argument("--rtf", default="0,1", help="cantilever real_time_factor values, comma-separated (default 0,1)")
@@ -131,13 +133,10 @@ def main(argv=None) -> int:
         for rtf in a.rtf.split(","):
             for config in CONFIGS:
                 with tempfile.TemporaryDirectory() as tmp:
-                    out = subprocess.run([sys.executable, "-m", "afm_ros.tools.bench_live_view", "--one",
+                    out = subprocess.run([sys.executable, "-m", "benchmarks.bench_live_view", "--one",
                                           f"{config}|{rtf}", "--hold", str(a.hold)] + (["--record"] if a.record else []),
                                          cwd=tmp, capture_output=True,
-                                         text=True, timeout=900,
-                                         env=dict(os.environ, PYTHONPATH=os.pathsep.join(
-                                             filter(None, [str(Path(__file__).resolve().parents[2]),
-                                                           os.environ.get("PYTHONPATH")]))))
+                                         text=True, timeout=900, env=child_env())
                 if out.returncode != 0:
                     print(out.stderr[-3000:], file=sys.stderr)
                     return 1

@@ -1,6 +1,6 @@
 """Benchmark of the FM-AFM blocks against the tapping loop's, side by side in one run (prints JSON).
 
-``python -m afm_ros.tools.bench_fm [--chunks 400] [--repeats 5] [--ros-seconds 1.0] [--no-ros]``
+``python -m benchmarks.bench_fm [--chunks 400] [--repeats 5] [--ros-seconds 1.0] [--no-ros]``
 
 1. Blocks, no ROS, per 1 ms chunk (900 samples, one lock-in output), on the same recorded chunks of a
    cantilever at Q 1e4: the tapping loop's lock-in + z controller (amplitude feedback) against the FM
@@ -30,8 +30,8 @@ import numpy as np
 def record_chunks(n: int, chunk: float = 1e-3):
     """``n`` chunks (header, measured deflection) of a self-oscillating cantilever at Q 1e4, 5 nm, 10 nm
     above a DMT sample (the FM operating point): the input both loops see."""
-    from afm_ros.core.wired import WiredInstrument
     from afm_ros.core.cantilever_engine import measure
+    from afm_ros.core.wired import WiredInstrument
 
     w = WiredInstrument(cantilever=dict(quality_factor=1e4, chunk_duration=chunk, excitation="pll", z_base=10e-9,
                                         temperature=300.0, detector_noise_density=100e-15),
@@ -177,7 +177,7 @@ def time_ros(seconds: float, repeats: int) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_fm", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_fm", description=__doc__.split("\n")[0])
     parser.add_argument("--chunks", type=int, default=400, help="recorded 1 ms chunks timed per repeat (default 400)")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats (default 5)")
     parser.add_argument("--ros-seconds", type=float, default=1.0, help="simulated seconds per ROS run (default 1)")

@@ -9,7 +9,7 @@ real-time factor over the scan (from the scan request to the frame's last line) 
 lost: ``scan_real_time_factor`` over the whole scan phase (request to last line, including the
 job's pause, start and polling), ``sustained_real_time_factor`` between the first and the last
 line closed (what the loop sustains). Runs with and without the recorder alternate (``--repeat`` times) in one process each, so
-they see the same machine state. ``python -m afm_ros.tools.bench_image``.
+they see the same machine state. ``python -m benchmarks.bench_image``.
 """
 from __future__ import annotations
 
@@ -19,6 +19,8 @@ import os
 import subprocess
 import sys
 import tempfile
+
+from benchmarks import child_env
 
 
 def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float) -> dict:
@@ -48,7 +50,7 @@ def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float)
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m afm_ros.tools.bench_image", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_image", description=__doc__.split("\n\n")[0])
     p.add_argument("--lines", type=int, default=16)
     p.add_argument("--pixels", type=int, default=128)
     p.add_argument("--line-rate", type=float, default=1.0)
@@ -63,9 +65,10 @@ def main(argv=None) -> int:
     for _ in range(a.repeat):
         for record, rtf in (("0", "0"), ("1", "0"), ("1", "1")):
             with tempfile.TemporaryDirectory() as tmp:
-                out = subprocess.run([sys.executable, "-m", "afm_ros.tools.bench_image", "--one", f"{record},{rtf}",
+                out = subprocess.run([sys.executable, "-m", "benchmarks.bench_image", "--one", f"{record},{rtf}",
                                       "--lines", str(a.lines), "--pixels", str(a.pixels), "--line-rate",
-                                      str(a.line_rate)], cwd=tmp, capture_output=True, text=True, timeout=1800)
+                                      str(a.line_rate)], cwd=tmp, capture_output=True, text=True, timeout=1800,
+                                     env=child_env())
             if out.returncode != 0:
                 print(out.stderr[-2000:], file=sys.stderr)
                 return 1

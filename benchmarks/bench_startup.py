@@ -1,6 +1,6 @@
 """Start-up benchmark: wall time from spawning a node to the first message it publishes.
 
-``python -m afm_ros.tools.bench_startup [--repeats N] [--nodes cantilever,lockin,z_controller]
+``python -m benchmarks.bench_startup [--repeats N] [--nodes cantilever,lockin,z_controller]
 [--tree LABEL=DIR ...] [--no-current]`` prints JSON. For every node and every variant it measures
 
 - **cold**: a fresh, empty ``NUMBA_CACHE_DIR`` (numba compiles every kernel the node uses),
@@ -187,10 +187,10 @@ class StartupBench:
         """Publish synthetic deflection chunks every 2 ms (wall) from now on."""
         import array
 
+        from rclpy.qos import DurabilityPolicy
         from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
         from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
-        from rclpy.qos import DurabilityPolicy
 
         # transient local + reliable is compatible with any reliable subscription
         pub = self.node.create_publisher(Float64MultiArray, f"{ns}/{topic}", self._qos(DurabilityPolicy.TRANSIENT_LOCAL))
