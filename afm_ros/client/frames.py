@@ -16,6 +16,10 @@ import numpy as np
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
 from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.spectroscopy import DIRECTIONS as LEGS
+from pathlib import Path
+from afm_ros.core.imaging import Frame
+from afm_ros.formats.frames import write_frame
 
 
 def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):
@@ -47,7 +51,6 @@ def curve_dataset(curve, attrs: dict | None = None):
     gap [m], the mean deflection [m] and the mean tip-sample force [N]; the set-up as attributes."""
     import xarray as xr
 
-    from afm_ros.core.spectroscopy import DIRECTIONS as LEGS
 
     units = {"z_piezo": "m", "z_gap": "m", "amplitude": "m", "phase": "deg", "chunk_z_gap": "m",
              "chunk_deflection": "m", "chunk_force": "N"}
@@ -79,10 +82,7 @@ def plan_of(ds) -> ScanPlan:
 def save_frame(ds, path, previews: bool = False) -> list:
     """Write a frame Dataset as a Gwyddion file ``path`` (.gwy added if missing; every channel and
     direction, SI units, the attributes as metadata), as the scanner writes its frames; the paths."""
-    from pathlib import Path
 
-    from afm_ros.core.imaging import Frame
-    from afm_ros.formats.frames import write_frame
 
     plan = plan_of(ds)
     frame = Frame(plan, 0, {d: {c: ds[c].sel(direction=d).values.astype(np.float32) for c in CHANNELS}

@@ -14,6 +14,9 @@ from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, validate as spectrosco
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
 from afm_ros.core.tune import TUNE_SPECS
 from afm_ros.core.angles import wrap_deg
+from afm_ros.core.samples import resolve_sample
+from afm_ros.core.wired import WiredInstrument
+from afm_ros.core.tune import sweep_wired
 
 IDEAL_CANTILEVER = {"temperature": 0.0, "detector_noise_density": 0.0}
 WORKFLOW_TIMEOUT_S = 600.0  # [s] simulated: an approach or withdraw that takes longer has failed
@@ -25,8 +28,6 @@ class LocalBackend:
 
     def __init__(self, sample: str, force_model: str, ideal: bool, withdrawn: bool, cantilever: dict, lockin: dict,
                  z_controller: dict, scanner: dict, approach: dict, tip: dict):
-        from afm_ros.core.samples import resolve_sample
-        from afm_ros.core.wired import WiredInstrument
 
         try:
             sample_map = resolve_sample(sample)
@@ -154,7 +155,6 @@ class LocalBackend:
         self.w.run_until(self.w.t + seconds)
 
     def tune(self) -> dict:
-        from afm_ros.core.tune import sweep_wired
 
         w = self.w
         if w.stage.state in ("engaged", "approaching", "withdrawing"):

@@ -33,6 +33,7 @@ from afm_ros.client.errors import BadArgument, LongWork
 from afm_ros.client.local_backend import LocalBackend
 from afm_ros.client.results import (ApproachResult, Feedback, ScanSettings, StageState, Truth, TuneResult,
                                     WithdrawResult)
+from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 
 LONG_WALL_S = 60.0  # [s] wall: a verb expected to take longer says so first (LongWork)
 ASSUMED_WALL_PER_SIMULATED = 1.0  # [s/s] before the instrument has run: real time
@@ -90,7 +91,7 @@ class Microscope:
         scanner). ``timeout`` [s]: the longest any node may take to be discovered or to answer.
         ``hold``: the client pauses the simulation between verbs (the cantilever's run_until) and
         runs it in lockstep, so a script gives the same results every time; False: it runs freely."""
-        from afm_ros.client.ros_backend import RosBackend
+        from afm_ros.client.ros_backend import RosBackend  # noqa: PLC0415 - rclpy only for this backend
 
         if not isinstance(namespace, str):
             raise BadArgument(f"namespace={namespace!r} must be a string, e.g. '/afm1'")
@@ -272,7 +273,6 @@ class Microscope:
         and is then held, z ramps toward the sample and back at ``spectroscopy_rate`` [m/s] (the z
         controller's spectroscopy_* parameters; ``values`` override them for this curve), then the
         loop resumes. Returns an xarray Dataset over time with z [m] beside it."""
-        from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 
         if (x is None) != (y is None):
             raise BadArgument("give both x and y, or neither")

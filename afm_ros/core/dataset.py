@@ -25,6 +25,28 @@ from pathlib import Path
 import numpy as np
 
 from afm_ros.formats import user_files
+from afm_ros.core import artefacts
+from afm_ros.core import tip as tip_core
+from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
+from afm_ros.core.controller import Z_CONTROLLER_SPECS
+from afm_ros.core.samples.generators import GENERATORS
+from afm_ros.core.samples.generators import PAIRS
+from afm_ros.core.samples.generators import SPECS
+from afm_ros.core.samples.generators import check as check_sample
+from afm_ros.core.scanner import SCAN_SPECS
+from afm_ros.core.offline_scan import IMAGING_MODELS
+from afm_ros.core.offline_scan import TOOL_SPECS
+from afm_ros.core.physics.parameters import parse_number
+from afm_ros.core.cantilever_params import default_values
+from afm_ros.core.offline_scan import ScanConfig
+from afm_ros.core.samples import sample_from_description
+from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.scanner import check_scan
+from afm_ros.core.image_analysis import truth_under_pixels
+from afm_ros.core.imaging import CHANNELS
+from afm_ros.core.imaging import DIRECTIONS
+from afm_ros.core.samples import dilate
+from afm_ros.core.offline_scan import run_scan
 
 DRAWS = ("uniform", "log_uniform", "choice")
 MAX_FRAMES = 10_000_000
@@ -103,12 +125,6 @@ def validate(spec, base_dir: str | None = None) -> dict:
     """The spec with defaults filled in; ValueError naming the field and what is allowed. Every fixed
     value, both ends of every range and every choice are checked by the same specs as the instrument's,
     before any work starts."""
-    from afm_ros.core import artefacts, tip as tip_core
-    from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
-    from afm_ros.core.controller import Z_CONTROLLER_SPECS
-    from afm_ros.core.samples.generators import GENERATORS, PAIRS, SPECS, check as check_sample
-    from afm_ros.core.scanner import SCAN_SPECS
-    from afm_ros.core.offline_scan import IMAGING_MODELS, TOOL_SPECS
 
     if not isinstance(spec, dict):
         raise ValueError(f"a dataset spec must be a mapping of {', '.join(TOP)}; got {type(spec).__name__}")
@@ -200,7 +216,6 @@ def validate(spec, base_dir: str | None = None) -> dict:
 
 
 def _named(where: str, ps, value):
-    from afm_ros.core.physics.parameters import parse_number
 
     try:
         if isinstance(value, str) and ps.kind is not str:
@@ -263,12 +278,6 @@ class FrameConfig:
 
 def frame_config(spec: dict, index: int | None = None, draws: dict | None = None) -> FrameConfig:
     """The :class:`afm_ros.core.offline_scan.ScanConfig` of frame ``index`` (or of given ``draws``)."""
-    from afm_ros.core import artefacts, tip as tip_core
-    from afm_ros.core.cantilever_params import default_values
-    from afm_ros.core.controller import Z_CONTROLLER_SPECS
-    from afm_ros.core.offline_scan import ScanConfig, TOOL_SPECS
-    from afm_ros.core.samples import sample_from_description
-    from afm_ros.core.scanner import ScanPlan, check_scan
 
     draws = draws_for(spec, index) if draws is None else {**draws, ("noise_seed",): 0}
     s = _resolved(spec, draws)
@@ -333,10 +342,6 @@ def frame_config(spec: dict, index: int | None = None, draws: dict | None = None
 
 def make_frame(spec: dict, index: int) -> dict:
     """Scan frame ``index`` of ``spec``: {name: numpy array or value} (measured channels, truth, values)."""
-    from afm_ros.core.image_analysis import truth_under_pixels
-    from afm_ros.core.imaging import CHANNELS, DIRECTIONS
-    from afm_ros.core.samples import dilate
-    from afm_ros.core.offline_scan import run_scan
 
     fc = frame_config(spec, index)
     result = run_scan(fc.scan)

@@ -10,6 +10,12 @@ import numpy as np
 
 from afm_ros.core.imaging import Frame
 from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.artefacts import ART_ON
+from afm_ros.core.artefacts import ART_TILT_X
+from afm_ros.core.artefacts import ART_TILT_Y
+from afm_ros.core.artefacts import ART_X0
+from afm_ros.core.artefacts import ART_Y0
+from afm_ros.core.artefacts import truth
 
 
 def pixel_centres(plan: ScanPlan) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +64,6 @@ def truth_under_pixels(sample, plan: ScanPlan, artefacts: np.ndarray | None = No
     scanned (trace: the first half of the line, left to right; retrace: back). ``frame_index`` and
     ``lines_planned`` (0: ``plan.lines``) place a frame of a continuous scan, or a cropped partial one,
     in time."""
-    from afm_ros.core.artefacts import ART_ON, ART_TILT_X, ART_TILT_Y, ART_X0, ART_Y0, truth
 
     if artefacts is None or artefacts[ART_ON] == 0.0:
         height, material = sample_under_pixels(sample, plan)

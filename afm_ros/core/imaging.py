@@ -30,6 +30,7 @@ import numpy as np
 
 from afm_ros.core.scanner import ScanPlan, bin_into
 from afm_ros.formats.channels import CHANNELS, DIRECTIONS, FM_CHANNELS, UNITS  # noqa: F401 - re-exported
+from afm_ros.core.fm import dissipation_from_drive
 
 _LOCKIN_CHANNELS = ("amplitude", "phase", "dissipation")
 _Z_CHANNELS = ("height", "amplitude_error")
@@ -157,7 +158,6 @@ class ImageAccumulator:
 
     def add_fm(self, t, df, drive, phase_error, amplitude) -> None:
         """FM loop outputs at simulated times t [s]: df [Hz], drive [N], phase error [deg], amplitude [m]."""
-        from afm_ros.core.fm import dissipation_from_drive
         k, q = self.constants[:2]
         a = np.asarray(amplitude, dtype=float)
         drive = np.asarray(drive, dtype=float)

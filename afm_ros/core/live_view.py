@@ -36,6 +36,7 @@ import numpy as np
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.formats.channels import IMAGE_TAIL_CUT, tail_cut_limits  # noqa: F401 - re-exported
 from afm_ros.core.angles import phase_deg
+from afm_ros.formats import chunk_layout
 
 LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
@@ -136,7 +137,6 @@ def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[floa
     ``z_controller/trace``, ``df`` [Hz] / ``phase_error`` [deg] / ``drive`` [N] from a
     ``pll/outputs`` batch; computed exactly as the lock-in, the z controller and the PLL compute
     the values they publish on the per-output topics (bit for bit)."""
-    from afm_ros.formats import chunk_layout
     if field in FM_FIELDS:
         fm = chunk_layout.unpack_fm_outputs(data)
         return fm.t.tolist(), getattr(fm, field).tolist(), fm.input_end_time

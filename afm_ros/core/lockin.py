@@ -29,6 +29,7 @@ from numba import njit
 from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.angles import phases_deg
+import time
 
 MAX_ORDER = 8
 
@@ -401,7 +402,6 @@ class LockIn:
 def benchmark(samples: int = 1_800_000, chunk: int = 1800, repeats: int = 3) -> list[dict]:
     """ns per input sample of :class:`LockIn` (orders 1, 4, 8) beside a numpy/scipy baseline
     (vectorised demodulation + ``scipy.signal.lfilter`` per stage), both chunk by chunk."""
-    import time
 
     from scipy.signal import lfilter
 

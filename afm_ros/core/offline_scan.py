@@ -14,6 +14,7 @@ from afm_ros.core.approach import INSTRUMENT_Z
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.wired import WiredInstrument
 
 PROG = "afm_study scan"
 IMAGING_MODELS = ("dmt", "viscoelastic_dmt", "hysteresis_dmt")  # 'none' has no tip-sample force
@@ -84,7 +85,6 @@ def run_scan(config: ScanConfig, progress=None, interruption: "Interruption | No
     """Engage at the first pixel, then scan one frame; returns the frame and timings. With an
     ``interruption``, Ctrl-C ends the scan early (see :class:`Interruption`): the result then
     holds the completed lines only (``frame.partial``), or no frame if none was completed."""
-    from afm_ros.core.wired import WiredInstrument
 
     t0 = time.perf_counter()
     z_controller, approach = dict(config.feedback), {}

@@ -26,6 +26,12 @@ from numba import njit
 from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, ARTEFACT_SPECS, check_plan as check_in_field
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.core.cantilever_params import build, default_values
+from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CENTER_X, PLAN_CENTER_Y,  # noqa: F401 - re-exported
+                                      PLAN_CONTINUOUS, PLAN_COS, PLAN_LENGTH, PLAN_LINE_RATE, PLAN_LINE_STEP,
+                                      PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X,
+                                      PLAN_START, PLAN_X_LEFT, PLAN_Y_FIRST)
+from afm_ros.formats.folders import check_output_directory
 
 SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
     ParamSpec("scan_size_x", 5e-6, "m", "fast-axis scan size (trace and retrace along x)", 1e-9, 1e-3),
@@ -43,10 +49,6 @@ SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
               "axis: the fast axis runs along this angle (the image keeps its rows and columns)", -180.0, 180.0),
 )}
 
-from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CENTER_X, PLAN_CENTER_Y,  # noqa: E402,F401
-                                      PLAN_CONTINUOUS, PLAN_COS, PLAN_LENGTH, PLAN_LINE_RATE, PLAN_LINE_STEP,
-                                      PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X,
-                                      PLAN_START, PLAN_X_LEFT, PLAN_Y_FIRST)
 
 
 @dataclass(frozen=True)
@@ -264,7 +266,6 @@ def available_memory_bytes() -> int | None:
 
 def default_sample_interval() -> float:
     """Interval [s] of the cantilever's published samples with its default parameters."""
-    from afm_ros.core.cantilever_params import build, default_values
     return build(default_values()).sample_interval
 
 
@@ -398,7 +399,6 @@ def check_scanner_values(values: dict) -> ScanPlan:
     they are set: the scan (:meth:`ScanPlan.from_values`; it fits in ``scanner_field``), ``file_prefix`` (a file name part) and
     ``output_directory`` (not a file, its parent exists; writing and space are checked when a scan
     starts). ValueError naming the field; else the plan."""
-    from afm_ros.formats.folders import check_output_directory
 
     plan = ScanPlan.from_values(values)
     check_in_field({name: values.get(name, spec.default) for name, spec in ARTEFACT_SPECS.items()}, plan)

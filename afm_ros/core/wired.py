@@ -34,6 +34,7 @@ from afm_ros.core.refusals import NOT_ENGAGED, SCANNING, Refusal
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean
 from afm_ros.core.angles import phase_deg, phases_deg
+from afm_ros.core.cantilever_params import default_values
 
 
 @dataclass
@@ -75,7 +76,6 @@ class WiredInstrument:
     fm: dict | None = None  # FM-AFM: FM_SPECS values (afm_ros.core.fm; the PLL node's); None: tapping
 
     def __post_init__(self):
-        from afm_ros.core.cantilever_params import default_values
 
         values = {**default_values(), **self.cantilever}
         self.values = values

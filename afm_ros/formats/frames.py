@@ -33,6 +33,7 @@ from typing import Mapping
 import numpy as np
 
 from afm_ros.formats.channels import DIRECTIONS, IMAGE_TAIL_CUT, UNITS, tail_cut_limits
+from afm_ros.formats.gwy import write_gwy
 
 CHANNEL_TITLES = {"height": "Height", "amplitude": "Amplitude", "phase": "Phase",
                   "amplitude_error": "Amplitude error", "dissipation": "Dissipation",
@@ -210,7 +211,6 @@ def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = T
     (:func:`flatten_metadata`; ``units`` maps flattened keys to a unit for the key text).
     ValueError for pixels without data (see module doc).
     """
-    from afm_ros.formats.gwy import write_gwy
 
     stem = Path(stem)
     plan = frame.plan

@@ -51,6 +51,9 @@ from afm_ros.formats.mcap_io import message_definition
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.nodes.guard import GuardedNode
+from ament_index_python.packages import get_package_share_directory
+from pathlib import Path
+from afm_ros.formats.mcap_io import message_class
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 LATCHED_TYPES = ("std_msgs/msg/String", IMAGE_TYPE)
@@ -68,8 +71,6 @@ OLD_SUBPROTOCOL = "foxglove.websocket.v1"
 
 
 def _trigger_definitions() -> tuple[str, str]:
-    from ament_index_python.packages import get_package_share_directory
-    from pathlib import Path
     text = (Path(get_package_share_directory("std_srvs")) / "srv" / "Trigger.srv").read_text()
     request, _, response = text.partition("---")
     return request.strip() + "\n", response.strip() + "\n"
@@ -255,7 +256,6 @@ class LiveViewNode(GuardedNode):
         return self.create_subscription(Float64MultiArray, source, callback, STREAM_QOS, raw=True)
 
     def _subscribe(self, topic: str, type_name: str, channel):
-        from afm_ros.formats.mcap_io import message_class
         infos = self.get_publishers_info_by_topic(topic)
         latched = (type_name in LATCHED_TYPES and infos
                    and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

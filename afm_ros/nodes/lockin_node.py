@@ -35,12 +35,13 @@ from afm_ros.nodes.topics import sim_time_msg
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
 from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TunePlan, TuneRun, settings as tune_settings
 
-TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.angles import phase_deg, wrap_deg
+
+TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
 CHUNK_QOS = topics.CONSUMER_QOS

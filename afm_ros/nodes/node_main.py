@@ -21,6 +21,14 @@ from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
+import faulthandler
+import textwrap
+from afm_ros.core.specs import NODE_SPECS
+from afm_ros.core.specs import node_key
+from afm_ros.core.specs import node_specs
+from afm_ros.core.specs import spec_cells
+from rclpy.utilities import remove_ros_args
 
 _stop_requested = False
 _stop_futures: list = []  # completed by the first Ctrl-C / SIGTERM (see serve)
@@ -118,7 +126,6 @@ def serve(executor, until, poll: float = SERVE_TIMEOUT_S, done=None) -> None:
 
 def stop_future():
     """A Future completed by the first Ctrl-C / SIGTERM (to wake an executor spinning on it)."""
-    from rclpy.task import Future
     future = Future()
     if _stop_requested:
         future.set_result(True)
@@ -156,7 +163,6 @@ def teardown_within(teardown: Callable[[], None], program: str, status: int,
     is destroyed under the EventsExecutor (seen rarely, at the end of a finished job): the work
     is done and flushed by then, so the process must not hang on it.
     """
-    import faulthandler
 
     # a hang that holds the GIL (inside rclpy's C code) would stop the join below as well: a C watchdog
     # (it needs no GIL) dumps every thread's stack and exits the process if even that deadline passes
@@ -178,9 +184,7 @@ HELP_FLAGS = ("-h", "--help")
 def help_text(program: str, node: str, doc: str | None) -> str:
     """``program --help``: what the node does (the first paragraph of its module docstring), how
     to pass parameters, and its parameter table from the specs (:mod:`afm_ros.core.specs`)."""
-    import textwrap
 
-    from afm_ros.core.specs import NODE_SPECS, node_key, node_specs, spec_cells
 
     wrap = lambda text, indent="": textwrap.fill(" ".join(text.split()), 100, initial_indent=indent,
                                                   subsequent_indent=indent)
@@ -211,7 +215,6 @@ def command_line(program: str, node: str, doc: str | None, args=None) -> int | N
     """Handle the arguments outside ``--ros-args`` before anything starts: ``-h``/``--help`` prints
     :func:`help_text` and returns 0; any other one prints a one-line usage error and returns 2;
     None (nothing to handle) means start the node. Creates no node, file or DDS participant."""
-    from rclpy.utilities import remove_ros_args
 
     try:
         plain = remove_ros_args(list(sys.argv if args is None else args))[1:]

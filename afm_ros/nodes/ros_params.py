@@ -50,6 +50,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from afm_ros.core.physics.parameters import ParamSpec
+import difflib
 
 _TYPES = {float: ParameterType.PARAMETER_DOUBLE, int: ParameterType.PARAMETER_INTEGER,
           bool: ParameterType.PARAMETER_BOOL, str: ParameterType.PARAMETER_STRING}
@@ -161,7 +162,6 @@ class UnknownParameterError(ParameterNotDeclaredException):
 def unknown_text(name: str, node_fqn: str, names) -> str:
     """'<name>' is not a parameter of <node>, with the close matches among ``names`` (difflib)
     or, without any, all of them."""
-    import difflib
 
     names = list(names)
     close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)

@@ -55,6 +55,7 @@ from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.core import refusals
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.angles import phases_deg
+from afm_ros.formats.frames import write_frame
 
 MAX_BUFFERED_BATCHES = 2000  # outputs kept while the cantilever has not yet confirmed a requested scan
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -565,7 +566,6 @@ class ScannerNode(GuardedNode):
         return writer
 
     def _write(self, frame, stem: Path, metadata: dict) -> None:
-        from afm_ros.formats.frames import write_frame
         try:
             paths = write_frame(frame, stem, metadata)
         except (OSError, ValueError) as exc:

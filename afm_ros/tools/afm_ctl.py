@@ -17,6 +17,17 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import json as _json
+from std_msgs.msg import String
+from afm_ros.nodes.topics import LATCHED_QOS
+from afm_ros.client import ClientError
+from afm_ros.client import Interrupted
+from afm_ros.client import NoAnswer
+from afm_ros.client import NodeNotFound
+from afm_ros.client import ParamsFileError
+from afm_ros.client import RosLink
+from afm_ros.nodes import node_main
+import rclpy
 
 DESCRIPTION = """Control a running afm_ros instrument (afm_instrument, or nodes started as separate processes)
 from a second terminal; no ROS install needed. Values go through each node's own parameter
@@ -340,11 +351,8 @@ WORKFLOW = {  # command -> (service, node, topic that tells it is done)
 def cmd_workflow(link, args, out) -> int:
     """tune / approach / withdraw: call the service; with --wait, until it is done (the tune's result,
     or the z stage leaving approaching/withdrawing), then say how it ended (exit 1 if it failed)."""
-    import json as _json
 
-    from std_msgs.msg import String
 
-    from afm_ros.nodes.topics import LATCHED_QOS
 
     service, node, topic = WORKFLOW[args.command]
     if not args.wait:
@@ -502,9 +510,6 @@ def parse_args(argv) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
-    from afm_ros.client import ClientError, Interrupted, NoAnswer, NodeNotFound, ParamsFileError, RosLink
-    from afm_ros.nodes import node_main
-    import rclpy
 
     failed = node_main.exit_on_startup_error("afm_ctl", ["afm_ctl"])
     if failed is not None:

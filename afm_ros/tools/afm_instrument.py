@@ -63,6 +63,20 @@ from afm_ros.nodes import node_main, topics
 from afm_ros.nodes.cantilever_node import PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS, CantileverNode
 from afm_ros.nodes.node_main import make_executor
 from afm_ros.core.angles import phases_deg
+from afm_ros.nodes.lockin_node import LockInNode
+from rclpy.logging import set_logger_level
+from afm_ros.core.artefacts import ART_ON
+from afm_ros.core.artefacts import ART_VX
+from afm_ros.core.artefacts import ART_VY
+from afm_ros.core.artefacts import ART_VZ
+from afm_ros.core.artefacts import ART_W_FAST
+from afm_ros.core.artefacts import ARTEFACT_SPECS
+from afm_ros.core.artefacts import Imperfections
+from afm_ros.core.tip import TIP_SPECS
+from afm_ros.core.tip import TipWear
+from std_srvs.srv import Trigger
+from afm_ros.core.scanner import check_scan
+from afm_ros.formats.folders import check_output_directory
 
 ROLES = ("cantilever", "lockin", "z_controller")
 STALL_TIMEOUT_S = 60.0
@@ -100,7 +114,6 @@ def build_nodes(context=None, namespace: str | None = None, with_controller: boo
     """Create the instrument's nodes by role (the recorder last, so it is destroyed after the publishers).
 
     ``overrides``: role -> {parameter: value} for any node; the ``<role>_overrides`` win over it."""
-    from afm_ros.nodes.lockin_node import LockInNode
     kw = {"context": context}
     if namespace:
         kw["namespace"] = namespace
@@ -639,7 +652,6 @@ class Instrument:
 
     def _tune(self) -> dict:
         """lockin/tune: sweep, fit, working point applied; returns the tune's numbers."""
-        from std_srvs.srv import Trigger
 
         lockin, zc = self.nodes["lockin"], self.nodes["z_controller"]
         # the lock-in refuses while it believes the z stage engaged: until it heard the withdrawn start
@@ -668,7 +680,6 @@ class Instrument:
 
     def _approach(self) -> dict:
         """z_controller/approach, run in steps of APPROACH_STEP_S until the stage engaged; its numbers."""
-        from std_srvs.srv import Trigger
 
         zc = self.nodes["z_controller"]
         answer = zc._approach(Trigger.Request(), Trigger.Response())
@@ -686,7 +697,6 @@ class Instrument:
                 "wall_s": time.monotonic() - wall}
 
     def _withdraw(self) -> dict:
-        from std_srvs.srv import Trigger
 
         zc = self.nodes["z_controller"]
         t0 = self.t_paused
@@ -818,7 +828,6 @@ class Instrument:
     def start_single_scan(self):
         """Start one frame with the scanner's settings (the recorder subscribed to every image first) at
         the cantilever's paused chunk boundary; returns the plan. RuntimeError with the scanner's reason."""
-        from std_srvs.srv import Trigger
 
         scanner = self.nodes["scanner"]
         self.spin_until(lambda: scanner.lockin_output_rate is not None,
@@ -913,8 +922,6 @@ class Instrument:
         """Before the image job engages: the scan can be completed and its files written
         (:func:`afm_ros.core.scanner.check_scan`, :func:`afm_ros.formats.folders.check_output_directory`);
         ValueError with the reason."""
-        from afm_ros.core.scanner import check_scan
-        from afm_ros.formats.folders import check_output_directory
 
         values = self.nodes["scanner"]._values
         needs = check_scan(values, self.get("lockin", "output_rate"), self.cantilever.engine.setup.sample_interval)
@@ -1057,7 +1064,6 @@ def parse_args(argv):
 
 def _node_log_level(names, namespace: str, level) -> None:
     """Set the loggers of the instrument's nodes (created later) to ``level``."""
-    from rclpy.logging import set_logger_level
     prefix = namespace.strip("/").replace("/", ".")
     for name in names:
         set_logger_level(f"{prefix}.{name}" if prefix else name, level)
@@ -1131,7 +1137,6 @@ def imperfection_truth(artefacts: np.ndarray, plan: ScanPlan, wear, radius0: flo
     """The emulator's ground truth of a frame's imperfections: drift velocity [m/s], the sample's tilt
     and the scanner's slope compensation [m/m], the hysteresis loop's width along the fast axis [m],
     and the tip's radius [m] before and after."""
-    from afm_ros.core.artefacts import ART_ON, ART_VX, ART_VY, ART_VZ, ART_W_FAST
 
     on = bool(artefacts[ART_ON])
     return {"imperfections": on,
@@ -1148,8 +1153,6 @@ def imperfections_line(scanner: dict, cantilever: dict) -> str:
     def num(values, name, scale=1.0):
         value = values.get(name)
         return f"{value * scale:.3g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
-    from afm_ros.core.artefacts import ARTEFACT_SPECS, Imperfections
-    from afm_ros.core.tip import TIP_SPECS, TipWear
 
     try:
         ideal = not Imperfections({k: v for k, v in scanner.items() if k in ARTEFACT_SPECS}).enabled and \

@@ -20,14 +20,18 @@ import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
+from afm_ros.core.dataset import make_frame
+from afm_ros.formats.dataset_store import write_frame
+from afm_ros.formats import dataset_store as store
+from afm_ros.formats.dataset_store import bytes_per_frame
+import json
+from afm_ros.core.dataset import load_spec
 
 PROG = "afm_study dataset"
 
 
 def frame_task(spec: dict, out: str, index: int) -> int:
     """Make frame ``index`` and write it into the store at ``out``; return the index (a worker's task)."""
-    from afm_ros.core.dataset import make_frame
-    from afm_ros.formats.dataset_store import write_frame
 
     write_frame(out, index, make_frame(spec, index))
     return index
@@ -56,8 +60,6 @@ class Progress:
 def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | None = None,
                  max_frames: int | None = None, say=print) -> dict:
     """Make the frames of the validated ``spec`` not yet in the store at ``out``; returns a summary."""
-    from afm_ros.core.dataset import make_frame
-    from afm_ros.formats import dataset_store as store
 
     out = str(out)
     store.check_output(out)
@@ -142,7 +144,6 @@ def make_dataset(spec: dict, out, workers: int | None = None, scheduler: str | N
 def plan_text(spec: dict, first: dict, frame_s: float, workers, max_frames: int | None) -> str:
     """The work ahead, said before it starts: the frames, the time frame 0 took and what the others will
     take on ``workers`` (a count, or a scheduler's address), the bytes stored, and where --max-frames stops."""
-    from afm_ros.formats.dataset_store import bytes_per_frame
 
     frames = spec["frames"]
     total = frames * bytes_per_frame(first)
@@ -168,7 +169,6 @@ def _hours(seconds: float) -> str:
 
 
 def _jsonable(spec: dict) -> dict:
-    import json
 
     return json.loads(json.dumps(spec, sort_keys=True))
 
@@ -192,7 +192,6 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(ns) -> int:
     """The subcommand (parsed flags of :func:`add_parser`); exit status 0, 2 (bad input) or 130 (interrupted)."""
-    from afm_ros.core.dataset import load_spec
 
     try:
         if ns.workers is not None and ns.workers < 1:

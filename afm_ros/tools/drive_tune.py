@@ -10,6 +10,7 @@ from pathlib import Path
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, parse_number
 from afm_ros.core.tune import TUNE_SPECS, sweep_wired
 from afm_ros.tools.figures import write_csv
+from afm_ros.tools.tune_figure import plot_tune
 
 LEVER = ("spring_constant", "resonance_frequency", "quality_factor", "drive_frequency", "free_amplitude")
 NOISE = {"temperature": 295.0, "detector_noise_density": 100e-15}  # the instrument's defaults
@@ -50,7 +51,6 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "tune.csv", ["drive_frequency_Hz", "amplitude_m", "phase_deg"],
               zip(result.frequency.tolist(), result.amplitude.tolist(), result.phase_deg.tolist()))
-    from afm_ros.tools.tune_figure import plot_tune
     plot_tune(result, out / "tune.png", "Drive tune (afm_study tune, wired instrument)")
     s = result.summary()
     print(f"f0 = {s['f0_Hz']:.3f} +- {s['f0_error_Hz']:.2g} Hz, Q = {s['Q']:.4f} +- {s['Q_error']:.2g}; working point "

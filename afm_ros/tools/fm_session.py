@@ -37,6 +37,8 @@ from afm_ros.core.session_stats import FmWindow
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.core.fm import dissipation_from_drive
+from afm_ros.core.image_analysis import fm_material_contrast
 
 FREE_LOCK_S = 0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
 # a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of phase
@@ -116,8 +118,6 @@ def run_fm_job(instrument, duration: float, progress: bool = True, interactive: 
     """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument` built with
     the pll and scanner nodes in this process; returns the summary's numbers (SI units). ``interactive``:
     after the hold, run until Ctrl-C instead of scanning and withdrawing."""
-    from afm_ros.core.fm import dissipation_from_drive
-    from afm_ros.core.image_analysis import fm_material_contrast
 
     if instrument.attached or not {"pll", "scanner"} <= set(instrument.nodes):
         raise RuntimeError("the FM session runs the pll and scanner nodes in this process (no --attach)")

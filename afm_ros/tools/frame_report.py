@@ -32,6 +32,9 @@ import numpy as np
 from afm_ros.core.image_analysis import (edge_mask, level_step, material_medians, plane_fit, trace_retrace_rms,
                                         truth_under_pixels)
 from afm_ros.core.imaging import DIRECTIONS
+from afm_ros.tools.contrast import CONTRAST_MODELS
+from afm_ros.tools.contrast import DEFAULT_SPP
+from afm_ros.tools.contrast import contrast_study
 
 DISCRETE_LEVELS = 16  # more distinct true heights than this: no step to measure (e.g. a rough sample)
 SETTLED_ERROR = 0.1e-9  # [m] largest median amplitude error on the kept pixels for the frame to count as settled
@@ -81,7 +84,6 @@ def predictions(materials, force_model: str, ratio: float, cantilever, drive, st
     """contrast_study's steady state per material at A/A0 = ratio: {name: row} (two or more materials),
     with ``image_dissipation_J``: what the image's first-harmonic dissipation estimate reads for that
     steady state (E_dis + the damping of the higher harmonics, pi k (w / w0) / Q sum_{n>=2} n^2 A_n^2)."""
-    from afm_ros.tools.contrast import CONTRAST_MODELS, DEFAULT_SPP, contrast_study
 
     names = list(dict.fromkeys(materials))
     if force_model not in CONTRAST_MODELS or not 0.0 < ratio < 1.0 or len(names) < 2:

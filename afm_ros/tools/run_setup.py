@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from afm_ros.formats import user_files
+from afm_ros.formats.params_file import ParamsFileError
+from afm_ros.formats.params_file import parameters_for
 
 RUNS_DIR = "afm_runs"
 _MISSING = object()
@@ -76,7 +78,6 @@ class RosArgs:
     def _file_values(self, node: str) -> dict:
         """What the params files give ``node`` of this namespace, matched as rcl matches node keys
         (wildcards first, the node's own key last; a later file wins)."""
-        from afm_ros.formats.params_file import ParamsFileError, parameters_for
 
         values: dict = {}
         for path in self.files:

@@ -42,6 +42,17 @@ from afm_ros.formats.folders import check_output_directory
 from afm_ros.tools.frame_report import Loop, analyse_frame, clean, frame_lines
 from afm_ros.core.offline_scan import (FINISH_LINE_WALL_S, IMAGING_MODELS, TOOL_SPECS, Interruption,  # noqa: F401
                                        ScanConfig, ScanResult, peak_rss_bytes, run_scan)
+from afm_ros.core.samples import resolve_sample
+from afm_ros.core.cantilever_params import build
+from afm_ros.core.cantilever_params import default_values
+from afm_ros.core.artefacts import check_plan
+from afm_ros.core import artefacts
+from afm_ros.core import tip as tip_core
+from afm_ros.core.artefacts import ARTEFACT_SPECS
+from afm_ros.core.tip import TIP_SPECS
+from afm_ros.formats.frames import spec_units
+from afm_ros.formats.frames import write_frame
+from afm_ros.formats.frames import write_text_atomically
 
 PROG = "afm_study scan"
 SCAN_FLAG_NAMES = tuple(n for n in SCAN_SPECS if n != "continuous")  # the tool scans one frame
@@ -130,7 +141,6 @@ def _value(flag: str, spec: ParamSpec, text):
 def load_sample(spec: str):
     """The sample of ``--sample``: a built-in name, a description file or a .gwy height map (the
     same rule as the cantilever's ``sample`` parameter: :func:`afm_ros.core.samples.resolve_sample`)."""
-    from afm_ros.core.samples import resolve_sample
 
     text = str(spec)
     try:
@@ -145,7 +155,6 @@ def load_sample(spec: str):
 
 def config_from_args(ns) -> ScanConfig:
     """Validated :class:`ScanConfig` from parsed flags; ValueError naming the flag for a bad value."""
-    from afm_ros.core.cantilever_params import build, default_values
 
     plan_values = {name: _value(_flag(name), SCAN_SPECS[name], getattr(ns, name, None)) for name in SCAN_FLAG_NAMES}
     plan_values["continuous"] = False
@@ -170,7 +179,6 @@ def config_from_args(ns) -> ScanConfig:
     approach = _value("--approach", TOOL_SPECS["approach"], getattr(ns, "approach", None))
     imperfections, tip = imperfection_values(bool(getattr(ns, "imperfections", False)),
                                              getattr(ns, "imperfection", None) or [])
-    from afm_ros.core.artefacts import check_plan
     try:
         check_plan(imperfections, ScanPlan.from_values(plan_values))
     except ValueError as exc:
@@ -185,7 +193,6 @@ def config_from_args(ns) -> ScanConfig:
 def imperfection_values(instrument: bool, assignments: list[str]) -> tuple[dict, dict]:
     """(imperfections, tip) values: the instrument's set if ``instrument``, then each NAME=VALUE;
     ValueError naming --imperfection, the field and its range."""
-    from afm_ros.core import artefacts, tip as tip_core
 
     imperfections = dict(artefacts.INSTRUMENT_ARTEFACTS) if instrument else {}
     tip = dict(tip_core.INSTRUMENT_TIP) if instrument else {}
@@ -264,8 +271,6 @@ def analyse(config: ScanConfig, result: ScanResult, predict: bool = True) -> dic
 
 def changed_imperfections(config: ScanConfig) -> dict:
     """The imperfection and tip values that differ from their (ideal) defaults."""
-    from afm_ros.core.artefacts import ARTEFACT_SPECS
-    from afm_ros.core.tip import TIP_SPECS
 
     return {k: v for specs, values in ((ARTEFACT_SPECS, config.imperfections), (TIP_SPECS, config.tip))
             for k, v in values.items() if v != specs[k].default}
@@ -316,7 +321,6 @@ def format_summary(s: dict) -> str:
 
 def metadata_for(config: ScanConfig, result: ScanResult) -> tuple[dict, dict]:
     """(nested metadata, units) for the .gwy file: scan, feedback, lock-in, cantilever, sample."""
-    from afm_ros.formats.frames import spec_units
 
     w = result.instrument
     cantilever_names = ("spring_constant", "resonance_frequency", "quality_factor", "drive_frequency",
@@ -345,7 +349,6 @@ def metadata_for(config: ScanConfig, result: ScanResult) -> tuple[dict, dict]:
 def write_outputs(config: ScanConfig, result: ScanResult, summary: dict, written: list | None = None) -> list[Path]:
     """scan.gwy (scan_partial.gwy for the completed lines of an interrupted scan), the previews
     and scan_summary.json into config.out; returns the paths (also appended to ``written``)."""
-    from afm_ros.formats.frames import write_frame, write_text_atomically
 
     written = [] if written is None else written
     config.out.mkdir(parents=True, exist_ok=True)

@@ -35,6 +35,18 @@ from afm_ros.core.physics.parameters import parse_number as _number
 from afm_ros.tools.figures import pyplot, write_csv
 from afm_ros.core.physics.integrators import METHODS
 from afm_ros.core.physics.simulation import Samples
+from afm_ros.core.physics.analysis import SteadyStateResult
+from afm_ros.core.physics.noise import detector_noise
+from tqdm import tqdm
+from afm_ros.core.physics.self_excited import FM_CURVE_COLUMNS
+from afm_ros.core.physics.self_excited import fm_curve
+from afm_ros.tools import contrast
+from afm_ros.tools import dataset
+from afm_ros.tools import drive_tune
+from afm_ros.tools import force_reconstruction
+from afm_ros.tools import scan
+from afm_ros.tools import thermal_tune
+import importlib
 
 # --- parameters from flags ----------------------------------------------------------------
 # Every cantilever and sample spec gets a flag --name-with-dashes; z_base is per subcommand.
@@ -247,7 +259,6 @@ def _sweep_row(direction: str, z_base: float, result, sem=(0.0, 0.0)) -> dict:
 def _shooting_row(direction: str, z_base: float, orbit) -> dict:
     """A sweep row of a :class:`~afm_ros.core.physics.shooting.PeriodicOrbit`: its one-period analysis,
     ``periods_simulated`` all the periods it integrated, ``converged`` its own flag, and SHOOTING_COLUMNS."""
-    from afm_ros.core.physics.analysis import SteadyStateResult
     row = _sweep_row(direction, z_base, SteadyStateResult(orbit.analysis, orbit.samples, orbit.periods,
                                                           orbit.converged))
     row.update({"steady_method": "shooting", "newton_iterations": orbit.iterations,
@@ -278,8 +289,6 @@ def noisy_average(sim: Simulation, average_periods: int, detector_density: float
     Returns (SteadyStateResult with converged=False, (amplitude_sem [m], phase_sem [deg])): the
     standard errors come from the scatter of ``NOISE_BLOCKS`` equal sub-windows.
     """
-    from afm_ros.core.physics.analysis import SteadyStateResult
-    from afm_ros.core.physics.noise import detector_noise
 
     if settle_periods is None:
         settle_periods = int(math.ceil(10.0 * sim.cantilever.quality_factor / math.pi))
@@ -328,7 +337,6 @@ def sweep(z_bases, cantilever: Cantilever | None = None, drive: Drive | None = N
     its rows add SHOOTING_COLUMNS and ``converged`` is the orbit's. Deterministic sweeps only (a
     thermal force or detector noise has no periodic steady state).
     """
-    from tqdm import tqdm
 
     z_bases = [float(z) for z in z_bases]
     cantilever = cantilever or Cantilever()
@@ -791,7 +799,6 @@ def cmd_fm_curve(ns, out: Path) -> int:
     """FM curves: the self-excited steady state (amplitude --amplitude, phase --phase) at each z_base by
     shooting (afm_ros.core.physics.self_excited): df, drive and dissipation vs distance, with Giessibl's
     first-order df beside it; fm_curve.csv (readable by ``afm_study reconstruct``) and fm_curve.png."""
-    from afm_ros.core.physics.self_excited import FM_CURVE_COLUMNS, fm_curve
 
     cantilever, drive, sample, spp = physics_from_args(ns)
     amplitude = CANTILEVER_SPECS["free_amplitude"].validate(_number(ns.amplitude))
@@ -927,7 +934,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=_int_at_least(1), default=10_000_000, help="RK4 steps timed (default 1e7)")
     p.add_argument("--solve-ivp-periods", type=_int_at_least(1), default=40, help="periods integrated by solve_ivp")
     p.add_argument("--no-startup", action="store_true", help="skip the warm-startup subprocess timing")
-    from afm_ros.tools import contrast, dataset, drive_tune, force_reconstruction, scan, thermal_tune  # their own flags (EXTERNAL)
     thermal_tune.add_parser(sub)
     drive_tune.add_parser(sub)
     contrast.add_parser(sub)
@@ -940,7 +946,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _external(module_name: str):
     """A subcommand implemented in its own module (``add_parser`` / ``run(args) -> int``)."""
     def run(ns, out):
-        import importlib
         return importlib.import_module(f"afm_ros.tools.{module_name}").run(ns)
     return run
 

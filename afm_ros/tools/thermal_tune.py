@@ -49,6 +49,19 @@ from afm_ros.core.physics.noise import BOLTZMANN
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever
 from afm_ros.core.physics.parameters import parse_number as _number
 from afm_ros.tools.figures import pyplot, write_csv
+from tqdm import tqdm
+from afm_ros.core.physics.forces import NoForce
+from afm_ros.core.physics.noise import detector_noise
+from afm_ros.core.physics.parameters import Drive
+from afm_ros.core.physics.simulation import Simulation
+from afm_ros.formats.user_files import parse_yaml
+from afm_ros.formats.chunk_layout import ChunkLayoutError
+from afm_ros.formats.chunk_layout import cdr_chunk
+from afm_ros.formats.mcap_io import SessionFileError
+from afm_ros.formats.mcap_io import SessionScan
+from afm_ros.formats.mcap_io import check_mcap_file
+from afm_ros.formats.mcap_io import parameter_metadata
+from afm_ros.formats.mcap_io import read_session
 
 DEFAULT_SECONDS = 1.0  # [s] of simulated record: ~0.5 s of CPU, f0 to ~0.03 %, Q and k to ~1.5 %
 # The tune emulates tuning the instrument, so its defaults are the cantilever node's (room
@@ -262,12 +275,7 @@ def simulate_thermal(cantilever: Cantilever, temperature: float, seconds: float,
     than ``PROGRESS_SECONDS``, and Ctrl-C ends the record at the next block (``requested_seconds``
     says so; KeyboardInterrupt if it holds fewer than ``MIN_SEGMENTS`` Welch segments).
     """
-    from tqdm import tqdm
 
-    from afm_ros.core.physics.forces import NoForce
-    from afm_ros.core.physics.noise import detector_noise
-    from afm_ros.core.physics.parameters import Drive
-    from afm_ros.core.physics.simulation import Simulation
 
     temperature = _check_positive(temperature, "--temperature", "K")
     seconds = _check_positive(seconds, "--seconds", "s")
@@ -338,7 +346,6 @@ DEFLECTION_SUFFIX = "cantilever/deflection"
 
 
 def _session_value(params: dict, name: str, path) -> float:
-    from afm_ros.formats.user_files import parse_yaml
 
     if name not in params:
         raise ValueError(f"{path}: the session's cantilever parameters lack {name!r} "
@@ -358,8 +365,6 @@ def record_from_session(path, namespace: str | None = None) -> ThermalRecord:
     the temperature > 0; the first ``SETTLE_TAU`` decay times after the start are dropped.
     Raises ValueError naming the file and what is wrong.
     """
-    from afm_ros.formats.chunk_layout import ChunkLayoutError, cdr_chunk
-    from afm_ros.formats.mcap_io import SessionFileError, SessionScan, check_mcap_file, parameter_metadata, read_session
 
     try:
         p = check_mcap_file(path)

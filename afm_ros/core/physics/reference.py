@@ -12,6 +12,10 @@ import math
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from afm_ros.core.physics.forces import DMTForce
+from afm_ros.core.physics.forces import HysteresisDMTForce
+from afm_ros.core.physics.forces import ViscoelasticDMTForce
+from afm_ros.core.physics.parameters import DMTSample
 
 HARD_TAPPING_Z_BASE = 20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
 
@@ -19,8 +23,6 @@ HARD_TAPPING_Z_BASE = 20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every 
 def hard_tapping_models() -> dict:
     """The force models of the integrator checks (issue 19) on the seed sample: dmt, viscoelastic_dmt
     (20 Pa s) and hysteresis_dmt (H_retract = 1.5 H), by name."""
-    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
-    from afm_ros.core.physics.parameters import DMTSample
 
     sample = DMTSample()
     return {"dmt": DMTForce(sample), "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),

@@ -33,6 +33,9 @@ from afm_ros.core.physics.analysis import PeriodAnalysis, analyze
 from afm_ros.core.physics.forces import NoForce
 from afm_ros.core.physics.parameters import Drive
 from afm_ros.core.physics.simulation import Samples, Simulation
+from afm_ros.core.physics import fm_theory
+from afm_ros.core.physics.forces import DMTForce
+from afm_ros.core.physics.forces import HysteresisDMTForce
 
 DEFAULT_TOL = 1e-14  # [m]: Newton's correction of the state below this (as periodic_orbit)
 FD_STATE = 1e-7  # forward-difference steps: state, relative to A (see shooting.FD_STEP)
@@ -202,8 +205,6 @@ def first_order_frequency_shift(force_model, distance, amplitude: float, k: floa
     its conservative DMT part (the viscous term of viscoelastic_dmt is odd in the velocity and drops out
     of the cos-weighted average, up to its clipping at zero); for hysteresis_dmt the mean of the approach
     and retract branches (each is half of the cycle at the same gaps). None for a model without a DMT part."""
-    from afm_ros.core.physics import fm_theory
-    from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce
     sample = getattr(force_model, "sample", None)
     if sample is None:
         return np.zeros_like(np.asarray(distance, dtype=float))

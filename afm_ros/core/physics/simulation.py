@@ -13,6 +13,10 @@ from afm_ros.core.physics.integrators import (METHODS, _advance_surface, advance
 from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
 from afm_ros.core.physics.noise import thermal_force_sigma
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever, DMTSample, Drive, check_steps_per_resonance
+from afm_ros.core.physics.forces import make_force_model
+from afm_ros.core.physics.materials import sample_for
+from afm_ros.core.samples import dilate
+from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION
 
 
 MAP_METHODS = ("rk4", "rk4_event")  # the integrators of the sample-map kernel
@@ -95,7 +99,6 @@ class Simulation:
         self.artefacts = artefacts_off()  # packed imperfections (afm_ros.core.artefacts)
         # rk4_event: near the surface a step is cut so that the tip moves at most this fraction of the
         # force's length scale per sub-step (0: no cutting; afm_ros.core.physics.events)
-        from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION
         self.event_beta = NEAR_SURFACE_FRACTION
         self._rebuild()
 
@@ -284,9 +287,6 @@ def surface_map(sample, force_model: str = "dmt", tip: DMTSample | None = None, 
     sample that already is the dilated surface); ``second_apex`` = (offset_x, offset_y, height) [m]
     makes it a double tip (:func:`afm_ros.core.samples.surface.double_tip`).
     """
-    from afm_ros.core.physics.forces import make_force_model
-    from afm_ros.core.physics.materials import sample_for
-    from afm_ros.core.samples import dilate
 
     tip = tip or DMTSample()
     tip_fields = {"tip_radius": tip.tip_radius, "intermolecular_distance": tip.intermolecular_distance,

@@ -18,6 +18,7 @@ from afm_ros.core.physics.parameters import DMT_SPECS, parse_number
 from afm_ros.formats import user_files
 from afm_ros.core.samples.generators import GENERATORS, MAP_EXTENSIONS, PAIRS, SPECS, from_file
 from afm_ros.core.samples.surface import Sample, dilate
+import sys
 
 TOP_LEVEL = ("generator", "tip_radius")
 
@@ -89,7 +90,6 @@ def describe(sample: Sample) -> dict:
 def builtin_sample_dirs() -> list[str]:
     """Folders searched for named sample descriptions: the source tree's ``config/samples`` and the
     installed ``share/afm_ros/config/samples`` of this Python prefix."""
-    import sys
 
     here = os.path.dirname(os.path.abspath(__file__))
     source = os.path.normpath(os.path.join(here, "..", "..", "..", "config", "samples"))

@@ -21,6 +21,7 @@ from numba import njit
 from afm_ros.core.physics.materials import MATERIALS
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.samples.surface import Sample
+from PIL import Image
 
 _MATERIAL_NAMES = tuple(MATERIALS)
 
@@ -371,7 +372,6 @@ def _read_png(path: str) -> tuple[np.ndarray, int]:
     if colour != 0 or depth not in (8, 16):
         raise ValueError(f"{path}: PNG of bit depth {depth}, colour type {colour}; allowed: 8- or 16-bit "
                          f"grayscale without alpha (colour type 0)")
-    from PIL import Image
     try:
         with Image.open(path) as img:
             values = np.array(img, dtype=np.float64)
