@@ -229,7 +229,7 @@ def test_cached_kernels_are_dropped_when_any_kernel_source_changes(tmp_path):
     a changed one (any file) drops it."""
     from afm_ros import numba_cache
 
-    cached = tmp_path / "integrators._advance_surface-184.py311.nbi"
+    cached = tmp_path / "integrators.advance_surface-184.py311.nbi"
     cached.write_text("x")
     assert numba_cache.drop_stale(str(tmp_path), [str(cached)])  # no stamp yet: dropped, stamp written
     cached.write_text("x")

@@ -19,7 +19,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from afm_ros.core.artefacts import ART_ON, TRUTH_KEYS, Imperfections, off as artefacts_off, truth as artefact_truth, validate
-from afm_ros.core.cantilever_params import CantileverSetup, _geometry, build, check_all
+from afm_ros.core.cantilever_params import CantileverSetup, chunk_geometry, build, check_all
 from afm_ros.core.flow import ChunkStarts, ConsumerWindow, FeedbackGate, SlowdownReporter
 from afm_ros.core.physics.integrators import phase_at_step, samples_in_range
 from afm_ros.core.physics.noise import detector_noise
@@ -100,7 +100,7 @@ def excite(sim: Simulation, setup: CantileverSetup, values: dict, frequency: flo
     sim.reconfigure(drive=drive)
     if frequency == setup.drive.frequency:
         return replace(setup, drive=drive)
-    dt, decimation, chunk_steps = _geometry({**values, "drive_frequency": frequency})
+    dt, decimation, chunk_steps = chunk_geometry({**values, "drive_frequency": frequency})
     return replace(setup, drive=drive, dt=dt, decimation=decimation, sample_interval=decimation * dt,
                    chunk_steps=chunk_steps)
 

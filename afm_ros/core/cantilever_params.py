@@ -133,7 +133,7 @@ class CantileverSetup:
         return self.chunk_steps // self.decimation
 
 
-def _geometry(values: dict[str, Any]) -> tuple[float, int, int]:
+def chunk_geometry(values: dict[str, Any]) -> tuple[float, int, int]:
     step_rate = values["drive_frequency"] * values["steps_per_period"]
     dt = 1.0 / step_rate
     decimation = max(1, int(round(step_rate / values["output_sample_rate"])))
@@ -150,7 +150,7 @@ def check(values: dict[str, Any]) -> None:
         raise ValueError(
             f"output_sample_rate={values['output_sample_rate']:g} Hz exceeds the integration step rate "
             f"drive_frequency*steps_per_period={step_rate:g} Hz; allowed range [1, {step_rate:g}] Hz")
-    dt, decimation, chunk_steps = _geometry(values)
+    dt, decimation, chunk_steps = chunk_geometry(values)
     interval = decimation * dt
     if chunk_steps < decimation:
         raise ValueError(
@@ -200,6 +200,6 @@ def build(values: dict[str, Any]) -> CantileverSetup:
     sample = DMTSample(**{name: values[name] for name in DMT_SPECS})
     model = make_force_model(values["force_model"], sample, viscosity=values["sample_viscosity"],
                              hamaker_retract=values["hamaker_constant_retract"])
-    dt, decimation, chunk_steps = _geometry(values)
+    dt, decimation, chunk_steps = chunk_geometry(values)
     return CantileverSetup(cantilever, drive, model, values["steps_per_period"], values["z_base"],
                            values["integrator"], dt, decimation, decimation * dt, chunk_steps)

@@ -49,9 +49,6 @@ from mcap.records import (Channel, Chunk, ChunkIndex, Footer, Header, Message, M
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
-from ament_index_python.packages import get_package_share_directory
-from rclpy.serialization import deserialize_message
-from rclpy.serialization import serialize_message
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -88,6 +85,7 @@ def _split_type(type_name: str) -> tuple[str, str, str]:
 
 
 def _share_dir(package: str) -> Path:
+    from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415 - formats: no ROS at load
     return Path(get_package_share_directory(package))
 
 
@@ -837,6 +835,7 @@ def serialize_exact(msg) -> bytes:
     that. Deserialisation of a shorter prefix fails, so the shortest prefix that deserialises is
     the message (found by bisection).
     """
+    from rclpy.serialization import deserialize_message, serialize_message  # noqa: PLC0415 - no ROS at load
     data = serialize_message(msg)
     cls = type(msg)
     lo, hi = 4, len(data)  # hi always deserialises
@@ -852,6 +851,7 @@ def serialize_exact(msg) -> bytes:
 
 def decode(message: SessionMessage):
     """Deserialize a recorded message with rclpy (ValueError if its type is not installed)."""
+    from rclpy.serialization import deserialize_message  # noqa: PLC0415 - formats: no ROS at load
     return deserialize_message(message.data, message_class(message.type_name))
 
 

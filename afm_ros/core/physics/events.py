@@ -37,7 +37,7 @@ import math
 from numba import njit
 
 from afm_ros.core.physics.forces import MODEL_HYSTERESIS_DMT, MODEL_NONE, MODEL_VISCOELASTIC_DMT, tip_sample_force
-from afm_ros.core.physics.noise import _thermal_force
+from afm_ros.core.physics.noise import thermal_force
 
 CONTACT = 1  # region bits
 CLIPPED = 2
@@ -494,7 +494,7 @@ def advance_event(y, n0, nsteps, dt, inv_m, k, c, table, model, p, z_offset, dec
     for i in range(nsteps):
         fth = -0.0  # x + (-0.0) == x for every x: the compiler drops the add when the noise is off
         if noise_sigma > 0.0:
-            fth, spare = _thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
+            fth, spare = thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         f1 = tip_sample_force(model, pt, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z

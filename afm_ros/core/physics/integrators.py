@@ -19,7 +19,7 @@ from numba import njit
 
 from afm_ros.core.physics.forces import tip_sample_force
 from afm_ros.core.physics.events import event_step_full, plain_step_stands
-from afm_ros.core.physics.noise import _thermal_force
+from afm_ros.core.physics.noise import thermal_force
 from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
                                     hysteresis_offsets, slow_terms)
 from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_ROTATED, PLAN_SIZE_X,
@@ -93,7 +93,7 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
         # leaves the deterministic sums bit-identical
         fth = -0.0  # x + (-0.0) == x for every x: the compiler drops the add when the noise is off (-8 %)
         if noise_sigma > 0.0:
-            fth, spare = _thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
+            fth, spare = thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         f1 = tip_sample_force(model, fp, z_offset + z, v)
         if until_record == 0:
             out_z[written] = z
@@ -171,7 +171,7 @@ def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset, decimation,
+def advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset, decimation,
                      out_z, out_v, out_f, out_h, noise_sigma, noise_seed, noise_n0,
                      heights, materials, size_x, size_y, plan, segment_start, art,
                      event, beta, spp, stats):
@@ -231,7 +231,7 @@ def _advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset
     for i in range(nsteps):
         fth = -0.0  # (see _advance)
         if noise_sigma > 0.0:
-            fth, spare = _thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
+            fth, spare = thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         t = segment_start + (n0 + i) * dt
         rel = (t - start) * rate
         if scanning and rel >= 0.0:

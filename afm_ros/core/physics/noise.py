@@ -87,7 +87,7 @@ def detector_noise(seed: int, first_index: int, count: int, density: float, samp
 
 
 @njit(cache=True, inline="always")
-def _thermal_force(noise_sigma, noise_seed, index, first_of_call, spare):
+def thermal_force(noise_sigma, noise_seed, index, first_of_call, spare):
     """(thermal force [N] of step ``index``, the spare normal for the next step): number ``index``
     of the seed's thermal stream; an even index draws a Box-Muller pair and keeps the second
     number for the next (odd) step, which draws only when it starts a call."""

@@ -8,7 +8,7 @@ import numpy as np
 
 from afm_ros.core.physics.forces import DMTForce, NoForce
 from afm_ros.core.artefacts import ART_LENGTH, off as artefacts_off
-from afm_ros.core.physics.integrators import (METHODS, _advance_surface, advance, drive_table, phase_at_step,
+from afm_ros.core.physics.integrators import (METHODS, advance_surface, advance, drive_table, phase_at_step,
                                               samples_in_range)
 from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
 from afm_ros.core.physics.noise import thermal_force_sigma
@@ -235,7 +235,7 @@ class Simulation:
             m = self.surface
             out_h = np.empty(count)
             event = self.method == "rk4_event"
-            _advance_surface(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass),
+            advance_surface(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass),
                              float(c.spring_constant), float(c.damping), self._table, int(m.model_id),
                              m.force_params, float(self.z_offset), int(decimation), out_z, out_v, out_f, out_h,
                              float(sigma), int(self.noise_seed), int(self.noise_index), m.heights, m.materials,
