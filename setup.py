@@ -15,6 +15,7 @@ setup(
         ("share/" + package_name + "/config/samples", glob("config/samples/*.yaml")),
         ("share/" + package_name + "/config/datasets", glob("config/datasets/*.yaml")),
         ("share/" + package_name + "/config/foxglove", glob("config/foxglove/*.json")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -1,4 +1,4 @@
-"""config/afm.yaml and the README parameter table agree with the parameter specs (one source)."""
+"""config/afm.yaml and the parameter tables of docs/parameters.md agree with the parameter specs (one source)."""
 from pathlib import Path
 
 import pytest
@@ -38,10 +38,10 @@ def test_yaml_holds_every_spec_default_and_validates(config):
             assert spec.validate(params[name]) == spec.default, f"{node}.{name}"
 
 
-def test_readme_table_matches_specs():
-    readme = (ROOT / "README.md").read_text()
+def test_parameter_tables_match_specs():
+    doc = (ROOT / "docs" / "parameters.md").read_text()
     for row in table_text().splitlines()[2:]:
-        assert row in readme, f"README parameter table is missing or stale: {row}"
+        assert row in doc, f"docs/parameters.md parameter table is missing or stale: {row}"
 
 
 def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_executor, ros_namespace, tmp_path):

@@ -48,3 +48,37 @@ def test_the_package_does_not_import_the_benchmarks():
 def test_the_scan_sees_the_known_imports():
     modules = imported_top_level_modules()
     assert {"rclpy", "numpy", "numba", "mcap", "tqdm", "std_msgs"} <= set(modules)
+
+
+def test_the_launch_file_is_installed_and_describes_the_instrument():
+    """launch/afm.launch.py, as ROS packages ship one: installed into share/afm_ros/launch (setup.py) and,
+    where ROS 2's launch is importable (it is not on PyPI), it builds the four nodes and the recorder."""
+    import pytest
+
+    setup = (ROOT / "setup.py").read_text()
+    assert '("share/" + package_name + "/launch", glob("launch/*.launch.py"))' in setup
+    try:  # (the repository's own launch/ folder is a namespace package of that name: ask for the real one)
+        from launch import LaunchDescription
+    except ImportError:
+        pytest.skip("ROS 2's launch is not on PyPI: the launch file is checked where ROS is installed "
+                    "(ros2 launch afm_ros afm.launch.py)")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("afm_launch", ROOT / "launch" / "afm.launch.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    description = module.generate_launch_description()
+    assert isinstance(description, LaunchDescription)
+    executables = {getattr(e, "node_executable", None) for e in description.entities}
+    assert {"cantilever_node", "lockin_node", "z_controller_node", "scanner_node", "recorder_node"} <= executables
+
+
+def test_the_launch_file_is_valid_python_naming_only_installed_executables():
+    import ast
+
+    tree = ast.parse((ROOT / "launch" / "afm.launch.py").read_text())
+    names = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+    setup = (ROOT / "setup.py").read_text()
+    for node in ("cantilever", "lockin", "z_controller", "scanner"):
+        assert node in names and f'"{node}_node = ' in setup
+    assert "recorder_node" in names and '"recorder_node = ' in setup
