@@ -121,7 +121,7 @@ def display_range(image: np.ndarray) -> tuple[float, float] | None:
 RANGE_TEXT = f"colour range: {100 * IMAGE_TAIL_CUT:g}-{100 - 100 * IMAGE_TAIL_CUT:g} % of the pixels"
 
 
-def _display_scale(values: np.ndarray, unit: str) -> tuple[float, str]:
+def display_scale(values: np.ndarray, unit: str) -> tuple[float, str]:
     """(factor to divide by, unit text) so the values' range reads in 1..1000 of the unit."""
     if unit in ("deg", ""):
         return 1.0, unit or "1"
@@ -167,7 +167,7 @@ def display_image(image: np.ndarray, unit: str, levelled: bool = False) -> tuple
     span = display_range(shown)
     if levelled and span is not None:  # heights from the bottom of the colour range
         shown, span = shown - span[0], (0.0, span[1] - span[0])
-    factor, unit_text = _display_scale(shown if span is None else np.asarray(span), unit)
+    factor, unit_text = display_scale(shown if span is None else np.asarray(span), unit)
     if span is None:
         value = float(np.nanmean(shown)) / factor if np.isfinite(shown).any() else 0.0
         return shown / factor, (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0)), unit_text

@@ -17,17 +17,17 @@ drive and amplitude with the cantilever's k and Q as set, as the session's summa
 """
 from __future__ import annotations
 
-import json
 import math
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from afm_ros.core.session_stats import FmWindow
-from afm_ros.formats import chunk_layout
-from afm_ros.formats.chunk_layout import cdr_byte_order
+from afm_ros.tools.report.accumulators import Envelope
+from afm_ros.tools.report.cdr import cdr_fm_batch
+from afm_ros.tools.report.collect import SERIES_BATCH, SERIES_RAW_POINTS
+from afm_ros.tools.report.plan import current
 
 BLOCKS = FmWindow.NAMES  # df, drive, amplitude, phase_error
 # block -> (display scale, unit shown, axis label)
@@ -36,36 +36,11 @@ DISPLAY = {"df": (1.0, "Hz", "df [Hz]"), "drive": (1e12, "pN", "drive [pN]"),
 SI_UNITS = {"df": "Hz", "drive": "N", "amplitude": "m", "phase_error": "deg"}
 
 
-def cdr_fm_batch(data) -> chunk_layout.FMBatch:
-    """A serialized ``pll/outputs`` batch; ValueError if not a Float64MultiArray, ChunkLayoutError if
-    not in the afm_ros layout (data_offset, lengths, finite increasing output times)."""
-    from afm_ros.tools.report import LAYOUT_NAMES, cdr_layout_batch
-    return cdr_layout_batch(data, chunk_layout.OUTPUTS_PREAMBLE_LENGTH, LAYOUT_NAMES["fm_outputs"],
-                            chunk_layout.unpack_fm_outputs)
-
-
-def stage_times(raw, stage: dict) -> None:
-    """Keep the approach start and engage time [s] of a ``z_controller/stage`` message (std_msgs/String,
-    JSON) in ``stage``; a message that is not such JSON is ignored (never fatal)."""
-    try:
-        order = cdr_byte_order(raw)
-        n = struct.unpack_from(order + "I", raw, 4)[0]
-        g = json.loads(bytes(raw[8:8 + n - 1]).decode("utf-8")) if 0 < n and 8 + n <= len(raw) else None
-    except (ValueError, struct.error):
-        return
-    if not isinstance(g, dict):
-        return
-    for key in ("approach_started_s", "engaged_s"):
-        v = g.get(key)
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-            stage[key] = float(v)
-
-
 @dataclass
 class FmData:
     """What the report knows of the FM loop: the batch stream, set-up, windows and pass-2 results."""
 
-    stream: object  # report.BatchStream of pll/outputs
+    stream: object  # session.BatchStream of pll/outputs
     feedback: bool  # the z loop regulates df
     df_setpoint: float | None  # [Hz], in force at the end
     amplitude_setpoint: float | None  # [m]
@@ -76,12 +51,41 @@ class FmData:
     engaged_from: str = ""
     scan: tuple | None = None  # (start, end) [s]
     windows: dict = field(default_factory=dict)  # name -> (FmWindow, description)
-    envelopes: dict = field(default_factory=dict)  # block -> report.Envelope
+    envelopes: dict = field(default_factory=dict)  # block -> accumulators.Envelope
     extremes: dict = field(default_factory=dict)  # block -> [min, max]
     centre: dict = field(default_factory=dict)  # window name -> PLL centre frequency in force [Hz]
     non_finite: int = 0  # output rows with a non-finite value (left out of the windows)
     pending: list = field(default_factory=list)
     pending_n: int = 0
+
+    def add_batch(self, raw) -> None:
+        """Pass 2: one ``pll/outputs`` message (queued; handled in batches of SERIES_BATCH outputs)."""
+        b = cdr_fm_batch(raw)
+        if b.t.shape[0] == 0:
+            return
+        self.pending.append((np.array(b.t), *(np.array(getattr(b, name)) for name in BLOCKS)))
+        self.pending_n += b.t.shape[0]
+        if self.pending_n >= SERIES_BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        """Pass 2: the queued outputs into the envelopes, extremes and windows."""
+        if not self.pending:
+            return
+        cols = [np.concatenate(c) for c in zip(*self.pending)]
+        self.pending, self.pending_n = [], 0
+        t, values = cols[0], dict(zip(BLOCKS, cols[1:]))
+        ok = np.logical_and.reduce([np.isfinite(v) for v in values.values()])
+        self.non_finite += int((~ok).sum())
+        for name, v in values.items():
+            finite = np.isfinite(v)
+            self.envelopes[name].add(t, np.where(finite, v, np.nan))
+            if finite.any():
+                lo, hi = self.extremes[name]
+                self.extremes[name] = [min(lo, float(v[finite].min())), max(hi, float(v[finite].max()))]
+        rows = [values[name][ok] for name in BLOCKS]
+        for w, _ in self.windows.values():
+            w.add(t[ok], *rows)
 
 
 def _number(value):
@@ -91,13 +95,12 @@ def _number(value):
 
 def prepare(data, stream, stage: dict) -> FmData | None:
     """Between the passes: set-up from the parameters, times and windows (module docstring)."""
-    from afm_ros.tools.report import SERIES_RAW_POINTS, Envelope, _current
     if stream is None or not stream.outputs:
         return None
-    fm = FmData(stream, data.fm_feedback, _number(_current(data, "z_controller", "df_setpoint")),
-                _number(_current(data, "pll", "amplitude_setpoint")),
-                _number(_current(data, "cantilever", "spring_constant")),
-                _number(_current(data, "cantilever", "quality_factor")))
+    fm = FmData(stream, data.fm_feedback, _number(current(data, "z_controller", "df_setpoint")),
+                _number(current(data, "pll", "amplitude_setpoint")),
+                _number(current(data, "cantilever", "spring_constant")),
+                _number(current(data, "cantilever", "quality_factor")))
     t_first, t_last = stream.t_first, stream.t_last
     fm.approach_started = stage.get("approach_started_s")
     if "engaged_s" in stage and (fm.approach_started is None or stage["engaged_s"] >= fm.approach_started):
@@ -125,41 +128,10 @@ def prepare(data, stream, stage: dict) -> FmData | None:
         fm.windows["last_half"] = (FmWindow(t_first + 0.5 * (t_last - t_first), math.nextafter(t_last, math.inf)),
                                    "last half of the session")
     for name, (w, _) in fm.windows.items():
-        fm.centre[name] = _number(_current(data, "pll", "center_frequency", at=w.t0))
+        fm.centre[name] = _number(current(data, "pll", "center_frequency", at=w.t0))
     fm.envelopes = {b: Envelope(stream.t_min, stream.t_max, raw_cap=SERIES_RAW_POINTS) for b in BLOCKS}
     fm.extremes = {b: [math.inf, -math.inf] for b in BLOCKS}
     return fm
-
-
-def add_batch(fm: FmData, raw) -> None:
-    """Pass 2: one ``pll/outputs`` message (queued; handled in batches of SERIES_BATCH outputs)."""
-    from afm_ros.tools.report import SERIES_BATCH
-    b = cdr_fm_batch(raw)
-    if b.t.shape[0] == 0:
-        return
-    fm.pending.append((np.array(b.t), *(np.array(getattr(b, name)) for name in BLOCKS)))
-    fm.pending_n += b.t.shape[0]
-    if fm.pending_n >= SERIES_BATCH:
-        flush(fm)
-
-
-def flush(fm: FmData) -> None:
-    if not fm.pending:
-        return
-    cols = [np.concatenate(c) for c in zip(*fm.pending)]
-    fm.pending, fm.pending_n = [], 0
-    t, values = cols[0], dict(zip(BLOCKS, cols[1:]))
-    ok = np.logical_and.reduce([np.isfinite(v) for v in values.values()])
-    fm.non_finite += int((~ok).sum())
-    for name, v in values.items():
-        finite = np.isfinite(v)
-        fm.envelopes[name].add(t, np.where(finite, v, np.nan))
-        if finite.any():
-            lo, hi = fm.extremes[name]
-            fm.extremes[name] = [min(lo, float(v[finite].min())), max(hi, float(v[finite].max()))]
-    rows = [values[name][ok] for name in BLOCKS]
-    for w, _ in fm.windows.values():
-        w.add(t[ok], *rows)
 
 
 def window_numbers(fm: FmData, name: str) -> dict:
