@@ -18,12 +18,13 @@ choice) and, if numba was already imported by someone else, in ``numba.config`` 
 then keeps the files of each source directory in its own sub-directory, keyed by the path.
 
 Numba checks a cached kernel against its own source file only, not against the files whose
-functions it inlined or calls (the scanning kernel in ``integrators.py`` inlines and calls the event
-kernel of ``events.py``): after a ``git pull`` that changed only ``events.py`` it would load a stale
-kernel. :func:`configure` therefore keeps a stamp of every kernel source (path, size, mtime) beside
-the cache (cases 2-4) and removes the cached kernels when it differs: the next start compiles them
-again (tens of seconds once).
+functions it inlined or calls (the scanning kernel in ``integrators.py`` inlines and calls the
+event kernel of ``events.py``): after a ``git pull`` that changed only ``events.py`` it would load
+a stale kernel. :func:`configure` therefore keeps a stamp of every kernel source (path, size,
+mtime) beside the cache (cases 2-4) and removes the cached kernels when it differs: the next start
+compiles them again (tens of seconds once).
 """
+
 from __future__ import annotations
 
 import glob
@@ -33,10 +34,14 @@ import sys
 import tempfile
 
 PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
-# the directories that hold modules with cached kernels (their __pycache__ is numba's in-tree cache)
-# every folder with numba kernels (cache=True writes beside their sources)
-KERNEL_DIRS = (PACKAGE_DIR, os.path.join(PACKAGE_DIR, "core"), os.path.join(PACKAGE_DIR, "core", "physics"),
-               os.path.join(PACKAGE_DIR, "core", "samples"))
+# the directories that hold modules with cached kernels (their __pycache__ is numba's in-tree
+# cache) every folder with numba kernels (cache=True writes beside their sources)
+KERNEL_DIRS = (
+    PACKAGE_DIR,
+    os.path.join(PACKAGE_DIR, "core"),
+    os.path.join(PACKAGE_DIR, "core", "physics"),
+    os.path.join(PACKAGE_DIR, "core", "samples"),
+)
 
 chosen: str | None = None  # the directory set by configure(), None if numba's default is used
 reason: str = "not configured"
@@ -82,13 +87,16 @@ def sources_stamp() -> str:
     for d in KERNEL_DIRS:
         for path in sorted(glob.glob(os.path.join(d, "*.py"))):
             st = os.stat(path)
-            h.update(f"{os.path.relpath(path, PACKAGE_DIR)}:{st.st_size}:{st.st_mtime_ns};".encode())
+            h.update(
+                f"{os.path.relpath(path, PACKAGE_DIR)}:{st.st_size}:{st.st_mtime_ns};".encode()
+            )
     return h.hexdigest()
 
 
 def drop_stale(stamp_dir: str, cache_files: list[str]) -> bool:
-    """Remove ``cache_files`` if the stamp in ``stamp_dir`` is not the sources' (then write it); True if
-    they were removed. Errors (a read-only place, a file another process removed) are ignored."""
+    """Remove ``cache_files`` if the stamp in ``stamp_dir`` is not the sources' (then write it);
+    True if they were removed. Errors (a read-only place, a file another process removed) are
+    ignored."""
     stamp_file = os.path.join(stamp_dir, "afm_ros_sources.stamp")
     now = sources_stamp()
     try:
@@ -125,12 +133,21 @@ def configure() -> str | None:
         return user_set
     if _in_tree_writable():
         chosen, reason = None, "package directory writable (numba's in-tree cache)"
-        drop_stale(os.path.join(PACKAGE_DIR, "__pycache__"),
-                   [f for d in KERNEL_DIRS for f in _cached(os.path.join(d, "__pycache__"), False)])
+        drop_stale(
+            os.path.join(PACKAGE_DIR, "__pycache__"),
+            [f for d in KERNEL_DIRS for f in _cached(os.path.join(d, "__pycache__"), False)],
+        )
         return None
-    candidates = [(user_cache_dir(), "package directory read-only: user cache"),
-                  (os.path.join(tempfile.gettempdir(), f"afm_ros-numba-{os.getuid() if hasattr(os, 'getuid') else 0}"),
-                   "package directory and user cache read-only: temporary directory")]
+    candidates = [
+        (user_cache_dir(), "package directory read-only: user cache"),
+        (
+            os.path.join(
+                tempfile.gettempdir(),
+                f"afm_ros-numba-{os.getuid() if hasattr(os, 'getuid') else 0}",
+            ),
+            "package directory and user cache read-only: temporary directory",
+        ),
+    ]
     for path, why in candidates:
         if _writable_dir(path, create=True):
             chosen, reason = path, why

@@ -1,18 +1,20 @@
-"""Benchmark of the FM-AFM blocks against the tapping loop's, side by side in one run (prints JSON).
+"""Benchmark of the FM-AFM blocks against the tapping loop's, side by side in one run (prints
+JSON).
 
 ``python -m benchmarks.bench_fm [--chunks 400] [--repeats 5] [--ros-seconds 1.0] [--no-ros]``
 
-1. Blocks, no ROS, per 1 ms chunk (900 samples, one lock-in output), on the same recorded chunks of a
-   cantilever at Q 1e4: the tapping loop's lock-in + z controller (amplitude feedback) against the FM
-   loop's additions, the PLL + amplitude controller + z controller on df (the lock-in is the PLL's phase
-   detector, shared), and the whole FM chain (lock-in + PLL + z). Repeats interleaved; the median
-   over repeats. The cantilever's own integration of a chunk is timed too, for scale.
-2. The ROS loop in one process (EventsExecutor, as ``afm_instrument``), cantilever as fast as the loop
-   allows (``real_time_factor`` 0, lockstep), flat sample, ``--ros-seconds`` simulated: tapping
-   (cantilever, lock-in, z controller) and FM (the same plus the pll node, ``excitation`` 'pll', z on
-   df), at 1 ms and at 2 ms chunks, interleaved, each in its own subprocess; the real-time factor is
-   simulated over wall seconds.
+1. Blocks, no ROS, per 1 ms chunk (900 samples, one lock-in output), on the same recorded chunks of
+   a cantilever at Q 1e4: the tapping loop's lock-in + z controller (amplitude feedback) against
+   the FM loop's additions, the PLL + amplitude controller + z controller on df (the lock-in is the
+   PLL's phase detector, shared), and the whole FM chain (lock-in + PLL + z). Repeats interleaved;
+   the median over repeats. The cantilever's own integration of a chunk is timed too, for scale.
+2. The ROS loop in one process (EventsExecutor, as ``afm_instrument``), cantilever as fast as the
+   loop allows (``real_time_factor`` 0, lockstep), flat sample, ``--ros-seconds`` simulated:
+   tapping (cantilever, lock-in, z controller) and FM (the same plus the pll node, ``excitation``
+   'pll', z on df), at 1 ms and at 2 ms chunks, interleaved, each in its own subprocess; the
+   real-time factor is simulated over wall seconds.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,21 +30,32 @@ import numpy as np
 
 
 def record_chunks(n: int, chunk: float = 1e-3):
-    """``n`` chunks (header, measured deflection) of a self-oscillating cantilever at Q 1e4, 5 nm, 10 nm
-    above a DMT sample (the FM operating point): the input both loops see."""
+    """``n`` chunks (header, measured deflection) of a self-oscillating cantilever at Q 1e4, 5 nm,
+    10 nm above a DMT sample (the FM operating point): the input both loops see."""
     from afm_ros.core.cantilever_engine import measure
     from afm_ros.core.wired import WiredInstrument
 
-    w = WiredInstrument(cantilever=dict(quality_factor=1e4, chunk_duration=chunk, excitation="pll", z_base=10e-9,
-                                        temperature=300.0, detector_noise_density=100e-15),
-                        z_controller={"feedback_signal": "frequency_shift", "enabled": False}, fm={})
+    w = WiredInstrument(
+        cantilever=dict(
+            quality_factor=1e4,
+            chunk_duration=chunk,
+            excitation="pll",
+            z_base=10e-9,
+            temperature=300.0,
+            detector_noise_density=100e-15,
+        ),
+        z_controller={"feedback_signal": "frequency_shift", "enabled": False},
+        fm={},
+    )
     w.run_until(0.3)  # locked
     chunks = []
     s, sim = w.setup, w.sim
     first = w.next_index
     for _ in range(n):
         samples = sim.advance(s.chunk_steps, s.decimation)
-        header, measured = measure(sim, s, samples, first, w.values["detector_noise_density"], w.values["noise_seed"])
+        header, measured = measure(
+            sim, s, samples, first, w.values["detector_noise_density"], w.values["noise_seed"]
+        )
         first += samples.z.shape[0]
         chunks.append((header, np.array(measured)))
     return chunks, w
@@ -55,7 +68,12 @@ def time_blocks(chunks, repeats: int) -> dict:
     from afm_ros.core.lockin import LockIn
     from afm_ros.core.spectroscopy import phase_deg
 
-    results = {"tapping_lockin_and_z": [], "fm_pll_and_z": [], "fm_lockin_pll_and_z": [], "lockin_only": []}
+    results = {
+        "tapping_lockin_and_z": [],
+        "fm_pll_and_z": [],
+        "fm_lockin_pll_and_z": [],
+        "lockin_only": [],
+    }
 
     def tapping():
         lock = LockIn()
@@ -112,7 +130,8 @@ def time_blocks(chunks, repeats: int) -> dict:
 
 
 def time_integration(w, n: int) -> float:
-    """Seconds per chunk of the cantilever's integration (RK4 at 80 steps per period), for scale."""
+    """Seconds per chunk of the cantilever's integration (RK4 at 80 steps per period), for
+    scale."""
     s, sim = w.setup, w.sim
     t0 = time.perf_counter()
     for _ in range(n):
@@ -120,7 +139,7 @@ def time_integration(w, n: int) -> float:
     return (time.perf_counter() - t0) / n
 
 
-ROS_CHILD = r'''
+ROS_CHILD = r"""
 import json, os, sys, time
 import rclpy
 from rclpy.parameter import Parameter
@@ -156,7 +175,7 @@ while not (c.paused and c.sim_time >= t0 + seconds - 1e-9):
     ex.spin_once(timeout_sec=0.01)
 wall = time.monotonic() - w0
 print(json.dumps({"real_time_factor": (c.sim_time - t0) / wall, "cpu_s_per_sim_s": (time.process_time() - cpu0) / (c.sim_time - t0)}))
-'''
+"""
 
 
 def time_ros(seconds: float, repeats: int) -> dict:
@@ -166,22 +185,43 @@ def time_ros(seconds: float, repeats: int) -> dict:
         for mode in ("tapping", "fm"):
             for chunk in (1e-3, 2e-3):
                 key = f"{mode}_{chunk * 1e3:g}ms"
-                proc = subprocess.run([sys.executable, "-c", ROS_CHILD, mode, str(chunk), str(seconds)], env=env,
-                                      capture_output=True, text=True, timeout=600)
+                proc = subprocess.run(
+                    [sys.executable, "-c", ROS_CHILD, mode, str(chunk), str(seconds)],
+                    env=env,
+                    capture_output=True,
+                    text=True,
+                    timeout=600,
+                )
                 if proc.returncode != 0:
                     raise RuntimeError(f"{key}: {proc.stderr[-2000:]}")
                 runs.setdefault(key, []).append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    return {k: {"real_time_factor": statistics.median(x["real_time_factor"] for x in v),
-                "cpu_s_per_sim_s": statistics.median(x["cpu_s_per_sim_s"] for x in v), "runs": v}
-            for k, v in runs.items()}
+    return {
+        k: {
+            "real_time_factor": statistics.median(x["real_time_factor"] for x in v),
+            "cpu_s_per_sim_s": statistics.median(x["cpu_s_per_sim_s"] for x in v),
+            "runs": v,
+        }
+        for k, v in runs.items()
+    }
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_fm", description=__doc__.split("\n")[0])
-    parser.add_argument("--chunks", type=int, default=400, help="recorded 1 ms chunks timed per repeat (default 400)")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_fm", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument(
+        "--chunks",
+        type=int,
+        default=400,
+        help="recorded 1 ms chunks timed per repeat (default 400)",
+    )
     parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats (default 5)")
-    parser.add_argument("--ros-seconds", type=float, default=1.0, help="simulated seconds per ROS run (default 1)")
-    parser.add_argument("--ros-repeats", type=int, default=2, help="interleaved ROS repeats (default 2)")
+    parser.add_argument(
+        "--ros-seconds", type=float, default=1.0, help="simulated seconds per ROS run (default 1)"
+    )
+    parser.add_argument(
+        "--ros-repeats", type=int, default=2, help="interleaved ROS repeats (default 2)"
+    )
     parser.add_argument("--no-ros", action="store_true", help="only the blocks")
     args = parser.parse_args(argv)
     for name in ("chunks", "repeats", "ros_repeats"):
@@ -191,11 +231,13 @@ def main(argv=None) -> int:
         parser.error(f"--ros-seconds={args.ros_seconds} s must be > 0")
     chunks, w = record_chunks(args.chunks)
     blocks = time_blocks(chunks, args.repeats)
-    out = {"blocks_s_per_chunk": blocks,
-           "fm_over_tapping": blocks["fm_pll_and_z"] / blocks["tapping_lockin_and_z"],
-           "fm_chain_over_tapping": blocks["fm_lockin_pll_and_z"] / blocks["tapping_lockin_and_z"],
-           "integration_s_per_chunk": time_integration(w, min(args.chunks, 200)),
-           "chunk_s": 1e-3}
+    out = {
+        "blocks_s_per_chunk": blocks,
+        "fm_over_tapping": blocks["fm_pll_and_z"] / blocks["tapping_lockin_and_z"],
+        "fm_chain_over_tapping": blocks["fm_lockin_pll_and_z"] / blocks["tapping_lockin_and_z"],
+        "integration_s_per_chunk": time_integration(w, min(args.chunks, 200)),
+        "chunk_s": 1e-3,
+    }
     if not args.no_ros:
         out["ros_loop"] = time_ros(args.ros_seconds, args.ros_repeats)
     print(json.dumps(out, indent=1))

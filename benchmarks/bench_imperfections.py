@@ -1,4 +1,5 @@
-"""Benchmark of the scanning RK4 kernel with and without imperfections (not a test); JSON on stdout.
+"""Benchmark of the scanning RK4 kernel with and without imperfections (not a test); JSON on
+stdout.
 
 ``python -m benchmarks.bench_imperfections [--steps N] [--repeats R] [--baseline-tree DIR]``
 ``python -m benchmarks.bench_imperfections --job [--repeats R]``
@@ -20,6 +21,7 @@ modes: ``paced`` (the instrument's real_time_factor 1: does the scan keep real t
 ``unpaced`` (real_time_factor 0: the scan's real-time factor is the machine's capacity). It prints
 the median scan real-time factor of each and the ratio on/off.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -62,16 +64,37 @@ def _run(variant: str, steps: int, tree: str | None) -> float:
     env = dict(os.environ)
     if tree:
         env["PYTHONPATH"] = tree + os.pathsep + env.get("PYTHONPATH", "")
-    out = subprocess.run([sys.executable, "-c", _MEASURE, str(steps), "off" if variant == "baseline" else variant],
-                         env=env, capture_output=True, text=True, check=True,
-                         cwd=tree or None)
+    out = subprocess.run(
+        [sys.executable, "-c", _MEASURE, str(steps), "off" if variant == "baseline" else variant],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=tree or None,
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])["ns_per_step"]
 
 
-ZEROED = ["-p", "scanner:drift_lateral_rate:=0.0", "-p", "scanner:drift_vertical_rate:=0.0",
-          "-p", "scanner:tilt_x:=0.0", "-p", "scanner:tilt_y:=0.0", "-p", "scanner:hysteresis_small:=0.0",
-          "-p", "scanner:hysteresis_large:=0.0", "-p", "scanner:creep_per_decade:=0.0",
-          "-p", "cantilever:tip_wear_coefficient:=0.0", "-p", "cantilever:tip_pickup_rate:=0.0"]
+ZEROED = [
+    "-p",
+    "scanner:drift_lateral_rate:=0.0",
+    "-p",
+    "scanner:drift_vertical_rate:=0.0",
+    "-p",
+    "scanner:tilt_x:=0.0",
+    "-p",
+    "scanner:tilt_y:=0.0",
+    "-p",
+    "scanner:hysteresis_small:=0.0",
+    "-p",
+    "scanner:hysteresis_large:=0.0",
+    "-p",
+    "scanner:creep_per_decade:=0.0",
+    "-p",
+    "cantilever:tip_wear_coefficient:=0.0",
+    "-p",
+    "cantilever:tip_pickup_rate:=0.0",
+]
 
 
 def _run_job(variant: str, paced: bool) -> float:
@@ -79,12 +102,25 @@ def _run_job(variant: str, paced: bool) -> float:
     import tempfile
     from pathlib import Path
 
-    args = ["--image", "--no-record", "--json", "--ros-args", "-p",
-            f"cantilever:real_time_factor:={1.0 if paced else 0.0}", *(ZEROED if variant == "off" else [])]
+    args = [
+        "--image",
+        "--no-record",
+        "--json",
+        "--ros-args",
+        "-p",
+        f"cantilever:real_time_factor:={1.0 if paced else 0.0}",
+        *(ZEROED if variant == "off" else []),
+    ]
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     with tempfile.TemporaryDirectory() as cwd:
-        out = subprocess.run([str(Path(sys.executable).parent / "afm_instrument"), *args], env=env, cwd=cwd,
-                             capture_output=True, text=True, check=True)
+        out = subprocess.run(
+            [str(Path(sys.executable).parent / "afm_instrument"), *args],
+            env=env,
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     if variant == "on" and not summary["image"]["truth"]["imperfections"]:
         raise RuntimeError("the 'on' job ran without imperfections")
@@ -102,17 +138,24 @@ def job_main(repeats: int) -> int:
         result["paced" if paced else "unpaced"] = {
             "scan_real_time_factor": {v: round(m, 3) for v, m in medians.items()},
             "ratio_on_off": round(medians["on"] / medians["off"], 3),
-            "all": {v: [round(x, 3) for x in xs] for v, xs in rtf.items()}}
+            "all": {v: [round(x, 3) for x in xs] for v, xs in rtf.items()},
+        }
     print(json.dumps(result, indent=1))
     return 0
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=4_000_000, help="steps per measurement (default 4e6)")
+    parser.add_argument(
+        "--steps", type=int, default=4_000_000, help="steps per measurement (default 4e6)"
+    )
     parser.add_argument("--repeats", type=int, default=5, help="interleaved rounds (default 5)")
-    parser.add_argument("--baseline-tree", help="another checkout's root: its kernel as the baseline")
-    parser.add_argument("--job", action="store_true", help="the main job's scan real-time factor, on vs off")
+    parser.add_argument(
+        "--baseline-tree", help="another checkout's root: its kernel as the baseline"
+    )
+    parser.add_argument(
+        "--job", action="store_true", help="the main job's scan real-time factor, on vs off"
+    )
     args = parser.parse_args(argv)
     if args.job:
         if args.repeats < 1:
@@ -128,10 +171,13 @@ def main(argv=None) -> int:
         for v in variants:
             times[v].append(_run(v, args.steps, args.baseline_tree if v == "baseline" else None))
     medians = {v: statistics.median(t) for v, t in times.items()}
-    result = {"steps": args.steps, "repeats": args.repeats,
-              "ns_per_step": {v: round(m, 2) for v, m in medians.items()},
-              "ratio_to_off": {v: round(m / medians["off"], 3) for v, m in medians.items()},
-              "all_ns_per_step": {v: [round(x, 2) for x in t] for v, t in times.items()}}
+    result = {
+        "steps": args.steps,
+        "repeats": args.repeats,
+        "ns_per_step": {v: round(m, 2) for v, m in medians.items()},
+        "ratio_to_off": {v: round(m / medians["off"], 3) for v, m in medians.items()},
+        "all_ns_per_step": {v: [round(x, 2) for x in t] for v, t in times.items()},
+    }
     print(json.dumps(result, indent=1))
     return 0
 

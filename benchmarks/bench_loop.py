@@ -1,7 +1,7 @@
 """Benchmark of the closed loop in its process layouts (prints JSON; writes only to a temp dir).
 
-``python -m benchmarks.bench_loop [--hold 4] [--repeats 2] [--layouts one,one+recorder,three,three+recorder]
-[--latencies 2] [--paced-hold 20]``
+``python -m benchmarks.bench_loop [--hold 4] [--repeats 2] [--layouts
+one,one+recorder,three,three+recorder] [--latencies 2] [--paced-hold 20]``
 
 Every run is the scripted job of ``afm_instrument`` (withdraw, free, engage, hold) with the
 seed cantilever at the defaults (220 steps/period, 900 kS/s, 2 ms chunks, lockstep: the
@@ -22,6 +22,7 @@ summary's reached amplitude. Finally, ``three+recorder`` is run paced at ``real_
 for ``--paced-hold`` simulated seconds: achieved factor and lost samples (the headline
 ``ros2 run`` usage in real time).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -58,6 +59,7 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
     import rclpy
 
     from afm_ros.tools.afm_instrument import Instrument
+
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -71,12 +73,16 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
         summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
         cpu = _self_cpu() - cpu0
         sim, wall = inst.hold_sim_wall
-        return {"real_time_factor": sim / wall, "hold_simulated_s": sim, "hold_wall_s": wall,
-                "cpu_s_per_simulated_s": {"process": cpu / summary.simulated_time_s},
-                "lost_samples_monitor": summary.lost_samples,
-                "lost_samples_recorder": summary.recording.get("lost_samples") if record else None,
-                "recording_complete": summary.recording.get("complete") if record else None,
-                "reached_amplitude_m": summary.reached_amplitude_m}
+        return {
+            "real_time_factor": sim / wall,
+            "hold_simulated_s": sim,
+            "hold_wall_s": wall,
+            "cpu_s_per_simulated_s": {"process": cpu / summary.simulated_time_s},
+            "lost_samples_monitor": summary.lost_samples,
+            "lost_samples_recorder": summary.recording.get("lost_samples") if record else None,
+            "recording_complete": summary.recording.get("complete") if record else None,
+            "reached_amplitude_m": summary.reached_amplitude_m,
+        }
     finally:
         if inst is not None:
             inst.destroy()
@@ -84,21 +90,45 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
         os.chdir(cwd)
 
 
-def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0) -> dict:
+def run_processes(
+    tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0
+) -> dict:
     import rclpy
 
     from afm_ros.tools.afm_instrument import Instrument
+
     ns = f"/bench_three_{os.getpid()}"
-    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(domain)}
+    env = {
+        **os.environ,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_DOMAIN_ID": str(domain),
+    }
     ros = ["--ros-args", "-r", f"__ns:={ns}"]
-    cmds = {"cantilever": [_executable("cantilever_node"), *ros, "-p", "run_until:=0.0",
-                           "-p", f"real_time_factor:={rtf}", "-p", f"feedback_latency:={latency}"],
-            "lockin": [_executable("lockin_node"), *ros],
-            "z_controller": [_executable("z_controller_node"), *ros]}
+    cmds = {
+        "cantilever": [
+            _executable("cantilever_node"),
+            *ros,
+            "-p",
+            "run_until:=0.0",
+            "-p",
+            f"real_time_factor:={rtf}",
+            "-p",
+            f"feedback_latency:={latency}",
+        ],
+        "lockin": [_executable("lockin_node"), *ros],
+        "z_controller": [_executable("z_controller_node"), *ros],
+    }
     if record:
-        cmds["recorder"] = [_executable("recorder_node"), *ros, "-p", f"output:={tmp / f'three_{time.time_ns()}.mcap'}"]
-    procs = {k: subprocess.Popen(c, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for k, c in cmds.items()}
+        cmds["recorder"] = [
+            _executable("recorder_node"),
+            *ros,
+            "-p",
+            f"output:={tmp / f'three_{time.time_ns()}.mcap'}",
+        ]
+    procs = {
+        k: subprocess.Popen(c, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for k, c in cmds.items()
+    }
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     ctx = rclpy.Context()
@@ -117,16 +147,24 @@ def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: in
         recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording") if record else {}
         if record:  # the recorder's last diagnostics after the hold (published once per second)
             from afm_ros.nodes.node_main import spin_for
+
             spin_for(inst.executor, 2.5)
             recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording")
         diag = inst.monitor.diagnostic_values(f"{ns}/cantilever", "simulation")
-        return {"real_time_factor": sim / wall, "hold_simulated_s": sim, "hold_wall_s": wall,
-                "cpu_s_per_simulated_s": {k: v / summary.simulated_time_s for k, v in cpu.items()},
-                "lost_samples_monitor": summary.lost_samples,
-                "lost_samples_recorder": int(recorder["lost_samples"]) if "lost_samples" in recorder else None,
-                "cantilever_achieved_real_time_factor_last_second": float(
-                    diag.get("real_time_factor_achieved", "nan")),
-                "reached_amplitude_m": summary.reached_amplitude_m}
+        return {
+            "real_time_factor": sim / wall,
+            "hold_simulated_s": sim,
+            "hold_wall_s": wall,
+            "cpu_s_per_simulated_s": {k: v / summary.simulated_time_s for k, v in cpu.items()},
+            "lost_samples_monitor": summary.lost_samples,
+            "lost_samples_recorder": int(recorder["lost_samples"])
+            if "lost_samples" in recorder
+            else None,
+            "cantilever_achieved_real_time_factor_last_second": float(
+                diag.get("real_time_factor_achieved", "nan")
+            ),
+            "reached_amplitude_m": summary.reached_amplitude_m,
+        }
     finally:
         if inst is not None:
             inst.destroy()
@@ -141,13 +179,34 @@ def run_processes(tmp: Path, hold: float, record: bool, latency: int, domain: in
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_loop", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--hold", type=float, default=4.0, help="simulated seconds of the measured hold (default 4)")
-    parser.add_argument("--repeats", type=int, default=2, help="runs per layout, interleaved (default 2)")
-    parser.add_argument("--layouts", default=",".join(LAYOUTS), help="comma-separated subset of " + ", ".join(LAYOUTS))
-    parser.add_argument("--latencies", default="2", help="comma-separated feedback_latency values [chunks] (default 2)")
-    parser.add_argument("--paced-hold", type=float, default=20.0,
-                        help="simulated seconds of the paced three+recorder run at real_time_factor 1 (0: skip)")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_loop", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument(
+        "--hold",
+        type=float,
+        default=4.0,
+        help="simulated seconds of the measured hold (default 4)",
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=2, help="runs per layout, interleaved (default 2)"
+    )
+    parser.add_argument(
+        "--layouts",
+        default=",".join(LAYOUTS),
+        help="comma-separated subset of " + ", ".join(LAYOUTS),
+    )
+    parser.add_argument(
+        "--latencies",
+        default="2",
+        help="comma-separated feedback_latency values [chunks] (default 2)",
+    )
+    parser.add_argument(
+        "--paced-hold",
+        type=float,
+        default=20.0,
+        help="simulated seconds of the paced three+recorder run at real_time_factor 1 (0: skip)",
+    )
     args = parser.parse_args(argv)
     layouts = [x for x in args.layouts.split(",") if x]
     for x in layouts:
@@ -155,8 +214,12 @@ def main(argv=None) -> int:
             parser.error(f"--layouts: {x!r} is not one of {', '.join(LAYOUTS)}")
     latencies = [int(x) for x in args.latencies.split(",")]
     domain = 100 + os.getpid() % 100
-    out = {"hold_simulated_s": args.hold, "cpu_count": os.cpu_count(), "load_average_at_start": os.getloadavg(),
-           "runs": {}}
+    out = {
+        "hold_simulated_s": args.hold,
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": os.getloadavg(),
+        "runs": {},
+    }
     with tempfile.TemporaryDirectory(prefix="afm_bench_loop_") as tmp:
         tmp = Path(tmp)
         for rep in range(args.repeats):
@@ -169,11 +232,18 @@ def main(argv=None) -> int:
                         r = run_processes(tmp, args.hold, record, latency, domain)
                     key = f"{layout}, feedback_latency {latency}"
                     out["runs"].setdefault(key, []).append(r)
-                    print(f"{key}: real-time factor {r['real_time_factor']:.2f}", file=sys.stderr, flush=True)
+                    print(
+                        f"{key}: real-time factor {r['real_time_factor']:.2f}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
         for key, runs in out["runs"].items():
             rates = sorted(r["real_time_factor"] for r in runs)
-            out.setdefault("real_time_factor", {})[key] = {"min": rates[0], "max": rates[-1],
-                                                           "median": rates[len(rates) // 2]}
+            out.setdefault("real_time_factor", {})[key] = {
+                "min": rates[0],
+                "max": rates[-1],
+                "median": rates[len(rates) // 2],
+            }
         if args.paced_hold > 0:
             r = run_processes(tmp, args.paced_hold, True, latencies[0], domain, rtf=1.0)
             out["paced_three+recorder_real_time_factor_1"] = r

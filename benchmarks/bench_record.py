@@ -1,9 +1,9 @@
 """Recorder benchmark (prints JSON): ``python -m benchmarks.bench_record [--seconds 4]``.
 
-All phases run in this one process, one after the other, each on a fresh private context with
-the instrument's nodes (cantilever, lock-in, z-controller) on one executor (``--executor``
-single or events, the ``afm_instrument`` default), at the cantilever's ``output_sample_rate`` (default 900 kS/s of
-deflection plus the same of tip-sample force):
+All phases run in this one process, one after the other, each on a fresh private context with the
+instrument's nodes (cantilever, lock-in, z-controller) on one executor (``--executor`` single or
+events, the ``afm_instrument`` default), at the cantilever's ``output_sample_rate`` (default 900
+kS/s of deflection plus the same of tip-sample force):
 
 1. ``free_running``: cantilever ``real_time_factor`` 0 (as fast as possible), without and then
    with the recorder (zstd): achieved real-time factor (simulated s / wall s) side by side, and
@@ -13,6 +13,7 @@ deflection plus the same of tip-sample force):
 3. ``replay``: the zstd file read back (tolerant reader, no publishing) and replayed by
    ``ReplayNode`` at ``rate`` 1000 into a subscriber: messages/s and MB/s.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,16 +38,29 @@ def _start_recorder_process(record: Path, compression: str, ns: str):
     import signal
     import subprocess
     import sys
+
     exe = Path(sys.executable).parent / "recorder_node"
-    proc = subprocess.Popen([str(exe), "--ros-args", "-r", f"__ns:={ns}", "-p", f"output:={record}",
-                             "-p", f"compression:={compression}"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            str(exe),
+            "--ros-args",
+            "-r",
+            f"__ns:={ns}",
+            "-p",
+            f"output:={record}",
+            "-p",
+            f"compression:={compression}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
     def stop():
         proc.send_signal(signal.SIGINT)
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = status
         return usage.ru_utime + usage.ru_stime
+
     return proc, stop
 
 
@@ -56,13 +70,21 @@ EXECUTOR = "events"
 def _make_executor(ctx):
     if EXECUTOR == "events":
         from rclpy.experimental import EventsExecutor
+
         return EventsExecutor(context=ctx)
     from rclpy.executors import SingleThreadedExecutor
+
     return SingleThreadedExecutor(context=ctx)
 
 
-def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | None, compression: str = "zstd",
-              separate_process: bool = False):
+def _run_loop(
+    seconds: float,
+    rtf: float,
+    output_rate: float,
+    record: Path | None,
+    compression: str = "zstd",
+    separate_process: bool = False,
+):
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -76,22 +98,41 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
     ex = _make_executor(ctx)
     ns = "/bench"
     try:
-        cantilever = CantileverNode(context=ctx, namespace=ns, parameter_overrides=[
-            Parameter("real_time_factor", value=rtf), Parameter("output_sample_rate", value=output_rate)])
-        nodes = [cantilever, LockInNode(context=ctx, namespace=ns), ZControllerNode(context=ctx, namespace=ns)]
+        cantilever = CantileverNode(
+            context=ctx,
+            namespace=ns,
+            parameter_overrides=[
+                Parameter("real_time_factor", value=rtf),
+                Parameter("output_sample_rate", value=output_rate),
+            ],
+        )
+        nodes = [
+            cantilever,
+            LockInNode(context=ctx, namespace=ns),
+            ZControllerNode(context=ctx, namespace=ns),
+        ]
         recorder = None
         proc = stop = None
         if record is not None and separate_process:
             proc, stop = _start_recorder_process(record, compression, ns)
         elif record is not None:
-            recorder = RecorderNode(context=ctx, namespace=ns, parameter_overrides=[
-                Parameter("output", value=str(record)), Parameter("compression", value=compression)])
+            recorder = RecorderNode(
+                context=ctx,
+                namespace=ns,
+                parameter_overrides=[
+                    Parameter("output", value=str(record)),
+                    Parameter("compression", value=compression),
+                ],
+            )
             nodes.append(recorder)
         for n in nodes:
             ex.add_node(n)
         if proc is not None:  # wait until the recorder process records (discovery takes a moment)
             deadline = time.monotonic() + 20
-            while not (record.exists() and record.stat().st_size > 100_000) and time.monotonic() < deadline:
+            while (
+                not (record.exists() and record.stat().st_size > 100_000)
+                and time.monotonic() < deadline
+            ):
                 spin_for(ex, 0.005)
         # warm-up (discovery, first chunks), then the measured window
         end = time.monotonic() + 0.5
@@ -108,9 +149,11 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
         end = time.monotonic() + 1.0  # let the recorder drain its queues
         while time.monotonic() < end:
             spin_for(ex, 0.005)
-        result = {"real_time_factor": (sim1 - sim0) / (wall1 - wall0),
-                  "cpu_fraction_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
-                  "samples_published": int(published)}
+        result = {
+            "real_time_factor": (sim1 - sim0) / (wall1 - wall0),
+            "cpu_fraction_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
+            "samples_published": int(published),
+        }
         if recorder is not None:
             ex.remove_node(recorder)
             recorder.destroy_node()
@@ -131,6 +174,7 @@ def _run_loop(seconds: float, rtf: float, output_rate: float, record: Path | Non
 def _file_stats(path: Path, published: int) -> dict:
     from afm_ros.formats.chunk_layout import unpack
     from afm_ros.formats.mcap_io import decode, read_session
+
     idx, t = [], []
     for m in read_session(path):
         if m.topic.endswith("cantilever/deflection"):
@@ -144,12 +188,15 @@ def _file_stats(path: Path, published: int) -> dict:
     sim_span = t[-1][1] - t[0][0]
     # a recorder started after the cantilever misses the first samples; what counts is that
     # nothing is missing from its first recorded sample to the last published one
-    return {"file_bytes": size, "recorded_samples": int(idx.size),
-            "recorded_index_gaps": int(np.count_nonzero(np.diff(idx) != 1)),
-            "first_recorded_index": int(idx[0]),
-            "missing_after_first_recorded": int(published - idx[0] - idx.size),
-            "simulated_seconds_recorded": sim_span,
-            "bytes_per_simulated_second": size / sim_span if sim_span > 0 else None}
+    return {
+        "file_bytes": size,
+        "recorded_samples": int(idx.size),
+        "recorded_index_gaps": int(np.count_nonzero(np.diff(idx) != 1)),
+        "first_recorded_index": int(idx[0]),
+        "missing_after_first_recorded": int(published - idx[0] - idx.size),
+        "simulated_seconds_recorded": sim_span,
+        "bytes_per_simulated_second": size / sim_span if sim_span > 0 else None,
+    }
 
 
 def _replay_throughput(path: Path) -> dict:
@@ -167,8 +214,12 @@ def _replay_throughput(path: Path) -> dict:
         n += 1
         nbytes += len(m.data)
     read_s = time.monotonic() - t0
-    out = {"read_messages_per_s": n / read_s, "read_MB_per_s": nbytes / read_s / 1e6, "messages": n,
-           "payload_MB": nbytes / 1e6}
+    out = {
+        "read_messages_per_s": n / read_s,
+        "read_MB_per_s": nbytes / read_s / 1e6,
+        "messages": n,
+        "payload_MB": nbytes / 1e6,
+    }
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -176,10 +227,18 @@ def _replay_throughput(path: Path) -> dict:
     try:
         sink = rclpy.create_node("sink", context=ctx)
         got = []
-        sink.create_subscription(Float64MultiArray, "/bench/cantilever/deflection", lambda m: got.append(1), 1000)
-        replay = ReplayNode(context=ctx, parameter_overrides=[
-            Parameter("file", value=str(path)), Parameter("rate", value=1000.0), Parameter("start_delay", value=0.5),
-            Parameter("exclude", value="/rosout,/parameter_events")])
+        sink.create_subscription(
+            Float64MultiArray, "/bench/cantilever/deflection", lambda m: got.append(1), 1000
+        )
+        replay = ReplayNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter("file", value=str(path)),
+                Parameter("rate", value=1000.0),
+                Parameter("start_delay", value=0.5),
+                Parameter("exclude", value="/rosout,/parameter_events"),
+            ],
+        )
         ex.add_node(sink)
         ex.add_node(replay)
         t_start = time.monotonic() + 0.5  # start_delay
@@ -190,10 +249,14 @@ def _replay_throughput(path: Path) -> dict:
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
             spin_for(ex, 0.005)
-        out.update({"replay_messages_per_s": published / play_s,
-                    "replay_MB_per_s": nbytes / play_s / 1e6,
-                    "replay_messages": published,
-                    "replay_deflection_chunks_received_by_subscriber": len(got)})
+        out.update(
+            {
+                "replay_messages_per_s": published / play_s,
+                "replay_MB_per_s": nbytes / play_s / 1e6,
+                "replay_messages": published,
+                "replay_deflection_chunks_received_by_subscriber": len(got),
+            }
+        )
     finally:
         for node in list(ex.get_nodes()):
             ex.remove_node(node)
@@ -205,11 +268,21 @@ def _replay_throughput(path: Path) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=4.0, help="measured wall time per phase [s]")
-    parser.add_argument("--output-rate", type=float, default=900e3, help="cantilever output sample rate [S/s]")
-    parser.add_argument("--executor", choices=["single", "events"], default="events",
-                        help="executor of the instrument nodes (afm_instrument's default is events)")
-    parser.add_argument("--dir", default=None, help="where to write the benchmark files (default: a temp dir)")
+    parser.add_argument(
+        "--seconds", type=float, default=4.0, help="measured wall time per phase [s]"
+    )
+    parser.add_argument(
+        "--output-rate", type=float, default=900e3, help="cantilever output sample rate [S/s]"
+    )
+    parser.add_argument(
+        "--executor",
+        choices=["single", "events"],
+        default="events",
+        help="executor of the instrument nodes (afm_instrument's default is events)",
+    )
+    parser.add_argument(
+        "--dir", default=None, help="where to write the benchmark files (default: a temp dir)"
+    )
     args = parser.parse_args(argv)
     global EXECUTOR
     EXECUTOR = args.executor
@@ -217,22 +290,32 @@ def main(argv=None) -> int:
     work = Path(args.dir or tempfile.mkdtemp(prefix="afm_bench_record_"))
     work.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%H%M%S")
-    res = {"executor": args.executor, "output_sample_rate": args.output_rate, "seconds_per_phase": args.seconds, "cpu_count": os.cpu_count(),
-           "free_running": {}, "paced": {}}
+    res = {
+        "executor": args.executor,
+        "output_sample_rate": args.output_rate,
+        "seconds_per_phase": args.seconds,
+        "cpu_count": os.cpu_count(),
+        "free_running": {},
+        "paced": {},
+    }
     res["free_running"]["without_recorder"] = _run_loop(args.seconds, 0.0, args.output_rate, None)
-    res["free_running"]["with_recorder_zstd"] = _run_loop(args.seconds, 0.0, args.output_rate,
-                                                          work / f"free_{stamp}.mcap", "zstd")
+    res["free_running"]["with_recorder_zstd"] = _run_loop(
+        args.seconds, 0.0, args.output_rate, work / f"free_{stamp}.mcap", "zstd"
+    )
     res["paced"]["without_recorder"] = _run_loop(args.seconds, 1.0, args.output_rate, None)
     for comp in ("none", "lz4", "zstd"):
-        res["paced"][f"with_recorder_{comp}"] = _run_loop(args.seconds, 1.0, args.output_rate,
-                                                          work / f"paced_{comp}_{stamp}.mcap", comp)
+        res["paced"][f"with_recorder_{comp}"] = _run_loop(
+            args.seconds, 1.0, args.output_rate, work / f"paced_{comp}_{stamp}.mcap", comp
+        )
     # the recorder in its own process (second core): local DDS discovery, private domain id
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["ROS_DOMAIN_ID"] = os.environ.get("AFM_BENCH_DOMAIN_ID", "68")
-    res["paced"]["with_recorder_process_zstd"] = _run_loop(args.seconds, 1.0, args.output_rate,
-                                                           work / f"proc_zstd_{stamp}.mcap", "zstd", True)
-    res["free_running"]["with_recorder_process_zstd"] = _run_loop(args.seconds, 0.0, args.output_rate,
-                                                                  work / f"proc_free_{stamp}.mcap", "zstd", True)
+    res["paced"]["with_recorder_process_zstd"] = _run_loop(
+        args.seconds, 1.0, args.output_rate, work / f"proc_zstd_{stamp}.mcap", "zstd", True
+    )
+    res["free_running"]["with_recorder_process_zstd"] = _run_loop(
+        args.seconds, 0.0, args.output_rate, work / f"proc_free_{stamp}.mcap", "zstd", True
+    )
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     res["replay"] = _replay_throughput(work / f"paced_zstd_{stamp}.mcap")
     res["files"] = str(work)

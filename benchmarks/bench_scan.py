@@ -20,6 +20,7 @@
 Every measurement runs in a fresh subprocess (``sys.executable``), so one does not inherit the
 other's memory; numba's compiled kernels are loaded from its cache in each.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,8 +54,18 @@ print(json.dumps({"peak_rss_bytes": run_rss, "peak_rss_with_writer_imports_bytes
                   resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "simulated_s": w.t, "wall_s": wall}))
 """
 
+
 def _scan(out: Path, *flags: str) -> tuple[dict, float]:
-    cmd = [sys.executable, "-m", "afm_ros.tools.study", "scan", "--quiet", "--out", str(out), *flags]
+    cmd = [
+        sys.executable,
+        "-m",
+        "afm_ros.tools.study",
+        "scan",
+        "--quiet",
+        "--out",
+        str(out),
+        *flags,
+    ]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -66,61 +77,114 @@ def _scan(out: Path, *flags: str) -> tuple[dict, float]:
 def bench_speed(work: Path, full: bool) -> dict:
     lines = FULL["lines"] if full else SLICE_LINES
     size_y = FULL["size"] * lines / FULL["lines"]  # the full frame's line pitch
-    summary, wall = _scan(work / "speed", "--pixels-per-line", str(FULL["pixels"]), "--lines", str(lines),
-                          "--line-rate", str(FULL["line_rate"]), "--scan-size-x", str(FULL["size"]),
-                          "--scan-size-y", repr(size_y))
+    summary, wall = _scan(
+        work / "speed",
+        "--pixels-per-line",
+        str(FULL["pixels"]),
+        "--lines",
+        str(lines),
+        "--line-rate",
+        str(FULL["line_rate"]),
+        "--scan-size-x",
+        str(FULL["size"]),
+        "--scan-size-y",
+        repr(size_y),
+    )
     t = summary["timing"]
     full_sim = FULL["lines"] / FULL["line_rate"]
-    return {"frame": f"{FULL['pixels']} x {FULL['lines']} at {FULL['line_rate']:g} Hz (ps_ldpe_blend, 5 um)",
-            "measured_lines": lines, "scaled_from_slice": not full,
-            "simulated_scan_s": t["simulated_scan_s"], "wall_scan_s": round(t["wall_scan_s"], 3),
-            "real_time_factor": round(t["real_time_factor"], 3),
-            "full_frame_simulated_s": full_sim,
-            "full_frame_wall_s_estimate": round(full_sim / t["real_time_factor"], 1),
-            "command_wall_s": round(wall, 2)}
+    return {
+        "frame": f"{FULL['pixels']} x {FULL['lines']} at {FULL['line_rate']:g} Hz "
+        "(ps_ldpe_blend, 5 um)",
+        "measured_lines": lines,
+        "scaled_from_slice": not full,
+        "simulated_scan_s": t["simulated_scan_s"],
+        "wall_scan_s": round(t["wall_scan_s"], 3),
+        "real_time_factor": round(t["real_time_factor"], 3),
+        "full_frame_simulated_s": full_sim,
+        "full_frame_wall_s_estimate": round(full_sim / t["real_time_factor"], 1),
+        "command_wall_s": round(wall, 2),
+    }
 
 
 def bench_memory(work: Path) -> dict:
     b = BIG
-    summary, wall = _scan(work / "big", "--pixels-per-line", str(b["pixels"]), "--lines", str(b["lines"]),
-                          "--line-rate", str(b["line_rate"]), "--lockin-output-rate", str(b["output_rate"]),
-                          "--scan-size-x", str(b["size"]), "--scan-size-y", str(b["size"]))
+    summary, wall = _scan(
+        work / "big",
+        "--pixels-per-line",
+        str(b["pixels"]),
+        "--lines",
+        str(b["lines"]),
+        "--line-rate",
+        str(b["line_rate"]),
+        "--lockin-output-rate",
+        str(b["output_rate"]),
+        "--scan-size-x",
+        str(b["size"]),
+        "--scan-size-y",
+        str(b["size"]),
+    )
     seconds = summary["engage"]["time_s"] + summary["timing"]["simulated_scan_s"]
-    proc = subprocess.run([sys.executable, "-c", _BASELINE, repr(seconds), repr(b["output_rate"])],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", _BASELINE, repr(seconds), repr(b["output_rate"])],
+        capture_output=True,
+        text=True,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"baseline run failed: {proc.stderr.strip()}")
     base = json.loads(proc.stdout)
     n = b["pixels"] * b["lines"]
-    arrays = {"accumulator": n * 2 * (5 + 2) * 8,  # float64 sums of 5 channels + 2 int64 counts, 2 directions
-              "frame": n * 2 * 5 * 4,  # float32 images
-              "gwy_channels_float64": n * 2 * 5 * 8}  # one float64 copy of every channel for the writer
-    mib = 2 ** 20
-    return {"frame": f"{b['pixels']} x {b['lines']} at {b['line_rate']:g} Hz, lock-in {b['output_rate']:g} Hz "
-                     f"(ps_ldpe_blend, 5 um)",
-            "simulated_s": seconds, "scan_real_time_factor": round(summary["timing"]["real_time_factor"], 3),
-            "command_wall_s": round(wall, 2),
-            "peak_rss_scan_MiB": round(summary["peak_rss_scan_bytes"] / mib, 1),
-            "peak_rss_with_files_MiB": round(summary["peak_rss_bytes"] / mib, 1),
-            "baseline_flat_no_scan_peak_rss_MiB": round(base["peak_rss_bytes"] / mib, 1),
-            "baseline_plus_writer_imports_MiB": round(base["peak_rss_with_writer_imports_bytes"] / mib, 1),
-            "baseline_wall_s": round(base["wall_s"], 2),
-            "scan_minus_baseline_MiB": round((summary["peak_rss_scan_bytes"] - base["peak_rss_bytes"]) / mib, 1),
-            "with_files_minus_baseline_with_imports_MiB": round(
-                (summary["peak_rss_bytes"] - base["peak_rss_with_writer_imports_bytes"]) / mib, 1),
-            "image_arrays_MiB": {k: round(v / mib, 1) for k, v in arrays.items()}}
+    arrays = {
+        "accumulator": n
+        * 2
+        * (5 + 2)
+        * 8,  # float64 sums of 5 channels + 2 int64 counts, 2 directions
+        "frame": n * 2 * 5 * 4,  # float32 images
+        "gwy_channels_float64": n * 2 * 5 * 8,
+    }  # one float64 copy of every channel for the writer
+    mib = 2**20
+    return {
+        "frame": f"{b['pixels']} x {b['lines']} at {b['line_rate']:g} Hz, lock-in "
+        f"{b['output_rate']:g} Hz "
+        f"(ps_ldpe_blend, 5 um)",
+        "simulated_s": seconds,
+        "scan_real_time_factor": round(summary["timing"]["real_time_factor"], 3),
+        "command_wall_s": round(wall, 2),
+        "peak_rss_scan_MiB": round(summary["peak_rss_scan_bytes"] / mib, 1),
+        "peak_rss_with_files_MiB": round(summary["peak_rss_bytes"] / mib, 1),
+        "baseline_flat_no_scan_peak_rss_MiB": round(base["peak_rss_bytes"] / mib, 1),
+        "baseline_plus_writer_imports_MiB": round(
+            base["peak_rss_with_writer_imports_bytes"] / mib, 1
+        ),
+        "baseline_wall_s": round(base["wall_s"], 2),
+        "scan_minus_baseline_MiB": round(
+            (summary["peak_rss_scan_bytes"] - base["peak_rss_bytes"]) / mib, 1
+        ),
+        "with_files_minus_baseline_with_imports_MiB": round(
+            (summary["peak_rss_bytes"] - base["peak_rss_with_writer_imports_bytes"]) / mib, 1
+        ),
+        "image_arrays_MiB": {k: round(v / mib, 1) for k, v in arrays.items()},
+    }
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_scan", description=__doc__.split("\n")[0])
-    parser.add_argument("--full", action="store_true", help="scan all 128 lines (128 s simulated) instead of 16")
-    parser.add_argument("--out", default=None, help="keep the scans' files here (default: a temporary folder)")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_scan", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument(
+        "--full", action="store_true", help="scan all 128 lines (128 s simulated) instead of 16"
+    )
+    parser.add_argument(
+        "--out", default=None, help="keep the scans' files here (default: a temporary folder)"
+    )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_scan_") as tmp:
         work = Path(args.out) if args.out else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        result = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
-                  "speed": bench_speed(work, args.full), "memory": bench_memory(work)}
+        result = {
+            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+            "speed": bench_speed(work, args.full),
+            "memory": bench_memory(work),
+        }
     print(json.dumps(result, indent=1))
     return 0
 

@@ -45,6 +45,7 @@ temporary directory that is removed at the end, and ``PYTHONDONTWRITEBYTECODE=1`
 temporary directory, apart from the shared-memory segments Fast DDS itself creates and removes
 in /dev/shm).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -68,9 +69,24 @@ os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
 
 NODES = {
     # name: (module, console script, topic listened to, topic fed by the benchmark or None)
-    "cantilever": ("afm_ros.nodes.cantilever_node", "cantilever_node", "cantilever/deflection", None),
-    "lockin": ("afm_ros.nodes.lockin_node", "lockin_node", "lockin/amplitude", "cantilever/deflection"),
-    "z_controller": ("afm_ros.nodes.z_controller_node", "z_controller_node", "z_controller/z_piezo", None),
+    "cantilever": (
+        "afm_ros.nodes.cantilever_node",
+        "cantilever_node",
+        "cantilever/deflection",
+        None,
+    ),
+    "lockin": (
+        "afm_ros.nodes.lockin_node",
+        "lockin_node",
+        "lockin/amplitude",
+        "cantilever/deflection",
+    ),
+    "z_controller": (
+        "afm_ros.nodes.z_controller_node",
+        "z_controller_node",
+        "z_controller/z_piezo",
+        None,
+    ),
 }
 
 # the log line a node writes when its constructor is done (older versions: the lock-in's and the
@@ -100,9 +116,16 @@ except KeyboardInterrupt:
 
 def _stats(values: list) -> dict:
     ok = [v for v in values if v is not None]
-    out = {"median": None, "min": None, "max": None, "runs": [None if v is None else round(v, 4) for v in values]}
+    out = {
+        "median": None,
+        "min": None,
+        "max": None,
+        "runs": [None if v is None else round(v, 4) for v in values],
+    }
     if ok:
-        out.update(median=round(statistics.median(ok), 4), min=round(min(ok), 4), max=round(max(ok), 4))
+        out.update(
+            median=round(statistics.median(ok), 4), min=round(min(ok), 4), max=round(max(ok), 4)
+        )
     if len(ok) != len(values):
         out["failed"] = len(values) - len(ok)
     return out
@@ -116,10 +139,18 @@ class _Child:
         self.ready_time = None
         self.spawn_time = time.monotonic()
         self.spawn_wall_ns = time.time_ns()
-        self.proc = subprocess.Popen(cmd, env=env, cwd=cwd, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-        self._threads = [threading.Thread(target=self._read, args=(s,), daemon=True)
-                         for s in (self.proc.stdout, self.proc.stderr)]
+        self.proc = subprocess.Popen(
+            cmd,
+            env=env,
+            cwd=cwd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        self._threads = [
+            threading.Thread(target=self._read, args=(s,), daemon=True)
+            for s in (self.proc.stdout, self.proc.stderr)
+        ]
         for t in self._threads:
             t.start()
 
@@ -162,6 +193,7 @@ class StartupBench:
 
     def close(self):
         import rclpy
+
         self.executor.remove_node(self.node)
         self.node.destroy_node()
         self.executor.shutdown(timeout_sec=1.0)
@@ -170,17 +202,28 @@ class StartupBench:
     @staticmethod
     def _make_chunk():
         import numpy as np
-        fs, f, n = 900e3, 45e3, 1800  # 2 ms = 90 whole drive periods: every chunk starts at phase 0
+
+        fs, f, n = (
+            900e3,
+            45e3,
+            1800,
+        )  # 2 ms = 90 whole drive periods: every chunk starts at phase 0
         return 60e-9 * np.cos(2.0 * math.pi * f * np.arange(n) / fs - 1.0)
 
     @staticmethod
     def _qos(durability):
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=durability)
+
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=200,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=durability,
+        )
 
     def _msg_type(self, topic: str):
         from std_msgs.msg import Float64, Float64MultiArray
+
         return Float64MultiArray if topic == "cantilever/deflection" else Float64
 
     def _feeder(self, ns: str, topic: str):
@@ -193,7 +236,9 @@ class StartupBench:
         from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
 
         # transient local + reliable is compatible with any reliable subscription
-        pub = self.node.create_publisher(Float64MultiArray, f"{ns}/{topic}", self._qos(DurabilityPolicy.TRANSIENT_LOCAL))
+        pub = self.node.create_publisher(
+            Float64MultiArray, f"{ns}/{topic}", self._qos(DurabilityPolicy.TRANSIENT_LOCAL)
+        )
         samples = self._deflection_chunk
         n = samples.shape[0]
         state = {"index": 0}
@@ -212,7 +257,8 @@ class StartupBench:
         return pub, timer
 
     def measure(self, cmd: list, env: dict, topic: str, feed: str | None) -> dict:
-        """Spawn ``cmd`` in a new namespace; seconds until its first message on ``topic`` arrives."""
+        """Spawn ``cmd`` in a new namespace; seconds until its first message on ``topic``
+        arrives."""
         self.run_counter += 1
         ns = f"/bench_startup_{os.getpid()}_{self.run_counter}"
         arrivals: list = []
@@ -221,14 +267,25 @@ class StartupBench:
 
         # A volatile and a transient-local subscription: whichever the node's publisher is
         # compatible with receives (a transient-local one also gets what was published before the
-        # match, e.g. a start value or the chunks of a gated cantilever); the other one stays silent.
+        # match, e.g. a start value or the chunks of a gated cantilever); the other one stays
+        # silent.
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda event: None)
-        def on_message(msg, info):
-            arrivals.append((time.monotonic(), info["publication_sequence_number"], info["source_timestamp"]))
 
-        subs = [self.node.create_subscription(self._msg_type(topic), f"{ns}/{topic}", on_message, self._qos(d),
-                                              event_callbacks=quiet)
-                for d in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL)]
+        def on_message(msg, info):
+            arrivals.append(
+                (time.monotonic(), info["publication_sequence_number"], info["source_timestamp"])
+            )
+
+        subs = [
+            self.node.create_subscription(
+                self._msg_type(topic),
+                f"{ns}/{topic}",
+                on_message,
+                self._qos(d),
+                event_callbacks=quiet,
+            )
+            for d in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL)
+        ]
         fed = self._feeder(ns, feed) if feed else None
         child = _Child(cmd + ["--ros-args", "-r", f"__ns:={ns}"], env, self.tmp)
         deadline = child.spawn_time + self.timeout
@@ -249,25 +306,37 @@ class StartupBench:
         result = {
             "first_message_s": first[0] - child.spawn_time if first else None,
             # the writer's own time stamp of its first message (sequence number 1), if that one was
-            # received (a transient-local history still held it): publication time, without discovery
+            # received (a transient-local history still held it): publication time, without
+            # discovery
             "first_published_s": (seq1[0][2] - child.spawn_wall_ns) * 1e-9 if seq1 else None,
-            "ready_line_s": None if child.ready_time is None else child.ready_time - child.spawn_time,
+            "ready_line_s": None
+            if child.ready_time is None
+            else child.ready_time - child.spawn_time,
             "exit_status": status,
         }
         if not arrivals:
-            result["error"] = "no message within %.0f s; output: %s" % (self.timeout, " | ".join(child.lines[-8:]))
+            result["error"] = "no message within %.0f s; output: %s" % (
+                self.timeout,
+                " | ".join(child.lines[-8:]),
+            )
         return result
 
 
 def _env(tmp: str, numba_cache: str, tree: str | None) -> dict:
     env = dict(os.environ)
-    env.update(ROS_LOG_DIR=os.path.join(tmp, "ros_log"), NUMBA_CACHE_DIR=numba_cache,
-               XDG_CACHE_HOME=os.path.join(tmp, "xdg_cache"), PYTHONDONTWRITEBYTECODE="1")
+    env.update(
+        ROS_LOG_DIR=os.path.join(tmp, "ros_log"),
+        NUMBA_CACHE_DIR=numba_cache,
+        XDG_CACHE_HOME=os.path.join(tmp, "xdg_cache"),
+        PYTHONDONTWRITEBYTECODE="1",
+    )
     # start as from a fresh shell: the ROS wheels' site hook re-executes the interpreter with its
     # library path unless this guard (set in this already bootstrapped process) is inherited
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     if tree:
-        env["PYTHONPATH"] = tree + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env["PYTHONPATH"] = tree + (
+            os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else ""
+        )
     return env
 
 
@@ -279,8 +348,13 @@ def _command(node: str, tree: str | None) -> list:
     return [sys.executable, "-m", module]
 
 
-def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"), trees: dict | None = None,
-        current: bool = True, timeout: float = 30.0) -> dict:
+def run(
+    repeats: int = 3,
+    nodes: tuple = ("cantilever", "lockin", "z_controller"),
+    trees: dict | None = None,
+    current: bool = True,
+    timeout: float = 30.0,
+) -> dict:
     variants = ({"current": None} if current else {}) | dict(trees or {})
     load_before = os.getloadavg()[0]
     tmp = tempfile.mkdtemp(prefix="afm_bench_startup_")
@@ -297,24 +371,58 @@ def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"
             return r
 
         # untimed: touch the files (page cache) once, fill every variant's warm numba cache
-        bench.measure(base_cmd, _env(tmp, os.path.join(tmp, "unused"), None), "cantilever/deflection", None)
+        bench.measure(
+            base_cmd, _env(tmp, os.path.join(tmp, "unused"), None), "cantilever/deflection", None
+        )
         for v, tree in variants.items():
             for n in nodes:
-                record("prime", v, n, bench.measure(_command(n, tree), _env(tmp, os.path.join(tmp, f"warm_{v}"), tree),
-                                                    NODES[n][2], NODES[n][3]))
+                record(
+                    "prime",
+                    v,
+                    n,
+                    bench.measure(
+                        _command(n, tree),
+                        _env(tmp, os.path.join(tmp, f"warm_{v}"), tree),
+                        NODES[n][2],
+                        NODES[n][3],
+                    ),
+                )
         baseline = []
         for rep in range(repeats):
-            baseline.append(bench.measure(base_cmd, _env(tmp, os.path.join(tmp, "unused"), None),
-                                          "cantilever/deflection", None))
+            baseline.append(
+                bench.measure(
+                    base_cmd,
+                    _env(tmp, os.path.join(tmp, "unused"), None),
+                    "cantilever/deflection",
+                    None,
+                )
+            )
             for v, tree in variants.items():
                 for n in nodes:
                     _, _, topic, feed = NODES[n]
                     cache = os.path.join(tmp, f"cold_{v}_{n}_{rep}")
-                    cold[v][n].append(record("cold", v, n, bench.measure(_command(n, tree), _env(tmp, cache, tree),
-                                                                          topic, feed)))
+                    cold[v][n].append(
+                        record(
+                            "cold",
+                            v,
+                            n,
+                            bench.measure(_command(n, tree), _env(tmp, cache, tree), topic, feed),
+                        )
+                    )
                     shutil.rmtree(cache, ignore_errors=True)
-                    warm[v][n].append(record("warm", v, n, bench.measure(
-                        _command(n, tree), _env(tmp, os.path.join(tmp, f"warm_{v}"), tree), topic, feed)))
+                    warm[v][n].append(
+                        record(
+                            "warm",
+                            v,
+                            n,
+                            bench.measure(
+                                _command(n, tree),
+                                _env(tmp, os.path.join(tmp, f"warm_{v}"), tree),
+                                topic,
+                                feed,
+                            ),
+                        )
+                    )
     finally:
         bench.close()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -330,28 +438,59 @@ def run(repeats: int = 3, nodes: tuple = ("cantilever", "lockin", "z_controller"
         return out
 
     import numba
+
     return {
-        "benchmark": "spawn -> first message received by a subscriber in the benchmark process [s]",
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "numba": numba.__version__,
-                    "load_average_1min_before_after": [round(load_before, 2), round(os.getloadavg()[0], 2)]},
+        "benchmark": "spawn -> first message received by a subscriber in the benchmark process "
+        "[s]",
+        "machine": {
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "numba": numba.__version__,
+            "load_average_1min_before_after": [
+                round(load_before, 2),
+                round(os.getloadavg()[0], 2),
+            ],
+        },
         "repeats": repeats,
         "baseline_bare_rclpy": summary(baseline),
-        "variants": {v: {"command": " ".join(_command(nodes[0], tree)) + (f" (PYTHONPATH={tree})" if tree else ""),
-                         **{n: {"cold": summary(cold[v][n]), "warm": summary(warm[v][n])} for n in nodes}}
-                     for v, tree in variants.items()},
+        "variants": {
+            v: {
+                "command": " ".join(_command(nodes[0], tree))
+                + (f" (PYTHONPATH={tree})" if tree else ""),
+                **{n: {"cold": summary(cold[v][n]), "warm": summary(warm[v][n])} for n in nodes},
+            }
+            for v, tree in variants.items()
+        },
         "errors": errors,
     }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=3, help="timed starts per node, kind and variant (default 3)")
-    ap.add_argument("--nodes", default="cantilever,lockin,z_controller",
-                    help="comma-separated subset of: " + ", ".join(NODES))
-    ap.add_argument("--tree", action="append", default=[], metavar="LABEL=DIR",
-                    help="also run python -m afm_ros.<node> with PYTHONPATH=DIR, reported as LABEL")
-    ap.add_argument("--no-current", action="store_true", help="do not measure the installed package")
-    ap.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for a first message")
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        help="timed starts per node, kind and variant (default 3)",
+    )
+    ap.add_argument(
+        "--nodes",
+        default="cantilever,lockin,z_controller",
+        help="comma-separated subset of: " + ", ".join(NODES),
+    )
+    ap.add_argument(
+        "--tree",
+        action="append",
+        default=[],
+        metavar="LABEL=DIR",
+        help="also run python -m afm_ros.<node> with PYTHONPATH=DIR, reported as LABEL",
+    )
+    ap.add_argument(
+        "--no-current", action="store_true", help="do not measure the installed package"
+    )
+    ap.add_argument(
+        "--timeout", type=float, default=30.0, help="seconds to wait for a first message"
+    )
     args = ap.parse_args(argv)
     nodes = tuple(n.strip() for n in args.nodes.split(",") if n.strip())
     for n in nodes:

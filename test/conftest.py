@@ -11,6 +11,7 @@ Fixtures:
   with it after the test).
 - ``ros_namespace``: a unique namespace per test (``/t_<testname>_<n>``) for topic isolation.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -25,8 +26,9 @@ import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
 
-# the benchmarks (repository root's benchmarks/, not installed) for the tests of their code, also under a plain
-# `pytest` (`python -m pytest` from the root has the root on sys.path already); appended: afm_ros is found as before
+# the benchmarks (repository root's benchmarks/, not installed) for the tests of their code, also
+# under a plain `pytest` (`python -m pytest` from the root has the root on sys.path already);
+# appended: afm_ros is found as before
 sys.path.append(str(Path(__file__).resolve().parents[1]))
 
 _counter = itertools.count()
@@ -40,6 +42,7 @@ EXACT_PHYSICS = {"temperature": 0.0, "detector_noise_density": 0.0}
 def ros_context():
     """A private rclpy Context (``rclpy.init(context=ctx)``), shut down after the test."""
     import rclpy
+
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
@@ -52,6 +55,7 @@ def ros_context():
 def ros_executor(ros_context):
     """A SingleThreadedExecutor on ``ros_context``; its nodes are destroyed after the test."""
     from rclpy.executors import SingleThreadedExecutor
+
     executor = SingleThreadedExecutor(context=ros_context)
     try:
         yield executor
@@ -70,8 +74,14 @@ def ros_namespace(request):
 
 
 @contextmanager
-def instrument_nodes(namespace: str, monkeypatch, domain_id: str, cantilever: dict | None = None,
-                     scanner: dict | None = None, z_controller: dict | None = None):
+def instrument_nodes(
+    namespace: str,
+    monkeypatch,
+    domain_id: str,
+    cantilever: dict | None = None,
+    scanner: dict | None = None,
+    z_controller: dict | None = None,
+):
     """The instrument's cantilever, lock-in, z controller and scanner spun in a thread on a private
     context, on ``domain_id`` with LOCALHOST discovery (set for this test, so that the test's own
     clients and subprocesses see them); by role."""
@@ -84,8 +94,15 @@ def instrument_nodes(namespace: str, monkeypatch, domain_id: str, cantilever: di
     monkeypatch.setenv("ROS_DOMAIN_ID", domain_id)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(domain_id))
-    nodes = build_nodes(ctx, namespace, record=False, scanner=True, cantilever_overrides=cantilever,
-                        scanner_overrides=scanner, overrides={"z_controller": z_controller or {}})
+    nodes = build_nodes(
+        ctx,
+        namespace,
+        record=False,
+        scanner=True,
+        cantilever_overrides=cantilever,
+        scanner_overrides=scanner,
+        overrides={"z_controller": z_controller or {}},
+    )
     executor = make_executor("events", ctx)
     for node in nodes.values():
         executor.add_node(node)
@@ -94,6 +111,7 @@ def instrument_nodes(namespace: str, monkeypatch, domain_id: str, cantilever: di
     def spin():
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.05)
+
     thread = threading.Thread(target=spin, daemon=True)
     thread.start()
     try:
@@ -108,9 +126,19 @@ def instrument_nodes(namespace: str, monkeypatch, domain_id: str, cantilever: di
         rclpy.try_shutdown(context=ctx)
 
 
-# one small `afm_instrument --fm` session, recorded, shared by test_fm_session.py and test_report_fm.py
-FM_SESSION_ARGS = ["--fm", "--json", "--ros-args", "-p", "scanner:pixels_per_line:=16", "-p", "scanner:lines:=4",
-                   "-p", "cantilever:real_time_factor:=0.0"]
+# one small `afm_instrument --fm` session, recorded, shared by test_fm_session.py and
+# test_report_fm.py
+FM_SESSION_ARGS = [
+    "--fm",
+    "--json",
+    "--ros-args",
+    "-p",
+    "scanner:pixels_per_line:=16",
+    "-p",
+    "scanner:lines:=4",
+    "-p",
+    "cantilever:real_time_factor:=0.0",
+]
 
 
 @pytest.fixture(scope="session")
@@ -124,10 +152,15 @@ def fm_session_run(tmp_path_factory):
 
     cwd = tmp_path_factory.mktemp("fm_session")
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.run([str(Path(sys.executable).parent / "afm_instrument"), *FM_SESSION_ARGS], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [str(Path(sys.executable).parent / "afm_instrument"), *FM_SESSION_ARGS],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
     assert "Traceback" not in proc.stderr
     lines = proc.stdout.strip().splitlines()
     return cwd, json.loads(lines[-1]), "\n".join(lines[:-1])
-

@@ -9,6 +9,7 @@ context, spun in a thread) or as separate processes (the installed node executab
 file's own id), each test in its own namespace (the root-namespace test alone in its domain's
 root). Every wait is for a condition with a generous deadline; nothing assumes a speed.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,22 +24,29 @@ from pathlib import Path
 import pytest
 import rclpy
 import yaml
+from conftest import instrument_nodes
 
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.scanner import SCANNER_NODE_SPECS
-from conftest import instrument_nodes
 
 DOMAIN_ID = "37"
 VENV_BIN = Path(sys.executable).parent
 ROOT = Path(__file__).resolve().parents[1]
-PATIENCE = "60"  # --timeout [s] where a node is expected to answer: only a very busy machine needs long
+PATIENCE = (
+    "60"  # --timeout [s] where a node is expected to answer: only a very busy machine needs long
+)
 
 
 @pytest.fixture
 def ctl_env(tmp_path):
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID,
-               ROS_LOG_DIR=str(tmp_path / "ros_log"), PYTHONUNBUFFERED="1")
+    env = dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=DOMAIN_ID,
+        ROS_LOG_DIR=str(tmp_path / "ros_log"),
+        PYTHONUNBUFFERED="1",
+    )
     env.pop("ROS_STATIC_PEERS", None)
     return env
 
@@ -51,8 +59,13 @@ def ctl(env, *args, ns: str | None = None, timeout: str = PATIENCE) -> subproces
     return subprocess.run(cmd + list(args), env=env, capture_output=True, text=True, timeout=300)
 
 
-def nodes_in_process(namespace: str, monkeypatch, cantilever: dict | None = None, scanner: dict | None = None,
-                     z_controller: dict | None = None):
+def nodes_in_process(
+    namespace: str,
+    monkeypatch,
+    cantilever: dict | None = None,
+    scanner: dict | None = None,
+    z_controller: dict | None = None,
+):
     """The instrument's nodes in this process on this file's domain (conftest.instrument_nodes)."""
     return instrument_nodes(namespace, monkeypatch, DOMAIN_ID, cantilever, scanner, z_controller)
 
@@ -81,33 +94,60 @@ def test_set_get_and_refusals_with_the_nodes_reasons(monkeypatch, ctl_env, ros_n
         # an integer for a double stays a double; integers take an exponent form; booleans yes/no
         r = ctl(ctl_env, "set", "cantilever", "quality_factor", "30", ns=ros_namespace)
         assert r.returncode == 0, r.stderr
-        assert value(cant, "quality_factor") == 30.0 and isinstance(value(cant, "quality_factor"), float)
-        r = ctl(ctl_env, "set", "scanner", "pixels_per_line", "2.4e2", "continuous", "yes", ns=ros_namespace)
+        assert value(cant, "quality_factor") == 30.0 and isinstance(
+            value(cant, "quality_factor"), float
+        )
+        r = ctl(
+            ctl_env,
+            "set",
+            "scanner",
+            "pixels_per_line",
+            "2.4e2",
+            "continuous",
+            "yes",
+            ns=ros_namespace,
+        )
         assert r.returncode == 0, r.stderr
         assert value(scanner, "pixels_per_line") == 240 and value(scanner, "continuous") is True
         # a string parameter gets the text as typed (YAML would make 0.10 the number 0.1)
         r = ctl(ctl_env, "set", "scanner", "file_prefix", "0.10", ns=ros_namespace)
         assert r.returncode == 0 and value(scanner, "file_prefix") == "0.10", r.stderr
 
-        # refused: exit 1, the node's own reason (field and range from the spec), the old value kept
+        # refused: exit 1, the node's own reason (field and range from the spec), the old value
+        # kept
         r = ctl(ctl_env, "set", "z_controller", "setpoint", "-1e-9", ns=ros_namespace)
         assert r.returncode == 1 and r.stdout == ""
-        assert r.stderr == (f"afm_ctl: {ros_namespace}/z_controller refused setpoint: setpoint=-1e-09 m is out of "
-                            f"range; allowed range {Z_CONTROLLER_SPECS['setpoint'].range_text()}\n")
+        assert r.stderr == (
+            f"afm_ctl: {ros_namespace}/z_controller refused setpoint: setpoint=-1e-09 m is out of "
+            f"range; allowed range {Z_CONTROLLER_SPECS['setpoint'].range_text()}\n"
+        )
         assert value(zc, "setpoint") == 4e-8
         r = ctl(ctl_env, "set", "cantilever", "quality_factor", "0.2", ns=ros_namespace)
-        assert r.returncode == 1 and f"allowed range {CANTILEVER_NODE_SPECS['quality_factor'].range_text()}" \
-            in r.stderr and "(0.5, 1e+06]" in r.stderr, r.stderr
+        assert (
+            r.returncode == 1
+            and f"allowed range {CANTILEVER_NODE_SPECS['quality_factor'].range_text()}" in r.stderr
+            and "(0.5, 1e+06]" in r.stderr
+        ), r.stderr
         r = ctl(ctl_env, "set", "cantilever", "z_base", "abc", ns=ros_namespace)
-        assert r.returncode == 1 and "z_base='abc' is not a number; allowed range [-1e-06, 0.0001] m" in r.stderr
+        assert (
+            r.returncode == 1
+            and "z_base='abc' is not a number; allowed range [-1e-06, 0.0001] m" in r.stderr
+        )
         assert value(cant, "quality_factor") == 30.0 and value(cant, "z_base") == 3e-8
         # several values are all or nothing: z_min above z_max refuses both
-        r = ctl(ctl_env, "set", "z_controller", "z_max", "-2e-7", "setpoint", "30e-9", ns=ros_namespace)
+        r = ctl(
+            ctl_env, "set", "z_controller", "z_max", "-2e-7", "setpoint", "30e-9", ns=ros_namespace
+        )
         assert r.returncode == 1 and "z_max" in r.stderr and "z_min" in r.stderr, r.stderr
-        assert value(zc, "z_max") == Z_CONTROLLER_SPECS["z_max"].default and value(zc, "setpoint") == 4e-8
+        assert (
+            value(zc, "z_max") == Z_CONTROLLER_SPECS["z_max"].default
+            and value(zc, "setpoint") == 4e-8
+        )
         # an unknown name: exit 1 before anything is sent, with the likely meant one
         r = ctl(ctl_env, "set", "z_controller", "setpiont", "3e-8", ns=ros_namespace)
-        assert r.returncode == 1 and "has no parameter 'setpiont'; did you mean setpoint" in r.stderr, r.stderr
+        assert (
+            r.returncode == 1 and "has no parameter 'setpiont'; did you mean setpoint" in r.stderr
+        ), r.stderr
         # the command line itself: exit 2
         r = ctl(ctl_env, "set", "z_controller", "setpoint", ns=ros_namespace)
         assert r.returncode == 2 and "'setpoint' has no value" in r.stderr
@@ -116,10 +156,18 @@ def test_set_get_and_refusals_with_the_nodes_reasons(monkeypatch, ctl_env, ros_n
         # qualified node name works whatever --ns says
         r = ctl(ctl_env, "get", f"{ros_namespace}/z_controller", "setpoint", "z_min", "i_gain")
         assert r.returncode == 0, r.stderr
-        assert r.stdout.splitlines() == ["setpoint = 4e-08 m (40 nm)", "z_min = -1.5e-07 m (-150 nm)",
-                                         f"i_gain = {value(zc, 'i_gain')!r} 1/s"]
-        r = ctl(ctl_env, "get", "cantilever", "z_base", "force_model", "--value-only", ns=ros_namespace)
-        assert r.returncode == 0 and r.stdout.splitlines() == ["3e-08", value(cant, "force_model")], r.stderr
+        assert r.stdout.splitlines() == [
+            "setpoint = 4e-08 m (40 nm)",
+            "z_min = -1.5e-07 m (-150 nm)",
+            f"i_gain = {value(zc, 'i_gain')!r} 1/s",
+        ]
+        r = ctl(
+            ctl_env, "get", "cantilever", "z_base", "force_model", "--value-only", ns=ros_namespace
+        )
+        assert r.returncode == 0 and r.stdout.splitlines() == [
+            "3e-08",
+            value(cant, "force_model"),
+        ], r.stderr
 
         # list: every parameter of the node with value, unit, range and liveness as the specs say
         r = ctl(ctl_env, "list", "cantilever", ns=ros_namespace)
@@ -141,36 +189,61 @@ def test_unknown_node_exits_3_within_the_timeout(monkeypatch, ctl_env, ros_names
         r = ctl(ctl_env, "get", "z_controler", "setpoint", ns=ros_namespace, timeout="2")
         elapsed = time.monotonic() - start
         assert r.returncode == 3 and r.stdout == ""
-        assert r.stderr.startswith(f"afm_ctl: node {ros_namespace}/z_controler not found within 2 s"), r.stderr
+        assert r.stderr.startswith(
+            f"afm_ctl: node {ros_namespace}/z_controler not found within 2 s"
+        ), r.stderr
         assert len(r.stderr.splitlines()) == 1 and "Traceback" not in r.stderr
         # it waited the timeout, and not much more than the process start
         assert 2.0 <= elapsed < 2.0 + 30.0, elapsed
         # an empty namespace
         r = ctl(ctl_env, "nodes", ns=ros_namespace + "_nothing", timeout="2")
-        assert r.returncode == 3 and f"no node found in namespace {ros_namespace}_nothing within 2 s" in r.stderr
+        assert (
+            r.returncode == 3
+            and f"no node found in namespace {ros_namespace}_nothing within 2 s" in r.stderr
+        )
 
 
-def test_dump_then_load_round_trips_every_writable_parameter(monkeypatch, ctl_env, ros_namespace, tmp_path):
+def test_dump_then_load_round_trips_every_writable_parameter(
+    monkeypatch, ctl_env, ros_namespace, tmp_path
+):
     with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED) as n:
         cant, zc = n["cantilever"], n["z_controller"]
-        assert ctl(ctl_env, "set", "cantilever", "z_base", "30e-9", "free_amplitude", "6e-8",
-                   ns=ros_namespace).returncode == 0
+        assert (
+            ctl(
+                ctl_env,
+                "set",
+                "cantilever",
+                "z_base",
+                "30e-9",
+                "free_amplitude",
+                "6e-8",
+                ns=ros_namespace,
+            ).returncode
+            == 0
+        )
         dumped = tmp_path / "cantilever.yaml"
         r = ctl(ctl_env, "dump", "cantilever", "-o", str(dumped), ns=ros_namespace)
         assert r.returncode == 0, r.stderr
         before = {p.name: p.value for p in cant._parameters.values()}
         content = yaml.safe_load(dumped.read_text())
         assert list(content) == [f"{ros_namespace}/cantilever"]
-        assert content[f"{ros_namespace}/cantilever"]["ros__parameters"] == before  # YAML reads doubles as doubles
+        assert (
+            content[f"{ros_namespace}/cantilever"]["ros__parameters"] == before
+        )  # YAML reads doubles as doubles
 
-        # rcl's own parser (what --params-file uses) reads every value with the node's type (a node of
-        # the same name, seen by nobody)
+        # rcl's own parser (what --params-file uses) reads every value with the node's type (a node
+        # of the same name, seen by nobody)
         monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
         ctx = rclpy.Context()
         rclpy.init(context=ctx, args=["--ros-args", "--params-file", str(dumped)])
         try:
-            reader = rclpy.create_node("cantilever", namespace=ros_namespace, context=ctx, enable_rosout=False,
-                                       automatically_declare_parameters_from_overrides=True)
+            reader = rclpy.create_node(
+                "cantilever",
+                namespace=ros_namespace,
+                context=ctx,
+                enable_rosout=False,
+                automatically_declare_parameters_from_overrides=True,
+            )
             read = {p.name: p.value for p in reader._parameters.values()}
             reader.destroy_node()
         finally:
@@ -179,32 +252,63 @@ def test_dump_then_load_round_trips_every_writable_parameter(monkeypatch, ctl_en
             assert read[name] == v and type(read[name]) is type(v), name
 
         # change writable values, then load the dump: every one comes back
-        assert ctl(ctl_env, "set", "cantilever", "z_base", "35e-9", "quality_factor", "40", "sample", "tgz_grating",
-                   ns=ros_namespace).returncode == 0
+        assert (
+            ctl(
+                ctl_env,
+                "set",
+                "cantilever",
+                "z_base",
+                "35e-9",
+                "quality_factor",
+                "40",
+                "sample",
+                "tgz_grating",
+                ns=ros_namespace,
+            ).returncode
+            == 0
+        )
         r = ctl(ctl_env, "load", "cantilever", str(dumped), ns=ros_namespace)
         assert r.returncode == 0, r.stderr
         assert {p.name: p.value for p in cant._parameters.values()} == before
-        assert "3 changed" in r.stdout.splitlines()[0] and "z_base: 3.5e-08 -> 3e-08" in r.stdout, r.stdout
+        assert (
+            "3 changed" in r.stdout.splitlines()[0] and "z_base: 3.5e-08 -> 3e-08" in r.stdout
+        ), r.stdout
 
         # config/afm.yaml (keys /**/<node>) applies to the node in any namespace
-        assert ctl(ctl_env, "set", "z_controller", "setpoint", "40e-9", ns=ros_namespace).returncode == 0
-        r = ctl(ctl_env, "load", "z_controller", str(ROOT / "config" / "afm.yaml"), ns=ros_namespace)
+        assert (
+            ctl(ctl_env, "set", "z_controller", "setpoint", "40e-9", ns=ros_namespace).returncode
+            == 0
+        )
+        r = ctl(
+            ctl_env, "load", "z_controller", str(ROOT / "config" / "afm.yaml"), ns=ros_namespace
+        )
         assert r.returncode == 0, r.stderr
-        assert {k: value(zc, k) for k in Z_CONTROLLER_SPECS} == {k: s.default for k, s in Z_CONTROLLER_SPECS.items()}
+        assert {k: value(zc, k) for k in Z_CONTROLLER_SPECS} == {
+            k: s.default for k, s in Z_CONTROLLER_SPECS.items()
+        }
 
         # a bad value or an unknown name in the file: exit 1 with the reason, nothing changed
         bad = tmp_path / "bad.yaml"
-        bad.write_text(f"{ros_namespace}/z_controller:\n  ros__parameters:\n    setpoint: 4.0e-08\n    p_gain: -1.0\n")
+        bad.write_text(
+            f"{ros_namespace}/z_controller:\n  ros__parameters:\n    setpoint: 4.0e-08\n    "
+            "p_gain: -1.0\n"
+        )
         r = ctl(ctl_env, "load", "z_controller", str(bad), ns=ros_namespace)
         assert r.returncode == 1 and "p_gain=-1.0" in r.stderr and "[0, 100]" in r.stderr, r.stderr
         assert value(zc, "setpoint") == Z_CONTROLLER_SPECS["setpoint"].default
-        bad.write_text("/**/z_controller:\n  ros__parameters:\n    setpoint: 4.0e-08\n    p_gian: 1.0\n")
+        bad.write_text(
+            "/**/z_controller:\n  ros__parameters:\n    setpoint: 4.0e-08\n    p_gian: 1.0\n"
+        )
         r = ctl(ctl_env, "load", "z_controller", str(bad), ns=ros_namespace)
-        assert r.returncode == 1 and "has no parameter 'p_gian'; did you mean p_gain" in r.stderr, r.stderr
+        assert (
+            r.returncode == 1 and "has no parameter 'p_gian'; did you mean p_gain" in r.stderr
+        ), r.stderr
         assert value(zc, "setpoint") == Z_CONTROLLER_SPECS["setpoint"].default
         # a file for another node
         r = ctl(ctl_env, "load", "z_controller", str(dumped), ns=ros_namespace)
-        assert r.returncode == 1 and f"has no parameters for {ros_namespace}/z_controller" in r.stderr, r.stderr
+        assert (
+            r.returncode == 1 and f"has no parameters for {ros_namespace}/z_controller" in r.stderr
+        ), r.stderr
 
 
 def test_scan_services_answer_and_refuse_with_the_reason(monkeypatch, ctl_env, ros_namespace):
@@ -213,11 +317,19 @@ def test_scan_services_answer_and_refuse_with_the_reason(monkeypatch, ctl_env, r
     with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED) as n:
         scanner = n["scanner"]
         r = ctl(ctl_env, "scan", "stop", ns=ros_namespace)
-        assert (r.returncode, r.stderr) == (1, f"afm_ctl: {ros_namespace}/scanner/stop refused: no scan is running\n")
+        assert (r.returncode, r.stderr) == (
+            1,
+            f"afm_ctl: {ros_namespace}/scanner/stop refused: no scan is running\n",
+        )
         r = ctl(ctl_env, "scan", "frame", ns=ros_namespace)
         assert r.returncode == 0, r.stderr
-        lines, pixels = SCANNER_NODE_SPECS["lines"].default, SCANNER_NODE_SPECS["pixels_per_line"].default
-        assert re.fullmatch(rf"scan 1 requested: {pixels} x {lines} pixels, .* \(one frame\)\n", r.stdout), r.stdout
+        lines, pixels = (
+            SCANNER_NODE_SPECS["lines"].default,
+            SCANNER_NODE_SPECS["pixels_per_line"].default,
+        )
+        assert re.fullmatch(
+            rf"scan 1 requested: {pixels} x {lines} pixels, .* \(one frame\)\n", r.stdout
+        ), r.stdout
         assert scanner.state in ("requested", "scanning")
         r = ctl(ctl_env, "scan", "start", ns=ros_namespace)
         assert r.returncode == 1 and "refused: a scan is already running" in r.stderr, r.stderr
@@ -229,47 +341,102 @@ def test_scan_services_answer_and_refuse_with_the_reason(monkeypatch, ctl_env, r
         r = ctl(ctl_env, "status", ns=ros_namespace)
         assert r.returncode == 0, r.stderr
         assert r.stdout.splitlines()[0] == f"namespace {ros_namespace}: 4 node(s)"
-        for role, what in (("cantilever", "simulation"), ("lockin", "input stream"), ("z_controller", "feedback"),
-                           ("scanner", "scan")):
-            assert re.search(rf"^  {ros_namespace}/{role} +(OK|WARN) +{what}: ", r.stdout, re.M), r.stdout
+        for role, what in (
+            ("cantilever", "simulation"),
+            ("lockin", "input stream"),
+            ("z_controller", "feedback"),
+            ("scanner", "scan"),
+        ):
+            assert re.search(rf"^  {ros_namespace}/{role} +(OK|WARN) +{what}: ", r.stdout, re.M), (
+                r.stdout
+            )
         assert "paused" in r.stdout and "scan: idle" in r.stdout
         r = ctl(ctl_env, "nodes", ns=ros_namespace)
-        assert r.returncode == 0 and r.stdout.split() == sorted(f"{ros_namespace}/{role}" for role in n), r.stdout
+        assert r.returncode == 0 and r.stdout.split() == sorted(
+            f"{ros_namespace}/{role}" for role in n
+        ), r.stdout
 
 
 SMALL_FRAME = {"pixels_per_line": 16, "lines": 3, "line_rate": 10.0, "write_files": False}
 
 
-def test_scan_frame_wait_and_watch_against_a_running_instrument(monkeypatch, ctl_env, ros_namespace):
+def test_scan_frame_wait_and_watch_against_a_running_instrument(
+    monkeypatch, ctl_env, ros_namespace
+):
     with nodes_in_process(ros_namespace, monkeypatch, scanner=SMALL_FRAME) as n:
         scanner = n["scanner"]
         r = ctl(ctl_env, "scan", "frame", "--wait", ns=ros_namespace)
         assert r.returncode == 0, r.stdout + r.stderr
         assert scanner.frames_done == 1
         out = r.stdout.splitlines()
-        assert out[0].startswith("scan 1 requested: 16 x 3 pixels") and out[-1] == "frame done", r.stdout
-        assert out[1].split() == ["t", "[s]", "amplitude", "[nm]", "phase", "[deg]", "z", "piezo", "[nm]", "scan"]
+        assert out[0].startswith("scan 1 requested: 16 x 3 pixels") and out[-1] == "frame done", (
+            r.stdout
+        )
+        assert out[1].split() == [
+            "t",
+            "[s]",
+            "amplitude",
+            "[nm]",
+            "phase",
+            "[deg]",
+            "z",
+            "piezo",
+            "[nm]",
+            "scan",
+        ]
         free = CANTILEVER_NODE_SPECS["free_amplitude"].default
         for line in out[2:-1]:
             cells = line.split()
-            if cells[1] != "-":  # a lock-in output arrived in that second: an amplitude of this cantilever
-                assert 0.0 < float(cells[1]) * 1e-9 < 1.5 * free and -180.0 <= float(cells[2]) <= 180.0, line
+            if (
+                cells[1] != "-"
+            ):  # a lock-in output arrived in that second: an amplitude of this cantilever
+                assert (
+                    0.0 < float(cells[1]) * 1e-9 < 1.5 * free
+                    and -180.0 <= float(cells[2]) <= 180.0
+                ), line
         assert any("line 3/3" in line or "idle, 1 frame(s) done" in line for line in out), r.stdout
 
         # watch: Ctrl-C is its normal end (exit 0)
-        proc = subprocess.Popen([sys.executable, "-m", "afm_ros.tools.afm_ctl", "--ns", ros_namespace, "watch"],
-                                env=ctl_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        first = [proc.stdout.readline(), proc.stdout.readline()]  # the header and one line: it is watching
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "afm_ros.tools.afm_ctl", "--ns", ros_namespace, "watch"],
+            env=ctl_env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        first = [
+            proc.stdout.readline(),
+            proc.stdout.readline(),
+        ]  # the header and one line: it is watching
         proc.send_signal(signal.SIGINT)
         rest, err = proc.communicate(timeout=60)
         assert proc.returncode == 0 and err == "", err
         assert first[0].split()[0] == "t" and len(first[1].split()) >= 5, first
 
         # watch --until-frame-done ends with exit 1 when the scan is stopped first
-        assert ctl(ctl_env, "set", "scanner", "lines", "200", "line_rate", "1", ns=ros_namespace).returncode == 0
-        proc = subprocess.Popen([sys.executable, "-m", "afm_ros.tools.afm_ctl", "--ns", ros_namespace,
-                                 "--timeout", PATIENCE, "watch", "--until-frame-done"],
-                                env=ctl_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert (
+            ctl(
+                ctl_env, "set", "scanner", "lines", "200", "line_rate", "1", ns=ros_namespace
+            ).returncode
+            == 0
+        )
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "afm_ros.tools.afm_ctl",
+                "--ns",
+                ros_namespace,
+                "--timeout",
+                PATIENCE,
+                "watch",
+                "--until-frame-done",
+            ],
+            env=ctl_env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         assert ctl(ctl_env, "scan", "start", ns=ros_namespace).returncode == 0
         seen = []
         while not any("frame 0 line" in line for line in seen):  # it follows the running scan
@@ -278,7 +445,9 @@ def test_scan_frame_wait_and_watch_against_a_running_instrument(monkeypatch, ctl
             seen.append(line)
         assert ctl(ctl_env, "scan", "stop", ns=ros_namespace).returncode == 0
         rest, err = proc.communicate(timeout=60)
-        assert proc.returncode == 1 and "the scan was stopped before the frame was finished" in err, err
+        assert (
+            proc.returncode == 1 and "the scan was stopped before the frame was finished" in err
+        ), err
 
 
 @pytest.fixture
@@ -288,8 +457,18 @@ def separate_processes(ctl_env, tmp_path):
     procs = []
     for exe in ("z_controller_node", "lockin_node", "scanner_node"):
         log = open(tmp_path / f"{exe}.log", "wb")
-        procs.append((subprocess.Popen([str(VENV_BIN / exe)], env=ctl_env, stdout=log, stderr=subprocess.STDOUT,
-                                       cwd=tmp_path), log))
+        procs.append(
+            (
+                subprocess.Popen(
+                    [str(VENV_BIN / exe)],
+                    env=ctl_env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    cwd=tmp_path,
+                ),
+                log,
+            )
+        )
     yield
     for proc, _ in procs:
         proc.send_signal(signal.SIGINT)
@@ -304,10 +483,13 @@ def separate_processes(ctl_env, tmp_path):
 
 def test_separate_processes_in_the_root_namespace(separate_processes, ctl_env):
     r = ctl(ctl_env, "set", "z_controller", "setpoint", "40e-9")
-    assert r.returncode == 0 and r.stdout == "/z_controller setpoint: 4.8e-08 -> 4e-08 m (40 nm)\n", r.stderr
+    assert (
+        r.returncode == 0 and r.stdout == "/z_controller setpoint: 4.8e-08 -> 4e-08 m (40 nm)\n"
+    ), r.stderr
     r = ctl(ctl_env, "get", "/z_controller", "setpoint", "--value-only")
     assert (r.returncode, r.stdout) == (0, "4e-08\n"), r.stderr
-    # the scanner refuses until it has learned the lock-in's output_rate (discovery, then its answer)
+    # the scanner refuses until it has learned the lock-in's output_rate (discovery, then its
+    # answer)
     deadline = time.monotonic() + 120
     while True:
         r = ctl(ctl_env, "scan", "frame")
@@ -332,9 +514,23 @@ def test_afm_instrument_interactive_in_a_namespace(ctl_env, tmp_path):
     ns = "/t_ctl_interactive"
     log = tmp_path / "afm_instrument.log"
     with open(log, "wb") as err:
-        proc = subprocess.Popen([str(VENV_BIN / "afm_instrument"), "--interactive", "--no-record", "--duration", "0.1",
-                                 "--ros-args", "-r", f"__ns:={ns}"], env=ctl_env, cwd=tmp_path,
-                                stdout=subprocess.PIPE, stderr=err, text=True)
+        proc = subprocess.Popen(
+            [
+                str(VENV_BIN / "afm_instrument"),
+                "--interactive",
+                "--no-record",
+                "--duration",
+                "0.1",
+                "--ros-args",
+                "-r",
+                f"__ns:={ns}",
+            ],
+            env=ctl_env,
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+        )
     try:
         for line in proc.stdout:
             if line.startswith("running until Ctrl-C"):
@@ -355,11 +551,18 @@ def test_afm_instrument_interactive_in_a_namespace(ctl_env, tmp_path):
                 if float(cells[0]) > t_set + 0.5:
                     break
             assert time.monotonic() < deadline, r.stdout
-        assert abs(float(cells[1]) - 40.0) < 0.5, r.stdout  # mean over one wall second; std ~0.01 nm
+        assert abs(float(cells[1]) - 40.0) < 0.5, (
+            r.stdout
+        )  # mean over one wall second; std ~0.01 nm
         r = ctl(ctl_env, "status", ns=ns)
         assert r.returncode == 0, r.stderr
-        assert f"{ns}/afm_instrument_monitor" in r.stdout and "(publishes no /diagnostics)" in r.stdout
-        assert re.search(rf"{ns}/lockin +(OK|WARN) +input stream: \d+ chunks, 0 samples lost", r.stdout), r.stdout
+        assert (
+            f"{ns}/afm_instrument_monitor" in r.stdout
+            and "(publishes no /diagnostics)" in r.stdout
+        )
+        assert re.search(
+            rf"{ns}/lockin +(OK|WARN) +input stream: \d+ chunks, 0 samples lost", r.stdout
+        ), r.stdout
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -371,8 +574,9 @@ def test_afm_instrument_interactive_in_a_namespace(ctl_env, tmp_path):
 
 def test_tune_approach_and_withdraw_from_the_command_line(monkeypatch, ctl_env, ros_namespace):
     """The operating workflow from a second terminal: the instrument starts withdrawn 2 um away and
-    paused; afm_ctl starts it, tunes (the fit's f0 within 5 standard errors of the lever's), approaches
-    (engaged, as the z stage says), withdraws, and the scanner then refuses with the reason."""
+    paused; afm_ctl starts it, tunes (the fit's f0 within 5 standard errors of the lever's),
+    approaches (engaged, as the z stage says), withdraws, and the scanner then refuses with the
+    reason."""
     z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
     with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED, z_controller=z) as n:
         zc = n["z_controller"]
@@ -380,12 +584,24 @@ def test_tune_approach_and_withdraw_from_the_command_line(monkeypatch, ctl_env, 
         while zc.stage_state != "withdrawn":
             assert time.monotonic() < end, zc.stage_state
             time.sleep(0.05)
-        r = ctl(ctl_env, "set", "cantilever", "run_until", "-1", "real_time_factor", "0", ns=ros_namespace)
+        r = ctl(
+            ctl_env,
+            "set",
+            "cantilever",
+            "run_until",
+            "-1",
+            "real_time_factor",
+            "0",
+            ns=ros_namespace,
+        )
         assert r.returncode == 0, r.stderr
         r = ctl(ctl_env, "tune", "--wait", ns=ros_namespace)
         assert r.returncode == 0, r.stdout + r.stderr
         tuned = r.stdout.splitlines()[-1]
-        f0, err = float(tuned.split("f0 = ")[1].split()[0]), float(tuned.split("+- ")[1].split()[0])
+        f0, err = (
+            float(tuned.split("f0 = ")[1].split()[0]),
+            float(tuned.split("+- ")[1].split()[0]),
+        )
         assert abs(f0 - 45e3) < 5 * err + 0.01, tuned
         r = ctl(ctl_env, "approach", "--wait", ns=ros_namespace)
         assert r.returncode == 0 and "z stage engaged" in r.stdout, r.stdout + r.stderr
@@ -393,38 +609,57 @@ def test_tune_approach_and_withdraw_from_the_command_line(monkeypatch, ctl_env, 
         r = ctl(ctl_env, "withdraw", "--wait", ns=ros_namespace)
         assert r.returncode == 0 and "z stage withdrawn" in r.stdout, r.stdout + r.stderr
         r = ctl(ctl_env, "scan", "frame", ns=ros_namespace)
-        assert r.returncode == 1 and "not engaged: the z stage is withdrawn" in r.stderr, r.stdout + r.stderr
+        assert r.returncode == 1 and "not engaged: the z stage is withdrawn" in r.stderr, (
+            r.stdout + r.stderr
+        )
 
 
-# --- found from outside (issue 28) -----------------------------------------------------------------------
-def test_values_argparse_or_ros_cannot_type_reach_the_node_and_get_its_reason(monkeypatch, ctl_env, ros_namespace):
-    """-inf, -.inf and -nan are values, not options; an integer beyond 64 bits and a YAML tag go as text:
-    each is refused by the node with its own reason, in one line, no traceback, the old value kept."""
+# --- found from outside (issue 28)
+# -----------------------------------------------------------------------
+def test_values_argparse_or_ros_cannot_type_reach_the_node_and_get_its_reason(
+    monkeypatch, ctl_env, ros_namespace
+):
+    """-inf, -.inf and -nan are values, not options; an integer beyond 64 bits and a YAML tag go as
+    text: each is refused by the node with its own reason, in one line, no traceback, the old value
+    kept."""
     with nodes_in_process(ros_namespace, monkeypatch, cantilever=PAUSED) as n:
         zc, scanner = n["z_controller"], n["scanner"]
-        cases = [(("z_controller", "z_min", "-inf"), "z_min='-inf' is not a number"),
-                 (("z_controller", "z_min", "-.inf"), "z_min=-inf is not finite"),
-                 (("z_controller", "z_min", "-nan"), "z_min='-nan' is not a number"),
-                 (("scanner", "pixels_per_line", "99999999999999999999999"),
-                  "pixels_per_line=99999999999999999999999 is out of range"),
-                 (("z_controller", "setpoint", "!!python/object/apply:os.system [ls]"), "is not a number")]
+        cases = [
+            (("z_controller", "z_min", "-inf"), "z_min='-inf' is not a number"),
+            (("z_controller", "z_min", "-.inf"), "z_min=-inf is not finite"),
+            (("z_controller", "z_min", "-nan"), "z_min='-nan' is not a number"),
+            (
+                ("scanner", "pixels_per_line", "99999999999999999999999"),
+                "pixels_per_line=99999999999999999999999 is out of range",
+            ),
+            (
+                ("z_controller", "setpoint", "!!python/object/apply:os.system [ls]"),
+                "is not a number",
+            ),
+        ]
         for args, reason in cases:
             r = ctl(ctl_env, "set", *args, ns=ros_namespace)
             assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
             assert len(r.stderr.splitlines()) == 1 and reason in r.stderr, (args, r.stderr)
         assert zc.get_parameter("z_min").value == Z_CONTROLLER_SPECS["z_min"].default
-        assert scanner.get_parameter("pixels_per_line").value == SCANNER_NODE_SPECS["pixels_per_line"].default
+        assert (
+            scanner.get_parameter("pixels_per_line").value
+            == SCANNER_NODE_SPECS["pixels_per_line"].default
+        )
 
 
 def test_a_hostile_parameter_file_is_refused_at_once_in_one_line(ctl_env, tmp_path):
-    """Before any node is waited for (none runs here): a billion-laughs file (it grew afm_ctl to 24 GB),
-    5000 nested lists (a RecursionError traceback), a binary file (a UnicodeDecodeError traceback)."""
+    """Before any node is waited for (none runs here): a billion-laughs file (it grew afm_ctl to 24
+    GB), 5000 nested lists (a RecursionError traceback), a binary file (a UnicodeDecodeError
+    traceback)."""
     laughs = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n"
     for prev, name in zip("abcdefgh", "bcdefghi"):
         laughs += f"{name}: &{name} [" + ", ".join([f"*{prev}"] * 9) + "]\n"
-    cases = {"bomb.yaml": (laughs.encode(), "expands to more than 100000 values"),
-             "deep.yaml": (b"[" * 5000 + b"]" * 5000, "nested deeper than 64 levels"),
-             "binary.yaml": (bytes(range(256)), "not a text file")}
+    cases = {
+        "bomb.yaml": (laughs.encode(), "expands to more than 100000 values"),
+        "deep.yaml": (b"[" * 5000 + b"]" * 5000, "nested deeper than 64 levels"),
+        "binary.yaml": (bytes(range(256)), "not a text file"),
+    }
     for name, (content, reason) in cases.items():
         path = tmp_path / name
         path.write_bytes(content)
@@ -436,15 +671,24 @@ def test_a_hostile_parameter_file_is_refused_at_once_in_one_line(ctl_env, tmp_pa
 
 
 def _silent_node_killed(ctl_env, ns: str, executable: str, *args):
-    """``executable`` (a node of the instrument) runs in ``ns`` while ``afm_ctl *args`` follows it; the
-    node is killed (SIGKILL) once afm_ctl printed a line; afm_ctl's exit status, output and the wall
-    seconds from the kill to its end."""
-    node = subprocess.Popen([str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}", "-p", "run_until:=0.0"]
-                            if executable == "cantilever_node" else
-                            [str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}"], env=ctl_env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    watch = subprocess.Popen([sys.executable, "-m", "afm_ros.tools.afm_ctl", "--timeout", "5", "--ns", ns, *args],
-                             env=ctl_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    """``executable`` (a node of the instrument) runs in ``ns`` while ``afm_ctl *args`` follows it;
+    the node is killed (SIGKILL) once afm_ctl printed a line; afm_ctl's exit status, output and the
+    wall seconds from the kill to its end."""
+    node = subprocess.Popen(
+        [str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}", "-p", "run_until:=0.0"]
+        if executable == "cantilever_node"
+        else [str(VENV_BIN / executable), "--ros-args", "-r", f"__ns:={ns}"],
+        env=ctl_env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    watch = subprocess.Popen(
+        [sys.executable, "-m", "afm_ros.tools.afm_ctl", "--timeout", "5", "--ns", ns, *args],
+        env=ctl_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         first = watch.stdout.readline()  # the header: it found the node and follows it
         assert first, watch.stderr.read()
@@ -460,11 +704,14 @@ def _silent_node_killed(ctl_env, ns: str, executable: str, *args):
                 p.wait()
 
 
-@pytest.mark.parametrize("executable, args", [("lockin_node", ("watch",)),
-                                              ("scanner_node", ("watch", "--until-frame-done"))])
+@pytest.mark.parametrize(
+    "executable, args",
+    [("lockin_node", ("watch",)), ("scanner_node", ("watch", "--until-frame-done"))],
+)
 def test_watch_ends_with_exit_3_when_the_instrument_dies(ctl_env, ros_namespace, executable, args):
-    """SIGKILL the instrument under `afm_ctl watch` (and --until-frame-done, the wait of scan frame --wait):
-    it ends naming the silence, exit 3, within its --timeout (5 s) plus a poll (it never ended before)."""
+    """SIGKILL the instrument under `afm_ctl watch` (and --until-frame-done, the wait of scan frame
+    --wait): it ends naming the silence, exit 3, within its --timeout (5 s) plus a poll (it never
+    ended before)."""
     status, out, err, after = _silent_node_killed(ctl_env, ros_namespace, executable, *args)
     assert status == 3, (out, err)
     assert f"the instrument in {ros_namespace} (no /diagnostics from any of its nodes" in err, err
@@ -473,4 +720,6 @@ def test_watch_ends_with_exit_3_when_the_instrument_dies(ctl_env, ros_namespace,
 
 def test_watch_period_beyond_an_hour_is_refused(ctl_env):
     r = ctl(ctl_env, "watch", "--period", "1e9", ns="/nobody_here")
-    assert r.returncode == 2 and "--period=1e+09 s is out of range; allowed (0, 3600] s" in r.stderr, r.stderr
+    assert (
+        r.returncode == 2 and "--period=1e+09 s is out of range; allowed (0, 3600] s" in r.stderr
+    ), r.stderr

@@ -1,5 +1,6 @@
 """A plain ``pip install`` (no ``scripts/install.sh`` .pth, no sourced ROS) still finds the message
 definitions: importing afm_ros adds the interpreter's prefix to AMENT_PREFIX_PATH."""
+
 import os
 import subprocess
 import sys
@@ -23,7 +24,9 @@ print('MSG: std_msgs/MultiArrayLayout' in message_definition('std_msgs/msg/Float
 
 
 def test_import_makes_the_pypi_ros_packages_findable():
-    out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     assert lines[0] == "missing before import"  # the failure the fallback exists for

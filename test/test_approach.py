@@ -5,6 +5,7 @@ its output: the number of motor steps from the start distance, the engage inside
 range, the amplitude at the setpoint afterwards, and no crash: the approach never presses harder
 than 1.5 times imaging at the setpoint (peak tip-sample force of any chunk).
 """
+
 import math
 
 import numpy as np
@@ -38,20 +39,29 @@ def test_approach_engages_from_micrometres_without_a_crash(start):
     amplitude = np.concatenate([r.amplitude for r in steady])
     assert amplitude.mean() == pytest.approx(w.controller.params["setpoint"], rel=1e-3)
     imaging_peak = max(r.force_peak for r in steady)
-    approach_peak = max(r.force_peak for r in w.records[:approach_chunks + 5])
+    approach_peak = max(r.force_peak for r in w.records[: approach_chunks + 5])
     assert 0 < imaging_peak and approach_peak < 1.5 * imaging_peak, (approach_peak, imaging_peak)
     # the free part took the time the algorithm says: extension at 2 um/s, retraction at 20 um/s
-    # (plus the blind time: the tip starts engaged, so the approach's jump to the start distance is seen
-    # only after the feedback latency, a chunk and the ring-up: (2 + 2) x 2 ms + 5 Q / (pi f0) = 8.9 ms)
+    # (plus the blind time: the tip starts engaged, so the approach's jump to the start distance is
+    # seen only after the feedback latency, a chunk and the ring-up: (2 + 2) x 2 ms + 5 Q / (pi f0)
+    # = 8.9 ms)
     free_time = cycles * (3e-6 / 2e-6 + 3e-6 / 20e-6 + STEPS_PER_CYCLE * 1e-3)
     blind = 4 * 2e-3 + 5 * 25 / (math.pi * 45e3)
-    assert log.engaged_at - log.started_at == pytest.approx(free_time + (0.0 - log.engaged_z) / 2e-6 + blind,
-                                                            abs=0.005)
+    assert log.engaged_at - log.started_at == pytest.approx(
+        free_time + (0.0 - log.engaged_z) / 2e-6 + blind, abs=0.005
+    )
 
 
 def test_approach_is_deterministic_and_withdraw_stops_scanning():
-    sample = grating(step_height=20e-9, pitch=1e-6, duty=0.5, size=(8e-6, 8e-6), pixels=256,
-                     line_material="silicon", trench_material="silicon")
+    sample = grating(
+        step_height=20e-9,
+        pitch=1e-6,
+        duty=0.5,
+        size=(8e-6, 8e-6),
+        pixels=256,
+        line_material="silicon",
+        trench_material="silicon",
+    )
     runs = []
     for _ in range(2):
         w = WiredInstrument(cantilever=EXACT, z_controller=Z_RANGE, sample=sample)
@@ -61,8 +71,12 @@ def test_approach_is_deterministic_and_withdraw_stops_scanning():
     w.withdraw()
     assert not w.engaged and w.controller.z == Z_RANGE["z_max"]
     assert w.motor == pytest.approx(runs[0][2] + 1e-6)  # withdraw_distance
-    with pytest.raises(ValueError, match=r"start_scan: not engaged \(the z stage is withdrawn\); approach first"):
-        w.start_scan(dict(scan_size_x=1e-6, scan_size_y=1e-6, scan_center_x=4e-6, scan_center_y=4e-6))
+    with pytest.raises(
+        ValueError, match=r"start_scan: not engaged \(the z stage is withdrawn\); approach first"
+    ):
+        w.start_scan(
+            dict(scan_size_x=1e-6, scan_size_y=1e-6, scan_center_x=4e-6, scan_center_y=4e-6)
+        )
     # far from the surface the oscillation is free again
     rec = w.step()
     assert rec.amplitude.mean() == pytest.approx(60e-9, rel=1e-3)
@@ -70,14 +84,21 @@ def test_approach_is_deterministic_and_withdraw_stops_scanning():
 
 def test_bad_approach_input_is_refused_by_name_and_a_landed_tip_is_reported():
     w = WiredInstrument(cantilever=EXACT, z_controller=Z_RANGE)
-    with pytest.raises(ValueError, match=r"approach_start_distance=0\.01 m is beyond the motor's reach: "
-                                         r"motor_travel=0\.005 m plus the z range 3e-06 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"approach_start_distance=0\.01 m is beyond the motor's reach: "
+        r"motor_travel=0\.005 m plus the z range 3e-06 m",
+    ):
         w.approach({"approach_start_distance": 1e-2})
-    with pytest.raises(ValueError, match=r"motor_step=1e-05 m is out of range; allowed range \[1e-09, 1e-06\] m"):
+    with pytest.raises(
+        ValueError, match=r"motor_step=1e-05 m is out of range; allowed range \[1e-09, 1e-06\] m"
+    ):
         w.approach({"motor_step": 1e-5})
     assert set(APPROACH_SPECS) >= {"approach_speed", "motor_travel", "withdraw_distance"}
     # the tip starts 20 nm from the surface: the amplitude never rises above the setpoint
     w = WiredInstrument(cantilever=EXACT, z_controller=Z_RANGE)
-    with pytest.raises(RuntimeError, match="approach failed .*the amplitude stayed at or below the setpoint"):
+    with pytest.raises(
+        RuntimeError, match="approach failed .*the amplitude stayed at or below the setpoint"
+    ):
         w.approach({"approach_start_distance": 20e-9})
     assert math.isfinite(w.t)

@@ -1,6 +1,7 @@
 """Approach and withdraw over real DDS: the z controller node's services drive the same z stage as
 the wired instrument (core/approach.py), the cantilever applies piezo plus motor, and the scanner
 refuses to scan unless engaged."""
+
 from __future__ import annotations
 
 import json
@@ -8,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import EXACT_PHYSICS
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -18,7 +20,6 @@ from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.lockin_node import LockInNode
 from afm_ros.nodes.scanner_node import ScannerNode
 from afm_ros.nodes.z_controller_node import ZControllerNode
-from conftest import EXACT_PHYSICS
 
 Z = {"z_min": -3e-6, "z_max": 0.0, "approach_start_distance": 2e-6}
 
@@ -39,19 +40,36 @@ def call(executor, node, name):
 
 
 def test_approach_engages_over_ros_like_the_wired_instrument_and_withdraw_blocks_scans(
-        ros_context, ros_executor, ros_namespace):
+    ros_context, ros_executor, ros_namespace
+):
     ns = ros_namespace
-    cantilever = CantileverNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {**EXACT_PHYSICS, "real_time_factor": 0.0,
-                                            "feedback_sync": "lockstep"}.items()])
+    cantilever = CantileverNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[
+            Parameter(k, value=v)
+            for k, v in {
+                **EXACT_PHYSICS,
+                "real_time_factor": 0.0,
+                "feedback_sync": "lockstep",
+            }.items()
+        ],
+    )
     lockin = LockInNode(context=ros_context, namespace=ns)
-    controller = ZControllerNode(context=ros_context, namespace=ns,
-                                 parameter_overrides=[Parameter(k, value=v) for k, v in Z.items()])
-    scanner = ScannerNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter("write_files", value=False)])
+    controller = ZControllerNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[Parameter(k, value=v) for k, v in Z.items()],
+    )
+    scanner = ScannerNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[Parameter("write_files", value=False)],
+    )
     stages = []
-    controller.create_subscription(String, topics.Z_STAGE, lambda m: stages.append(json.loads(m.data)),
-                                   topics.LATCHED_QOS)
+    controller.create_subscription(
+        String, topics.Z_STAGE, lambda m: stages.append(json.loads(m.data)), topics.LATCHED_QOS
+    )
     for n in (cantilever, lockin, controller, scanner):
         ros_executor.add_node(n)
     spin_until(ros_executor, lambda: controller.stage is not None, what="the cantilever's z_base")
@@ -59,16 +77,23 @@ def test_approach_engages_over_ros_like_the_wired_instrument_and_withdraw_blocks
     assert answer.success, answer.message
     again = call(ros_executor, controller, f"{ns}/z_controller/approach")
     assert not again.success and "already running" in again.message
-    spin_until(ros_executor, lambda: scanner.z_stage is not None and scanner.z_stage["state"] == "approaching")
-    with pytest.raises(ValueError, match=r"not engaged: the z stage is approaching; approach first"):
+    spin_until(
+        ros_executor,
+        lambda: scanner.z_stage is not None and scanner.z_stage["state"] == "approaching",
+    )
+    with pytest.raises(
+        ValueError, match=r"not engaged: the z stage is approaching; approach first"
+    ):
         scanner.check_start()
-    spin_until(ros_executor, lambda: controller.stage_state != "approaching", what="the approach's end")
+    spin_until(
+        ros_executor, lambda: controller.stage_state != "approaching", what="the approach's end"
+    )
     assert controller.stage_state == "engaged", stages[-1]
     log = controller.stage.auto.log
     # the wired instrument's approach from the same start: the same algorithm on the same physics,
     # started at another simulated time (when the service was called), so the same motor steps and
-    # an engage z within the z travel of one lock-in output interval plus the loop's latency (2 um/s
-    # x 5 ms = 10 nm)
+    # an engage z within the z travel of one lock-in output interval plus the loop's latency (2
+    # um/s x 5 ms = 10 nm)
     w = WiredInstrument(cantilever=EXACT_PHYSICS, z_controller={"z_min": -3e-6, "z_max": 0.0})
     wired = w.approach({"approach_start_distance": 2e-6})
     assert log.steps == wired.steps and len(log.cycles) == len(wired.cycles)

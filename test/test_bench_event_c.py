@@ -1,8 +1,9 @@
-"""The C baseline of ``rk4_event`` (benchmarks/bench_event_baseline.c, timed by ``python -m benchmarks.bench``)
-is the same algorithm as numba's ``events.advance_event``: the same operations in the same order, so
-over the hard tapping case (z_base 20 nm, every model switching law at least twice per period) both
-end in the same state, count the same split steps and sub-steps and integrate the same energies per
-step, bit for bit. No timing here (benchmarks.bench does that)."""
+"""The C baseline of ``rk4_event`` (benchmarks/bench_event_baseline.c, timed by ``python -m
+benchmarks.bench``) is the same algorithm as numba's ``events.advance_event``: the same operations
+in the same order, so over the hard tapping case (z_base 20 nm, every model switching law at least
+twice per period) both end in the same state, count the same split steps and sub-steps and
+integrate the same energies per step, bit for bit. No timing here (benchmarks.bench does that)."""
+
 from __future__ import annotations
 
 import copy
@@ -16,8 +17,9 @@ from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE, hard_tapping_mod
 from afm_ros.core.physics.simulation import Simulation
 from benchmarks.bench import build_event_c, event_c_call
 
-pytestmark = pytest.mark.skipif(shutil.which("gcc") is None and shutil.which("cc") is None,
-                                reason="no C compiler (gcc/cc)")
+pytestmark = pytest.mark.skipif(
+    shutil.which("gcc") is None and shutil.which("cc") is None, reason="no C compiler (gcc/cc)"
+)
 
 Z_BASE = HARD_TAPPING_Z_BASE
 MODELS = hard_tapping_models()
@@ -26,7 +28,9 @@ MODELS = hard_tapping_models()
 def samples_rows():
     """Rows of Samples.work (energies per step, then the impulse), as advance_event writes them."""
     c = Cantilever()
-    sim = Simulation(c, Drive.from_free_amplitude(c, 60e-9), MODELS["dmt"], Z_BASE, 220, "rk4_event")
+    sim = Simulation(
+        c, Drive.from_free_amplitude(c, 60e-9), MODELS["dmt"], Z_BASE, 220, "rk4_event"
+    )
     return sim.advance(1).work.shape[0]
 
 
@@ -42,10 +46,18 @@ def c_kernel(tmp_path_factory):
 @pytest.mark.parametrize("name", list(MODELS))
 def test_c_baseline_is_bit_identical_to_numba(c_kernel, name, spp, beta):
     c = Cantilever()
-    sim = Simulation(c, Drive.from_free_amplitude(c, 60e-9), MODELS[name], Z_BASE, spp, "rk4_event",
-                     check_resolution=False)
+    sim = Simulation(
+        c,
+        Drive.from_free_amplitude(c, 60e-9),
+        MODELS[name],
+        Z_BASE,
+        spp,
+        "rk4_event",
+        check_resolution=False,
+    )
     sim.event_beta = beta
-    # from rest into hard tapping; the second part starts at a step index that is not a period's start
+    # from rest into hard tapping; the second part starts at a step index that is not a period's
+    # start
     for steps in (1000, 2500):
         start = copy.deepcopy(sim)
         y, stats = event_c_call(c_kernel, start, steps)
@@ -64,7 +76,8 @@ def test_c_baseline_is_bit_identical_to_numba(c_kernel, name, spp, beta):
 
 
 def test_c_baseline_far_from_the_surface_is_the_plain_step(c_kernel):
-    """Far from the surface no step is split or cut, in C as in numba, and the state is the same."""
+    """Far from the surface no step is split or cut, in C as in numba, and the state is the
+    same."""
     c = Cantilever()
     sim = Simulation(c, Drive.from_free_amplitude(c, 60e-9), MODELS["dmt"], 2e-6, 220, "rk4_event")
     y, stats = event_c_call(c_kernel, sim, 220 * 20 + 3)

@@ -3,6 +3,7 @@
 Most tests run the node as fast as possible (real_time_factor 0) so a few hundred simulated
 milliseconds cost well under a second of wall time; only the pacing test runs paced.
 """
+
 from __future__ import annotations
 
 import math
@@ -10,25 +11,26 @@ import time
 
 import numpy as np
 import pytest
+from conftest import EXACT_PHYSICS
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import Float64MultiArray
 
-from conftest import EXACT_PHYSICS
+from afm_ros.core.cantilever_params import build, default_values
+from afm_ros.core.physics import Simulation, free_solution, steady_state
+from afm_ros.formats.chunk_layout import unpack
 from afm_ros.nodes.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
 from afm_ros.nodes.topics import CONSUMER_QOS, Acknowledger
-from afm_ros.core.cantilever_params import build, default_values
-from afm_ros.formats.chunk_layout import unpack
-from afm_ros.core.physics import Simulation, free_solution, steady_state
 
 A0 = 60e-9  # default free amplitude [m]
 
 
 class Collector(Node):
-    """Subscribes to the cantilever's chunks and keeps (header, samples) of each; acknowledges them on
-    cantilever/ack like every consumer, so the cantilever never runs more than flow_window chunks ahead."""
+    """Subscribes to the cantilever's chunks and keeps (header, samples) of each; acknowledges them
+    on cantilever/ack like every consumer, so the cantilever never runs more than flow_window
+    chunks ahead."""
 
     def __init__(self, ctx, ns, topic="cantilever/deflection"):
         super().__init__("collector", context=ctx, namespace=ns)
@@ -49,7 +51,8 @@ class Collector(Node):
         return sum(s.shape[0] for _, s in self.chunks)
 
     def stream(self, start_chunk=0):
-        """(index, t, z, header-per-sample z_offset, drive phase) of all samples from ``start_chunk`` on."""
+        """(index, t, z, header-per-sample z_offset, drive phase) of all samples from
+        ``start_chunk`` on."""
         parts = self.chunks[start_chunk:]
         idx = np.concatenate([h.first_sample_index + np.arange(s.shape[0]) for h, s in parts])
         t = np.concatenate([h.times(s.shape[0]) for h, s in parts])
@@ -68,7 +71,10 @@ def spin_until(executor, condition, timeout=20.0):
 
 
 def start(ctx, executor, ns, **params):
-    overrides = [Parameter(k, value=v) for k, v in {"real_time_factor": 0.0, **EXACT_PHYSICS, **params}.items()]
+    overrides = [
+        Parameter(k, value=v)
+        for k, v in {"real_time_factor": 0.0, **EXACT_PHYSICS, **params}.items()
+    ]
     node = CantileverNode(context=ctx, namespace=ns, parameter_overrides=overrides)
     collector = Collector(ctx, ns)
     executor.add_node(node)
@@ -91,7 +97,9 @@ def test_free_air_matches_analytic_solution(ros_context, ros_executor, ros_names
     node, col = start(ros_context, ros_executor, ros_namespace, force_model="none")
     spin_until(ros_executor, lambda: col.samples() >= 27000)  # 30 ms, ~170 amplitude decay times
     idx, t, z, off, phase = col.stream()
-    assert np.array_equal(idx, np.arange(idx.shape[0])), "stream must start at index 0 without gaps"
+    assert np.array_equal(idx, np.arange(idx.shape[0])), (
+        "stream must start at index 0 without gaps"
+    )
     setup = build({**default_values(), "force_model": "none"})
     # sample times: index * (decimation * dt), reconstructed from the preamble alone
     np.testing.assert_allclose(t, idx * setup.decimation * setup.dt, rtol=1e-12, atol=1e-15)
@@ -113,7 +121,9 @@ def test_fixed_z_base_matches_physics_core_steady_state(ros_context, ros_executo
     assert np.all(off == z_base)  # no z-controller: z_piezo stays 0
     # bit-for-bit equal to one uninterrupted physics-core run: chunking carries the state exactly
     setup = build({**default_values(), "z_base": z_base})
-    ref = reference_simulation(z_base=z_base).advance(idx.shape[0] * setup.decimation, setup.decimation)
+    ref = reference_simulation(z_base=z_base).advance(
+        idx.shape[0] * setup.decimation, setup.decimation
+    )
     assert np.array_equal(z, ref.z)
     ss = steady_state(reference_simulation(z_base=z_base), n_harmonics=21).analysis
     amp, lag = demodulate(z[-9000:], phase[-9000:])
@@ -125,7 +135,9 @@ def test_fixed_z_base_matches_physics_core_steady_state(ros_context, ros_executo
     assert amp < 0.95 * A0  # the sample really is tapped at this z_base (free: A0)
 
 
-def test_parameter_changes_through_set_parameters_service(ros_context, ros_executor, ros_namespace):
+def test_parameter_changes_through_set_parameters_service(
+    ros_context, ros_executor, ros_namespace
+):
     node, col = start(ros_context, ros_executor, ros_namespace)
     client_node = Node("param_client", context=ros_context, namespace=ros_namespace)
     ros_executor.add_node(client_node)
@@ -146,36 +158,54 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     first_new = next(i for i, (h, _) in enumerate(col.chunks) if h.z_offset == 30e-9)
     spin_until(ros_executor, lambda: len(col.chunks) >= first_new + 20)
     changed = [i for i, (h, _) in enumerate(col.chunks) if h.z_offset == 30e-9]
-    assert changed and all(h.z_offset == 30e-9 for h, _ in col.chunks[changed[0]:])
-    assert all(h.z_offset == 40e-9 for h, _ in col.chunks[:changed[0]])
+    assert changed and all(h.z_offset == 30e-9 for h, _ in col.chunks[changed[0] :])
+    assert all(h.z_offset == 40e-9 for h, _ in col.chunks[: changed[0]])
     idx, t, z, off, phase = col.stream()
     ss = steady_state(reference_simulation(z_base=30e-9)).analysis
     amp, lag = demodulate(z[-9000:], phase[-9000:])
-    # 30 ms after the change ~ 170 decay times: only the (tested above) 1e-11 m demodulation error left
+    # 30 ms after the change ~ 170 decay times: only the (tested above) 1e-11 m demodulation error
+    # left
     assert amp == pytest.approx(ss.amplitude, abs=2e-11)
     assert lag == pytest.approx(ss.phase_deg, abs=0.02)
 
     # rejected: out of range (spec) and a cross-field violation; reason names the field
-    for name, value in (("z_base", 1.0), ("quality_factor", -3.0),
-                        ("output_sample_rate", 2e7),  # > drive_frequency * steps_per_period (~9-10 MHz)
-                        ("steps_per_period", 21), ):
+    for name, value in (
+        ("z_base", 1.0),
+        ("quality_factor", -3.0),
+        ("output_sample_rate", 2e7),  # > drive_frequency * steps_per_period (~9-10 MHz)
+        ("steps_per_period", 21),
+    ):
         if name == "steps_per_period":
-            # 21 steps per drive period is fine at resonance; make it a violation by also asking for
-            # a drive at 0.5 f0 in the same request (21 * 0.5 = 10.5 < 20 steps per resonance period)
-            params = [Parameter("steps_per_period", value=21), Parameter("drive_frequency", value=22.5e3)]
+            # 21 steps per drive period is fine at resonance; make it a violation by also asking
+            # for a drive at 0.5 f0 in the same request (21 * 0.5 = 10.5 < 20 steps per resonance
+            # period)
+            params = [
+                Parameter("steps_per_period", value=21),
+                Parameter("drive_frequency", value=22.5e3),
+            ]
         else:
             params = [Parameter(name, value=value)]
         results = call(client.set_parameters_atomically(params)).result
         assert not results.successful, name
         assert name in results.reason, results.reason
-    got = call(client.get_parameters(["z_base", "output_sample_rate", "steps_per_period", "drive_frequency"]))
+    got = call(
+        client.get_parameters(
+            ["z_base", "output_sample_rate", "steps_per_period", "drive_frequency"]
+        )
+    )
     d = default_values()
     assert [v.double_value or v.integer_value for v in got.values] == [
-        30e-9, d["output_sample_rate"], d["steps_per_period"], d["drive_frequency"]]
+        30e-9,
+        d["output_sample_rate"],
+        d["steps_per_period"],
+        d["drive_frequency"],
+    ]
     n_before = len(col.chunks)
     spin_until(ros_executor, lambda: len(col.chunks) >= n_before + 5)  # still publishing
-    assert all(h.z_offset == 30e-9 and h.sample_interval == col.chunks[0][0].sample_interval
-               for h, _ in col.chunks[changed[0]:])
+    assert all(
+        h.z_offset == 30e-9 and h.sample_interval == col.chunks[0][0].sample_interval
+        for h, _ in col.chunks[changed[0] :]
+    )
 
     # a drive-frequency change starts a new integration segment: index, time and drive phase
     # must continue without a gap or jump
@@ -185,25 +215,37 @@ def test_parameter_changes_through_set_parameters_service(ros_context, ros_execu
     n_before = len(col.chunks)
     spin_until(ros_executor, lambda: len(col.chunks) >= n_before + 5)
     idx, t, z, off, phase = col.stream()
-    assert np.array_equal(idx, np.arange(idx.shape[0])), "gap or duplicate across parameter changes"
+    assert np.array_equal(idx, np.arange(idx.shape[0])), (
+        "gap or duplicate across parameter changes"
+    )
     assert np.all(np.diff(t) > 0)
     k = next(i for i, (h, _) in enumerate(col.chunks) if h.drive_frequency == 44e3)
     h_old, s_old = col.chunks[k - 1]
     h_new = col.chunks[k][0]
     n_old = s_old.shape[0]
-    # first new sample is one (new) step-grid interval after the last old one, drive phase continuous
-    assert h_new.t_start == pytest.approx(h_old.t_start + n_old * h_old.sample_interval, rel=1e-12, abs=0)
+    # first new sample is one (new) step-grid interval after the last old one, drive phase
+    # continuous
+    assert h_new.t_start == pytest.approx(
+        h_old.t_start + n_old * h_old.sample_interval, rel=1e-12, abs=0
+    )
     new = build({**default_values(), "drive_frequency": 44e3})
-    assert h_new.sample_interval == pytest.approx(new.decimation / (44e3 * new.steps_per_period), rel=1e-12, abs=0)
-    expected_phase = (h_old.drive_phase + 2 * math.pi * h_old.drive_frequency * n_old * h_old.sample_interval)
-    assert math.remainder(h_new.drive_phase - expected_phase, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
-    # deflection has no jump: consecutive samples differ by at most ~ A w dt_s (0.34 A at 20 samples/period)
+    assert h_new.sample_interval == pytest.approx(
+        new.decimation / (44e3 * new.steps_per_period), rel=1e-12, abs=0
+    )
+    expected_phase = (
+        h_old.drive_phase + 2 * math.pi * h_old.drive_frequency * n_old * h_old.sample_interval
+    )
+    assert math.remainder(h_new.drive_phase - expected_phase, 2 * math.pi) == pytest.approx(
+        0.0, abs=1e-9
+    )
+    # deflection has no jump: consecutive samples differ by at most ~ A w dt_s (0.34 A at 20
+    # samples/period)
     assert np.max(np.abs(np.diff(z))) < 0.4 * A0
 
 
 def test_z_command_input_moves_the_gap(ros_context, ros_executor, ros_namespace):
-    """An unsynchronised z command (answered index -1, e.g. a hand-written controller) is applied at
-    the next chunk boundary without engaging the lockstep."""
+    """An unsynchronised z command (answered index -1, e.g. a hand-written controller) is applied
+    at the next chunk boundary without engaging the lockstep."""
     node, col = start(ros_context, ros_executor, ros_namespace)
     pub_node = Node("z_pub", context=ros_context, namespace=ros_namespace)
     ros_executor.add_node(pub_node)
@@ -211,8 +253,12 @@ def test_z_command_input_moves_the_gap(ros_context, ros_executor, ros_namespace)
     spin_until(ros_executor, lambda: pub.get_subscription_count() > 0)
     pub.publish(Float64MultiArray(data=[-1.0, 0.0, 20e-9]))
     # gap = z_base + z_piezo + z: positive z_piezo retracts, z_offset = 40 + 20 nm
-    spin_until(ros_executor,
-               lambda: col.chunks and col.chunks[-1][0].z_offset == pytest.approx(60e-9, rel=1e-12, abs=0))
+    spin_until(
+        ros_executor,
+        lambda: (
+            col.chunks and col.chunks[-1][0].z_offset == pytest.approx(60e-9, rel=1e-12, abs=0)
+        ),
+    )
     n = len(col.chunks)
     spin_until(ros_executor, lambda: len(col.chunks) >= n + 20)
     idx, t, z, off, phase = col.stream(start_chunk=n + 10)
@@ -226,8 +272,12 @@ def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, 
     node, col = start(ros_context, ros_executor, ros_namespace, chunk_duration=1e-3)
     forces = Node("force_collector", context=ros_context, namespace=ros_namespace)
     fchunks = []
-    forces.create_subscription(Float64MultiArray, "cantilever/tip_sample_force",
-                               lambda m: fchunks.append(unpack(m.data)), CHUNK_QOS)
+    forces.create_subscription(
+        Float64MultiArray,
+        "cantilever/tip_sample_force",
+        lambda m: fchunks.append(unpack(m.data)),
+        CHUNK_QOS,
+    )
     ros_executor.add_node(forces)
     # 2 s simulated = 2000 chunks, 1.8 million samples
     spin_until(ros_executor, lambda: col.samples() >= 1_800_000, timeout=60)
@@ -250,7 +300,9 @@ def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, 
         np.testing.assert_allclose(sf, model.force(h.z_offset + s), rtol=1e-12, atol=0)
 
 
-def test_paced_run_follows_the_clock_and_reports_diagnostics(ros_context, ros_executor, ros_namespace):
+def test_paced_run_follows_the_clock_and_reports_diagnostics(
+    ros_context, ros_executor, ros_namespace
+):
     node, col = start(ros_context, ros_executor, ros_namespace, real_time_factor=0.2)
     spin_until(ros_executor, lambda: col.chunks)
     t0, sim0 = time.monotonic(), node.sim_time
@@ -265,31 +317,44 @@ def test_paced_run_follows_the_clock_and_reports_diagnostics(ros_context, ros_ex
     values = {kv.key: kv.value for kv in col.diagnostics[-1].status[0].values}
     assert float(values["real_time_factor_requested"]) == 0.2
     assert 0.1 <= float(values["real_time_factor_achieved"]) <= 0.21
-    assert values["consumers"] == f"{ros_namespace}/collector" and values["feedback_locked"] == "false"
+    assert (
+        values["consumers"] == f"{ros_namespace}/collector"
+        and values["feedback_locked"] == "false"
+    )
     idx, *_ = col.stream()
     assert np.array_equal(idx, np.arange(idx.shape[0]))
 
 
 def test_params_file_start_values_and_bad_values(ros_context, ros_namespace, tmp_path):
     good = tmp_path / "good.yaml"
-    good.write_text("/**:\n  ros__parameters:\n    z_base: 25.0e-9\n    quality_factor: 100.0\n"
-                    "    real_time_factor: 0.0\n")
-    node = CantileverNode(context=ros_context, namespace=ros_namespace,
-                          cli_args=["--ros-args", "--params-file", str(good)])
+    good.write_text(
+        "/**:\n  ros__parameters:\n    z_base: 25.0e-9\n    quality_factor: 100.0\n"
+        "    real_time_factor: 0.0\n"
+    )
+    node = CantileverNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        cli_args=["--ros-args", "--params-file", str(good)],
+    )
     try:
         assert node.get_parameter("z_base").value == 25e-9
         assert node.simulation.z_offset == 25e-9
         assert node.simulation.cantilever.quality_factor == 100.0
     finally:
         node.destroy_node()
-    for text, field in (("z_base: 1.0", "z_base"),  # out of the allowed range
-                        ("output_sample_rate: 2.0e7", "output_sample_rate"),  # > step rate
-                        ("force_model: 'lj'", "force_model")):
+    for text, field in (
+        ("z_base: 1.0", "z_base"),  # out of the allowed range
+        ("output_sample_rate: 2.0e7", "output_sample_rate"),  # > step rate
+        ("force_model: 'lj'", "force_model"),
+    ):
         bad = tmp_path / "bad.yaml"
         bad.write_text(f"/**:\n  ros__parameters:\n    {text}\n")
         with pytest.raises(Exception) as info:
-            CantileverNode(context=ros_context, namespace=ros_namespace,
-                           cli_args=["--ros-args", "--params-file", str(bad)])
+            CantileverNode(
+                context=ros_context,
+                namespace=ros_namespace,
+                cli_args=["--ros-args", "--params-file", str(bad)],
+            )
         assert field in str(info.value)
 
 
@@ -298,13 +363,20 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
     physics core's steady state (events executor: serves every lock-in output message)."""
     from geometry_msgs.msg import Vector3Stamped
     from rclpy.experimental import EventsExecutor
+
     from afm_ros.nodes.lockin_node import LockInNode
+
     z_base = 35e-9
     executor = EventsExecutor(context=ros_context)
-    node = CantileverNode(context=ros_context, namespace=ros_namespace,
-                          parameter_overrides=[Parameter("real_time_factor", value=0.0),
-                                               Parameter("z_base", value=z_base)]
-                          + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()])
+    node = CantileverNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[
+            Parameter("real_time_factor", value=0.0),
+            Parameter("z_base", value=z_base),
+        ]
+        + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()],
+    )
     lockin = LockInNode(context=ros_context, namespace=ros_namespace)
     listener = Node("xy_listener", context=ros_context, namespace=ros_namespace)
     xy = []
@@ -316,8 +388,12 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
         spin_until(executor, lambda: node.sim_time >= 0.04)  # ~200 amplitude decay times
         node.stop()
         t_end = node.sim_time
-        spin_until(executor, lambda: xy and xy[-1].header.stamp.sec + 1e-9 * xy[-1].header.stamp.nanosec
-                   >= t_end - 2e-3)
+        spin_until(
+            executor,
+            lambda: (
+                xy and xy[-1].header.stamp.sec + 1e-9 * xy[-1].header.stamp.nanosec >= t_end - 2e-3
+            ),
+        )
         last = [m for m in xy if m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec > t_end - 5e-3]
         assert len(last) >= 3
         x = np.mean([m.vector.x for m in last])
@@ -338,22 +414,42 @@ def test_lockin_node_reads_the_steady_state_of_the_stream(ros_context, ros_names
 
 
 def test_material_by_name_explicit_values_win_and_live_change(ros_context, ros_namespace):
-    """`material` fills the sample parameters at start (explicit ones win) and sets all five live."""
+    """`material` fills the sample parameters at start (explicit ones win) and sets all five
+    live."""
     from afm_ros.core.physics.materials import MATERIALS
-    node = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
-        Parameter("material", value="polystyrene"), Parameter("sample_youngs_modulus", value=2e9)])
+
+    node = CantileverNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[
+            Parameter("material", value="polystyrene"),
+            Parameter("sample_youngs_modulus", value=2e9),
+        ],
+    )
     try:
         ps, ldpe = MATERIALS["polystyrene"], MATERIALS["ldpe"]
         get = lambda name: node.get_parameter(name).value  # noqa: E731
         assert get("sample_youngs_modulus") == 2e9  # explicit
-        assert get("sample_poisson_ratio") == ps.poisson_ratio and get("hamaker_constant") == ps.hamaker_constant
+        assert (
+            get("sample_poisson_ratio") == ps.poisson_ratio
+            and get("hamaker_constant") == ps.hamaker_constant
+        )
         assert get("sample_viscosity") == ps.viscosity
         assert node.simulation.force_model.sample.sample_youngs_modulus == 2e9
         assert node.set_parameters([Parameter("material", value="ldpe")])[0].successful
-        assert (get("sample_youngs_modulus"), get("sample_poisson_ratio"), get("hamaker_constant"),
-                get("hamaker_constant_retract"), get("sample_viscosity")) == (
-            ldpe.youngs_modulus, ldpe.poisson_ratio, ldpe.hamaker_constant, ldpe.hamaker_constant_retract,
-            ldpe.viscosity)
+        assert (
+            get("sample_youngs_modulus"),
+            get("sample_poisson_ratio"),
+            get("hamaker_constant"),
+            get("hamaker_constant_retract"),
+            get("sample_viscosity"),
+        ) == (
+            ldpe.youngs_modulus,
+            ldpe.poisson_ratio,
+            ldpe.hamaker_constant,
+            ldpe.hamaker_constant_retract,
+            ldpe.viscosity,
+        )
         r = node.set_parameters([Parameter("material", value="unobtainium")])[0]
         assert not r.successful and "material" in r.reason and "polystyrene" in r.reason
     finally:

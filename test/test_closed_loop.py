@@ -3,39 +3,55 @@
 The instrument runs as fast as possible (real_time_factor 0) on the events executor, in a
 private context and namespace; all times below are simulated seconds.
 """
+
 from __future__ import annotations
 
 import math
 
 import pytest
 
+from afm_ros.core.physics import (
+    Cantilever,
+    Drive,
+    seed_simulation,
+    steady_amplitude_phase,
+    steady_state,
+)
 from afm_ros.tools.afm_instrument import Instrument
-from afm_ros.core.physics import Cantilever, Drive, seed_simulation, steady_amplitude_phase, steady_state
 
 
 @pytest.fixture
 def instrument(ros_context, ros_namespace):
-    inst = Instrument(context=ros_context, namespace=ros_namespace, executor="events", record=False,
-                      keep_history=True)
+    inst = Instrument(
+        context=ros_context,
+        namespace=ros_namespace,
+        executor="events",
+        record=False,
+        keep_history=True,
+    )
     inst.set("cantilever", real_time_factor=0.0)
     yield inst
     inst.destroy()
 
 
 def test_engage_at_80_percent_settles_and_z_matches_the_physics_core(instrument):
-    summary = instrument.run_job(duration=0.3, free_time=0.03, setpoint_ratio=0.8, band_fraction=0.01)
+    summary = instrument.run_job(
+        duration=0.3, free_time=0.03, setpoint_ratio=0.8, band_fraction=0.01
+    )
 
-    # free: withdrawn to z_max (gap offset 140 nm) the van der Waals force at the lowest point
-    # (80 nm gap, H R / 6 d^2 = 3e-11 N) is 5e-5 of k A0, so the lock-in must read the analytic free
+    # free: withdrawn to z_max (gap offset 140 nm) the van der Waals force at the lowest point (80
+    # nm gap, H R / 6 d^2 = 3e-11 N) is 5e-5 of k A0, so the lock-in must read the analytic free
     # resonance (A0, 90 deg); 1e-3 covers the 4th-order filter's 2f ripple (6e-5) and that force.
-    a_free, phi_free = steady_amplitude_phase(Cantilever(), Drive.from_free_amplitude(Cantilever(), 60e-9))
+    a_free, phi_free = steady_amplitude_phase(
+        Cantilever(), Drive.from_free_amplitude(Cantilever(), 60e-9)
+    )
     assert summary.free_amplitude_m == pytest.approx(a_free, rel=1e-3)
     assert summary.free_phase_deg == pytest.approx(math.degrees(phi_free), abs=0.1)
     assert summary.setpoint_m == pytest.approx(0.8 * summary.free_amplitude_m, rel=1e-12, abs=0)
 
     # settles: the PI (i_gain 100 1/s) approaches from z_max = 100 nm at about i_gain * 12 nm error
-    # = 1.2 um/s, i.e. ~0.1 s to contact; it must enter and stay within +-1 % of the setpoint within
-    # 0.2 s, and the mean over the last quarter of the hold must be within 0.1 %
+    # = 1.2 um/s, i.e. ~0.1 s to contact; it must enter and stay within +-1 % of the setpoint
+    # within 0.2 s, and the mean over the last quarter of the hold must be within 0.1 %
     assert summary.settling_time_s is not None and summary.settling_time_s < 0.2, summary.text()
     assert summary.reached_amplitude_m == pytest.approx(summary.setpoint_m, rel=1e-3)
     assert summary.amplitude_std_m < 1e-3 * summary.setpoint_m
@@ -75,19 +91,23 @@ def test_z_base_step_is_compensated_by_the_feedback(instrument):
 
 def test_a_setpoint_change_is_placed_and_settled_in_the_summary(instrument):
     """A live setpoint change (here made while paused, so at a defined simulated time): the summary
-    reports the setpoint in force at the end, the change at the simulated time it took effect with its
-    own settling time, keeps the engage settling time, and its hold numbers describe the new setpoint.
+    reports the setpoint in force at the end, the change at the simulated time it took effect with
+    its own settling time, keeps the engage settling time, and its hold numbers describe the new
+    setpoint.
 
     The z controller applies the new setpoint from the first lock-in output it handles after the
-    change, the output at the pause time (outputs every 1 ms): the change must be found there, within
-    one output period. The loop settles a 48 -> 40 nm step in ~30 ms at i_gain 100 1/s (the engage
-    approach took ~0.12 s from 100 nm away); 0.2 s bounds both with margin, and the hold mean over
-    the last quarter must sit at the new setpoint within 0.1 %, as for the engage setpoint."""
+    change, the output at the pause time (outputs every 1 ms): the change must be found there,
+    within one output period. The loop settles a 48 -> 40 nm step in ~30 ms at i_gain 100 1/s (the
+    engage approach took ~0.12 s from 100 nm away); 0.2 s bounds both with margin, and the hold
+    mean over the last quarter must sit at the new setpoint within 0.1 %, as for the engage
+    setpoint."""
     first = instrument.run_job(duration=0.3, free_time=0.03, setpoint_ratio=None)
     assert first.setpoint_m == 48e-9 and first.setpoint_changes == []
     t_change = instrument.t_paused
     instrument.set("z_controller", setpoint=40e-9)
-    instrument.job.duration = 0.6  # the hold now ends 0.6 s after engaging: last quarter from t_enable + 0.45
+    instrument.job.duration = (
+        0.6  # the hold now ends 0.6 s after engaging: last quarter from t_enable + 0.45
+    )
     instrument.advance_to(instrument.job.t_enable + 0.6)
     instrument.job.t_end = instrument.t_paused
     s = instrument.summary()

@@ -1,4 +1,6 @@
-"""config/afm.yaml and the parameter tables of docs/parameters.md agree with the parameter specs (one source)."""
+"""config/afm.yaml and the parameter tables of docs/parameters.md agree with the parameter specs
+(one source)."""
+
 from pathlib import Path
 
 import pytest
@@ -16,7 +18,16 @@ def config():
 
 def test_every_node_has_specs():
     # every node declares its parameters through specs
-    assert set(node_specs()) == {"cantilever", "lockin", "z_controller", "pll", "recorder", "replay", "scanner", "live_view"}
+    assert set(node_specs()) == {
+        "cantilever",
+        "lockin",
+        "z_controller",
+        "pll",
+        "recorder",
+        "replay",
+        "scanner",
+        "live_view",
+    }
 
 
 def test_yaml_file_is_the_generator_output():
@@ -44,9 +55,11 @@ def test_parameter_tables_match_specs():
         assert row in doc, f"docs/parameters.md parameter table is missing or stale: {row}"
 
 
-def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_executor, ros_namespace, tmp_path):
-    """What `ros2 param describe` shows (the describe_parameters service) comes from the same specs:
-    description with unit and allowed range, read-only flag, and the default value."""
+def test_running_nodes_describe_their_parameters_as_the_specs(
+    ros_context, ros_executor, ros_namespace, tmp_path
+):
+    """What `ros2 param describe` shows (the describe_parameters service) comes from the same
+    specs: description with unit and allowed range, read-only flag, and the default value."""
     import rclpy
     from rclpy.parameter import Parameter, parameter_value_to_python
     from rclpy.parameter_client import AsyncParameterClient
@@ -58,9 +71,15 @@ def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_e
     from afm_ros.nodes.z_controller_node import ZControllerNode
 
     kw = {"context": ros_context, "namespace": ros_namespace}
-    nodes = {"cantilever": CantileverNode(**kw), "lockin": LockInNode(**kw), "z_controller": ZControllerNode(**kw),
-             "scanner": ScannerNode(**kw),
-             "recorder": RecorderNode(parameter_overrides=[Parameter("output", value=str(tmp_path / "s.mcap"))], **kw)}
+    nodes = {
+        "cantilever": CantileverNode(**kw),
+        "lockin": LockInNode(**kw),
+        "z_controller": ZControllerNode(**kw),
+        "scanner": ScannerNode(**kw),
+        "recorder": RecorderNode(
+            parameter_overrides=[Parameter("output", value=str(tmp_path / "s.mcap"))], **kw
+        ),
+    }
     client_node = rclpy.create_node("describer", context=ros_context, namespace=ros_namespace)
     for node in [*nodes.values(), client_node]:
         ros_executor.add_node(node)
@@ -77,9 +96,17 @@ def test_running_nodes_describe_their_parameters_as_the_specs(ros_context, ros_e
         values = values_future.result().values
         for (pname, spec), descriptor, value in zip(specs.items(), descriptors, values):
             assert descriptor.name == pname
-            assert spec.range_text() in descriptor.description, (name, pname, descriptor.description)
+            assert spec.range_text() in descriptor.description, (
+                name,
+                pname,
+                descriptor.description,
+            )
             if spec.unit:
-                assert f"[{spec.unit}]" in descriptor.description, (name, pname, descriptor.description)
+                assert f"[{spec.unit}]" in descriptor.description, (
+                    name,
+                    pname,
+                    descriptor.description,
+                )
             assert descriptor.read_only == (not spec.live), (name, pname)
             if name == "recorder" and pname == "output":
                 continue  # overridden above so that the test writes into its temp dir
@@ -96,11 +123,20 @@ def test_shipped_file_applies_under_a_namespace(ros_context, ros_namespace, tmp_
     shipped = (ROOT / "config" / "afm.yaml").read_text()
     assert "\n    setpoint: 4.8e-08\n" in shipped and "\n    p_gain: 0.1\n" in shipped
     modified = tmp_path / "afm.yaml"
-    modified.write_text(shipped.replace("\n    setpoint: 4.8e-08\n", "\n    setpoint: 3.5e-08\n")
-                        .replace("\n    p_gain: 0.1\n", "\n    p_gain: 1\n"))  # an integer for a double
-    for path, setpoint, p_gain in [(ROOT / "config" / "afm.yaml", 4.8e-08, 0.1), (modified, 3.5e-08, 1.0)]:
-        node = ZControllerNode(context=ros_context, namespace=ros_namespace,
-                               cli_args=["--ros-args", "--params-file", str(path)])
+    modified.write_text(
+        shipped.replace("\n    setpoint: 4.8e-08\n", "\n    setpoint: 3.5e-08\n").replace(
+            "\n    p_gain: 0.1\n", "\n    p_gain: 1\n"
+        )
+    )  # an integer for a double
+    for path, setpoint, p_gain in [
+        (ROOT / "config" / "afm.yaml", 4.8e-08, 0.1),
+        (modified, 3.5e-08, 1.0),
+    ]:
+        node = ZControllerNode(
+            context=ros_context,
+            namespace=ros_namespace,
+            cli_args=["--ros-args", "--params-file", str(path)],
+        )
         try:
             assert node.get_fully_qualified_name() == f"{ros_namespace}/z_controller"
             assert node.get_parameter("setpoint").value == setpoint

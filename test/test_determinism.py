@@ -1,4 +1,5 @@
-"""The closed loop is deterministic and lossless, whatever the load, executor, pace and process layout.
+"""The closed loop is deterministic and lossless, whatever the load, executor, pace and process
+layout.
 
 The same scripted job (withdraw, free, engage at the default 48 nm setpoint, hold) runs
 
@@ -14,6 +15,7 @@ identical, bit for bit: the cantilever integrates chunk k with the z controller'
 k - feedback_latency, and parameters change only while it is paused, so nothing depends on when
 a message arrives. Each recording must be complete (no sample index gap), also under load.
 """
+
 from __future__ import annotations
 
 import os
@@ -28,9 +30,9 @@ import rclpy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
+from afm_ros.formats.mcap_io import read_session
 from afm_ros.tools import report
 from afm_ros.tools.afm_instrument import Instrument
-from afm_ros.formats.mcap_io import read_session
 
 HOLD = 0.3  # simulated seconds after engaging
 FREE = 0.03
@@ -43,16 +45,25 @@ def busy_processes(n=2):
 
 
 def recorded_z_piezo(path: Path) -> np.ndarray:
-    values = [deserialize_message(m.data, Float64).data for m in read_session(path)
-              if m.topic.endswith("/z_controller/z_piezo")]
+    values = [
+        deserialize_message(m.data, Float64).data
+        for m in read_session(path)
+        if m.topic.endswith("/z_controller/z_piezo")
+    ]
     return np.array(values)
 
 
 def session(inst: Instrument, summary) -> dict:
     mon = inst.monitor
-    return {"summary": summary.deterministic_part(), "t": np.array(mon.t), "x": np.array(mon.x),
-            "y": np.array(mon.y), "z_t": np.array(mon.z_piezo_t), "z": np.array(mon.z_piezo),
-            "recording_status": summary.recording}
+    return {
+        "summary": summary.deterministic_part(),
+        "t": np.array(mon.t),
+        "x": np.array(mon.x),
+        "y": np.array(mon.y),
+        "z_t": np.array(mon.z_piezo_t),
+        "z": np.array(mon.z_piezo),
+        "recording_status": summary.recording,
+    }
 
 
 def run_in_process(tmp: Path, ns: str, executor: str, rtf: float) -> dict:
@@ -63,7 +74,9 @@ def run_in_process(tmp: Path, ns: str, executor: str, rtf: float) -> dict:
     os.chdir(tmp)  # the instrument's recorder writes into the working directory
     inst = None
     try:
-        inst = Instrument(context=ctx, namespace=ns, executor=executor, record=True, keep_history=True)
+        inst = Instrument(
+            context=ctx, namespace=ns, executor=executor, record=True, keep_history=True
+        )
         inst.set("cantilever", real_time_factor=rtf)
         summary = inst.run_job(HOLD, FREE, None)
         out = session(inst, summary)
@@ -107,7 +120,9 @@ def test_reference_run_is_a_real_session(reference):
     assert reference["recorded_z"].shape[0] == s["lockin_outputs"] + 2
 
 
-def test_same_session_with_both_cores_busy_paced_on_the_single_threaded_executor(reference, tmp_path):
+def test_same_session_with_both_cores_busy_paced_on_the_single_threaded_executor(
+    reference, tmp_path
+):
     load = busy_processes(2)
     try:
         b = run_in_process(tmp_path, "/det_b", "single", 1.0)
@@ -133,14 +148,36 @@ def test_same_session_as_four_separate_processes(reference, tmp_path):
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": domain}
     recording = tmp_path / "c.mcap"
     ros = ["--ros-args", "-r", f"__ns:={ns}"]
-    procs = [subprocess.Popen([str(BIN / "cantilever_node"), *ros, "-p", "run_until:=0.0"], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True),
-             subprocess.Popen([str(BIN / "lockin_node"), *ros], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True),
-             subprocess.Popen([str(BIN / "z_controller_node"), *ros], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True),
-             subprocess.Popen([str(BIN / "recorder_node"), *ros, "-p", f"output:={recording}"], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)]
+    procs = [
+        subprocess.Popen(
+            [str(BIN / "cantilever_node"), *ros, "-p", "run_until:=0.0"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        ),
+        subprocess.Popen(
+            [str(BIN / "lockin_node"), *ros],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        ),
+        subprocess.Popen(
+            [str(BIN / "z_controller_node"), *ros],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        ),
+        subprocess.Popen(
+            [str(BIN / "recorder_node"), *ros, "-p", f"output:={recording}"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        ),
+    ]
     saved = {k: os.environ.get(k) for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")}
     os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": domain})
     ctx = rclpy.Context()

@@ -1,11 +1,12 @@
 """One analysis of a frame, with the same caveats, for afm_study scan and afm_instrument --image
-(issue 16.3: the instrument printed a measured phase contrast of -7.1 deg beside a predicted -0.007 deg
-on a grating the feedback could not follow, with no warning, where the study scan warned).
+(issue 16.3: the instrument printed a measured phase contrast of -7.1 deg beside a predicted -0.007
+deg on a grating the feedback could not follow, with no warning, where the study scan warned).
 
 The TGZ-like grating (20 nm lines, 3 um pitch) scanned at 8 lines/s over 5 um (80 um/s) cannot be
 followed: the z speed limit i_gain x (A0 - setpoint) is 1.2 um/s, so the amplitude error on the
 kept pixels stays far above the 0.1 nm the summary calls settled. Both tools must then warn and
 mark every measured-vs-predicted line."""
+
 import json
 import subprocess
 import sys
@@ -13,14 +14,30 @@ import sys
 from afm_ros.tools.frame_report import NOT_SETTLED, frame_lines
 from afm_ros.tools.instrument_summary import Summary
 
-ARGS = ["--sample", "tgz_grating", "--pixels-per-line", "32", "--lines", "4", "--line-rate", "8",
-        "--engage-time", "0.05", "--quiet", "--no-previews"]
+ARGS = [
+    "--sample",
+    "tgz_grating",
+    "--pixels-per-line",
+    "32",
+    "--lines",
+    "4",
+    "--line-rate",
+    "8",
+    "--engage-time",
+    "0.05",
+    "--quiet",
+    "--no-previews",
+]
 MEASURED = ("  step height ", "  phase contrast ", "  dissipation (trace) ")
 
 
 def test_an_unsettled_frame_is_marked_in_both_summaries(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "afm_ros.tools.study", "scan", *ARGS, "--out", str(tmp_path)],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "afm_ros.tools.study", "scan", *ARGS, "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     report = json.loads((tmp_path / "scan_summary.json").read_text())
     assert report["settled"] is False
@@ -31,13 +48,34 @@ def test_an_unsettled_frame_is_marked_in_both_summaries(tmp_path):
     assert "  warning              not settled" in proc.stdout
 
     # the instrument's summary of a frame with the same numbers prints the same lines
-    summary = Summary(free_amplitude_m=60e-9, free_phase_deg=90.0, setpoint_m=48e-9, reached_amplitude_m=48e-9,
-                      amplitude_std_m=0.0, contact_phase_deg=53.0, z_piezo_m=5e-9, z_base_m=40e-9,
-                      settling_time_s=0.1, settling_band_m=0.48e-9, engage_time_s=0.03, simulated_time_s=1.0,
-                      feedback_latency_chunks=2, lockin_outputs=1000, lost_samples=0, non_finite_outputs=0,
-                      image={"pixels": 32, "lines": 4, "sample": "tgz_grating", "line_rate_Hz": 8.0,
-                             "frame_time_s": 0.5, "scan_start_s": 0.05, "scan_real_time_factor": 1.0,
-                             "report": report})
+    summary = Summary(
+        free_amplitude_m=60e-9,
+        free_phase_deg=90.0,
+        setpoint_m=48e-9,
+        reached_amplitude_m=48e-9,
+        amplitude_std_m=0.0,
+        contact_phase_deg=53.0,
+        z_piezo_m=5e-9,
+        z_base_m=40e-9,
+        settling_time_s=0.1,
+        settling_band_m=0.48e-9,
+        engage_time_s=0.03,
+        simulated_time_s=1.0,
+        feedback_latency_chunks=2,
+        lockin_outputs=1000,
+        lost_samples=0,
+        non_finite_outputs=0,
+        image={
+            "pixels": 32,
+            "lines": 4,
+            "sample": "tgz_grating",
+            "line_rate_Hz": 8.0,
+            "frame_time_s": 0.5,
+            "scan_start_s": 0.05,
+            "scan_real_time_factor": 1.0,
+            "report": report,
+        },
+    )
     text = summary.text()
     assert all(line in text for line in frame_lines(report))
     instrument_lines = [line for line in text.splitlines() if line.startswith(MEASURED)]

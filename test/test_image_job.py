@@ -1,5 +1,5 @@
-"""`afm_instrument --image` end to end (the README's main command, on a small frame), and the report of
-the session it records.
+"""`afm_instrument --image` end to end (the README's main command, on a small frame), and the
+report of the session it records.
 
 Two runs with the same parameters give the same summary numbers and the same frame, bit for bit
 (the cantilever is paused when the scan is requested, so the plan starts at a defined chunk
@@ -7,6 +7,7 @@ boundary; every block runs in lockstep). The job writes the frame (.gwy + ten pr
 complete session; ``afm_report`` on that session draws the last frame from the recorded
 ``scanner/image/*`` messages, which equal the .gwy's channels.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,19 +27,41 @@ from afm_ros.formats.mcap_io import SessionScan, read_session
 from afm_ros.tools import report
 
 BIN = Path(sys.executable).parent
-# a small frame at 10 lines/s (100 um/s): on the instrument's tilted sample (0.008, -0.005) the loop
-# would lag 8 nm uphill and downhill, so the operator compensates the slope as on a real instrument
-# (test_imperfections checks the lag and its compensation); every other imperfection stays on
-ARGS = ["--image", "--duration", "0.05", "--json", "--ros-args",
-        "-p", "scanner:pixels_per_line:=32", "-p", "scanner:lines:=16", "-p", "scanner:line_rate:=10.0",
-        "-p", "scanner:slope_compensation_x:=0.008", "-p", "scanner:slope_compensation_y:=-0.005",
-        "-p", "cantilever:real_time_factor:=0.0"]
+# a small frame at 10 lines/s (100 um/s): on the instrument's tilted sample (0.008, -0.005) the
+# loop would lag 8 nm uphill and downhill, so the operator compensates the slope as on a real
+# instrument (test_imperfections checks the lag and its compensation); every other imperfection
+# stays on
+ARGS = [
+    "--image",
+    "--duration",
+    "0.05",
+    "--json",
+    "--ros-args",
+    "-p",
+    "scanner:pixels_per_line:=32",
+    "-p",
+    "scanner:lines:=16",
+    "-p",
+    "scanner:line_rate:=10.0",
+    "-p",
+    "scanner:slope_compensation_x:=0.008",
+    "-p",
+    "scanner:slope_compensation_y:=-0.005",
+    "-p",
+    "cantilever:real_time_factor:=0.0",
+]
 
 
 def run_job(cwd: Path) -> dict:
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.run([str(BIN / "afm_instrument"), *ARGS], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [str(BIN / "afm_instrument"), *ARGS],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -60,9 +83,9 @@ def frame_arrays(cwd: Path) -> dict:
 
 def test_the_job_runs_the_operating_workflow(runs):
     """Tune, approach from 5 um, engage, scan, withdraw: the tune finds the default lever (45 kHz,
-    Q 25) within its standard errors plus the thermal noise's (5 sigma), the approach engages in the
-    cycle the algorithm says (5 um start, 3 um range: one empty cycle, 48 motor steps of 50 nm, then
-    the surface ~2.6 um into the second extension), and the withdraw follows the frame."""
+    Q 25) within its standard errors plus the thermal noise's (5 sigma), the approach engages in
+    the cycle the algorithm says (5 um start, 3 um range: one empty cycle, 48 motor steps of 50 nm,
+    then the surface ~2.6 um into the second extension), and the withdraw follows the frame."""
     _, summary = runs[0]
     wf = summary["workflow"]
     tune, approach, withdraw = wf["tune"], wf["approach"], wf["withdraw"]
@@ -70,25 +93,34 @@ def test_the_job_runs_the_operating_workflow(runs):
     assert abs(tune["Q"] - 25.0) < 5 * tune["Q_error"] + 1e-4
     assert approach["cycles"] == 2 and approach["motor_steps"] == 48
     assert -3e-6 < approach["engaged_z_m"] < -2.4e-6
-    assert tune["end_s"] < approach["started_s"] < approach["engaged_s"] == summary["engage_time_s"]
+    assert (
+        tune["end_s"] < approach["started_s"] < approach["engaged_s"] == summary["engage_time_s"]
+    )
     assert summary["image"]["scan_start_s"] > approach["engaged_s"]
-    assert withdraw["withdrawn_s"] > summary["image"]["scan_start_s"] + summary["image"]["frame_time_s"]
+    assert (
+        withdraw["withdrawn_s"]
+        > summary["image"]["scan_start_s"] + summary["image"]["frame_time_s"]
+    )
     assert summary["reached_amplitude_m"] == pytest.approx(summary["setpoint_m"], rel=0.01)
-    # the tune moved the lock-in's phase zero (phase_offset): the dissipation image still uses the true
-    # lag. The polystyrene matrix's median against the core's steady state as the image estimates it
-    # (prediction image_dissipation_J): 15 % (a 32 x 16 frame at 10 lines/s, loop not fully settled)
+    # the tune moved the lock-in's phase zero (phase_offset): the dissipation image still uses the
+    # true lag. The polystyrene matrix's median against the core's steady state as the image
+    # estimates it (prediction image_dissipation_J): 15 % (a 32 x 16 frame at 10 lines/s, loop not
+    # fully settled)
     report_ = summary["image"]["report"]
     ps = report_["dissipation_J"]["trace"]["polystyrene"]
-    assert ps == pytest.approx(report_["prediction"]["polystyrene"]["image_dissipation_J"], rel=0.15, abs=0)
+    assert ps == pytest.approx(
+        report_["prediction"]["polystyrene"]["image_dissipation_J"], rel=0.15, abs=0
+    )
 
 
 def test_the_job_runs_a_real_instruments_imperfections_and_reports_their_truth(runs):
-    """The instrument's defaults (core.artefacts.INSTRUMENT_ARTEFACTS, core.tip.INSTRUMENT_TIP) are on,
-    and the summary's truth says what they are: 3 nm/min of lateral drift and 0.5 nm/min vertical, the
-    hysteresis loop of a 5 um scan in a 20 um field (2 % + 10 % x 5/20 of the scan: 225 nm), the tip
-    grown by the wear law over the frame's taps (it taps ~120 nN, 100 nN above the threshold, 72000
-    times: 5e-9 m/N x 1e-7 N x 7.2e4 = 36 pm, within a factor 2 for the peak force's spread), and the
-    compensated slope leaves the height image nearly flat (< 0.1 % against the 0.8 % tilt)."""
+    """The instrument's defaults (core.artefacts.INSTRUMENT_ARTEFACTS, core.tip.INSTRUMENT_TIP) are
+    on, and the summary's truth says what they are: 3 nm/min of lateral drift and 0.5 nm/min
+    vertical, the hysteresis loop of a 5 um scan in a 20 um field (2 % + 10 % x 5/20 of the scan:
+    225 nm), the tip grown by the wear law over the frame's taps (it taps ~120 nN, 100 nN above the
+    threshold, 72000 times: 5e-9 m/N x 1e-7 N x 7.2e4 = 36 pm, within a factor 2 for the peak
+    force's spread), and the compensated slope leaves the height image nearly flat (< 0.1 % against
+    the 0.8 % tilt)."""
     _, summary = runs[0]
     truth = summary["image"]["truth"]
     assert truth["imperfections"]
@@ -115,11 +147,17 @@ def test_the_job_writes_the_frame_and_a_complete_session(runs):
     for title, (values, unit) in channels.items():
         assert values.shape == (16, 32) and np.isfinite(values).all(), title
     assert len(list(cwd.glob("afm_runs/*/afm_frame_*_*.png"))) == len(CHANNELS) * len(DIRECTIONS)
-    assert list(cwd.iterdir()) == [cwd / "afm_runs"]  # everything in the run's folder, nothing else around
+    assert list(cwd.iterdir()) == [
+        cwd / "afm_runs"
+    ]  # everything in the run's folder, nothing else around
     step = image["report"]["step"]
-    # the islands (10 nm) image far lower on the soft LDPE: the summary gives the core's apparent height
+    # the islands (10 nm) image far lower on the soft LDPE: the summary gives the core's apparent
+    # height
     assert step["true_m"] == pytest.approx(10e-9, abs=1e-15)
-    assert step["predicted_apparent_m"] is not None and step["level_materials"] == ["polystyrene", "ldpe"]
+    assert step["predicted_apparent_m"] is not None and step["level_materials"] == [
+        "polystyrene",
+        "ldpe",
+    ]
     scan = SessionScan(next(cwd.glob("afm_runs/*/afm_session_*.mcap")))
     topics = {m.topic for m in read_session(scan.path, scan)}
     assert "/scanner/image/height/trace" in topics and "/cantilever/scan" in topics
@@ -134,10 +172,16 @@ def test_two_runs_give_the_same_summary_and_frame(runs):
         s = dict(s)
         for k in ("wall_time_s", "real_time_factor", "recording", "hold_window", "run_folder"):
             s.pop(k)
-        s["image"] = {k: v for k, v in s["image"].items()
-                      if k not in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor")}
-        s["workflow"]["approach"] = {k: v for k, v in s["workflow"]["approach"].items() if k != "wall_s"}
+        s["image"] = {
+            k: v
+            for k, v in s["image"].items()
+            if k not in ("files", "scan_wall_s", "scan_real_time_factor", "line_real_time_factor")
+        }
+        s["workflow"]["approach"] = {
+            k: v for k, v in s["workflow"]["approach"].items() if k != "wall_s"
+        }
         return s
+
     assert deterministic(a) == deterministic(b)
     fa, fb = frame_arrays(cwd_a), frame_arrays(cwd_b)
     for title in fa:
@@ -165,18 +209,27 @@ def test_report_draws_the_recorded_frame(runs, tmp_path):
 def test_ctrl_c_during_the_scan_keeps_the_lines_done_as_a_partial_frame(tmp_path):
     """Ctrl-C while scanning: the job finishes the current line, writes the lines done as
     ``*_partial.gwy`` (only those rows, marked partial), prints the summary marked INTERRUPTED with
-    the frame's numbers over those lines, closes the session and exits 130 (before: exit 0 in 0.4 s,
-    no summary, no frame). 64 lines at 5 lines/s paced at real time take 12.8 s of scanning after the
-    progress line of the first lines, whatever the machine."""
+    the frame's numbers over those lines, closes the session and exits 130 (before: exit 0 in 0.4
+    s, no summary, no frame). 64 lines at 5 lines/s paced at real time take 12.8 s of scanning
+    after the progress line of the first lines, whatever the machine."""
     import signal
     import time
 
-    swap = {"scanner:lines:=16": "scanner:lines:=64", "scanner:line_rate:=10.0": "scanner:line_rate:=5.0",
-            "cantilever:real_time_factor:=0.0": "cantilever:real_time_factor:=1.0"}
+    swap = {
+        "scanner:lines:=16": "scanner:lines:=64",
+        "scanner:line_rate:=10.0": "scanner:line_rate:=5.0",
+        "cantilever:real_time_factor:=0.0": "cantilever:real_time_factor:=1.0",
+    }
     args = [swap.get(a, a) for a in ARGS]
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.Popen([str(BIN / "afm_instrument"), *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [str(BIN / "afm_instrument"), *args],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lines = []
     deadline = time.monotonic() + 300
     while not any(line.startswith("scan: line") for line in lines):

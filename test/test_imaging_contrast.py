@@ -12,20 +12,33 @@ latency (5 ms) and the tip radius: EXCLUSION = 0.02 um + 5 um/s x 40 ms = 0.22 u
 y (no lag between lines) the tip radius. The same settings image the same islands as
 polystyrene ("polystyrene" twice under two labels, i.e. equal dissipation) for the null test.
 """
+
 import math
 
 import numpy as np
 import pytest
 
-from afm_ros.core.image_analysis import edge_mask, level_step, material_medians, sample_under_pixels
+from afm_ros.core.image_analysis import (
+    edge_mask,
+    level_step,
+    material_medians,
+    sample_under_pixels,
+)
 from afm_ros.core.samples import Sample, resolve_sample
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.wired import WiredInstrument
 from afm_ros.tools.contrast import contrast_study
 
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "viscoelastic_dmt"}
-PLAN = dict(scan_size_x=2.5e-6, scan_size_y=2.5e-6, scan_center_x=6.0e-6, scan_center_y=3.0e-6,
-            pixels_per_line=64, lines=24, line_rate=1.0)
+PLAN = dict(
+    scan_size_x=2.5e-6,
+    scan_size_y=2.5e-6,
+    scan_center_x=6.0e-6,
+    scan_center_y=3.0e-6,
+    pixels_per_line=64,
+    lines=24,
+    line_rate=1.0,
+)
 FEEDBACK = dict(setpoint=48e-9, p_gain=0.1, i_gain=200.0)
 RATIO = 0.8  # setpoint / free amplitude (60 nm)
 TIP_RADIUS = 20e-9
@@ -33,7 +46,9 @@ SPEED = 2 * PLAN["scan_size_x"] * PLAN["line_rate"]
 EXCLUSION = TIP_RADIUS + SPEED * (5e-3 + math.log(200.0) * 1.1 / (200.0 * 0.84))
 BLEND = resolve_sample("ps_ldpe_blend")
 # the same map with polystyrene islands: two labels (so the islands are still found), one material
-TWIN = Sample(BLEND.height, BLEND.material_index, ("polystyrene", "polystyrene"), BLEND.size_x, BLEND.size_y)
+TWIN = Sample(
+    BLEND.height, BLEND.material_index, ("polystyrene", "polystyrene"), BLEND.size_x, BLEND.size_y
+)
 LABELS = ("matrix", "islands")
 
 
@@ -61,7 +76,9 @@ def twin():
 @pytest.fixture(scope="module")
 def core():
     """contrast_study at A/A0 = 0.79, 0.8, 0.81: steady z_base, phase, dissipation per material."""
-    rows, scans = contrast_study(["polystyrene", "ldpe"], "viscoelastic_dmt", ratios=(0.79, RATIO, 0.81))
+    rows, scans = contrast_study(
+        ["polystyrene", "ldpe"], "viscoelastic_dmt", ratios=(0.79, RATIO, 0.81)
+    )
     at = {r["material"]: r for r in rows if r["setpoint_ratio"] == RATIO}
     ps = sorted((r["amplitude_m"], r["phase_deg"]) for r in rows if r["material"] == "polystyrene")
     dphase_da = (ps[-1][1] - ps[0][1]) / (ps[-1][0] - ps[0][0])  # [deg/m]
@@ -88,14 +105,20 @@ def test_phase_contrast_matches_the_core_at_the_setpoint(blend, core):
     predicted = at["ldpe"]["phase_deg"] - at["polystyrene"]["phase_deg"]
     assert 2.0 < predicted < 2.8
     for direction in ("trace", "retrace"):
-        m = material_medians(frame.images[direction]["phase"].astype(float), mat, keep, BLEND.materials)
+        m = material_medians(
+            frame.images[direction]["phase"].astype(float), mat, keep, BLEND.materials
+        )
         assert m["ldpe"] - m["polystyrene"] == pytest.approx(predicted, rel=0, abs=0.5), direction
         assert m["polystyrene"] == pytest.approx(at["polystyrene"]["phase_deg"], rel=0, abs=0.5)
-        err = material_medians(frame.images[direction]["amplitude_error"].astype(float), mat, keep, BLEND.materials)
+        err = material_medians(
+            frame.images[direction]["amplitude_error"].astype(float), mat, keep, BLEND.materials
+        )
         assert max(abs(v) for v in err.values()) < 0.01e-9  # settled: the premise of the budget
 
 
-def test_apparent_island_height_is_the_true_height_plus_the_indentation_difference(blend, twin, core):
+def test_apparent_island_height_is_the_true_height_plus_the_indentation_difference(
+    blend, twin, core
+):
     """The 10 nm LDPE islands image as true + z_base(LDPE) - z_base(PS) = 0.95 nm: the soft LDPE
     is indented ~9 nm deeper at the same amplitude (a real tapping-mode artefact). The same
     islands as polystyrene image at their true 10 nm. Tolerance 0.05 nm: the settled loop
@@ -124,7 +147,9 @@ def test_equal_dissipation_gives_no_phase_contrast(twin, core):
     assert 1.0e9 < dphase_da < 2.2e9  # [deg/m]
     for direction in ("trace", "retrace"):
         phase = material_medians(frame.images[direction]["phase"].astype(float), mat, keep, LABELS)
-        err = material_medians(frame.images[direction]["amplitude_error"].astype(float), mat, keep, LABELS)
+        err = material_medians(
+            frame.images[direction]["amplitude_error"].astype(float), mat, keep, LABELS
+        )
         assert max(abs(v) for v in err.values()) < 0.01e-9
         bound = dphase_da * (abs(err["islands"]) + abs(err["matrix"])) + 1e-5
         assert bound < 0.04
@@ -135,22 +160,26 @@ def test_dissipation_channel_orders_the_materials_like_the_core(blend, core):
     """The image's dissipation (from amplitude and phase, first harmonic only) orders LDPE above
     PS as the core's dissipated energy per cycle does.
 
-    Quantitatively: Cleveland's exact energy balance pi F0 A1 sin(phi) = pi k (w / w0) / Q
-    sum n^2 A_n^2 + E_dis says the first-harmonic estimate E = pi F0 A sin(phi) - pi k A^2
-    (w / w0) / Q exceeds E_dis by the damping of the higher harmonics, pi k (w / w0) / Q
-    sum_{n>=2} n^2 A_n^2 (the core's 8 harmonics at the setpoint: 1.7 aJ on PS, 1.1 aJ on LDPE).
-    The estimate is very sensitive to the phase: dE = pi F0 A cos(phi) dphi = 37 aJ per degree.
-    The instrument integrates rk4_event at 80 steps per period (phase within 0.005 deg of a converged
-    run, the default's tested accuracy, docs/study.md; plain rk4 at 220 was within 0.05 deg) against the
-    study's 1600, so the image must match within pi F0 A cos(phi) x 0.05 deg = 1.9 aJ (measured with
-    rk4 at 220: the image's phase 0.014 deg below the study's on both materials, 0.5 aJ)."""
+    Quantitatively: Cleveland's exact energy balance pi F0 A1 sin(phi) = pi k (w / w0) / Q sum n^2
+    A_n^2 + E_dis says the first-harmonic estimate E = pi F0 A sin(phi) - pi k A^2 (w / w0) / Q
+    exceeds E_dis by the damping of the higher harmonics, pi k (w / w0) / Q sum_{n>=2} n^2 A_n^2
+    (the core's 8 harmonics at the setpoint: 1.7 aJ on PS, 1.1 aJ on LDPE). The estimate is very
+    sensitive to the phase: dE = pi F0 A cos(phi) dphi = 37 aJ per degree. The instrument
+    integrates rk4_event at 80 steps per period (phase within 0.005 deg of a converged run, the
+    default's tested accuracy, docs/study.md; plain rk4 at 220 was within 0.05 deg) against the
+    study's 1600, so the image must match within pi F0 A cos(phi) x 0.05 deg = 1.9 aJ (measured
+    with rk4 at 220: the image's phase 0.014 deg below the study's on both materials, 0.5 aJ)."""
     frame, _, mat, keep = blend
     at, scans, _ = core
     k, q, a0 = 10.0, 25.0, 60e-9  # the cantilever defaults (drive at resonance: w / w0 = 1)
     f0 = k * a0 / q  # drive force [N]
     for direction in ("trace", "retrace"):
-        image = material_medians(frame.images[direction]["dissipation"].astype(float), mat, keep, BLEND.materials)
-        phase = material_medians(frame.images[direction]["phase"].astype(float), mat, keep, BLEND.materials)
+        image = material_medians(
+            frame.images[direction]["dissipation"].astype(float), mat, keep, BLEND.materials
+        )
+        phase = material_medians(
+            frame.images[direction]["phase"].astype(float), mat, keep, BLEND.materials
+        )
         core_e = {m: at[m]["dissipated_energy_J"] for m in BLEND.materials}
         assert (image["ldpe"] > image["polystyrene"]) == (core_e["ldpe"] > core_e["polystyrene"])
         assert image["ldpe"] > 5 * image["polystyrene"]
@@ -160,7 +189,13 @@ def test_dissipation_channel_orders_the_materials_like_the_core(blend, core):
             a = point.analysis.harmonics
             n = np.arange(1, a.size + 1)
             higher = math.pi * k / q * float(np.sum((n[1:] * a[1:]) ** 2))
-            tol = math.pi * f0 * a[0] * math.cos(math.radians(at[m]["phase_deg"])) * math.radians(0.05)
+            tol = (
+                math.pi
+                * f0
+                * a[0]
+                * math.cos(math.radians(at[m]["phase_deg"]))
+                * math.radians(0.05)
+            )
             assert 1.5e-18 < tol < 2.5e-18
             assert abs(image[m] - (core_e[m] + higher)) <= tol, (direction, m)
             assert phase[m] == pytest.approx(at[m]["phase_deg"], rel=0, abs=0.05)

@@ -20,6 +20,7 @@ signal and the error saturates, so the lag is a slew limit, v t_rec, growing lin
 scan speed. On an up-step the error can reach the whole setpoint (48 nm, 4 dA): the tip climbs
 up to 4 times faster, so trace and retrace, which meet each edge from opposite sides, differ.
 """
+
 import numpy as np
 import pytest
 
@@ -31,8 +32,15 @@ from afm_ros.core.wired import WiredInstrument
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "dmt"}
 H = 40e-9  # [m]
 PITCH = 4e-6  # [m]
-SAMPLE = grating(step_height=H, pitch=PITCH, duty=0.5, size=(8e-6, 8e-6), pixels=512,
-                 line_material="silicon", trench_material="silicon")
+SAMPLE = grating(
+    step_height=H,
+    pitch=PITCH,
+    duty=0.5,
+    size=(8e-6, 8e-6),
+    pixels=512,
+    line_material="silicon",
+    trench_material="silicon",
+)
 P_GAIN, I_GAIN = 0.1, 100.0  # the z controller's defaults
 A0, SETPOINT = 60e-9, 48e-9
 DA = A0 - SETPOINT
@@ -68,10 +76,20 @@ def tolerance(speed: float, pixel: float) -> float:
 def frames():
     out = {}
     for rate in LINE_RATES:
-        values = dict(scan_size_x=8e-6, scan_size_y=2e-6, scan_center_x=4.5e-6, scan_center_y=4e-6,
-                      pixels_per_line=PIXELS, lines=2, line_rate=rate)
-        w = WiredInstrument(cantilever=EXACT, z_controller=dict(setpoint=SETPOINT, p_gain=P_GAIN, i_gain=I_GAIN),
-                            sample=SAMPLE)
+        values = dict(
+            scan_size_x=8e-6,
+            scan_size_y=2e-6,
+            scan_center_x=4.5e-6,
+            scan_center_y=4e-6,
+            pixels_per_line=PIXELS,
+            lines=2,
+            line_rate=rate,
+        )
+        w = WiredInstrument(
+            cantilever=EXACT,
+            z_controller=dict(setpoint=SETPOINT, p_gain=P_GAIN, i_gain=I_GAIN),
+            sample=SAMPLE,
+        )
         plan = ScanPlan.from_values(values)
         w.park(plan.x_left, plan.line_y(0))
         w.run_until(0.1)
@@ -86,14 +104,17 @@ def _x(plan):
 @pytest.fixture(scope="module")
 def levels(frames):
     """Settled z of the line top and the trench bottom [m], from the slowest scan's terrace ends
-    (the last 0.6 um before the next edge: 75 ms after the edge at 8 um/s, 7 loop time constants)."""
+    (the last 0.6 um before the next edge: 75 ms after the edge at 8 um/s, 7 loop time
+    constants)."""
     f = frames[LINE_RATES[0]]
     x = _x(f.plan)
     z = f.images["trace"]["height"][1].astype(float)
     phase = np.mod(x, PITCH)
     top = np.median(z[(phase > 1.3e-6) & (phase < 1.9e-6)])
     low = np.median(z[(phase > 3.3e-6) & (phase < 3.9e-6)])
-    assert top - low == pytest.approx(H, rel=0, abs=0.05e-9)  # the slow scan itself follows the step
+    assert top - low == pytest.approx(
+        H, rel=0, abs=0.05e-9
+    )  # the slow scan itself follows the step
     return top, low
 
 
@@ -117,7 +138,12 @@ def test_down_step_recovery_distance_grows_with_speed_as_the_speed_limit_predict
         expected = plan.speed * t_recover()
         for edge in DOWN_STEPS:
             d = _crossing(x, z, edge, low + DA) - edge
-            assert abs(d - expected) <= tolerance(plan.speed, plan.pixel_size), (rate, edge, d, expected)
+            assert abs(d - expected) <= tolerance(plan.speed, plan.pixel_size), (
+                rate,
+                edge,
+                d,
+                expected,
+            )
             measured.setdefault(rate, []).append(d)
     # linear in the speed: 4 times the speed, 4 times the distance (each within its tolerance)
     slow, fast = np.mean(measured[0.5]), np.mean(measured[2.0])
@@ -138,7 +164,12 @@ def test_the_ramp_is_the_z_speed_limit(frames, levels):
         x = _x(f.plan)
         z = f.images["trace"]["height"][1].astype(float)
         for edge in DOWN_STEPS:
-            ramp = (x > edge) & (x < edge + 1.5e-6) & (z < top - P_GAIN * DA - 2e-9) & (z > low + DA + 2e-9)
+            ramp = (
+                (x > edge)
+                & (x < edge + 1.5e-6)
+                & (z < top - P_GAIN * DA - 2e-9)
+                & (z > low + DA + 2e-9)
+            )
             assert ramp.sum() >= 6
             slope = np.polyfit(x[ramp], z[ramp], 1)[0]  # [m/m]
             speed = -slope * f.plan.speed
@@ -167,7 +198,9 @@ def test_up_steps_recover_faster_and_retrace_differs_from_trace(frames, levels):
             assert after.any()
             assert np.all(trace[after] - retrace[after] > DA), rate
         # the retrace's own parachute: left of the trace's up-step (the retrace moves to -x)
-        before = (x < UP_STEPS[0] - plan.pixel_size) & (x > UP_STEPS[0] - 0.5 * plan.speed * t_recover())
+        before = (x < UP_STEPS[0] - plan.pixel_size) & (
+            x > UP_STEPS[0] - 0.5 * plan.speed * t_recover()
+        )
         assert before.any()
         assert np.all(retrace[before] - trace[before] > DA), rate
         assert trace_retrace_rms(f, "height") > 5e-9

@@ -6,6 +6,7 @@ no material-dependent apparent height (the indentation difference of two materia
 test_imaging_contrast.py) can enter: on one material the feedback holds one gap, and the z
 piezo (the height image) is the dilated surface plus a constant.
 """
+
 import math
 
 import numpy as np
@@ -18,14 +19,28 @@ from afm_ros.core.wired import WiredInstrument
 
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "dmt"}
 STEP = 20e-9  # [m]
-SAMPLE = grating(step_height=STEP, pitch=3e-6, duty=0.5, size=(12e-6, 12e-6), pixels=512,
-                 line_material="silicon", trench_material="silicon")
+SAMPLE = grating(
+    step_height=STEP,
+    pitch=3e-6,
+    duty=0.5,
+    size=(12e-6, 12e-6),
+    pixels=512,
+    line_material="silicon",
+    trench_material="silicon",
+)
 TIP_RADIUS = 20e-9  # [m] the cantilever default (DMT_SPECS tip_radius)
 # slow scan, gains well inside the stable range: 1 line/s over 6 um (12 um/s), 128 px (47 nm),
 # 6 lines 1 um apart (the grating does not change along y); x_left = 0.75 um keeps every edge
 # away from the frame's turnarounds
-PLAN = dict(scan_size_x=6e-6, scan_size_y=6e-6, scan_center_x=3.75e-6, scan_center_y=6e-6,
-            pixels_per_line=128, lines=6, line_rate=1.0)
+PLAN = dict(
+    scan_size_x=6e-6,
+    scan_size_y=6e-6,
+    scan_center_x=3.75e-6,
+    scan_center_y=6e-6,
+    pixels_per_line=128,
+    lines=6,
+    line_rate=1.0,
+)
 P_GAIN, I_GAIN = 0.1, 200.0  # [1], [1/s]
 SETPOINT, FREE_AMPLITUDE = 48e-9, 60e-9  # [m]
 LATENCY = 2 * 2e-3 + 1e-3  # [s] feedback_latency x chunk_duration + one lock-in output interval
@@ -54,8 +69,11 @@ def settling_distance(speed: float) -> float:
 
 @pytest.fixture(scope="module")
 def scanned():
-    w = WiredInstrument(cantilever=EXACT, z_controller=dict(setpoint=SETPOINT, p_gain=P_GAIN, i_gain=I_GAIN),
-                        sample=SAMPLE)
+    w = WiredInstrument(
+        cantilever=EXACT,
+        z_controller=dict(setpoint=SETPOINT, p_gain=P_GAIN, i_gain=I_GAIN),
+        sample=SAMPLE,
+    )
     plan = ScanPlan.from_values(PLAN)
     w.park(plan.x_left, plan.line_y(0))
     w.run_until(0.1)
@@ -65,14 +83,14 @@ def scanned():
 def test_height_image_is_the_dilated_surface_and_the_step_is_true(scanned):
     """Away from the edges the height image equals the tip-dilated surface up to a constant.
 
-    Pixels within settling_distance (0.49 um) of an edge, or of the frame's ends, are left out
-    (10 of the 32 pixels of each whole 1.5 um terrace remain; 3 whole terraces; rows 1-4). The remaining error budget:
-    the loop residual RESIDUAL (0.05 nm) at the kept region's edge, decaying further inside;
-    no noise (temperature and detector noise 0); float32 images (2^-24 x 50 nm, 3e-15 m); the
-    lock-in's 2f ripple (4th-order 20 us filter at 90 kHz: attenuation 6e-5). So the rms
-    difference must be below 2 RESIDUAL = 0.1 nm, and the step from terrace medians within 2 %
-    of 20 nm follows (it is within 0.1 nm). Trace and retrace, which meet every edge from the
-    other side, agree within the same budget (rms of the difference < 2 RESIDUAL).
+    Pixels within settling_distance (0.49 um) of an edge, or of the frame's ends, are left out (10
+    of the 32 pixels of each whole 1.5 um terrace remain; 3 whole terraces; rows 1-4). The
+    remaining error budget: the loop residual RESIDUAL (0.05 nm) at the kept region's edge,
+    decaying further inside; no noise (temperature and detector noise 0); float32 images (2^-24 x
+    50 nm, 3e-15 m); the lock-in's 2f ripple (4th-order 20 us filter at 90 kHz: attenuation 6e-5).
+    So the rms difference must be below 2 RESIDUAL = 0.1 nm, and the step from terrace medians
+    within 2 % of 20 nm follows (it is within 0.1 nm). Trace and retrace, which meet every edge
+    from the other side, agree within the same budget (rms of the difference < 2 RESIDUAL).
     """
     frame = scanned
     plan = frame.plan
@@ -92,7 +110,9 @@ def test_height_image_is_the_dilated_surface_and_the_step_is_true(scanned):
         assert step.true_step == pytest.approx(STEP, rel=0, abs=1e-15)
         assert abs(step.measured_step - STEP) < 0.02 * STEP, (direction, step.measured_step)
         assert abs(step.measured_step - STEP) < 2 * RESIDUAL
-    d = frame.images["trace"]["height"].astype(float) - frame.images["retrace"]["height"].astype(float)
+    d = frame.images["trace"]["height"].astype(float) - frame.images["retrace"]["height"].astype(
+        float
+    )
     assert float(np.sqrt(np.mean(d[keep] ** 2))) < 2 * RESIDUAL
     # ... while near the edges they differ: the exclusion is not hiding nothing
     assert float(np.max(np.abs(d[~keep]))) > 10 * RESIDUAL
@@ -124,7 +144,9 @@ def test_kernel_chunk_invariance_with_a_scan(fast_plan):
     multiples of it, boundaries inside lines and map cells) give identical arrays, bit for bit:
     the tip's position and the map cell are pure functions of the step's time."""
     one, _ = _simulation(fast_plan)
-    total = int(round(0.08 / one.dt))  # more than the chunk sizes below at any step count up to 220
+    total = int(
+        round(0.08 / one.dt)
+    )  # more than the chunk sizes below at any step count up to 220
     whole = one.advance(total, 11)
     other, _ = _simulation(fast_plan)
     parts = []

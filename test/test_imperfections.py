@@ -7,6 +7,7 @@ grating edges between trace and retrace, tilt as the plane of the height image, 
 shift between frames after an offset move. With everything off the kernel's imperfection path is
 not entered, and with every parameter zero it changes nothing (bit for bit).
 """
+
 import math
 
 import numpy as np
@@ -21,15 +22,33 @@ from afm_ros.core.wired import WiredInstrument
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "dmt"}
 LOOP = dict(setpoint=48e-9, p_gain=0.1, i_gain=200.0)
 # silicon islands on silicon: height only, no material contrast
-ISLANDS = blend(matrix="silicon", islands="silicon", island_fraction=0.2, island_radius=150e-9,
-                height_difference=10e-9, size=(3e-6, 3e-6), pixels=256, seed=3)
-AREA = dict(scan_size_x=1.5e-6, scan_size_y=1.5e-6, scan_center_x=1.5e-6, scan_center_y=1.5e-6,
-            pixels_per_line=48, lines=48, line_rate=4.0)
+ISLANDS = blend(
+    matrix="silicon",
+    islands="silicon",
+    island_fraction=0.2,
+    island_radius=150e-9,
+    height_difference=10e-9,
+    size=(3e-6, 3e-6),
+    pixels=256,
+    seed=3,
+)
+AREA = dict(
+    scan_size_x=1.5e-6,
+    scan_size_y=1.5e-6,
+    scan_center_x=1.5e-6,
+    scan_center_y=1.5e-6,
+    pixels_per_line=48,
+    lines=48,
+    line_rate=4.0,
+)
 
 
 def _frames(sample, plan_values, imperfections, count=1, moves=()):
-    """``count`` frames of the same area one after the other (trace height images) and the instrument."""
-    w = WiredInstrument(cantilever=EXACT, z_controller=LOOP, sample=sample, imperfections=imperfections)
+    """``count`` frames of the same area one after the other (trace height images) and the
+    instrument."""
+    w = WiredInstrument(
+        cantilever=EXACT, z_controller=LOOP, sample=sample, imperfections=imperfections
+    )
     plan = ScanPlan.from_values(plan_values)
     w.park(plan.center_x, plan.center_y)
     w.run_until(0.05)
@@ -47,10 +66,12 @@ def test_image_shift_finds_a_known_subpixel_shift():
     n = 128
     k = np.fft.fftfreq(n)
     kr, kc = np.meshgrid(k, k, indexing="ij")
-    spectrum = np.fft.fft2(rng.normal(size=(n, n))) * np.exp(-(np.hypot(kr, kc) / 0.05) ** 2)
+    spectrum = np.fft.fft2(rng.normal(size=(n, n))) * np.exp(-((np.hypot(kr, kc) / 0.05) ** 2))
     reference = np.real(np.fft.ifft2(spectrum))[32:96, 32:96]
     for dr, dc in ((2.3, -1.7), (-5.5, 3.25), (0.4, 0.1)):
-        moved = np.real(np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (kr * dr + kc * dc))))[32:96, 32:96]
+        moved = np.real(np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (kr * dr + kc * dc))))[
+            32:96, 32:96
+        ]
         moved = moved + 0.01 * reference.std() * np.indices(moved.shape)[1]
         got = image_shift(reference, moved)
         assert abs(got[0] - dr) < 0.01 and abs(got[1] - dc) < 0.01, (dr, dc, got)
@@ -82,8 +103,11 @@ def test_drift_between_two_frames_is_the_configured_rate():
     assert rows == pytest.approx(vy * t / (plan.line_pitch - vy / plan.line_rate), abs=0.1)
     # what an instrument sees of it: the drift flag, with the measured shift over the frame time
     from afm_ros.core.flags import frame_flags
+
     flags = {f.name: f for f in frame_flags(second, 48e-9, (-200e-9, 100e-9), previous=first)}
-    assert flags["drift_detected"].values["shift_x_m"] == pytest.approx(cols * plan.pixel_size, rel=1e-12, abs=0)
+    assert flags["drift_detected"].values["shift_x_m"] == pytest.approx(
+        cols * plan.pixel_size, rel=1e-12, abs=0
+    )
     # the sample rose by vz T: the z piezo retracts by as much (z is the height image)
     rise = float(np.median(b - a))
     assert rise == pytest.approx(vz * t, rel=0.05, abs=0.1e-9)
@@ -91,9 +115,9 @@ def test_drift_between_two_frames_is_the_configured_rate():
 
 def _edges(profile: np.ndarray, x: np.ndarray, half_window: int = 7) -> np.ndarray:
     """x [m] of every edge of a two-level profile sampled at the pixel centres x: the position of
-    the ideal step with the same area over +-half_window pixels around the crossing of the mid level
-    (a pixel is the mean over its slot, so the sum of pixels is the integral of the continuous
-    profile: the estimate does not depend on where the edge falls within a pixel)."""
+    the ideal step with the same area over +-half_window pixels around the crossing of the mid
+    level (a pixel is the mean over its slot, so the sum of pixels is the integral of the
+    continuous profile: the estimate does not depend on where the edge falls within a pixel)."""
     low, high = np.percentile(profile, 10), np.percentile(profile, 90)
     above = profile > 0.5 * (low + high)
     pitch = x[1] - x[0]
@@ -113,17 +137,31 @@ def _edges(profile: np.ndarray, x: np.ndarray, half_window: int = 7) -> np.ndarr
 def test_trace_retrace_edges_move_as_the_hysteresis_model_says():
     """Grating edges (1 um pitch, lines along y) in trace and retrace with a 4 % loop: each edge is
     seen where the piezo's true position (ascending branch on trace, descending on retrace) reaches
-    the position at which the ideal scanner saw it. The ideal run gives that position X (the mean of
-    its trace and retrace edge, which cancels the loop's lag) and the lag d (half their
-    difference); the model then puts the edge at x_left + L s + d, s the root of
-    s -+ 2 w s (1 - s) = (X - x_left) / L. The shifts are up to 80 nm. Tolerance 2 nm: the loop's
-    response to an edge depends on the tip's true speed, which the loop changes by up to 2 w = 8 %;
-    at this scan's 2 um/s that moved the edges by at most 1.1 nm (measured; 6 nm at 8 um/s). Edges
-    are located by their area (``_edges``), independent of where they fall within a 31 nm pixel."""
-    sample = grating(step_height=20e-9, pitch=1e-6, duty=0.5, size=(8e-6, 8e-6), pixels=512,
-                     line_material="silicon", trench_material="silicon")
-    values = dict(scan_size_x=4e-6, scan_size_y=0.4e-6, scan_center_x=4.25e-6, scan_center_y=4e-6,
-                  pixels_per_line=128, lines=2, line_rate=0.25)
+    the position at which the ideal scanner saw it. The ideal run gives that position X (the mean
+    of its trace and retrace edge, which cancels the loop's lag) and the lag d (half their
+    difference); the model then puts the edge at x_left + L s + d, s the root of s -+ 2 w s (1 - s)
+    = (X - x_left) / L. The shifts are up to 80 nm. Tolerance 2 nm: the loop's response to an edge
+    depends on the tip's true speed, which the loop changes by up to 2 w = 8 %; at this scan's 2
+    um/s that moved the edges by at most 1.1 nm (measured; 6 nm at 8 um/s). Edges are located by
+    their area (``_edges``), independent of where they fall within a 31 nm pixel."""
+    sample = grating(
+        step_height=20e-9,
+        pitch=1e-6,
+        duty=0.5,
+        size=(8e-6, 8e-6),
+        pixels=512,
+        line_material="silicon",
+        trench_material="silicon",
+    )
+    values = dict(
+        scan_size_x=4e-6,
+        scan_size_y=0.4e-6,
+        scan_center_x=4.25e-6,
+        scan_center_y=4e-6,
+        pixels_per_line=128,
+        lines=2,
+        line_rate=0.25,
+    )
     w_loop = 0.04
     imperfect = {"hysteresis_small": w_loop, "hysteresis_large": w_loop}
     (ideal,), _ = _frames(sample, values, {})
@@ -153,25 +191,43 @@ def test_trace_retrace_edges_move_as_the_hysteresis_model_says():
                 measured = found["hyst", direction][k]
                 assert measured == pytest.approx(predicted, abs=2e-9), (row, k, direction)
                 shifts.append(abs(measured - found["ideal", direction][k]))
-    assert len(shifts) >= 2 * 5 and max(shifts) > 60e-9  # the model moved the edges: up to 2 w L / 4
+    assert (
+        len(shifts) >= 2 * 5 and max(shifts) > 60e-9
+    )  # the model moved the edges: up to 2 w L / 4
 
 
 def test_creep_after_an_offset_move_follows_the_log_law():
     """The scan centre moves by d = 2.25 um at t_m and the piezo creeps on: every grating edge of
-    every line appears displaced by -c(t) against the same scan without creep, c(t) = d g
-    lg((t - t_m) / t0), t the time the tip crosses the edge (0.3 to 8 s after the move, 1.4
-    decades). g = 0.05 (an uncompensated scanner): c from 60 to 210 nm. Tolerance 2.5 nm: the
-    creep's own speed (< 0.2 um/s) is < 3 % of the scan speed (8 um/s), so the loop meets every edge
-    as without creep; compared are the centres of lines and trenches (``_edges``)."""
-    sample = grating(step_height=20e-9, pitch=1e-6, duty=0.5, size=(8e-6, 8e-6), pixels=512,
-                     line_material="silicon", trench_material="silicon")
+    every line appears displaced by -c(t) against the same scan without creep, c(t) = d g lg((t -
+    t_m) / t0), t the time the tip crosses the edge (0.3 to 8 s after the move, 1.4 decades). g =
+    0.05 (an uncompensated scanner): c from 60 to 210 nm. Tolerance 2.5 nm: the creep's own speed
+    (< 0.2 um/s) is < 3 % of the scan speed (8 um/s), so the loop meets every edge as without
+    creep; compared are the centres of lines and trenches (``_edges``)."""
+    sample = grating(
+        step_height=20e-9,
+        pitch=1e-6,
+        duty=0.5,
+        size=(8e-6, 8e-6),
+        pixels=512,
+        line_material="silicon",
+        trench_material="silicon",
+    )
     # the instrument starts parked at the map's centre (4 um, 4 um); the scan is 2 um to the right
-    values = dict(scan_size_x=4e-6, scan_size_y=0.4e-6, scan_center_x=6.25e-6, scan_center_y=4e-6,
-                  pixels_per_line=128, lines=8, line_rate=1.0)
+    values = dict(
+        scan_size_x=4e-6,
+        scan_size_y=0.4e-6,
+        scan_center_x=6.25e-6,
+        scan_center_y=4e-6,
+        pixels_per_line=128,
+        lines=8,
+        line_rate=1.0,
+    )
     d, g, t0 = 2.25e-6, 0.05, 0.1
     moved = {}
     for name, imperfect in (("ideal", {}), ("creep", {"creep_per_decade": g, "creep_time": t0})):
-        w = WiredInstrument(cantilever=EXACT, z_controller=LOOP, sample=sample, imperfections=imperfect)
+        w = WiredInstrument(
+            cantilever=EXACT, z_controller=LOOP, sample=sample, imperfections=imperfect
+        )
         w.run_until(0.05)
         t_move = w.sim.t
         moved[name] = w.scan_frame(values)
@@ -186,11 +242,16 @@ def test_creep_after_an_offset_move_follows_the_log_law():
         for xi in ideal:
             near = creep[np.abs(creep - xi) < 250e-9]  # edges are 500 nm apart, the creep < 250 nm
             t_cross = plan.start_time + row / plan.line_rate + (xi - plan.x_left) / plan.speed
-            pairs.append((xi, float(near[0]) if near.size else math.nan,
-                          -d * g * math.log10((t_cross - t_move) / t0)))
-        # the centre of each line or trench (the mean of its two edges): where the shifted edge falls
-        # in its pixel changes how much of the loop's tail after a rising or a falling edge _edges
-        # sees (+-5 nm, opposite for the two edges); in the mean that cancels to < 2 nm
+            pairs.append(
+                (
+                    xi,
+                    float(near[0]) if near.size else math.nan,
+                    -d * g * math.log10((t_cross - t_move) / t0),
+                )
+            )
+        # the centre of each line or trench (the mean of its two edges): where the shifted edge
+        # falls in its pixel changes how much of the loop's tail after a rising or a falling edge
+        # _edges sees (+-5 nm, opposite for the two edges); in the mean that cancels to < 2 nm
         for (xi0, xc0, e0), (xi1, xc1, e1) in zip(pairs[:-1], pairs[1:]):
             if math.isnan(xc0) or math.isnan(xc1):
                 continue  # an edge moved too close to the frame's start to be located
@@ -220,16 +281,16 @@ def _lag(frame, direction: str) -> float:
     """Median amplitude error [m] over the middle 60 % of each line, after the first two lines."""
     err = frame.images[direction]["amplitude_error"].astype(float)[2:]
     n = err.shape[1]
-    return float(np.median(err[:, n // 5:n - n // 5]))
+    return float(np.median(err[:, n // 5 : n - n // 5]))
 
 
 def test_the_loop_lags_on_a_tilt_by_the_ramp_error_and_slope_compensation_removes_it():
-    """An integral loop tracking a ramp of rate r = slope x tip speed holds a steady error r / i_gain
-    (type-1 loop; the proportional term only acts on the error's change): amplitude below the
-    setpoint uphill (trace, tilt > 0), above it downhill (retrace). Tolerance 10 % (the islands'
-    transients move the medians). Slope compensation (the scanner moving z along the plane open
-    loop) leaves the loop the tilt minus the compensation: half the error at half the slope, and at
-    the full slope the frame of an untilted sample bit for bit."""
+    """An integral loop tracking a ramp of rate r = slope x tip speed holds a steady error r /
+    i_gain (type-1 loop; the proportional term only acts on the error's change): amplitude below
+    the setpoint uphill (trace, tilt > 0), above it downhill (retrace). Tolerance 10 % (the
+    islands' transients move the medians). Slope compensation (the scanner moving z along the plane
+    open loop) leaves the loop the tilt minus the compensation: half the error at half the slope,
+    and at the full slope the frame of an untilted sample bit for bit."""
     values = dict(AREA, lines=8, line_rate=4.0)
     tilt = 0.02
     plan = ScanPlan.from_values(values)
@@ -240,11 +301,22 @@ def test_the_loop_lags_on_a_tilt_by_the_ramp_error_and_slope_compensation_remove
     (half,), _ = _frames(ISLANDS, values, {"tilt_x": tilt, "slope_compensation_x": tilt / 2})
     assert _lag(half, "trace") == pytest.approx(-expected / 2, rel=0.01)
     (flat,), _ = _frames(ISLANDS, values, {})
-    (full,), _ = _frames(ISLANDS, values, {"tilt_x": tilt, "tilt_y": -0.01, "slope_compensation_x": tilt,
-                                           "slope_compensation_y": -0.01})
+    (full,), _ = _frames(
+        ISLANDS,
+        values,
+        {
+            "tilt_x": tilt,
+            "tilt_y": -0.01,
+            "slope_compensation_x": tilt,
+            "slope_compensation_y": -0.01,
+        },
+    )
     for direction in ("trace", "retrace"):
         for channel, image in flat.images[direction].items():
-            assert np.array_equal(image, full.images[direction][channel], equal_nan=True), (direction, channel)
+            assert np.array_equal(image, full.images[direction][channel], equal_nan=True), (
+                direction,
+                channel,
+            )
 
 
 def test_ideal_instrument_path_is_untouched():
@@ -263,15 +335,22 @@ def test_ideal_instrument_path_is_untouched():
     frame = w.scan_frame(values)
     for direction in ("trace", "retrace"):
         for channel, image in ideal.images[direction].items():
-            assert np.array_equal(image, frame.images[direction][channel], equal_nan=True), (direction, channel)
+            assert np.array_equal(image, frame.images[direction][channel], equal_nan=True), (
+                direction,
+                channel,
+            )
 
 
 def test_bad_imperfection_values_are_refused_by_name():
-    with pytest.raises(ValueError, match="creep_per_decade=0.5 is out of range; allowed range \\[0, 0.1\\]"):
+    with pytest.raises(
+        ValueError, match="creep_per_decade=0.5 is out of range; allowed range \\[0, 0.1\\]"
+    ):
         artefacts.validate({"creep_per_decade": 0.5})
     with pytest.raises(ValueError, match="'drift' is not an imperfection parameter"):
         artefacts.validate({"drift": 1.0})
-    with pytest.raises(ValueError, match="scan_size_x=3e-05 m exceeds the scanner's field scanner_field=2e-05 m"):
+    with pytest.raises(
+        ValueError, match="scan_size_x=3e-05 m exceeds the scanner's field scanner_field=2e-05 m"
+    ):
         WiredInstrument(cantilever=EXACT, sample=ISLANDS).start_scan(dict(AREA, scan_size_x=30e-6))
     with pytest.raises(ValueError, match="imperfections need a sample map"):
         WiredInstrument(cantilever=EXACT, imperfections={"tilt_x": 0.01})

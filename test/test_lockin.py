@@ -4,6 +4,7 @@ Tolerances are derived from the filter: a component of the demodulated signal at
 reaches the output attenuated by |H(f)| of the discrete cascade (written out independently here
 in :func:`gain`), so ``ripple_bound`` sums |component| * |H(f)| over every known component.
 """
+
 from __future__ import annotations
 
 import array
@@ -12,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -20,15 +22,21 @@ from scipy.signal import lfilter
 from scipy.special import gammaincinv
 from scipy.stats import gamma as gamma_dist
 from scipy.stats import nbinom
-from geometry_msgs.msg import Vector3Stamped
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 
+from afm_ros.core.lockin import LockIn, LockInOutput, lowpass
+from afm_ros.core.physics import (
+    Cantilever,
+    DMTForce,
+    Drive,
+    NoForce,
+    Simulation,
+    steady_amplitude_phase,
+    steady_state,
+)
 from afm_ros.formats import chunk_layout
 from afm_ros.formats.chunk_layout import ChunkHeader
-from afm_ros.core.lockin import LockIn, LockInOutput, lowpass
 from afm_ros.nodes.lockin_node import CHUNK_QOS, LockInNode
-from afm_ros.core.physics import (Cantilever, DMTForce, Drive, NoForce, Simulation, steady_amplitude_phase,
-                             steady_state)
 
 FS = 900e3  # input sample rate [S/s] (the cantilever's default output rate)
 DT = 1.0 / FS
@@ -60,8 +68,10 @@ def stream(z, phase0=0.0, f=F_DRIVE, dt=DT, sizes=(1800,), first_index=0, t0=0.0
         n = sizes[k % len(sizes)]
         k += 1
         idx = first_index + i
-        header = ChunkHeader(idx, t0 + i * dt, dt, (phase0 + TWO_PI * ((f * i * dt) % 1.0)) % TWO_PI, f, z_offset)
-        chunks.append((header, z[i:i + n]))
+        header = ChunkHeader(
+            idx, t0 + i * dt, dt, (phase0 + TWO_PI * ((f * i * dt) % 1.0)) % TWO_PI, f, z_offset
+        )
+        chunks.append((header, z[i : i + n]))
         i += n
     return chunks
 
@@ -82,8 +92,9 @@ def synthetic(n, amplitude, phi, offset=0.0, harmonics=(), noise=0.0, seed=1):
 
 
 def ripple_bound(h, amplitude, offset, harmonics, tau, order, dt=DT, f=F_DRIVE):
-    """Largest |error| of X+iY from known components: 2 z e^{-i h theta} holds each component
-    c cos(m theta - psi) as c at |m-h| f and c at (m+h) f (the m = h, |m-h| = 0 part is the signal)."""
+    """Largest |error| of X+iY from known components: 2 z e^{-i h theta} holds each component c
+    cos(m theta - psi) as c at |m-h| f and c at (m+h) f (the m = h, |m-h| = 0 part is the
+    signal)."""
     comps = [(2.0 * abs(offset), h * f), (amplitude, (1 + h) * f)]
     if h != 1:
         comps.append((amplitude, abs(1 - h) * f))
@@ -102,7 +113,7 @@ def noise_rms(sigma, tau, order, dt=DT):
     imp[0] = 1.0
     for _ in range(order):
         imp = lfilter([a], [1.0, -(1.0 - a)], imp)
-    return 2.0 * sigma * math.sqrt(float(np.sum(imp ** 2)))
+    return 2.0 * sigma * math.sqrt(float(np.sum(imp**2)))
 
 
 # --- core ---------------------------------------------------------------------------------
@@ -113,15 +124,20 @@ def test_amplitude_phase_with_offset_harmonics_noise(harmonic, tau):
     offset, sigma = 20e-9, 0.3e-9
     order = 4
     z = synthetic(int(0.02 * FS), a1, phi1, offset, harmonics, sigma)
-    out = run(LockIn(time_constant=tau, filter_order=order, harmonic=harmonic, output_rate=5e3),
-              stream(z, sizes=(1800, 7, 333)))
+    out = run(
+        LockIn(time_constant=tau, filter_order=order, harmonic=harmonic, output_rate=5e3),
+        stream(z, sizes=(1800, 7, 333)),
+    )
     target_a, target_phi = (a1, phi1) if harmonic == 1 else (3e-9, math.radians(-120.0))
-    # after the step response is within 1e-9 of its final value the error is ripple + noise;
-    # noise: |noise vector| is Rayleigh distributed, P(> 6 rms) = exp(-36), negligible over 100 outputs
+    # after the step response is within 1e-9 of its final value the error is ripple + noise; noise:
+    # |noise vector| is Rayleigh distributed, P(> 6 rms) = exp(-36), negligible over 100 outputs
     steady = out.t > settle_time(tau, order, 1e-9)
     assert steady.sum() > 20
-    bound = ripple_bound(harmonic, a1, offset, harmonics, tau, order) + 1e-9 * target_a \
+    bound = (
+        ripple_bound(harmonic, a1, offset, harmonics, tau, order)
+        + 1e-9 * target_a
         + 6.0 * noise_rms(sigma, tau, order)
+    )
     err = np.abs((out.x + 1j * out.y)[steady] - target_a * np.exp(-1j * target_phi))
     assert err.max() <= bound
     assert np.abs(out.amplitude[steady] - target_a).max() <= bound
@@ -134,10 +150,16 @@ def test_amplitude_phase_with_offset_harmonics_noise(harmonic, tau):
 
 def test_chunked_equals_one_shot():
     z = synthetic(40000, 40e-9, 1.0, 3e-9, [(2, 5e-9, 0.1)], 1e-10)
-    one = run(LockIn(time_constant=7e-6, filter_order=8, output_rate=50e3), stream(z, sizes=(z.shape[0],)))
+    one = run(
+        LockIn(time_constant=7e-6, filter_order=8, output_rate=50e3),
+        stream(z, sizes=(z.shape[0],)),
+    )
     rng = np.random.default_rng(3)
     sizes = tuple(int(s) for s in rng.integers(1, 3000, 50))
-    chunked = run(LockIn(time_constant=7e-6, filter_order=8, output_rate=50e3), stream(z, sizes=sizes + (0, 1)))
+    chunked = run(
+        LockIn(time_constant=7e-6, filter_order=8, output_rate=50e3),
+        stream(z, sizes=sizes + (0, 1)),
+    )
     assert len(one) == len(chunked) > 100
     for field in ("t", "index", "x", "y"):
         assert np.array_equal(getattr(one, field), getattr(chunked, field)), field
@@ -176,7 +198,9 @@ def test_step_response(order):
     # computed independently with scipy's lfilter on the complex demodulated signal
     amp, phi = 30e-9, 0.7
     z = synthetic(4000, amp, phi)
-    out = run(LockIn(time_constant=tau, filter_order=order, output_rate=FS), stream(z, sizes=(333,)))
+    out = run(
+        LockIn(time_constant=tau, filter_order=order, output_rate=FS), stream(z, sizes=(333,))
+    )
     d = z * np.exp(-1j * TWO_PI * F_DRIVE * m * DT)
     for _ in range(order):
         d = lfilter([a], [1.0, -(1.0 - a)], d)
@@ -190,15 +214,21 @@ def test_step_response(order):
 
 
 def test_follows_drive_frequency_change():
-    """The drive frequency changes live (phase continuous); the default 'drive' reference follows."""
+    """The drive frequency changes live (phase continuous); the default 'drive' reference
+    follows."""
     amp, phi, tau, order = 40e-9, math.radians(80.0), 20e-6, 4
     f1, f2 = F_DRIVE, 1.01 * F_DRIVE  # 450 Hz: < rate/2, so the phase can be unwrapped
     n1, n2 = 9000, 18000
     t = np.arange(n1 + n2) * DT
-    theta = np.where(np.arange(n1 + n2) < n1, TWO_PI * f1 * t, TWO_PI * f1 * n1 * DT + TWO_PI * f2 * (t - n1 * DT))
+    theta = np.where(
+        np.arange(n1 + n2) < n1,
+        TWO_PI * f1 * t,
+        TWO_PI * f1 * n1 * DT + TWO_PI * f2 * (t - n1 * DT),
+    )
     z = amp * np.cos(theta - phi)
-    chunks = stream(z[:n1], f=f1) + stream(z[n1:], phase0=(TWO_PI * f1 * n1 * DT) % TWO_PI, f=f2, first_index=n1,
-                                           t0=n1 * DT)
+    chunks = stream(z[:n1], f=f1) + stream(
+        z[n1:], phase0=(TWO_PI * f1 * n1 * DT) % TWO_PI, f=f2, first_index=n1, t0=n1 * DT
+    )
     lockin = LockIn(time_constant=tau, filter_order=order)
     out = run(lockin, chunks)
     assert lockin.stats.reference_jumps == 1 and lockin.stats.gap_events == 0
@@ -207,8 +237,12 @@ def test_follows_drive_frequency_change():
     assert late.sum() > 10
     assert np.abs((out.x + 1j * out.y)[late] - amp * np.exp(-1j * phi)).max() <= bound
     # a 'fixed' reference at f1 instead sees the phase run away at 360 (f2 - f1) deg/s
-    fixed = run(LockIn(time_constant=tau, filter_order=order, reference_source="fixed", reference_frequency=f1),
-                chunks)
+    fixed = run(
+        LockIn(
+            time_constant=tau, filter_order=order, reference_source="fixed", reference_frequency=f1
+        ),
+        chunks,
+    )
     drift = np.unwrap(np.radians(fixed.phase_deg[late]))
     slope = np.polyfit(fixed.t[late], drift, 1)[0]
     assert slope == pytest.approx(-TWO_PI * (f2 - f1), rel=1e-3)
@@ -217,7 +251,9 @@ def test_follows_drive_frequency_change():
 def test_fixed_reference_equals_drive_reference_at_same_frequency():
     z = synthetic(20000, 40e-9, 0.4, 1e-9, [(2, 3e-9, 0.0)])
     drive = run(LockIn(), stream(z, sizes=(1000, 777)))
-    fixed = run(LockIn(reference_source="fixed", reference_frequency=F_DRIVE), stream(z, sizes=(1000, 777)))
+    fixed = run(
+        LockIn(reference_source="fixed", reference_frequency=F_DRIVE), stream(z, sizes=(1000, 777))
+    )
     # same reference phase 2 pi f t up to rounding of the phase (1e-12 rad at most here)
     assert np.abs((drive.x + 1j * drive.y) - (fixed.x + 1j * fixed.y)).max() < 1e-10 * 40e-9
 
@@ -247,9 +283,18 @@ def test_gaps_duplicates_and_interval_change():
     t_switch = 9000 * DT
     fine = 40e-9 * np.cos(TWO_PI * F_DRIVE * (t_switch + np.arange(18000) * DT / 2) - 1.2)
     lockin = LockIn(time_constant=tau, filter_order=order)
-    out = run(lockin, stream(z2[:9000], sizes=(900,))
-              + stream(fine, phase0=(TWO_PI * F_DRIVE * t_switch) % TWO_PI, dt=DT / 2, first_index=9000,
-                       t0=t_switch, sizes=(900,)))
+    out = run(
+        lockin,
+        stream(z2[:9000], sizes=(900,))
+        + stream(
+            fine,
+            phase0=(TWO_PI * F_DRIVE * t_switch) % TWO_PI,
+            dt=DT / 2,
+            first_index=9000,
+            t0=t_switch,
+            sizes=(900,),
+        ),
+    )
     assert lockin.stats.interval_changes == 1
     late = out.t > t_switch + settle_time(tau, order, 1e-9)
     bound = 40e-9 * (gain(2 * F_DRIVE, DT / 2, tau, order) + 1e-9)
@@ -261,6 +306,7 @@ def test_periodic_reanchoring_is_seamless(monkeypatch, source):
     """Long runs re-anchor the reference every 2**24 samples (to keep n * cycles_per_sample
     small); forcing it every 1000 samples changes the outputs only by phase rounding."""
     import afm_ros.core.lockin as lockin_module
+
     z = synthetic(30000, 40e-9, 0.5, 2e-9, [(3, 4e-9, 1.0)])
     params = dict(reference_source=source, reference_frequency=F_DRIVE, output_rate=20e3)
     normal = run(LockIn(**params), stream(z, sizes=(900,)))
@@ -285,17 +331,29 @@ def test_non_finite_chunk_rejected_without_touching_the_state():
         lockin.process(chunks[1][0], bad)
     h = chunks[1][0]
     with pytest.raises(ValueError, match="sample_interval"):
-        lockin.process(ChunkHeader(h.first_sample_index, h.t_start, 0.0, h.drive_phase, h.drive_frequency, 0.0),
-                       chunks[1][1])
+        lockin.process(
+            ChunkHeader(
+                h.first_sample_index, h.t_start, 0.0, h.drive_phase, h.drive_frequency, 0.0
+            ),
+            chunks[1][1],
+        )
     assert np.array_equal(lockin.state, state)
     out = lockin.process(*chunks[1])  # the good chunk still continues the stream
     assert lockin.stats.gap_events == 0 and np.all(np.isfinite(out.x))
 
 
-@pytest.mark.parametrize("name,value,allowed", [
-    ("filter_order", 9, "[1, 8]"), ("filter_order", 0, "[1, 8]"), ("time_constant", -1e-3, "[1e-08, 100]"),
-    ("harmonic", 2.5, "[1, 8]"), ("reference_source", "auto", "'drive', 'fixed'"),
-    ("output_rate", 0.0, "[1, 1e+06]"), ("reference_frequency", 0.0, "(0, 1e+08]")])
+@pytest.mark.parametrize(
+    "name,value,allowed",
+    [
+        ("filter_order", 9, "[1, 8]"),
+        ("filter_order", 0, "[1, 8]"),
+        ("time_constant", -1e-3, "[1e-08, 100]"),
+        ("harmonic", 2.5, "[1, 8]"),
+        ("reference_source", "auto", "'drive', 'fixed'"),
+        ("output_rate", 0.0, "[1, 1e+06]"),
+        ("reference_frequency", 0.0, "(0, 1e+08]"),
+    ],
+)
 def test_invalid_parameters_rejected(name, value, allowed):
     with pytest.raises(ValueError, match=name) as info:
         LockIn(**{name: value})
@@ -311,7 +369,9 @@ def test_invalid_parameters_rejected(name, value, allowed):
 # --- node over DDS -------------------------------------------------------------------------
 # deep reader queues: the test publishes many chunks in a burst and spins the executor only
 # between them, so the lock-in's outputs of all chunks may wait in the reader at once
-RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100000, reliability=ReliabilityPolicy.RELIABLE)
+RECORD_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=100000, reliability=ReliabilityPolicy.RELIABLE
+)
 
 
 class Harness(Node):
@@ -321,12 +381,18 @@ class Harness(Node):
         super().__init__("harness", context=ctx, namespace=ns)
         self.pub = self.create_publisher(Float64MultiArray, "cantilever/deflection", CHUNK_QOS)
         self.amplitude, self.phase, self.xy = [], [], []
-        self.create_subscription(Float64, "lockin/amplitude", lambda m: self.amplitude.append(m.data), RECORD_QOS)
-        self.create_subscription(Float64, "lockin/phase", lambda m: self.phase.append(m.data), RECORD_QOS)
+        self.create_subscription(
+            Float64, "lockin/amplitude", lambda m: self.amplitude.append(m.data), RECORD_QOS
+        )
+        self.create_subscription(
+            Float64, "lockin/phase", lambda m: self.phase.append(m.data), RECORD_QOS
+        )
         self.create_subscription(Vector3Stamped, "lockin/xy", self._on_xy, RECORD_QOS)
 
     def _on_xy(self, m):
-        self.xy.append((m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, m.vector.x, m.vector.y))
+        self.xy.append(
+            (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, m.vector.x, m.vector.y)
+        )
 
     def send(self, header, samples):
         msg = Float64MultiArray()
@@ -345,13 +411,24 @@ def spin_until(executor, condition, timeout=15.0, describe=lambda: ""):
 
 
 def start(ctx, executor, ns, **params):
-    node = LockInNode(context=ctx, namespace=ns,
-                      parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    node = LockInNode(
+        context=ctx,
+        namespace=ns,
+        parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+    )
     harness = Harness(ctx, ns)
     executor.add_node(node)
     executor.add_node(harness)
-    spin_until(executor, lambda: harness.pub.get_subscription_count() > 0 and all(
-        p.get_subscription_count() > 0 for p in (node.pub_amplitude, node.pub_phase, node.pub_xy)))
+    spin_until(
+        executor,
+        lambda: (
+            harness.pub.get_subscription_count() > 0
+            and all(
+                p.get_subscription_count() > 0
+                for p in (node.pub_amplitude, node.pub_phase, node.pub_xy)
+            )
+        ),
+    )
     return node, harness
 
 
@@ -359,10 +436,18 @@ def feed(executor, harness, chunks, expected):
     for h, s in chunks:
         harness.send(h, s)
         executor.spin_once(timeout_sec=0.0)
-    spin_until(executor, lambda: len(harness.xy) >= expected and len(harness.amplitude) >= expected
-               and len(harness.phase) >= expected,
-               describe=lambda: f"expected {expected} outputs, got xy {len(harness.xy)}, amplitude "
-                                f"{len(harness.amplitude)}, phase {len(harness.phase)}")
+    spin_until(
+        executor,
+        lambda: (
+            len(harness.xy) >= expected
+            and len(harness.amplitude) >= expected
+            and len(harness.phase) >= expected
+        ),
+        describe=lambda: (
+            f"expected {expected} outputs, got xy {len(harness.xy)}, amplitude "
+            f"{len(harness.amplitude)}, phase {len(harness.phase)}"
+        ),
+    )
 
 
 def test_node_synthetic_chunks(ros_context, ros_executor, ros_namespace):
@@ -377,35 +462,52 @@ def test_node_synthetic_chunks(ros_context, ros_executor, ros_namespace):
     stamps = np.array([s for s, _, _ in harness.xy])
     x = np.array([v for _, v, _ in harness.xy])
     y = np.array([v for _, _, v in harness.xy])
-    assert np.array_equal(stamps, np.round(ref.t * 1e9).astype(np.int64))  # sim time, ns resolution
+    assert np.array_equal(
+        stamps, np.round(ref.t * 1e9).astype(np.int64)
+    )  # sim time, ns resolution
     assert np.array_equal(x, ref.x) and np.array_equal(y, ref.y)  # float64 through DDS unchanged
     assert np.array_equal(np.array(harness.amplitude), np.hypot(x, y))
     assert np.allclose(harness.phase, np.degrees(np.arctan2(-y, x)), rtol=0, atol=1e-12)
     steady = ref.t > settle_time(15e-6, 5, 1e-9)
     bound = ripple_bound(1, amp, 10e-9, [(2, 2e-9, 0.5)], 15e-6, 5) + 1e-9 * amp
     assert np.abs(np.array(harness.amplitude)[steady] - amp).max() <= bound
-    assert np.abs(np.array(harness.phase)[steady] - 100.0).max() <= math.degrees(math.asin(bound / amp))
+    assert np.abs(np.array(harness.phase)[steady] - 100.0).max() <= math.degrees(
+        math.asin(bound / amp)
+    )
 
 
 def sim_chunks(sim, periods, decimation, samples_per_chunk):
-    """Advance `sim` and cut its samples into chunks exactly as the cantilever node's layout says."""
+    """Advance `sim` and cut its samples into chunks exactly as the cantilever node's layout
+    says."""
     s = sim.advance_periods(periods, decimation)
     first = s.first_step // decimation
     interval = decimation * s.dt
     phases = s.drive_phase
     chunks = []
     for i in range(0, s.z.shape[0], samples_per_chunk):
-        header = ChunkHeader(first + i, float(s.t[i]), interval, float(phases[i] % TWO_PI), s.drive_frequency,
-                             s.z_offset)
-        chunks.append((header, s.z[i:i + samples_per_chunk].copy()))
+        header = ChunkHeader(
+            first + i,
+            float(s.t[i]),
+            interval,
+            float(phases[i] % TWO_PI),
+            s.drive_frequency,
+            s.z_offset,
+        )
+        chunks.append((header, s.z[i : i + samples_per_chunk].copy()))
     return chunks
 
 
 @pytest.mark.parametrize("case", ["dmt_40nm", "free_air"])
 def test_node_physics_steady_state(ros_context, ros_executor, ros_namespace, case):
     tau, order = 20e-6, 4
-    node, harness = start(ros_context, ros_executor, ros_namespace, time_constant=tau, filter_order=order,
-                          output_rate=10e3)
+    node, harness = start(
+        ros_context,
+        ros_executor,
+        ros_namespace,
+        time_constant=tau,
+        filter_order=order,
+        output_rate=10e3,
+    )
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)
     model = DMTForce() if case == "dmt_40nm" else NoForce()
@@ -428,18 +530,35 @@ def test_node_physics_steady_state(ros_context, ros_executor, ros_namespace, cas
     # Aliasing: at 20 samples per period harmonics 19, 21, 39, 41 fold onto the fundamental.
     h = an.harmonics
     interval = decimation * sim.dt
-    ripple = 2 * abs(an.mean_deflection) * gain(F_DRIVE, interval, tau, order) \
-        + h[0] * gain(2 * F_DRIVE, interval, tau, order) \
-        + sum(h[m - 1] * (gain((m - 1) * F_DRIVE, interval, tau, order) + gain((m + 1) * F_DRIVE, interval, tau, order))
-              for m in range(2, 42)) + h[18] + h[20] + h[38] + h[40] + 1e-9 * h[0]
+    ripple = (
+        2 * abs(an.mean_deflection) * gain(F_DRIVE, interval, tau, order)
+        + h[0] * gain(2 * F_DRIVE, interval, tau, order)
+        + sum(
+            h[m - 1]
+            * (
+                gain((m - 1) * F_DRIVE, interval, tau, order)
+                + gain((m + 1) * F_DRIVE, interval, tau, order)
+            )
+            for m in range(2, 42)
+        )
+        + h[18]
+        + h[20]
+        + h[38]
+        + h[40]
+        + 1e-9 * h[0]
+    )
     assert np.abs(amp[steady] - an.amplitude).max() <= ripple
-    assert np.abs(phase[steady] - an.phase_deg).max() <= math.degrees(math.asin(ripple / an.amplitude))
+    assert np.abs(phase[steady] - an.phase_deg).max() <= math.degrees(
+        math.asin(ripple / an.amplitude)
+    )
     if case == "free_air":
         a_exact, phi_exact = steady_amplitude_phase(cantilever, drive)
         # RK4 at w dt = 2 pi / 200 has a global relative error of order (w dt)^4 ~ 2e-6
         rk4 = 2e-6 * a_exact
         assert np.abs(amp[steady] - a_exact).max() <= ripple + rk4
-        assert np.abs(phase[steady] - math.degrees(phi_exact)).max() <= math.degrees((ripple + rk4) / a_exact)
+        assert np.abs(phase[steady] - math.degrees(phi_exact)).max() <= math.degrees(
+            (ripple + rk4) / a_exact
+        )
         assert math.degrees(phi_exact) == pytest.approx(90.0)  # drive at resonance
     else:
         # the tapping amplitude is well below free (a real effect, not ripple)
@@ -448,8 +567,14 @@ def test_node_physics_steady_state(ros_context, ros_executor, ros_namespace, cas
 
 def test_node_set_parameters(ros_context, ros_executor, ros_namespace):
     rate = 20e3
-    node, harness = start(ros_context, ros_executor, ros_namespace, time_constant=2e-6, filter_order=1,
-                          output_rate=rate)
+    node, harness = start(
+        ros_context,
+        ros_executor,
+        ros_namespace,
+        time_constant=2e-6,
+        filter_order=1,
+        output_rate=rate,
+    )
     client_node = Node("param_client", context=ros_context, namespace=ros_namespace)
     ros_executor.add_node(client_node)
     client = AsyncParameterClient(client_node, f"{ros_namespace}/lockin")
@@ -476,20 +601,34 @@ def test_node_set_parameters(ros_context, ros_executor, ros_namespace):
     # tau 2 us, order 1: the 2f term passes with |H(2f)| ~ 0.66; in steady state X+iY is the
     # signal plus a vector of exactly that length rotating at 2f
     err_fast = vector_error(5)  # first 5 outputs: 250 us >> 2 us settling
-    assert err_fast == pytest.approx(np.full(err_fast.shape, amp * gain(2 * F_DRIVE, DT, 2e-6, 1)), rel=1e-6, abs=0)
+    assert err_fast == pytest.approx(
+        np.full(err_fast.shape, amp * gain(2 * F_DRIVE, DT, 2e-6, 1)), rel=1e-6, abs=0
+    )
 
     results = set_params(Parameter("filter_order", value=9))
     # (rclpy checks the descriptor's integer range before our callback; either way the reason
     # names the field and the allowed maximum)
-    assert not results[0].successful and "filter_order" in results[0].reason and "8" in results[0].reason
+    assert (
+        not results[0].successful
+        and "filter_order" in results[0].reason
+        and "8" in results[0].reason
+    )
     results = set_params(Parameter("time_constant", value=-1e-5))
     assert not results[0].successful and "time_constant" in results[0].reason
-    assert node.get_parameter("filter_order").value == 1 and node.get_parameter("time_constant").value == 2e-6
+    assert (
+        node.get_parameter("filter_order").value == 1
+        and node.get_parameter("time_constant").value == 2e-6
+    )
     assert node.lockin.params["time_constant"] == 2e-6 and node.lockin.params["filter_order"] == 1
 
-    results = set_params(Parameter("time_constant", value=50e-6), Parameter("filter_order", value=4))
+    results = set_params(
+        Parameter("time_constant", value=50e-6), Parameter("filter_order", value=4)
+    )
     assert all(r.successful for r in results)
-    assert node.get_parameter("time_constant").value == 50e-6 and node.get_parameter("filter_order").value == 4
+    assert (
+        node.get_parameter("time_constant").value == 50e-6
+        and node.get_parameter("filter_order").value == 4
+    )
     feed(ros_executor, harness, chunks[half:], n_all)
     # the change takes effect in the published data: once the new filter has settled the error
     # is at most amp |H(2f)| of order 4, tau 50 us (~4e-5 amp)

@@ -1,5 +1,6 @@
-"""The materials table (issue 9): every entry validates against the DMT specs and names its sources;
-lookup errors name the field and the choices; explicit overrides win over the table."""
+"""The materials table (issue 9): every entry validates against the DMT specs and names its
+sources; lookup errors name the field and the choices; explicit overrides win over the table."""
+
 import dataclasses
 import math
 
@@ -37,8 +38,10 @@ def test_seed_is_the_dmt_spec_defaults():
     sample, eta, h_r = sample_for("seed")
     assert sample == DMTSample()  # every field: the seed notebook's sample
     assert (seed.youngs_modulus, seed.poisson_ratio, seed.hamaker_constant) == (
-        DMT_SPECS["sample_youngs_modulus"].default, DMT_SPECS["sample_poisson_ratio"].default,
-        DMT_SPECS["hamaker_constant"].default)
+        DMT_SPECS["sample_youngs_modulus"].default,
+        DMT_SPECS["sample_poisson_ratio"].default,
+        DMT_SPECS["hamaker_constant"].default,
+    )
     assert eta == 0.0 and h_r == seed.hamaker_constant  # conservative, as the seed
 
 
@@ -53,28 +56,45 @@ def test_unknown_material_names_the_field_and_the_choices():
 
 def test_explicit_values_override_the_material():
     ps = MATERIALS["polystyrene"]
-    sample, eta, h_r = sample_for("polystyrene", viscosity=1.5, hamaker_constant_retract=0.0,
-                                  sample_youngs_modulus=1e9, tip_radius=5e-9)
+    sample, eta, h_r = sample_for(
+        "polystyrene",
+        viscosity=1.5,
+        hamaker_constant_retract=0.0,
+        sample_youngs_modulus=1e9,
+        tip_radius=5e-9,
+    )
     assert (eta, h_r, sample.sample_youngs_modulus, sample.tip_radius) == (1.5, 0.0, 1e9, 5e-9)
-    assert sample.hamaker_constant == ps.hamaker_constant  # untouched fields keep the table's value
+    assert (
+        sample.hamaker_constant == ps.hamaker_constant
+    )  # untouched fields keep the table's value
     assert sample.sample_poisson_ratio == ps.poisson_ratio
     # a tip material: its E and nu, and the combining relation sqrt(H_tip H_sample)
     sample, _, h_r = sample_for("polystyrene", tip="silicon")
     si = MATERIALS["silicon"]
-    assert (sample.tip_youngs_modulus, sample.tip_poisson_ratio) == (si.youngs_modulus, si.poisson_ratio)
-    assert sample.hamaker_constant == pytest.approx(math.sqrt(si.hamaker_constant * ps.hamaker_constant),
-                                                    rel=1e-15, abs=0)
-    assert sample_for("polystyrene", tip="silicon", hamaker_constant=1e-20)[0].hamaker_constant == 1e-20
+    assert (sample.tip_youngs_modulus, sample.tip_poisson_ratio) == (
+        si.youngs_modulus,
+        si.poisson_ratio,
+    )
+    assert sample.hamaker_constant == pytest.approx(
+        math.sqrt(si.hamaker_constant * ps.hamaker_constant), rel=1e-15, abs=0
+    )
+    assert (
+        sample_for("polystyrene", tip="silicon", hamaker_constant=1e-20)[0].hamaker_constant
+        == 1e-20
+    )
 
 
 def test_bad_values_are_rejected_by_name():
     seed = MATERIALS["seed"]
-    for field, value, named in (("viscosity", -1.0, "viscosity"), ("viscosity", math.nan, "viscosity"),
-                                ("hamaker_constant_retract", -1e-20, "hamaker_constant_retract"),
-                                ("hamaker_constant_retract", 1.0, "hamaker_constant_retract"),
-                                ("youngs_modulus", 1.0, "sample_youngs_modulus"),
-                                ("poisson_ratio", 0.6, "sample_poisson_ratio"),
-                                ("hamaker_constant", 1e-15, "hamaker_constant")):
+    for field, value, named in (
+        ("viscosity", -1.0, "viscosity"),
+        ("viscosity", math.nan, "viscosity"),
+        ("hamaker_constant_retract", -1e-20, "hamaker_constant_retract"),
+        ("hamaker_constant_retract", 1.0, "hamaker_constant_retract"),
+        ("youngs_modulus", 1.0, "sample_youngs_modulus"),
+        ("poisson_ratio", 0.6, "sample_poisson_ratio"),
+        ("hamaker_constant", 1e-15, "hamaker_constant"),
+    ):
         with pytest.raises(ValueError, match=named):
             dataclasses.replace(seed, **{field: value})
     with pytest.raises(ValueError, match="viscosity"):

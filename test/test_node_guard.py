@@ -1,4 +1,5 @@
-"""No exception in a node's callback takes the instrument down (afm_ros/nodes/guard.py), for every node.
+"""No exception in a node's callback takes the instrument down (afm_ros/nodes/guard.py), for every
+node.
 
 Each node runs on real DDS (a private context) with one of its callbacks made to raise once (a
 fault injected by replacing the method before the node is made: a timer, a subscription, a service
@@ -7,6 +8,7 @@ status ``<node>: callbacks`` naming the callback and the cause, the callback run
 time, and the node still answers through its parameter services with the state it had (a refused
 change keeps the old value).
 """
+
 from __future__ import annotations
 
 import time
@@ -28,7 +30,8 @@ from afm_ros.nodes.replay_node import ReplayNode
 from afm_ros.nodes.scanner_node import ScannerNode
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
-# node class -> (the callback made to raise once, a live parameter and a new value to set afterwards)
+# node class -> (the callback made to raise once, a live parameter and a new value to set
+# afterwards)
 TIMER_FAULTS = {
     CantileverNode: ("_on_timer", "z_base", 41e-9),
     LockInNode: ("_publish_diagnostics", "phase_offset", 1.5),
@@ -50,6 +53,7 @@ def _inject(monkeypatch, cls, name: str) -> list:
         if len(calls) == 1:
             raise RuntimeError(f"injected fault in {name}")
         return original(self, *args, **kwargs)
+
     broken.__name__ = name
     monkeypatch.setattr(cls, name, broken)
     return calls
@@ -64,8 +68,14 @@ def _spin_until(executor, condition, what: str, timeout: float = 30.0) -> None:
 
 def _fault_statuses(node, executor) -> list[DiagnosticStatus]:
     seen: list[DiagnosticStatus] = []
-    node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: seen.extend(
-        s for s in m.status if s.name == f"{node.get_fully_qualified_name()}: {FAULT_STATUS}"), 50)
+    node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: seen.extend(
+            s for s in m.status if s.name == f"{node.get_fully_qualified_name()}: {FAULT_STATUS}"
+        ),
+        50,
+    )
     return seen
 
 
@@ -74,16 +84,26 @@ def _level(status) -> int:
 
 
 def _make(cls, ctx, ns, tmp_path):
-    overrides = {RecorderNode: {"output": str(tmp_path / "guard.mcap")},
-                 LiveViewNode: {"port": 0},
-                 CantileverNode: {"real_time_factor": 0.0, "temperature": 0.0, "detector_noise_density": 0.0}}
-    return cls(context=ctx, namespace=ns,
-               parameter_overrides=[Parameter(k, value=v) for k, v in overrides.get(cls, {}).items()])
+    overrides = {
+        RecorderNode: {"output": str(tmp_path / "guard.mcap")},
+        LiveViewNode: {"port": 0},
+        CantileverNode: {
+            "real_time_factor": 0.0,
+            "temperature": 0.0,
+            "detector_noise_density": 0.0,
+        },
+    }
+    return cls(
+        context=ctx,
+        namespace=ns,
+        parameter_overrides=[Parameter(k, value=v) for k, v in overrides.get(cls, {}).items()],
+    )
 
 
 @pytest.mark.parametrize("cls", list(TIMER_FAULTS), ids=lambda c: c.__name__)
-def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(cls, ros_context, ros_executor,
-                                                                          ros_namespace, monkeypatch, tmp_path):
+def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(
+    cls, ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path
+):
     name, parameter, value = TIMER_FAULTS[cls]
     calls = _inject(monkeypatch, cls, name)
     node = _make(cls, ros_context, ros_namespace, tmp_path)
@@ -94,7 +114,9 @@ def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(cls, 
     assert _level(status) == _level(DiagnosticStatus(level=DiagnosticStatus.ERROR))
     assert f"timer {name}: RuntimeError: injected fault in {name}" in status.message
     assert {kv.key: kv.value for kv in status.values}["faults"] == "1"
-    _spin_until(ros_executor, lambda: len(calls) >= 2, f"{name} running again")  # the timer goes on
+    _spin_until(
+        ros_executor, lambda: len(calls) >= 2, f"{name} running again"
+    )  # the timer goes on
     result = node.set_parameters([Parameter(parameter, value=value)])[0]
     assert result.successful, result.reason
     assert node.get_parameter(parameter).value == value
@@ -102,9 +124,9 @@ def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(cls, 
     assert node.callback_faults == 1
 
 
-def test_an_exception_in_a_service_is_a_refusal_naming_it_and_the_next_call_works(ros_context, ros_executor,
-                                                                                ros_namespace, monkeypatch,
-                                                                                tmp_path):
+def test_an_exception_in_a_service_is_a_refusal_naming_it_and_the_next_call_works(
+    ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path
+):
     _inject(monkeypatch, ZControllerNode, "_withdraw")
     node = _make(ZControllerNode, ros_context, ros_namespace, tmp_path)
     ros_executor.add_node(node)
@@ -116,27 +138,35 @@ def test_an_exception_in_a_service_is_a_refusal_naming_it_and_the_next_call_work
         _spin_until(ros_executor, future.done, "the answer")
         answers.append(future.result())
     assert not answers[0].success
-    assert "internal error in service" in answers[0].message and "RuntimeError: injected fault" in answers[0].message
+    assert (
+        "internal error in service" in answers[0].message
+        and "RuntimeError: injected fault" in answers[0].message
+    )
     assert answers[1].success and answers[1].message.startswith("withdrawing")
 
 
-def test_an_exception_in_a_subscription_leaves_the_node_serving(ros_context, ros_executor, ros_namespace,
-                                                               monkeypatch, tmp_path):
+def test_an_exception_in_a_subscription_leaves_the_node_serving(
+    ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path
+):
     """The lock-in's chunk callback raises on the first chunk; the later chunks are demodulated."""
     calls = _inject(monkeypatch, LockInNode, "_on_chunk")
     cantilever = _make(CantileverNode, ros_context, ros_namespace, tmp_path)
     lockin = _make(LockInNode, ros_context, ros_namespace, tmp_path)
     for n in (cantilever, lockin):
         ros_executor.add_node(n)
-    _spin_until(ros_executor, lambda: len(calls) >= 20 and lockin.lockin.stats.chunks >= 10,
-                "the lock-in demodulating after the fault")
+    _spin_until(
+        ros_executor,
+        lambda: len(calls) >= 20 and lockin.lockin.stats.chunks >= 10,
+        "the lock-in demodulating after the fault",
+    )
     assert lockin.callback_faults == 1 and "subscription" in lockin.first_fault
 
 
-def test_an_exception_in_a_parameter_callback_refuses_the_change_and_keeps_the_value(ros_context, ros_executor,
-                                                                                   ros_namespace, monkeypatch,
-                                                                                   tmp_path):
-    """The replay node's only callback of its own is the parameter change (it plays from a thread)."""
+def test_an_exception_in_a_parameter_callback_refuses_the_change_and_keeps_the_value(
+    ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path
+):
+    """The replay node's only callback of its own is the parameter change (it plays from a
+    thread)."""
     from afm_ros.formats.mcap_io import SessionWriter
 
     path = tmp_path / "tiny.mcap"
@@ -146,8 +176,11 @@ def test_an_exception_in_a_parameter_callback_refuses_the_change_and_keeps_the_v
         writer.write(channel, serialize_message(Float64(data=float(i))), i * 1_000_000)
     writer.close()
     _inject(monkeypatch, ReplayNode, "_apply")
-    node = ReplayNode(context=ros_context, namespace=ros_namespace,
-                      parameter_overrides=[Parameter("file", value=str(path)), Parameter("loop", value=True)])
+    node = ReplayNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[Parameter("file", value=str(path)), Parameter("loop", value=True)],
+    )
     ros_executor.add_node(node)
     first = node.set_parameters([Parameter("rate", value=2.0)])[0]
     assert not first.successful and "internal error in parameter change" in first.reason

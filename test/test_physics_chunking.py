@@ -1,4 +1,6 @@
-"""A run split into chunks of any sizes equals one long run bit for bit (the ROS node relies on it)."""
+"""A run split into chunks of any sizes equals one long run bit for bit (the ROS node relies on
+it)."""
+
 import zlib
 
 import numpy as np
@@ -33,14 +35,18 @@ def test_chunked_equals_single_run(method, decimation):
         f = np.concatenate([p.force for p in parts])
         t = np.concatenate([p.t for p in parts])
         # exact equality, no tolerance: same arithmetic in the same order regardless of chunking
-        assert np.array_equal(z, ref.z) and np.array_equal(v, ref.v) and np.array_equal(f, ref.force)
+        assert (
+            np.array_equal(z, ref.z) and np.array_equal(v, ref.v) and np.array_equal(f, ref.force)
+        )
         assert np.array_equal(t, ref.t)
         assert np.array_equal(chunked.y, single.y) and chunked.n == single.n
         assert chunked.drive_phase == single.drive_phase
     assert ref.z.shape[0] == len(range(0, total, decimation))
     assert np.isfinite(ref.force).all()
     if decimation == 1:
-        assert (ref.force > 0).any() and (ref.force < 0).any()  # repulsive and attractive branches ran
+        assert (ref.force > 0).any() and (
+            ref.force < 0
+        ).any()  # repulsive and attractive branches ran
 
 
 def test_chunked_with_reconfigure_equals_single():

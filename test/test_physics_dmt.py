@@ -3,13 +3,20 @@
 Reference runs use 6400 steps per period ("fine"); the tolerances below are explained where they
 are used. Steady state: successive 8-period windows agree to 1e-15 m and 1e-6 deg.
 """
+
 import math
 
 import numpy as np
 import pytest
 
-from afm_ros.core.physics import (Cantilever, DMTForce, DMTSample, cleveland_sin_phase, seed_simulation,
-                             steady_state)
+from afm_ros.core.physics import (
+    Cantilever,
+    DMTForce,
+    DMTSample,
+    cleveland_sin_phase,
+    seed_simulation,
+    steady_state,
+)
 
 FINE = 6400
 
@@ -34,23 +41,31 @@ A0 = SAMPLE.intermolecular_distance
 
 def test_effective_modulus_formula():
     # 1/E* = (1 - nu_t^2)/E_t + (1 - nu_s^2)/E_s, checked in limits with known answers
-    same = DMTSample(tip_youngs_modulus=1e9, sample_youngs_modulus=1e9, tip_poisson_ratio=0.0,
-                     sample_poisson_ratio=0.0)
+    same = DMTSample(
+        tip_youngs_modulus=1e9,
+        sample_youngs_modulus=1e9,
+        tip_poisson_ratio=0.0,
+        sample_poisson_ratio=0.0,
+    )
     assert same.effective_modulus == pytest.approx(0.5e9, rel=1e-12)
-    rigid_tip = DMTSample(tip_youngs_modulus=1e13, sample_youngs_modulus=1e6, sample_poisson_ratio=0.5 - 1e-9)
+    rigid_tip = DMTSample(
+        tip_youngs_modulus=1e13, sample_youngs_modulus=1e6, sample_poisson_ratio=0.5 - 1e-9
+    )
     assert rigid_tip.effective_modulus == pytest.approx(1e6 / 0.75, rel=1e-6)  # tip 1e7 x stiffer
-    nb = 1 / ((1 - 0.3 ** 2) / 130e9 + (1 - 0.3 ** 2) / 70e6)  # the notebook's E_star
+    nb = 1 / ((1 - 0.3**2) / 130e9 + (1 - 0.3**2) / 70e6)  # the notebook's E_star
     assert SAMPLE.effective_modulus == pytest.approx(nb, rel=1e-14)
 
 
 def test_force_continuous_at_a0_and_adhesion_value():
     r, h = SAMPLE.tip_radius, SAMPLE.hamaker_constant
-    adhesion = h * r / (6 * A0 ** 2)
+    adhesion = h * r / (6 * A0**2)
     eps = A0 * 1e-9
     above, at, below = MODEL.force(A0 + eps), MODEL.force(A0), MODEL.force(A0 - eps)
     # both branches meet at -H R / (6 a0^2); a jump would exceed the O(eps) slope change
     assert at == pytest.approx(-adhesion, rel=1e-14, abs=0)
-    assert above == pytest.approx(-adhesion, rel=1e-8, abs=0) and below == pytest.approx(-adhesion, rel=1e-8, abs=0)
+    assert above == pytest.approx(-adhesion, rel=1e-8, abs=0) and below == pytest.approx(
+        -adhesion, rel=1e-8, abs=0
+    )
     assert MODEL.adhesion_force == pytest.approx(adhesion, rel=1e-14, abs=0)
 
 
@@ -72,20 +87,23 @@ def test_potential_vanishes_far_away_and_force_attractive_outside_contact():
     gaps = np.linspace(A0 * 1.0001, 100e-9, 1000)
     assert (MODEL.force(gaps) < 0).all()
     # van der Waals law -H R / (6 d^2), independent of the packed constants
-    assert MODEL.force(10e-9) == pytest.approx(-SAMPLE.hamaker_constant * SAMPLE.tip_radius / (6 * 1e-16),
-                                               rel=1e-14, abs=0)
+    assert MODEL.force(10e-9) == pytest.approx(
+        -SAMPLE.hamaker_constant * SAMPLE.tip_radius / (6 * 1e-16), rel=1e-14, abs=0
+    )
 
 
 def test_hertz_limit():
     # deep in contact the repulsion dominates: F + F_ad = 4/3 E* sqrt(R) delta^1.5 (Hertz)
-    e_star = 1 / ((1 - 0.3 ** 2) / 130e9 + (1 - 0.3 ** 2) / 70e6)
+    e_star = 1 / ((1 - 0.3**2) / 130e9 + (1 - 0.3**2) / 70e6)
     for delta in (1e-9, 5e-9, 20e-9):
-        hertz = 4 / 3 * e_star * math.sqrt(SAMPLE.tip_radius) * delta ** 1.5
-        assert MODEL.force(A0 - delta) + MODEL.adhesion_force == pytest.approx(hertz, rel=1e-12, abs=0)
+        hertz = 4 / 3 * e_star * math.sqrt(SAMPLE.tip_radius) * delta**1.5
+        assert MODEL.force(A0 - delta) + MODEL.adhesion_force == pytest.approx(
+            hertz, rel=1e-12, abs=0
+        )
     # Hertz scaling: doubling the indentation multiplies the elastic force by 2^1.5
     f1 = MODEL.force(A0 - 4e-9) + MODEL.adhesion_force
     f2 = MODEL.force(A0 - 8e-9) + MODEL.adhesion_force
-    assert f2 / f1 == pytest.approx(2 ** 1.5, rel=1e-12)
+    assert f2 / f1 == pytest.approx(2**1.5, rel=1e-12)
 
 
 # --- the tapping cantilever ----------------------------------------------------------------
@@ -105,7 +123,7 @@ def test_step_size_self_convergence():
         errors_a.append([a.amplitude - ref.amplitude for a in row])
         errors_p.append([a.phase_deg - ref.phase_deg for a in row])
     for errors in (np.array(errors_a), np.array(errors_p)):
-        rms = np.sqrt(np.mean(errors ** 2, axis=0))
+        rms = np.sqrt(np.mean(errors**2, axis=0))
         order = -np.polyfit(np.log(spps), np.log(rms), 1)[0]
         assert order > 1.0, rms
         assert rms[-1] < rms[0] / 20, rms
@@ -115,11 +133,11 @@ def test_energy_balance_per_period(fine_runs):
     """drive work = damping loss + tip-sample dissipation, and E_ts ~ 0 (DMT is conservative).
 
     The analysis integrates the sampled powers with the rectangle rule; the power has kinks at the
-    contact edges, so its quadrature error is O(dt^2) per edge and irregular; RK4 itself has a small
-    numerical energy error where a step crosses the force kink at a0 (E_ts ~ +-7e-4 of the drive
-    work at 220 spp, irregular in z_base). At 6400 spp both are ~1e-6 of the drive work (measured);
-    3e-5 leaves margin yet is 10x below the energy error of the notebook's frozen-force RK4 even
-    at 3200 spp (negative control below), so a leaking integrator fails this test.
+    contact edges, so its quadrature error is O(dt^2) per edge and irregular; RK4 itself has a
+    small numerical energy error where a step crosses the force kink at a0 (E_ts ~ +-7e-4 of the
+    drive work at 220 spp, irregular in z_base). At 6400 spp both are ~1e-6 of the drive work
+    (measured); 3e-5 leaves margin yet is 10x below the energy error of the notebook's frozen-force
+    RK4 even at 3200 spp (negative control below), so a leaking integrator fails this test.
     """
     for zb, (a, _) in fine_runs.items():
         balance = a.drive_work - a.damping_loss - a.tip_sample_dissipation
@@ -145,7 +163,8 @@ def test_mean_force_equals_k_mean_deflection(fine_runs):
 
 
 def test_cleveland_phase_relation_exact_multiharmonic(fine_runs):
-    """sin(phi) = [pi k w/(Q w0) sum n^2 A_n^2 + E_ts] / (pi F0 A1) (energy balance, all harmonics).
+    """sin(phi) = [pi k w/(Q w0) sum n^2 A_n^2 + E_ts] / (pi F0 A1) (energy balance, all
+    harmonics).
 
     Tolerance 1e-5: the energy-balance quadrature error above (~1e-6) plus the harmonics above the
     8th (A_8/A_1 ~ 3e-5, contributing ~1e-7). Near the sample the higher harmonics contribute

@@ -1,4 +1,5 @@
-"""Free (no tip-sample force) oscillator: integrators vs the closed-form solution, convergence orders.
+"""Free (no tip-sample force) oscillator: integrators vs the closed-form solution, convergence
+orders.
 
 Error model used for the tolerances (leading order, derived, not measured):
 a method of order p makes a local error ~ A (w0 dt)^(p+1) / (p+1)! per step. Near resonance the
@@ -14,34 +15,51 @@ w0 dt / Q, which detunes the resonance by w0 dt / 2Q and so shifts the phase by 
 2Q): error ~ A w0 dt, independent of Q. Tests allow 2 x the estimate (next-order terms, drive
 sampling); they fail if a method is a full order worse than claimed.
 """
+
 import math
 
 import numpy as np
 import pytest
 
-from afm_ros.core.physics import (Cantilever, Drive, NoForce, Simulation, analyze, free_solution,
-                             steady_amplitude_phase)
+from afm_ros.core.physics import (
+    Cantilever,
+    Drive,
+    NoForce,
+    Simulation,
+    analyze,
+    free_solution,
+    steady_amplitude_phase,
+)
 from afm_ros.tools.study import DEFAULT_CONVERGENCE_SPP, convergence_study, fit_order
 
 CANTILEVER = Cantilever()  # seed notebook: k = 10 N/m, f0 = 45 kHz, Q = 25
 A0 = 60e-9
 
 
-def estimate(method: str, spp: int, amplitude: float, cantilever=CANTILEVER, drive_frequency=45e3) -> float:
+def estimate(
+    method: str, spp: int, amplitude: float, cantilever=CANTILEVER, drive_frequency=45e3
+) -> float:
     """Leading-order global error [m] (see module docstring)."""
     w0dt = cantilever.omega0 / (drive_frequency * spp)
     q = cantilever.quality_factor
     if method == "euler":
         return 2 * q * amplitude * w0dt / 2
     if method == "rk4":
-        return 2 * q * amplitude * w0dt ** 4 / 120
+        return 2 * q * amplitude * w0dt**4 / 120
     if method == "verlet":
-        return amplitude * w0dt + 2 * q * amplitude * w0dt ** 2 / 6
+        return amplitude * w0dt + 2 * q * amplitude * w0dt**2 / 6
     raise ValueError(method)
 
 
 # Euler is unstable below ~160 steps per period at Q = 25 (its growth per step beats the damping).
-CASES = [("euler", 2000), ("euler", 8000), ("verlet", 50), ("verlet", 400), ("rk4", 25), ("rk4", 100)]
+CASES = [
+    ("euler", 2000),
+    ("euler", 8000),
+    ("verlet", 50),
+    ("verlet", 400),
+    ("rk4", 25),
+    ("rk4", 100),
+]
 
 
 @pytest.mark.parametrize("method,spp", CASES)
@@ -71,7 +89,9 @@ def test_steady_state_matches_analytic(method, spp, drive_frequency):
 def test_transient_from_initial_conditions(method, spp):
     drive = Drive.from_free_amplitude(CANTILEVER, A0)
     z0, v0 = 30e-9, -0.01  # 30 nm, -1 cm/s: a transient as large as the steady motion
-    sim = Simulation(CANTILEVER, drive, NoForce(), 0.0, spp, method, z0=z0, v0=v0, check_resolution=False)
+    sim = Simulation(
+        CANTILEVER, drive, NoForce(), 0.0, spp, method, z0=z0, v0=v0, check_resolution=False
+    )
     samples = sim.advance_periods(15)  # two decay times: transient dominates the start
     z_exact, v_exact = free_solution(CANTILEVER, drive, samples.t, z0, v0)
     assert samples.z[0] == z0 and samples.v[0] == v0
@@ -83,16 +103,22 @@ def test_transient_from_initial_conditions(method, spp):
 
 
 def test_free_solution_satisfies_ode_and_initial_conditions():
-    # independent check of the reference itself: finite-difference residual of m z'' + c z' + k z = F
+    # independent check of the reference itself: finite-difference residual of m z'' + c z' + k z =
+    # F
     drive = Drive.from_free_amplitude(CANTILEVER, A0, 47e3, phase=0.4)
     t = np.linspace(0, 2e-4, 20001)
     z, v = free_solution(CANTILEVER, drive, t, 5e-9, 0.02)
     assert z[0] == pytest.approx(5e-9, abs=1e-20) and v[0] == pytest.approx(0.02, abs=1e-15)
     h = t[1] - t[0]
     acc = np.gradient(v, h)
-    resid = CANTILEVER.mass * acc + CANTILEVER.damping * v + CANTILEVER.spring_constant * z \
+    resid = (
+        CANTILEVER.mass * acc
+        + CANTILEVER.damping * v
+        + CANTILEVER.spring_constant * z
         - drive.force * np.cos(drive.omega * t + drive.phase)
-    # central difference error of the derivative ~ h^2 w^2 / 6 relative: ~2e-5 of the force scale k A
+    )
+    # central difference error of the derivative ~ h^2 w^2 / 6 relative: ~2e-5 of the force scale k
+    # A
     assert np.max(np.abs(resid[1:-1])) < 1e-4 * CANTILEVER.spring_constant * A0
     assert np.allclose(np.gradient(z, h)[1:-1], v[1:-1], rtol=0, atol=1e-4 * A0 * drive.omega)
 
@@ -104,7 +130,8 @@ def convergence_rows():
 
 def test_convergence_orders(convergence_rows):
     # Euler 1 and RK4 4 are the textbook orders. The fit window starts where the leading term
-    # dominates: Euler's anti-damping Q w0 dt / 2 is 0.1 at 800 spp, so its fitted slope is 1 + O(0.1).
+    # dominates: Euler's anti-damping Q w0 dt / 2 is 0.1 at 800 spp, so its fitted slope is 1 +
+    # O(0.1).
     assert fit_order(convergence_rows, "euler") == pytest.approx(1.0, abs=0.1)
     assert fit_order(convergence_rows, "rk4") == pytest.approx(4.0, abs=0.1)
     # The notebook's Verlet is FIRST order (lagged velocity in the damping term, see docstring),

@@ -1,5 +1,6 @@
 """Thermal (Brownian) force and detector noise (issue 9, physics core): fluctuation-dissipation,
 seeded counter-based streams, chunk invariance."""
+
 import math
 
 import numpy as np
@@ -27,12 +28,16 @@ def test_equipartition_of_the_undriven_cantilever():
     per-step force held over the RK4 stages shifts the variance by O((w0 dt)^2) = 8e-4 at 220
     steps per period, far below that."""
     sim = undriven()
-    sim.advance(int(20 * 2 * CANTILEVER.quality_factor / (2 * math.pi) * 220))  # ~20 tau: forget z = 0
+    sim.advance(
+        int(20 * 2 * CANTILEVER.quality_factor / (2 * math.pi) * 220)
+    )  # ~20 tau: forget z = 0
     s = sim.advance(int(2.0 / sim.dt), decimation=11)
     kt = BOLTZMANN * T
-    assert CANTILEVER.spring_constant * np.mean(s.z ** 2) == pytest.approx(kt, rel=0.04, abs=0)
-    assert CANTILEVER.mass * np.mean(s.v ** 2) == pytest.approx(kt, rel=0.04, abs=0)
-    assert abs(np.mean(s.z)) < 4 * math.sqrt(kt / CANTILEVER.spring_constant) * math.sqrt(1.77e-4 / 2.0)
+    assert CANTILEVER.spring_constant * np.mean(s.z**2) == pytest.approx(kt, rel=0.04, abs=0)
+    assert CANTILEVER.mass * np.mean(s.v**2) == pytest.approx(kt, rel=0.04, abs=0)
+    assert abs(np.mean(s.z)) < 4 * math.sqrt(kt / CANTILEVER.spring_constant) * math.sqrt(
+        1.77e-4 / 2.0
+    )
 
 
 def test_noisy_runs_are_chunk_invariant_and_reproducible_from_the_seed():
@@ -63,7 +68,9 @@ def test_zero_temperature_is_the_deterministic_run_bit_for_bit():
 def test_force_strength_is_fluctuation_dissipation():
     """One-sided force PSD 4 kB T c held per step dt: variance 4 kB T c / (2 dt)."""
     c, dt = CANTILEVER.damping, 1e-7
-    assert thermal_force_sigma(T, c, dt) ** 2 == pytest.approx(4 * BOLTZMANN * T * c / (2 * dt), rel=1e-12, abs=0)
+    assert thermal_force_sigma(T, c, dt) ** 2 == pytest.approx(
+        4 * BOLTZMANN * T * c / (2 * dt), rel=1e-12, abs=0
+    )
     with pytest.raises(ValueError, match="temperature"):
         thermal_force_sigma(-1.0, c, dt)
     with pytest.raises(ValueError, match="noise_seed"):
@@ -77,7 +84,7 @@ def test_counter_based_normals_are_standard_normal_and_independent():
     assert x.var() == pytest.approx(1.0, abs=5 * math.sqrt(2 / x.size))
     assert abs(np.corrcoef(x[:-1], x[1:])[0, 1]) < 5 / math.sqrt(x.size)
     # fourth moment of a Gaussian is 3 (std error sqrt(96/n))
-    assert np.mean(x ** 4) == pytest.approx(3.0, abs=5 * math.sqrt(96 / x.size))
+    assert np.mean(x**4) == pytest.approx(3.0, abs=5 * math.sqrt(96 / x.size))
     # a slice equals the same numbers drawn as part of a longer run
     assert np.array_equal(normals(123, 1, 1000, 10), x[1000:1010])
 
@@ -87,12 +94,13 @@ def test_detector_noise_has_the_set_density():
     estimate (about 2000 averaged segments, ~3 % per bin) averaged over 10 bands of ~50 bins
     (~0.5 %) is within 5 % of D^2 in every band."""
     from scipy.signal import welch
+
     fs, density = 900e3, 1e-13  # [Hz], [m/sqrt(Hz)]
     n = 1_000_000
     x = detector_noise(5, 0, n, density, 1.0 / fs)
-    assert x.var() == pytest.approx(density ** 2 * fs / 2, rel=5 * math.sqrt(2 / n), abs=0)
+    assert x.var() == pytest.approx(density**2 * fs / 2, rel=5 * math.sqrt(2 / n), abs=0)
     f, psd = welch(x, fs=fs, nperseg=1000)
     bands = np.array([band.mean() for band in np.array_split(psd[1:-1], 10)])
-    assert np.allclose(bands, density ** 2, rtol=0.05, atol=0)
+    assert np.allclose(bands, density**2, rtol=0.05, atol=0)
     # chunks of the output stream are slices of one stream (by the running sample index)
     assert np.array_equal(detector_noise(5, 1800, 1800, density, 1.0 / fs), x[1800:3600])

@@ -1,10 +1,19 @@
 """Every invalid physics input is rejected with an error naming the field and the allowed range."""
+
 import math
 
 import pytest
 
-from afm_ros.core.physics import (ALL_PHYSICS_SPECS, CANTILEVER_SPECS, DMT_SPECS, Cantilever, DMTSample, Drive,
-                             Simulation, make_force_model)
+from afm_ros.core.physics import (
+    ALL_PHYSICS_SPECS,
+    CANTILEVER_SPECS,
+    DMT_SPECS,
+    Cantilever,
+    DMTSample,
+    Drive,
+    Simulation,
+    make_force_model,
+)
 
 
 def construct(name, value):
@@ -33,13 +42,23 @@ def bad_values(spec):
     if spec.high is not None:
         above = spec.high if spec.high_open else spec.high + max(abs(spec.high), 1.0)
         out.append(("above", above))
-    out += [("nan", float("nan")), ("inf", float("inf")), ("string", "abc"), ("none", None), ("bool", True)]
+    out += [
+        ("nan", float("nan")),
+        ("inf", float("inf")),
+        ("string", "abc"),
+        ("none", None),
+        ("bool", True),
+    ]
     if spec.kind is int:
         out.append(("fraction", spec.default + 0.5))
     return out
 
 
-CASES = [(name, label, value) for name, spec in ALL_PHYSICS_SPECS.items() for label, value in bad_values(spec)]
+CASES = [
+    (name, label, value)
+    for name, spec in ALL_PHYSICS_SPECS.items()
+    for label, value in bad_values(spec)
+]
 
 
 @pytest.mark.parametrize("name,label,value", CASES, ids=[f"{n}-{l}" for n, l, _ in CASES])
@@ -82,7 +101,9 @@ def test_too_few_steps_per_resonance_period():
 
 
 def test_unknown_method_and_force_model():
-    with pytest.raises(ValueError, match=r"method='rk5' is not known; allowed: euler, verlet, rk4, rk4_frozen"):
+    with pytest.raises(
+        ValueError, match=r"method='rk5' is not known; allowed: euler, verlet, rk4, rk4_frozen"
+    ):
         Simulation(method="rk5")
     with pytest.raises(ValueError, match=r"force_model='lj' is not known; allowed: 'none', 'dmt'"):
         make_force_model("lj")

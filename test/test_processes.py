@@ -5,6 +5,7 @@
 - two complete instruments in different namespaces run side by side, each closing its own loop,
   recording only its own topics and publishing its own simulated clock.
 """
+
 from __future__ import annotations
 
 import json
@@ -20,16 +21,19 @@ import rclpy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
-from afm_ros.tools.afm_instrument import Instrument
 from afm_ros.formats.chunk_layout import cdr_chunk_index
 from afm_ros.formats.mcap_io import read_session
+from afm_ros.tools.afm_instrument import Instrument
 
 BIN = Path(sys.executable).parent
 
 
 def private_env() -> dict:
-    return {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-            "ROS_DOMAIN_ID": str(20 + os.getpid() % 80)}
+    return {
+        **os.environ,
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_DOMAIN_ID": str(20 + os.getpid() % 80),
+    }
 
 
 def stream_check(path: Path, suffix: str) -> tuple[int, int, int]:
@@ -60,12 +64,26 @@ def test_four_processes_regulate_for_8_simulated_seconds_without_losing_a_sample
     env = private_env()
     recording = tmp_path / "four_processes.mcap"
     ros = ["--ros-args", "-r", f"__ns:={ns}"]
-    # as fast as the loop allows: the real-time factor is a benchmark figure (bench_loop), not a test
-    procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for cmd in (
-        [str(BIN / "cantilever_node"), *ros, "-p", "run_until:=0.0", "-p", "real_time_factor:=0.0"],
-        [str(BIN / "lockin_node"), *ros],
-        [str(BIN / "z_controller_node"), *ros],
-        [str(BIN / "recorder_node"), *ros, "-p", f"output:={recording}"])]
+    # as fast as the loop allows: the real-time factor is a benchmark figure (bench_loop), not a
+    # test
+    procs = [
+        subprocess.Popen(
+            cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+        )
+        for cmd in (
+            [
+                str(BIN / "cantilever_node"),
+                *ros,
+                "-p",
+                "run_until:=0.0",
+                "-p",
+                "real_time_factor:=0.0",
+            ],
+            [str(BIN / "lockin_node"), *ros],
+            [str(BIN / "z_controller_node"), *ros],
+            [str(BIN / "recorder_node"), *ros, "-p", f"output:={recording}"],
+        )
+    ]
     saved = {k: os.environ.get(k) for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")}
     os.environ.update({k: env[k] for k in saved})
     ctx = rclpy.Context()
@@ -74,7 +92,9 @@ def test_four_processes_regulate_for_8_simulated_seconds_without_losing_a_sample
     try:
         inst = Instrument(context=ctx, namespace=ns, attach=True)
         inst.wait_for_recorder(f"{ns}/recorder")
-        summary = inst.run_job(duration=8.0, free_time=0.03, setpoint_ratio=None)  # 4000 chunks of 2 ms
+        summary = inst.run_job(
+            duration=8.0, free_time=0.03, setpoint_ratio=None
+        )  # 4000 chunks of 2 ms
     finally:
         if inst is not None:
             inst.destroy()
@@ -88,13 +108,18 @@ def test_four_processes_regulate_for_8_simulated_seconds_without_losing_a_sample
     assert summary.settling_time_s is not None and summary.settling_time_s < 0.2
     assert summary.reached_amplitude_m == pytest.approx(summary.setpoint_m, rel=1e-3)
     assert summary.simulated_time_s >= 8.0
-    assert summary.lost_samples == 0 and summary.lockin_outputs == round(summary.simulated_time_s * 1000)
+    assert summary.lost_samples == 0 and summary.lockin_outputs == round(
+        summary.simulated_time_s * 1000
+    )
     # the recorder process wrote every deflection and force sample, and every z piezo sample
     n = round(summary.simulated_time_s * 900e3)
     assert stream_check(recording, "/cantilever/deflection") == (n, 0, 0)
     assert stream_check(recording, "/cantilever/tip_sample_force") == (n, 0, 0)
-    z = [deserialize_message(m.data, Float64).data for m in read_session(recording)
-         if m.topic == f"{ns}/z_controller/z_piezo"]
+    z = [
+        deserialize_message(m.data, Float64).data
+        for m in read_session(recording)
+        if m.topic == f"{ns}/z_controller/z_piezo"
+    ]
     assert len(z) == summary.lockin_outputs + 2  # + the start position and the withdraw
     assert np.mean(z[-5000:]) == pytest.approx(summary.z_piezo_m, abs=1e-12)
 
@@ -107,12 +132,31 @@ def test_two_namespaced_instruments_side_by_side(tmp_path):
         cwd.mkdir()
         # different setpoints, so a loop fed by the other instrument's topics would show it
         setpoint = {"/afm1": 48e-9, "/afm2": 42e-9}[ns]
-        runs[ns] = (cwd, subprocess.Popen(
-            # /afm2 names the node: rcl itself applies -p node:name only in the root namespace, the
-            # instrument passes it on under its namespace
-            [str(BIN / "afm_instrument"), "--duration", "0.4", "--json", "--ros-args", "-r", f"__ns:={ns}",
-             "-p", f"setpoint:={setpoint}" if ns == "/afm1" else f"z_controller:setpoint:={setpoint}"],
-            cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        runs[ns] = (
+            cwd,
+            subprocess.Popen(
+                # /afm2 names the node: rcl itself applies -p node:name only in the root namespace,
+                # the instrument passes it on under its namespace
+                [
+                    str(BIN / "afm_instrument"),
+                    "--duration",
+                    "0.4",
+                    "--json",
+                    "--ros-args",
+                    "-r",
+                    f"__ns:={ns}",
+                    "-p",
+                    f"setpoint:={setpoint}"
+                    if ns == "/afm1"
+                    else f"z_controller:setpoint:={setpoint}",
+                ],
+                cwd=cwd,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            ),
+        )
     results = {}
     for ns, (cwd, p) in runs.items():
         out, err = p.communicate(timeout=300)
@@ -124,10 +168,13 @@ def test_two_namespaced_instruments_side_by_side(tmp_path):
         assert s["reached_amplitude_m"] == pytest.approx(setpoint, rel=1e-3)
         assert s["lost_samples"] == 0 and s["recording"]["complete"]
         # each run its own folder, named after its namespace
-        recording = next(cwd.glob(f"afm_runs/*_{ns.strip('/')}/afm_session_{ns.strip('/')}_*.mcap"))
+        recording = next(
+            cwd.glob(f"afm_runs/*_{ns.strip('/')}/afm_session_{ns.strip('/')}_*.mcap")
+        )
         topics = {m.topic for m in read_session(recording)}
         other = "/afm2" if ns == "/afm1" else "/afm1"
-        # each recorder keeps to its instrument (global /parameter_events, /diagnostics, /rosout aside)
+        # each recorder keeps to its instrument (global /parameter_events, /diagnostics, /rosout
+        # aside)
         assert f"{ns}/lockin/outputs" in topics and f"{ns}/clock" in topics
         assert not any(t.startswith(other) for t in topics), topics
         assert "/clock" not in topics  # each instrument has its own simulated clock

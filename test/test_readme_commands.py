@@ -7,6 +7,7 @@ the README's afm_ctl commands, scanner included (before, plain ``--interactive``
 and began engaged, without the workflow). The main job (``--image``) and ``--fm`` are run by
 test_image_job.py and test_fm_session.py on smaller frames.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,11 +27,17 @@ DOMAIN_ID = "41"
 
 DURATION = ".venv/bin/afm_instrument --duration 0.5"
 INTERACTIVE = ".venv/bin/afm_instrument --interactive"
-SECOND_TERMINAL = [".venv/bin/afm_ctl set z_controller setpoint 40e-9", ".venv/bin/afm_ctl list z_controller",
-                   ".venv/bin/afm_ctl watch --count 3",
-                   ".venv/bin/afm_ctl set scanner pixels_per_line 32 lines 8 line_rate 4",
-                   ".venv/bin/afm_ctl scan frame --wait", ".venv/bin/afm_ctl withdraw --wait",
-                   ".venv/bin/afm_ctl tune --wait", ".venv/bin/afm_ctl approach --wait", ".venv/bin/afm_ctl status"]
+SECOND_TERMINAL = [
+    ".venv/bin/afm_ctl set z_controller setpoint 40e-9",
+    ".venv/bin/afm_ctl list z_controller",
+    ".venv/bin/afm_ctl watch --count 3",
+    ".venv/bin/afm_ctl set scanner pixels_per_line 32 lines 8 line_rate 4",
+    ".venv/bin/afm_ctl scan frame --wait",
+    ".venv/bin/afm_ctl withdraw --wait",
+    ".venv/bin/afm_ctl tune --wait",
+    ".venv/bin/afm_ctl approach --wait",
+    ".venv/bin/afm_ctl status",
+]
 
 
 def _argv(command: str) -> list[str]:
@@ -41,8 +48,13 @@ def _argv(command: str) -> list[str]:
 
 @pytest.fixture
 def env(tmp_path):
-    e = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID,
-             ROS_LOG_DIR=str(tmp_path / "ros_log"), PYTHONUNBUFFERED="1")
+    e = dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=DOMAIN_ID,
+        ROS_LOG_DIR=str(tmp_path / "ros_log"),
+        PYTHONUNBUFFERED="1",
+    )
     e.pop("ROS_STATIC_PEERS", None)
     return e
 
@@ -53,31 +65,53 @@ def test_the_commands_are_the_readmes():
 
 
 def test_duration_runs_the_operating_workflow_and_withdraws(env, tmp_path):
-    result = subprocess.run(_argv(DURATION) + ["--json"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                            timeout=600)
+    result = subprocess.run(
+        _argv(DURATION) + ["--json"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     workflow = summary["workflow"]
     assert set(workflow) == {"tune", "approach", "withdraw"}
     assert abs(workflow["tune"]["f0_Hz"] - 45e3) < 5 * workflow["tune"]["f0_error_Hz"] + 0.01
     assert workflow["approach"]["cycles"] == 2 and workflow["approach"]["motor_steps"] == 48
-    assert abs(summary["reached_amplitude_m"] - summary["setpoint_m"]) < 0.01 * summary["setpoint_m"]
+    assert (
+        abs(summary["reached_amplitude_m"] - summary["setpoint_m"]) < 0.01 * summary["setpoint_m"]
+    )
     assert "withdrawn            at t=" in result.stdout
 
 
 def test_ideal_starts_engaged_without_the_workflow(env, tmp_path):
-    result = subprocess.run(_argv(DURATION) + ["--ideal", "--json", "--no-record"], cwd=tmp_path, env=env,
-                            capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        _argv(DURATION) + ["--ideal", "--json", "--no-record"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["workflow"] == {} and "imperfections: none" in result.stdout
 
 
-def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_terminal(env, tmp_path):
+def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_terminal(
+    env, tmp_path
+):
     log = tmp_path / "afm_instrument.log"
     with open(log, "wb") as err:
-        proc = subprocess.Popen(_argv(INTERACTIVE), cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=err,
-                                text=True)
+        proc = subprocess.Popen(
+            _argv(INTERACTIVE),
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+        )
     lines = []
     try:
         for line in proc.stdout:
@@ -85,18 +119,26 @@ def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_term
             if line.startswith("running until Ctrl-C"):
                 break
         else:
-            pytest.fail(f"afm_instrument ended before it was running:\n{''.join(lines)}\n{log.read_text()}")
+            pytest.fail(
+                f"afm_instrument ended before it was running:\n{''.join(lines)}\n{log.read_text()}"
+            )
         out = {}
         for command in SECOND_TERMINAL:
-            r = subprocess.run(_argv(command), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+            r = subprocess.run(
+                _argv(command), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+            )
             assert r.returncode == 0 and "Traceback" not in r.stderr, (command, r.stdout, r.stderr)
             out[command] = r.stdout
         assert "setpoint: 4.8e-08 -> 4e-08 m (40 nm)" in out[SECOND_TERMINAL[0]]
         assert out[".venv/bin/afm_ctl scan frame --wait"].rstrip().endswith("frame done")
-        assert re.search(r"z stage engaged, motor at .*: engaged at t=[\d.]+ s after 2 cycle\(s\) and 48 motor steps",
-                         out[".venv/bin/afm_ctl approach --wait"]), out[".venv/bin/afm_ctl approach --wait"]
+        assert re.search(
+            r"z stage engaged, motor at .*: engaged at t=[\d.]+ s after 2 cycle\(s\) and 48 "
+            r"motor steps",
+            out[".venv/bin/afm_ctl approach --wait"],
+        ), out[".venv/bin/afm_ctl approach --wait"]
         assert "z stage withdrawn" in out[".venv/bin/afm_ctl withdraw --wait"]
-        assert "tuned: f0 = 4500" in out[".venv/bin/afm_ctl tune --wait"]
+        tuned = re.search(r"tuned: f0 = ([\d.]+) \+- ([\d.e-]+) Hz", out[".venv/bin/afm_ctl tune --wait"])
+        assert tuned and abs(float(tuned[1]) - 45e3) < 5 * float(tuned[2]) + 0.01, out  # the lever's 45 kHz
         status = out[".venv/bin/afm_ctl status"]
         assert re.search(r"/scanner +OK +scan: idle, 1 frame\(s\) done, 1 written", status), status
         assert list(tmp_path.glob("afm_runs/*/afm_frame_*.gwy"))  # the frame, in the run folder
@@ -110,4 +152,6 @@ def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_term
     text = "".join(lines) + rest
     assert proc.returncode == 0, log.read_text()[-3000:]
     # the workflow ran before it was running: the summary has the tune and the approach from 5 um
-    assert "  tune                 f0 " in text and "  approach             from 5.00 um" in text, text
+    assert (
+        "  tune                 f0 " in text and "  approach             from 5.00 um" in text
+    ), text

@@ -1,4 +1,5 @@
-"""The recorder over real DDS into real MCAP files, read back with readers this project did not write.
+"""The recorder over real DDS into real MCAP files, read back with readers this project did not
+write.
 
 - in-process: the real cantilever node + recorder in a private context (discovery OFF, see
   conftest.py); the file is decoded by mcap_ros2 and by rosbags with an *empty* type store
@@ -7,6 +8,7 @@
   recorder whose file size limit runs out (the kernel's EFBIG, as a full disk gives ENOSPC);
 - bad output paths.
 """
+
 from __future__ import annotations
 
 import os
@@ -26,9 +28,9 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
 from afm_ros.formats import mcap_io
-from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.formats.chunk_layout import unpack
 from afm_ros.formats.mcap_io import RecordingError, read_session, recover, scan_session
+from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 
 VENV_BIN = Path(sys.executable).parent
@@ -62,12 +64,18 @@ def chunk_stream(messages):
 def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespace, tmp_path):
     ns = ros_namespace
     path = tmp_path / "session.mcap"
-    cantilever = CantileverNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter("output_sample_rate", value=OUTPUT_RATE)])
+    cantilever = CantileverNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[Parameter("output_sample_rate", value=OUTPUT_RATE)],
+    )
     ros_executor.add_node(cantilever)
     # default topic selection (everything) apart from the output path
-    recorder = RecorderNode(context=ros_context, namespace=ns,
-                            parameter_overrides=[Parameter("output", value=str(path))])
+    recorder = RecorderNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[Parameter("output", value=str(path))],
+    )
     ros_executor.add_node(recorder)
     defl, force = f"{ns}/cantilever/deflection", f"{ns}/cantilever/tip_sample_force"
     spin_until(ros_executor, lambda: recorder.received.get(defl, 0) > 0)
@@ -102,10 +110,19 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
         summary = reader.get_summary()
         assert header.profile == "ros2"
         assert "afm_ros" in header.library
-        counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
-        for topic in (defl, force, defl.replace("cantilever/deflection", "clock"), "/parameter_events"):
+        counts = {
+            summary.channels[cid].topic: n
+            for cid, n in summary.statistics.channel_message_counts.items()
+        }
+        for topic in (
+            defl,
+            force,
+            defl.replace("cantilever/deflection", "clock"),
+            "/parameter_events",
+        ):
             assert topic in counts, f"{topic} not recorded (default = all topics)"
-        # every message the recorder counted is in the file (+ the recorder's own parameter snapshots)
+        # every message the recorder counted is in the file (+ the recorder's own parameter
+        # snapshots)
         for topic, n in received.items():
             assert counts.get(topic, 0) >= n
         for schema in summary.schemas.values():
@@ -115,16 +132,30 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
             assert channel.message_encoding == "cdr"
             profiles = yaml.safe_load(channel.metadata["offered_qos_profiles"])
             assert isinstance(profiles, list) and profiles, channel.topic
-            assert {"history", "depth", "reliability", "durability", "deadline", "lifespan", "liveliness",
-                    "liveliness_lease_duration", "avoid_ros_namespace_conventions"} <= set(profiles[0])
+            assert {
+                "history",
+                "depth",
+                "reliability",
+                "durability",
+                "deadline",
+                "lifespan",
+                "liveliness",
+                "liveliness_lease_duration",
+                "avoid_ros_namespace_conventions",
+            } <= set(profiles[0])
         chunk_channel = next(c for c in summary.channels.values() if c.topic == defl)
         profile = yaml.safe_load(chunk_channel.metadata["offered_qos_profiles"])[0]
-        assert profile["reliability"] == "reliable" and profile["depth"] == pub_info.qos_profile.depth
+        assert (
+            profile["reliability"] == "reliable" and profile["depth"] == pub_info.qos_profile.depth
+        )
         assert chunk_channel.metadata["topic_type_hash"] == str(pub_info.topic_type_hash)
         schema = summary.schemas[chunk_channel.schema_id]
         text = schema.data.decode()
         # top-level definition first, then each dependency once behind the rosbag2 delimiter
-        msg_file = Path(os.environ.get("VIRTUAL_ENV", VENV_BIN.parent)) / "share/std_msgs/msg/Float64MultiArray.msg"
+        msg_file = (
+            Path(os.environ.get("VIRTUAL_ENV", VENV_BIN.parent))
+            / "share/std_msgs/msg/Float64MultiArray.msg"
+        )
         assert text.startswith(msg_file.read_text())
         for dep in ("std_msgs/MultiArrayLayout", "std_msgs/MultiArrayDimension"):
             assert text.count("\n" + "=" * 80 + "\nMSG: " + dep + "\n") == 1
@@ -141,6 +172,7 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
     # --- rosbags with an EMPTY type store: types come only from the schemas in the file ------
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
     n_rosbags = 0
     rosbags_chunks = []
     with AnyReader([path], default_typestore=get_typestore(Stores.EMPTY)) as areader:
@@ -154,13 +186,19 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
     # --- the deflection stream: no gap, nothing lost, identical through every reader ---------
     messages = [m for m in read_session(path) if m.topic == defl]
     idx, samples = chunk_stream(messages)
-    assert idx[0] == 0 and np.array_equal(idx, np.arange(idx.shape[0])), "gap or duplicate in sample indices"
+    assert idx[0] == 0 and np.array_equal(idx, np.arange(idx.shape[0])), (
+        "gap or duplicate in sample indices"
+    )
     assert idx.shape[0] == published, "recorded samples differ from what the cantilever published"
-    for a, b, c in zip(mcap_ros2_chunks, rosbags_chunks, (np.asarray(mcap_io.decode(m).data) for m in messages)):
+    for a, b, c in zip(
+        mcap_ros2_chunks, rosbags_chunks, (np.asarray(mcap_io.decode(m).data) for m in messages)
+    ):
         assert np.array_equal(a, c) and np.array_equal(b, c)
     # log_time = receive time >= publish_time = source timestamp (same wall clock, same host)
     assert all(m.publish_time <= m.log_time for m in messages)
-    assert any(m.publish_time < m.log_time for m in messages), "publish_time is not the source timestamp"
+    assert any(m.publish_time < m.log_time for m in messages), (
+        "publish_time is not the source timestamp"
+    )
 
     # --- parameters: full initial set of the cantilever, and the later change ----------------
     scan = scan_session(path)
@@ -176,8 +214,12 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
 
 
 def _env():
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=DOMAIN_ID,
-               PYTHONUNBUFFERED="1")
+    env = dict(
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=DOMAIN_ID,
+        PYTHONUNBUFFERED="1",
+    )
     return env
 
 
@@ -188,8 +230,14 @@ RUN_NS = f"/run{os.getpid()}"
 
 def _start(args, **kw):
     assert args[1] == "--ros-args"
-    return subprocess.Popen([str(VENV_BIN / args[0]), "--ros-args", "-r", f"__ns:={RUN_NS}", *args[2:]],
-                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+    return subprocess.Popen(
+        [str(VENV_BIN / args[0]), "--ros-args", "-r", f"__ns:={RUN_NS}", *args[2:]],
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        **kw,
+    )
 
 
 def _wait_for_growth(path: Path, size: int, timeout=30.0):
@@ -205,8 +253,16 @@ FLUSH_INTERVAL = 0.5  # [s]
 def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp_path):
     killed, termed = tmp_path / "killed.mcap", tmp_path / "termed.mcap"
     topics = "cantilever/deflection,cantilever/tip_sample_force"
-    cantilever = _start(["cantilever_node", "--ros-args", "-p", f"output_sample_rate:={OUTPUT_RATE}",
-                         "-p", "publish_clock:=false"])
+    cantilever = _start(
+        [
+            "cantilever_node",
+            "--ros-args",
+            "-p",
+            f"output_sample_rate:={OUTPUT_RATE}",
+            "-p",
+            "publish_clock:=false",
+        ]
+    )
     rec_args = ["-p", f"topics:={topics}", "-p", f"flush_interval:={FLUSH_INTERVAL}"]
     rec_kill = _start(["recorder_node", "--ros-args", "-p", f"output:={killed}", *rec_args])
     rec_term = _start(["recorder_node", "--ros-args", "-p", f"output:={termed}", *rec_args])
@@ -242,7 +298,9 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
         with pytest.raises(Exception):
             make_reader(f).get_summary() or (_ for _ in ()).throw(ValueError("no summary"))
     out = tmp_path / "recovered.mcap"
-    assert mcap_io.main(["recover", str(killed), str(tmp_path / "cli.mcap")]) == 0  # the command line
+    assert (
+        mcap_io.main(["recover", str(killed), str(tmp_path / "cli.mcap")]) == 0
+    )  # the command line
     assert scan_session(tmp_path / "cli.mcap").complete
     result = recover(killed, out)
     assert result.messages == sum(scan.message_counts.values()) > 0
@@ -256,7 +314,9 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
     lost_s = (t_kill - max(m.log_time for m in messages)) * 1e-9
     assert 0.0 <= lost_s <= FLUSH_INTERVAL + 0.3, f"lost {lost_s:.3f} s of data"
     # the SIGTERM'd recorder saw the same stream up to at least the kill: it also has no gap
-    idx_t, _ = chunk_stream([m for m in read_session(termed) if m.topic == f"{RUN_NS}/cantilever/deflection"])
+    idx_t, _ = chunk_stream(
+        [m for m in read_session(termed) if m.topic == f"{RUN_NS}/cantilever/deflection"]
+    )
     assert np.array_equal(idx_t, idx_t[0] + np.arange(idx_t.shape[0]))
     assert idx_t[-1] >= idx[-1]
 
@@ -270,9 +330,22 @@ def test_write_failure_stops_with_clear_error_and_no_complete_claim(tmp_path):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # get EFBIG from write() instead of a signal
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
-    cantilever = _start(["cantilever_node", "--ros-args", "-p", f"output_sample_rate:={OUTPUT_RATE}"])
-    rec = _start(["recorder_node", "--ros-args", "-p", f"output:={path}", "-p", "compression:=none",
-                  "-p", "topics:=cantilever/*"], preexec_fn=limit_size)
+    cantilever = _start(
+        ["cantilever_node", "--ros-args", "-p", f"output_sample_rate:={OUTPUT_RATE}"]
+    )
+    rec = _start(
+        [
+            "recorder_node",
+            "--ros-args",
+            "-p",
+            f"output:={path}",
+            "-p",
+            "compression:=none",
+            "-p",
+            "topics:=cantilever/*",
+        ],
+        preexec_fn=limit_size,
+    )
     try:
         code = rec.wait(30)  # exits by itself: no hang
         out = rec.stdout.read()
@@ -295,30 +368,49 @@ def test_write_failure_stops_with_clear_error_and_no_complete_claim(tmp_path):
 def test_bad_output_paths(ros_context, tmp_path):
     missing_dir = tmp_path / "no_such_dir" / "s.mcap"
     with pytest.raises(RecordingError, match=str(missing_dir.parent)):
-        RecorderNode(context=ros_context, parameter_overrides=[Parameter("output", value=str(missing_dir))])
+        RecorderNode(
+            context=ros_context, parameter_overrides=[Parameter("output", value=str(missing_dir))]
+        )
     assert not missing_dir.exists()
 
     a_file = tmp_path / "plain_file"
     a_file.write_text("not a directory")
     with pytest.raises(RecordingError, match="not a directory"):
-        RecorderNode(context=ros_context, parameter_overrides=[
-            Parameter("output", value=str(a_file / "s.mcap"))])
+        RecorderNode(
+            context=ros_context,
+            parameter_overrides=[Parameter("output", value=str(a_file / "s.mcap"))],
+        )
 
     existing = tmp_path / "existing.mcap"
     existing.write_bytes(b"precious")
-    recorder = RecorderNode(context=ros_context, parameter_overrides=[Parameter("output", value=str(existing))])
+    recorder = RecorderNode(
+        context=ros_context, parameter_overrides=[Parameter("output", value=str(existing))]
+    )
     recorder.destroy_node()
     assert existing.read_bytes() == b"precious", "an existing file must never be overwritten"
-    assert recorder.output_path == str(tmp_path / "existing_2.mcap") and scan_session(recorder.output_path).complete
+    assert (
+        recorder.output_path == str(tmp_path / "existing_2.mcap")
+        and scan_session(recorder.output_path).complete
+    )
 
     with pytest.raises(Exception, match="compression"):
-        RecorderNode(context=ros_context, parameter_overrides=[
-            Parameter("output", value=str(tmp_path / "x.mcap")), Parameter("compression", value="gzip")])
+        RecorderNode(
+            context=ros_context,
+            parameter_overrides=[
+                Parameter("output", value=str(tmp_path / "x.mcap")),
+                Parameter("compression", value="gzip"),
+            ],
+        )
     assert not (tmp_path / "x.mcap").exists()
 
     # the executable reports the path and exits non-zero instead of hanging
-    proc = subprocess.run([str(VENV_BIN / "recorder_node"), "--ros-args", "-p", f"output:={missing_dir}"],
-                          env=_env(), capture_output=True, text=True, timeout=30)
+    proc = subprocess.run(
+        [str(VENV_BIN / "recorder_node"), "--ros-args", "-p", f"output:={missing_dir}"],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert proc.returncode == 1 and str(missing_dir.parent) in proc.stderr
 
 
@@ -334,14 +426,25 @@ def test_default_output_is_timestamped_in_cwd(ros_context, tmp_path, monkeypatch
 
 
 def test_records_under_the_events_executor(ros_context, ros_namespace, tmp_path):
-    """afm_instrument spins everything on rclpy's EventsExecutor: the recorder must work there too."""
+    """afm_instrument spins everything on rclpy's EventsExecutor: the recorder must work there
+    too."""
     from rclpy.experimental import EventsExecutor
+
     ex = EventsExecutor(context=ros_context)
     path = tmp_path / "events.mcap"
-    cantilever = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
-        Parameter("output_sample_rate", value=OUTPUT_RATE)])
-    recorder = RecorderNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
-        Parameter("output", value=str(path)), Parameter("topics", value="cantilever/deflection")])
+    cantilever = CantileverNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[Parameter("output_sample_rate", value=OUTPUT_RATE)],
+    )
+    recorder = RecorderNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[
+            Parameter("output", value=str(path)),
+            Parameter("topics", value="cantilever/deflection"),
+        ],
+    )
     try:
         ex.add_node(cantilever)
         ex.add_node(recorder)
@@ -350,23 +453,36 @@ def test_records_under_the_events_executor(ros_context, ros_namespace, tmp_path)
         cantilever.destroy_node()
         published = cantilever.samples_published
         topic = f"{ros_namespace}/cantilever/deflection"
-        spin_until(ex, lambda: topic in recorder.streams and recorder.streams[topic].next_index == published)
+        spin_until(
+            ex,
+            lambda: topic in recorder.streams and recorder.streams[topic].next_index == published,
+        )
         ex.remove_node(recorder)
         recorder.destroy_node()
     finally:
         ex.shutdown()
-    idx, _ = chunk_stream([m for m in read_session(path) if m.topic.endswith("cantilever/deflection")])
+    idx, _ = chunk_stream(
+        [m for m in read_session(path) if m.topic.endswith("cantilever/deflection")]
+    )
     assert scan_session(path).complete
     assert np.array_equal(idx, np.arange(idx.size)) and idx.size == published
 
 
-@pytest.mark.parametrize("type_name", ["geometry_msgs/msg/Vector3Stamped", "rcl_interfaces/msg/ParameterEvent",
-                                       "diagnostic_msgs/msg/DiagnosticArray", "rosgraph_msgs/msg/Clock"])
+@pytest.mark.parametrize(
+    "type_name",
+    [
+        "geometry_msgs/msg/Vector3Stamped",
+        "rcl_interfaces/msg/ParameterEvent",
+        "diagnostic_msgs/msg/DiagnosticArray",
+        "rosgraph_msgs/msg/Clock",
+    ],
+)
 def test_schema_text_follows_rosbag2_and_defines_every_type(type_name):
     """No DDS: the schema text of the types the instrument publishes, checked against rosbag2's
     rule (root text, then each dependency depth first behind '=' * 80 + 'MSG: pkg/Type') and
     against the field definitions rosbags ships for ROS 2 Jazzy (an independent source)."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
     text = mcap_io.message_definition(type_name)
     pkg, _, name = type_name.split("/")
     share = Path(os.environ.get("VIRTUAL_ENV", VENV_BIN.parent)) / "share"
@@ -387,12 +503,18 @@ def test_schema_text_follows_rosbag2_and_defines_every_type(type_name):
     reference = get_typestore(Stores.ROS2_JAZZY).fielddefs
     for t, definition in parsed.items():
         assert definition[1] == reference[t][1], t
+
     # every dependency of the reference definition is in the text
     def closure(t, seen):
         for _, (kind, spec) in reference[t][1]:
-            sub = spec if isinstance(spec, str) else (spec[0][1] if isinstance(spec[0], tuple) else spec[0])
+            sub = (
+                spec
+                if isinstance(spec, str)
+                else (spec[0][1] if isinstance(spec[0], tuple) else spec[0])
+            )
             if isinstance(sub, str) and "/" in sub and sub not in seen:
                 seen.add(sub)
                 closure(sub, seen)
         return seen
+
     assert closure(type_name, set()) <= set(parsed)

@@ -1,4 +1,5 @@
 """Replay of recorded sessions into a live graph (real DDS, in-process, private context)."""
+
 from __future__ import annotations
 
 import os
@@ -15,9 +16,9 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
 from afm_ros.formats import mcap_io
-from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.formats.chunk_layout import unpack
 from afm_ros.formats.mcap_io import SessionFileError, read_session, scan_session
+from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 from afm_ros.nodes.replay_node import ReplayNode
 
@@ -40,16 +41,30 @@ def loop_session(tmp_path_factory):
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.z_controller_node import ZControllerNode
+
     path = tmp_path_factory.mktemp("replay") / "loop.mcap"
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     try:
-        cantilever = CantileverNode(context=ctx, namespace="/a", parameter_overrides=[
-            Parameter("output_sample_rate", value=OUTPUT_RATE)])
-        nodes = [cantilever, LockInNode(context=ctx, namespace="/a"), ZControllerNode(context=ctx, namespace="/a")]
-        recorder = RecorderNode(context=ctx, namespace="/a", parameter_overrides=[
-            Parameter("output", value=str(path)), Parameter("topics", value="cantilever/*,lockin/*,z_controller/*,clock")])
+        cantilever = CantileverNode(
+            context=ctx,
+            namespace="/a",
+            parameter_overrides=[Parameter("output_sample_rate", value=OUTPUT_RATE)],
+        )
+        nodes = [
+            cantilever,
+            LockInNode(context=ctx, namespace="/a"),
+            ZControllerNode(context=ctx, namespace="/a"),
+        ]
+        recorder = RecorderNode(
+            context=ctx,
+            namespace="/a",
+            parameter_overrides=[
+                Parameter("output", value=str(path)),
+                Parameter("topics", value="cantilever/*,lockin/*,z_controller/*,clock"),
+            ],
+        )
         for n in nodes + [recorder]:
             ex.add_node(n)
         spin(ex, RECORD_S)
@@ -73,8 +88,12 @@ class Sink(rclpy.node.Node):
         self.create_subscription(Vector3Stamped, "lockin/xy", self.xy.append, q)
         self.create_subscription(Float64, "lockin/amplitude", lambda m: self.amp.append(m.data), q)
         self.create_subscription(Float64, "lockin/phase", lambda m: self.phase.append(m.data), q)
-        self.create_subscription(Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), q)
-        self.create_subscription(Clock, clock, lambda m: self.clock.append(m.clock.sec + 1e-9 * m.clock.nanosec), q)
+        self.create_subscription(
+            Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), q
+        )
+        self.create_subscription(
+            Clock, clock, lambda m: self.clock.append(m.clock.sec + 1e-9 * m.clock.nanosec), q
+        )
         self.create_subscription(Float64MultiArray, "cantilever/deflection", self.chunks.append, q)
 
 
@@ -82,10 +101,14 @@ def _stamp(m):
     return round((m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec) * 1e9)
 
 
-def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_session, ros_context, ros_executor):
+def test_replay_into_live_lockin_and_z_controller_reproduces_recording(
+    loop_session, ros_context, ros_executor
+):
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.z_controller_node import ZControllerNode
-    # recorded outputs by simulated time stamp (xy is stamped; amplitude/phase come in the same order)
+
+    # recorded outputs by simulated time stamp (xy is stamped; amplitude/phase come in the same
+    # order)
     rec = {"xy": [], "amp": [], "phase": []}
     for m in read_session(loop_session):
         if m.topic == "/a/lockin/xy":
@@ -100,23 +123,33 @@ def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_sess
     sink = Sink(ros_context, "/b")
     lockin = LockInNode(context=ros_context, namespace="/b")
     zc = ZControllerNode(context=ros_context, namespace="/b")
-    replay = ReplayNode(context=ros_context, parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topics", value="/a/cantilever/deflection"),
-        Parameter("rate", value=1.0)],
-        cli_args=["--ros-args", "-r", "/a/cantilever/deflection:=/b/cantilever/deflection"])
+    replay = ReplayNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("file", value=str(loop_session)),
+            Parameter("topics", value="/a/cantilever/deflection"),
+            Parameter("rate", value=1.0),
+        ],
+        cli_args=["--ros-args", "-r", "/a/cantilever/deflection:=/b/cantilever/deflection"],
+    )
     for n in (sink, lockin, zc, replay):
         ros_executor.add_node(n)
     spin(ros_executor, until=replay.done.is_set, timeout=RECORD_S * 3 + 5)
     spin(ros_executor, 0.3)
     assert replay.error is None
-    assert replay.published == {"/a/cantilever/deflection": scan_session(loop_session).message_counts[
-        "/a/cantilever/deflection"]}
+    assert replay.published == {
+        "/a/cantilever/deflection": scan_session(loop_session).message_counts[
+            "/a/cantilever/deflection"
+        ]
+    }
     assert len(sink.chunks) == replay.published["/a/cantilever/deflection"], "replayed chunks lost"
 
     live = {_stamp(m): (a, p) for m, a, p in zip(sink.xy, sink.amp, sink.phase)}
     recorded = {_stamp(m): (a, p) for m, a, p in zip(rec["xy"], rec["amp"], rec["phase"])}
     common = sorted(set(live) & set(recorded))
-    assert len(common) > 0.8 * len(recorded), "the replayed lock-in did not cover the recorded time"
+    assert len(common) > 0.8 * len(recorded), (
+        "the replayed lock-in did not cover the recorded time"
+    )
     # Skip the first 10 ms of simulated time: if either lock-in saw its first chunk later than the
     # other, their low-pass states differ until the filter has settled (order 4, tau 20 us:
     # settled to 1e-12 well within 10 ms). After that the same input gives the same output.
@@ -132,7 +165,9 @@ def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_sess
     # the replayed one here) makes the two filters differ for ~50 tau = 1 ms after it, by at most
     # the change of the signal over one chunk (2 ms): < 0.5 nm and < 3 deg during this approach.
     identical = (np.abs(a_live - a_rec) <= 1e-9 * np.max(a_rec)) & (np.abs(p_live - p_rec) <= 1e-6)
-    assert identical.mean() >= 0.95, f"only {identical.mean():.1%} of the outputs reproduced exactly"
+    assert identical.mean() >= 0.95, (
+        f"only {identical.mean():.1%} of the outputs reproduced exactly"
+    )
     assert np.max(np.abs(a_live - a_rec)) <= 0.5e-9 and np.max(np.abs(p_live - p_rec)) <= 3.0
     # the z-controller ran on the replayed lock-in output
     assert len(sink.z) > 100
@@ -147,24 +182,36 @@ def test_replay_into_live_lockin_and_z_controller_reproduces_recording(loop_sess
 
 def test_rate_scales_timing_and_prefix_renames(loop_session, ros_context, ros_executor):
     sink = Sink(ros_context, "/fast/a", clock="/a/clock")
-    replay = ReplayNode(context=ros_context, parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topic_prefix", value="/fast"),
-        Parameter("topics", value="/a/cantilever/deflection,/a/clock"), Parameter("rate", value=4.0),
-        Parameter("start_delay", value=0.2)])
+    replay = ReplayNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("file", value=str(loop_session)),
+            Parameter("topic_prefix", value="/fast"),
+            Parameter("topics", value="/a/cantilever/deflection,/a/clock"),
+            Parameter("rate", value=4.0),
+            Parameter("start_delay", value=0.2),
+        ],
+    )
     ros_executor.add_node(sink)
     ros_executor.add_node(replay)
     spin(ros_executor, until=lambda: len(sink.chunks) > 0, timeout=10)
     t_first = time.monotonic()
     spin(ros_executor, until=replay.done.is_set, timeout=20)
     wall = time.monotonic() - t_first
-    logs = [m.log_time for m in read_session(loop_session) if m.topic in ("/a/cantilever/deflection", "/a/clock")]
+    logs = [
+        m.log_time
+        for m in read_session(loop_session)
+        if m.topic in ("/a/cantilever/deflection", "/a/clock")
+    ]
     span = (max(logs) - min(logs)) * 1e-9
     # Played at rate 4 the recorded span takes span/4 of wall time; the tolerance (+-35 % and
     # 0.15 s) covers executor latency on a loaded 2-core machine, while rate 1 (or 2) would fail.
     assert span / 4 * 0.65 - 0.15 <= wall <= span / 4 * 1.35 + 0.15, (wall, span)
     spin(ros_executor, 0.3)
     assert len(sink.chunks) == replay.published["/a/cantilever/deflection"]
-    assert replay.published["/a/clock"] > 0 and len(sink.clock) > 0  # recorded /a/clock, not prefixed
+    assert (
+        replay.published["/a/clock"] > 0 and len(sink.clock) > 0
+    )  # recorded /a/clock, not prefixed
 
 
 def _unknown_schema_file(path):
@@ -179,7 +226,9 @@ def _unknown_schema_file(path):
 
 def test_bad_files_give_clear_errors(ros_context, tmp_path, loop_session):
     def make(path):
-        return ReplayNode(context=ros_context, parameter_overrides=[Parameter("file", value=str(path))])
+        return ReplayNode(
+            context=ros_context, parameter_overrides=[Parameter("file", value=str(path))]
+        )
 
     missing = tmp_path / "missing.mcap"
     with pytest.raises(SessionFileError, match=f"{missing}.*does not exist"):
@@ -200,28 +249,43 @@ def test_bad_files_give_clear_errors(ros_context, tmp_path, loop_session):
         make(header_only)
     unknown = tmp_path / "unknown.mcap"
     _unknown_schema_file(unknown)
-    with pytest.raises(SessionFileError, match=f"{unknown}.*/thing.*afm_no_such_msgs/msg/Thing.*not installed"):
+    with pytest.raises(
+        SessionFileError, match=f"{unknown}.*/thing.*afm_no_such_msgs/msg/Thing.*not installed"
+    ):
         make(unknown)
     # excluding the unknown topic makes the file playable
-    node = ReplayNode(context=ros_context, parameter_overrides=[
-        Parameter("file", value=str(unknown)), Parameter("exclude", value="/thing")])
+    node = ReplayNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("file", value=str(unknown)),
+            Parameter("exclude", value="/thing"),
+        ],
+    )
     node.destroy_node()
 
 
 def test_truncated_file_plays_the_intact_part(ros_context, ros_executor, tmp_path, loop_session):
     from mcap.reader import make_reader
+
     data = loop_session.read_bytes()
     with open(loop_session, "rb") as f:
-        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+        chunks = sorted(
+            make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset
+        )
     cut = tmp_path / "cut.mcap"
     mid = chunks[len(chunks) // 2]
     cut.write_bytes(data[: mid.chunk_start_offset + mid.chunk_length // 2])
     intact = scan_session(cut)
     assert not intact.complete
     sink = Sink(ros_context, "/a")
-    replay = ReplayNode(context=ros_context, parameter_overrides=[
-        Parameter("file", value=str(cut)), Parameter("topics", value="/a/cantilever/deflection"),
-        Parameter("rate", value=5.0)])
+    replay = ReplayNode(
+        context=ros_context,
+        parameter_overrides=[
+            Parameter("file", value=str(cut)),
+            Parameter("topics", value="/a/cantilever/deflection"),
+            Parameter("rate", value=5.0),
+        ],
+    )
     assert not replay.complete
     ros_executor.add_node(sink)
     ros_executor.add_node(replay)
@@ -234,9 +298,16 @@ def test_truncated_file_plays_the_intact_part(ros_context, ros_executor, tmp_pat
 
 def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros_executor):
     from rclpy.parameter_client import AsyncParameterClient
-    replay = ReplayNode(context=ros_context, namespace="/rt", parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topics", value="/a/clock"),
-        Parameter("start_delay", value=5.0)])
+
+    replay = ReplayNode(
+        context=ros_context,
+        namespace="/rt",
+        parameter_overrides=[
+            Parameter("file", value=str(loop_session)),
+            Parameter("topics", value="/a/clock"),
+            Parameter("start_delay", value=5.0),
+        ],
+    )
     ros_executor.add_node(replay)
     client = AsyncParameterClient(replay, "/rt/replay")
     assert client.wait_for_services(5.0)
@@ -252,9 +323,17 @@ def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros
 
 def test_loop_replays_again(loop_session, ros_context, ros_executor):
     n_clock = scan_session(loop_session).message_counts["/a/clock"]
-    replay = ReplayNode(context=ros_context, namespace="/lp", parameter_overrides=[
-        Parameter("file", value=str(loop_session)), Parameter("topics", value="/a/clock"),
-        Parameter("rate", value=20.0), Parameter("loop", value=True), Parameter("start_delay", value=0.0)])
+    replay = ReplayNode(
+        context=ros_context,
+        namespace="/lp",
+        parameter_overrides=[
+            Parameter("file", value=str(loop_session)),
+            Parameter("topics", value="/a/clock"),
+            Parameter("rate", value=20.0),
+            Parameter("loop", value=True),
+            Parameter("start_delay", value=0.0),
+        ],
+    )
     ros_executor.add_node(replay)
     spin(ros_executor, until=lambda: replay.published["/a/clock"] > 2 * n_clock, timeout=20)
     assert not replay.done.is_set()  # still looping

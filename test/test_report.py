@@ -1,5 +1,6 @@
 """Reports from real recordings: a full closed-loop session, the same file truncated, and a
 session recorded from one topic only (all recorded once per module over real DDS)."""
+
 from __future__ import annotations
 
 import os
@@ -8,15 +9,15 @@ import time
 import numpy as np
 import pytest
 import rclpy
+from conftest import EXACT_PHYSICS
 from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from conftest import EXACT_PHYSICS
-from afm_ros.tools import report
-from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.core.cantilever_params import build, default_values
+from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
+from afm_ros.tools import report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 OUTPUT_RATE = 450e3  # [S/s] 10 samples per drive period: enough for the lock-in, light for 2 cores
@@ -29,18 +30,37 @@ def sessions(tmp_path_factory):
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.z_controller_node import ZControllerNode
+
     d = tmp_path_factory.mktemp("report")
     full, subset = d / "full.mcap", d / "subset.mcap"
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ns = "/rep"
-    cantilever = CantileverNode(context=ctx, namespace=ns, parameter_overrides=[
-        Parameter("output_sample_rate", value=OUTPUT_RATE)] + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()])
-    nodes = [cantilever, LockInNode(context=ctx, namespace=ns), ZControllerNode(context=ctx, namespace=ns)]
-    recorders = [RecorderNode(context=ctx, namespace=ns, parameter_overrides=[Parameter("output", value=str(full))]),
-                 RecorderNode(context=ctx, namespace=ns, parameter_overrides=[
-                     Parameter("output", value=str(subset)), Parameter("topics", value="cantilever/deflection")])]
+    cantilever = CantileverNode(
+        context=ctx,
+        namespace=ns,
+        parameter_overrides=[Parameter("output_sample_rate", value=OUTPUT_RATE)]
+        + [Parameter(k, value=v) for k, v in EXACT_PHYSICS.items()],
+    )
+    nodes = [
+        cantilever,
+        LockInNode(context=ctx, namespace=ns),
+        ZControllerNode(context=ctx, namespace=ns),
+    ]
+    recorders = [
+        RecorderNode(
+            context=ctx, namespace=ns, parameter_overrides=[Parameter("output", value=str(full))]
+        ),
+        RecorderNode(
+            context=ctx,
+            namespace=ns,
+            parameter_overrides=[
+                Parameter("output", value=str(subset)),
+                Parameter("topics", value="cantilever/deflection"),
+            ],
+        ),
+    ]
     for n in nodes + recorders:
         ex.add_node(n)
     try:
@@ -72,14 +92,20 @@ def test_full_session_report(sessions, tmp_path):
         assert _is_png(tmp_path / name), name
     md = (tmp_path / "report.md").read_text()
     assert "File complete" in md
-    for section in ("## Setpoint tracking", "## Force-distance", "## Parameters at start", "## Parameter changes"):
+    for section in (
+        "## Setpoint tracking",
+        "## Force-distance",
+        "## Parameters at start",
+        "## Parameter changes",
+    ):
         assert section in md
     for node in ("/rep/cantilever", "/rep/lockin", "/rep/z_controller"):
         assert f"### `{node}`" in md
 
     rep = report.make_report(full, tmp_path / "again")
     data = rep.data
-    # the deflection stream is gap-free (indices 0 .. N-1 in order), so every sample has its force partner
+    # the deflection stream is gap-free (indices 0 .. N-1 in order), so every sample has its force
+    # partner
     d = data.deflection
     assert (d.first_index, d.last_index, d.lost, d.gaps, d.repeats) == (0, d.samples - 1, 0, 0, 0)
     assert data.fd.pairs == d.samples == data.force.samples
@@ -103,11 +129,16 @@ def test_full_session_report(sessions, tmp_path):
     assert rep.numbers["min_force_n"] <= force.min()
     # the setpoint is read from the recorded z_controller parameters
     from afm_ros.core.controller import Z_CONTROLLER_SPECS
-    assert rep.numbers["setpoint_m"] == pytest.approx(Z_CONTROLLER_SPECS["setpoint"].default, rel=1e-6, abs=0)
+
+    assert rep.numbers["setpoint_m"] == pytest.approx(
+        Z_CONTROLLER_SPECS["setpoint"].default, rel=1e-6, abs=0
+    )
     # error = setpoint - amplitude: the setpoint rebuilt from the recorded error and amplitude
     # agrees with the parameter to within the lock-in's output jitter between the two topics
     # (a few % of the setpoint on a loop that has not settled).
-    assert rep.numbers["setpoint_from_error_m"] == pytest.approx(rep.numbers["setpoint_m"], rel=0.1)
+    assert rep.numbers["setpoint_from_error_m"] == pytest.approx(
+        rep.numbers["setpoint_m"], rel=0.1
+    )
     # a tapping session (no pll/outputs, z on the amplitude): no FM section or figure
     assert "fm" not in rep.numbers and "## FM-AFM" not in md and not (tmp_path / "fm.png").exists()
     assert not data.fm_feedback and data.fm is None
@@ -154,15 +185,23 @@ def test_report_on_bad_file(tmp_path, capsys):
 def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespace, tmp_path):
     """The afm_instrument job (withdraw, free measurement, engage at 80 %, hold), recorded; the
     report computed from the file must agree with the summary the instrument computed live."""
-    from afm_ros.tools.afm_instrument import Instrument
     from rclpy.parameter import Parameter as P
+
+    from afm_ros.tools.afm_instrument import Instrument
+
     path = tmp_path / "job.mcap"
     import inspect
+
     # if afm_instrument records by default, switch that off: this test adds its own recorder
     no_record = {"record": False} if "record" in inspect.signature(Instrument).parameters else {}
-    instrument = Instrument(context=ros_context, namespace=ros_namespace, executor="events", **no_record)
-    recorder = RecorderNode(context=ros_context, namespace=ros_namespace,
-                            parameter_overrides=[P("output", value=str(path))])
+    instrument = Instrument(
+        context=ros_context, namespace=ros_namespace, executor="events", **no_record
+    )
+    recorder = RecorderNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[P("output", value=str(path))],
+    )
     instrument.executor.add_node(recorder)
     try:
         live = instrument.run_job(0.3, 0.03, 0.8, band_fraction=report.SETTLING_BAND)
@@ -174,7 +213,9 @@ def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespa
     # both average the same lock-in output of a settled state, over slightly different windows
     # (last half of the free window / last quarter of the hold vs last 20 %): 0.1 % and 0.05 deg
     assert numbers["free_amplitude_m"] == pytest.approx(live.free_amplitude_m, rel=1e-3)
-    assert numbers["setpoint_m"] == pytest.approx(live.setpoint_m, rel=1e-12, abs=0)  # same parameter value
+    assert numbers["setpoint_m"] == pytest.approx(
+        live.setpoint_m, rel=1e-12, abs=0
+    )  # same parameter value
     assert numbers["reached_amplitude_m"] == pytest.approx(live.reached_amplitude_m, rel=1e-3)
     assert numbers["contact_phase_deg"] == pytest.approx(live.contact_phase_deg, abs=0.05)
     assert numbers["contact_z_piezo_m"] == pytest.approx(live.z_piezo_m, abs=0.1e-9)

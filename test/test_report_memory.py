@@ -1,10 +1,11 @@
 """afm_report in bounded memory on a long session, exact numbers from streamed data, non-finite
 samples, and one-line errors for files from other tools (issue 8).
 
-The sessions are synthetic (benchmarks.bench_report.write_synthetic_session): the instrument's message
-pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an engage on
+The sessions are synthetic (benchmarks.bench_report.write_synthetic_session): the instrument's
+message pattern (2 ms chunks, /clock per chunk, lock-in and z controller outputs, an engage on
 /parameter_events) with known contents, so every number the report makes has an exact expectation.
 """
+
 from __future__ import annotations
 
 import json
@@ -15,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from afm_ros.formats.mcap_io import SessionWriter
 from afm_ros.tools import report
 from benchmarks.bench_report import run_measured, write_synthetic_session
-from afm_ros.formats.mcap_io import SessionWriter
 
 BIN = Path(sys.executable).parent
 
@@ -29,16 +30,21 @@ def _run_measured(*args) -> tuple[int, str, str, float]:
     small intermediate process (see bench_report.run_measured: measured from pytest directly, a
     child's ru_maxrss would start at pytest's own size). No sampling, so no timing luck.
     """
-    exe = [str(BIN / "afm_report")] if (BIN / "afm_report").exists() else [sys.executable, "-m", "afm_ros.tools.report"]
+    exe = (
+        [str(BIN / "afm_report")]
+        if (BIN / "afm_report").exists()
+        else [sys.executable, "-m", "afm_ros.tools.report"]
+    )
     r = run_measured(exe + [str(a) for a in args], timeout=600)
     return r["status"], r["stdout"], r["stderr"], r["peak_rss_mb"]
 
 
 def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
-    """600 simulated seconds: 300 000 chunks per stream (more than report.TABLE_CAP /clock messages,
-    so the time table really is decimated), 12 M samples per stream, 60 000 lock-in outputs. The old
-    in-memory report needed ~161 B per sample pair (~1.9 GB here); the streaming one must stay under
-    report.PEAK_RSS_BOUND_MB, measured as the kernel's high-water mark of the report process."""
+    """600 simulated seconds: 300 000 chunks per stream (more than report.TABLE_CAP /clock
+    messages, so the time table really is decimated), 12 M samples per stream, 60 000 lock-in
+    outputs. The old in-memory report needed ~161 B per sample pair (~1.9 GB here); the streaming
+    one must stay under report.PEAK_RSS_BOUND_MB, measured as the kernel's high-water mark of the
+    report process."""
     path = tmp_path / "long.mcap"
     info = write_synthetic_session(path, 600.0)
     assert info["chunks"] > report.TABLE_CAP and info["bytes"] < 200e6
@@ -49,19 +55,32 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
     numbers = json.loads(out.strip().splitlines()[-1])
     exp = info["expected"]
     # counts are exact
-    for key in ("deflection_samples", "force_samples", "deflection_lost_samples", "deflection_gaps",
-                "force_lost_samples", "force_gaps", "deflection_non_finite", "force_distance_pairs"):
+    for key in (
+        "deflection_samples",
+        "force_samples",
+        "deflection_lost_samples",
+        "deflection_gaps",
+        "force_lost_samples",
+        "force_gaps",
+        "deflection_non_finite",
+        "force_distance_pairs",
+    ):
         assert numbers[key] == exp[key], key
     assert numbers["force_distance_kept"] == report.MAX_SCATTER_POINTS
     # The tracking numbers average values the generator wrote: constants, or (reached amplitude) an
     # exponential that has decayed below one ulp of the setpoint long before the window. Averaging
     # N equal doubles is exact to a few ulp: 1e-12 relative.
-    for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m",
-                "setpoint_from_error_m"):
+    for key in (
+        "free_amplitude_m",
+        "reached_amplitude_m",
+        "contact_phase_deg",
+        "contact_z_piezo_m",
+        "setpoint_from_error_m",
+    ):
         assert numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
     assert numbers["setpoint_m"] == exp["setpoint_m"]
-    # Engage time: the parameter event's receive time mapped through /clock receive times; log times
-    # near 1.7e18 ns are doubles with a 256 ns step when interpolated: 1e-6 s.
+    # Engage time: the parameter event's receive time mapped through /clock receive times; log
+    # times near 1.7e18 ns are doubles with a 256 ns step when interpolated: 1e-6 s.
     assert numbers["engage_time_s"] == pytest.approx(exp["engage_time_s"], abs=1e-6)
     # settling time: a difference of two sample times the generator wrote (the same doubles)
     assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
@@ -71,7 +90,8 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
     md = (tmp_path / "rep" / "report.md").read_text()
     assert md.count("complete: no sample lost") == 2
     assert "File complete" in md
-    # 300 000 /clock messages > TABLE_CAP: the time map became a polyline (the clock here is one line)
+    # 300 000 /clock messages > TABLE_CAP: the time map became a polyline (the clock here is one
+    # line)
     assert "mapping through 300000 /clock messages is a polyline of" in md
     for name in ("deflection_force.png", "lockin_z.png", "force_distance.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 5000
@@ -79,10 +99,11 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
 
 def test_kept_force_distance_pairs_are_exact_and_evenly_spaced(tmp_path):
     """60 s (1.2 M pairs > MAX_SCATTER_POINTS): exactly MAX_SCATTER_POINTS pairs are kept, evenly
-    spaced in the sample index, and each one lies on the DMT curve the generator used (gap and force
-    of the same sample: exact, 0 relative error; a pairing off by one sample would miss by up to
-    the force's full range)."""
+    spaced in the sample index, and each one lies on the DMT curve the generator used (gap and
+    force of the same sample: exact, 0 relative error; a pairing off by one sample would miss by up
+    to the force's full range)."""
     from afm_ros.core.physics.forces import DMTForce
+
     path = tmp_path / "s.mcap"
     info = write_synthetic_session(path, 60.0)
     data = report.load_session(path)
@@ -91,26 +112,40 @@ def test_kept_force_distance_pairs_are_exact_and_evenly_spaced(tmp_path):
     assert index.size == m
     assert np.all(np.diff(index) >= n // m) and np.all(np.diff(index) <= -(-n // m))
     assert np.array_equal(force, DMTForce().force(gap))
-    i, period = index % info["chunk_samples"], info["samples_per_period"]  # the generator's expression
-    assert np.array_equal(gap, info["z_offset_m"] + info["deflection_amplitude_m"]
-                          * np.sin(2.0 * np.pi * i / period - np.pi / 2.0))
+    i, period = (
+        index % info["chunk_samples"],
+        info["samples_per_period"],
+    )  # the generator's expression
+    assert np.array_equal(
+        gap,
+        info["z_offset_m"]
+        + info["deflection_amplitude_m"] * np.sin(2.0 * np.pi * i / period - np.pi / 2.0),
+    )
     assert data.passes == 2
 
 
 def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
     """Old recordings could hold NaN samples: they are counted, reported, left out of the envelope,
-    the force-distance numbers and every average (the numbers equal those of the finite samples)."""
+    the force-distance numbers and every average (the numbers equal those of the finite
+    samples)."""
     path = tmp_path / "nan.mcap"
     # series samples: 100 Hz, engage at 0.405 s; 399 = the last one (inside the reached-amplitude
     # window), 5 = before engaging (outside the free-amplitude window)
-    info = write_synthetic_session(path, 4.0, non_finite_chunks=(10, 500), non_finite_amplitudes=(5, 399))
+    info = write_synthetic_session(
+        path, 4.0, non_finite_chunks=(10, 500), non_finite_amplitudes=(5, 399)
+    )
     rep = report.make_report(path, tmp_path / "rep")
     exp, numbers = info["expected"], rep.numbers
     assert numbers["deflection_non_finite"] == 2 and numbers["force_non_finite"] == 0
     assert numbers["amplitude_non_finite"] == 2
-    assert rep.data.fd.non_finite == 2 and numbers["force_distance_pairs"] == exp["force_distance_pairs"]
+    assert (
+        rep.data.fd.non_finite == 2
+        and numbers["force_distance_pairs"] == exp["force_distance_pairs"]
+    )
     for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg"):
-        assert math_finite(numbers[key]) and numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
+        assert math_finite(numbers[key]) and numbers[key] == pytest.approx(
+            exp[key], rel=1e-12, abs=0
+        ), key
     assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
     assert numbers["min_gap_m"] == exp["min_gap_m"]
     md = rep.markdown.read_text()
@@ -121,20 +156,24 @@ def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
 
 
 def test_time_map_table_keeps_corners_and_bounds_its_error():
-    """The /clock table of a long session: 1 M messages (2000 s at 500 Hz) with two pauses, a change
-    of real-time factor and receive-time jitter (sigma 0.02 / 0.2 / 2 ms), into a table of 4096 rows.
-    Interpolating the table must stay within its stated error bound of interpolating every message,
-    everywhere (checked at 300 000 receive times), and with no jitter the pauses stay corners within 1 us
-    (a stride-decimated table would cut them by up to the stride)."""
+    """The /clock table of a long session: 1 M messages (2000 s at 500 Hz) with two pauses, a
+    change of real-time factor and receive-time jitter (sigma 0.02 / 0.2 / 2 ms), into a table of
+    4096 rows. Interpolating the table must stay within its stated error bound of interpolating
+    every message, everywhere (checked at 300 000 receive times), and with no jitter the pauses
+    stay corners within 1 us (a stride-decimated table would cut them by up to the stride)."""
     rng = np.random.default_rng(3)
     n = 1_000_000
     t = np.arange(1, n + 1) * 0.002
     wall = t.copy()
     wall[300_000:] += 5.0  # paused for 5 s
     wall[700_000:] += 3.0
-    wall[500_000:] = wall[500_000] + (wall[500_000:] - wall[500_000]) * 2.0  # half real time from here
+    wall[500_000:] = (
+        wall[500_000] + (wall[500_000:] - wall[500_000]) * 2.0
+    )  # half real time from here
     for sigma in (0.0, 2e4, 2e5, 2e6):  # [ns]
-        lt = np.maximum.accumulate((1_700_000_000e9 + wall * 1e9 + rng.normal(0, sigma, n)).astype(np.int64))
+        lt = np.maximum.accumulate(
+            (1_700_000_000e9 + wall * 1e9 + rng.normal(0, sigma, n)).astype(np.int64)
+        )
         table = report.TimeMapTable(cap=4096)
         for a, b in zip(lt.tolist(), t.tolist()):
             table.add(a, b)
@@ -163,14 +202,16 @@ def test_setpoint_rebuilt_from_the_error_when_no_parameter_was_recorded(tmp_path
     write_synthetic_session(without, 4.0, record_setpoint=False)
     a, b = report.load_session(with_param), report.load_session(without)
     assert (a.passes, b.passes) == (2, 3)
-    assert b.tracking["setpoint_m"] == b.tracking["setpoint_from_error_m"] == a.tracking["setpoint_m"]
+    assert (
+        b.tracking["setpoint_m"] == b.tracking["setpoint_from_error_m"] == a.tracking["setpoint_m"]
+    )
     assert b.tracking == a.tracking
 
 
 def test_batches_give_the_numbers_of_the_per_output_copies(tmp_path):
-    """The same session recorded as per-output copies, as the loop's batches (what --image records) and
-    as both: the same tracking numbers (amplitude = hypot(X, Y) of the written X, Y: equal to the
-    written amplitude to an ulp), from the batches whenever they are there."""
+    """The same session recorded as per-output copies, as the loop's batches (what --image records)
+    and as both: the same tracking numbers (amplitude = hypot(X, Y) of the written X, Y: equal to
+    the written amplitude to an ulp), from the batches whenever they are there."""
     numbers = {}
     for kind in ("copies", "batches", "both"):
         path = tmp_path / f"{kind}.mcap"
@@ -180,8 +221,15 @@ def test_batches_give_the_numbers_of_the_per_output_copies(tmp_path):
         numbers[kind] = data.tracking
     exp = info["expected"]
     for kind, got in numbers.items():
-        for key in ("free_amplitude_m", "reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m",
-                    "setpoint_from_error_m", "setpoint_m", "settling_time_s"):
+        for key in (
+            "free_amplitude_m",
+            "reached_amplitude_m",
+            "contact_phase_deg",
+            "contact_z_piezo_m",
+            "setpoint_from_error_m",
+            "setpoint_m",
+            "settling_time_s",
+        ):
             assert got[key] == pytest.approx(exp[key], rel=1e-12, abs=1e-15), (kind, key)
         assert got["engage_time_s"] == pytest.approx(exp["engage_time_s"], abs=1e-6)
     assert numbers["batches"] == numbers["both"]
@@ -201,10 +249,15 @@ def test_long_session_of_batches_in_bounded_memory(tmp_path):
     exp = info["expected"]
     assert numbers["series_source"] == "batches"
     assert numbers["outputs_outputs"] == numbers["z_trace_outputs"] == info["series_samples"]
-    for key in ("reached_amplitude_m", "contact_phase_deg", "contact_z_piezo_m", "setpoint_from_error_m"):
+    for key in (
+        "reached_amplitude_m",
+        "contact_phase_deg",
+        "contact_z_piezo_m",
+        "setpoint_from_error_m",
+    ):
         assert numbers[key] == pytest.approx(exp[key], rel=1e-12, abs=0), key
-    # the free-amplitude window may start up to one kept stride late (the table keeps every 2nd time);
-    # the free amplitude is constant: exact anyway
+    # the free-amplitude window may start up to one kept stride late (the table keeps every 2nd
+    # time); the free amplitude is constant: exact anyway
     assert numbers["free_amplitude_m"] == pytest.approx(exp["free_amplitude_m"], rel=1e-12, abs=0)
     assert numbers["settling_time_s"] == pytest.approx(exp["settling_time_s"], abs=1e-12)
     assert (tmp_path / "rep" / "lockin_z.png").stat().st_size > 5000
@@ -233,24 +286,53 @@ def _not_a_chunk() -> bytes:
     # a well-formed Float64MultiArray with no layout dimension, data_offset 0 and three values
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Float64MultiArray
+
     return serialize_message(Float64MultiArray(data=[1.0, 2.0, 3.0]))
 
 
 FOREIGN = {
-    "string_deflection": ("/x/cantilever/deflection", "std_msgs/msg/String", _string_cdr("hello"),
-                          ["/x/cantilever/deflection", "std_msgs/msg/String", "std_msgs/msg/Float64MultiArray"]),
-    "garbage_deflection": ("/x/cantilever/deflection", "std_msgs/msg/Float64MultiArray", b"\x00\x01\x00\x00garbage",
-                           ["/x/cantilever/deflection", "does not deserialise"]),
-    "not_a_chunk": ("/x/cantilever/tip_sample_force", "std_msgs/msg/Float64MultiArray", _not_a_chunk(),
-                    ["/x/cantilever/tip_sample_force", "not a sample chunk in the afm_ros layout"]),
-    "not_a_batch": ("/x/lockin/outputs", "std_msgs/msg/Float64MultiArray", _not_a_chunk(),
-                    ["/x/lockin/outputs", "not a lock-in output batch in the afm_ros layout"]),
-    "garbage_amplitude": ("/x/lockin/amplitude", "std_msgs/msg/Float64", b"\x00\x01\x00",
-                          ["/x/lockin/amplitude", "does not deserialise as std_msgs/msg/Float64"]),
-    "clock_of_other_type": ("/clock", "std_msgs/msg/Float64", b"\x00\x01\x00\x00" + bytes(8),
-                            ["/clock", "rosgraph_msgs/msg/Clock"]),
-    "garbage_parameter_event": ("/parameter_events", "rcl_interfaces/msg/ParameterEvent", b"\x00\x01\x00\x00\xff",
-                                ["/parameter_events", "does not deserialise"]),
+    "string_deflection": (
+        "/x/cantilever/deflection",
+        "std_msgs/msg/String",
+        _string_cdr("hello"),
+        ["/x/cantilever/deflection", "std_msgs/msg/String", "std_msgs/msg/Float64MultiArray"],
+    ),
+    "garbage_deflection": (
+        "/x/cantilever/deflection",
+        "std_msgs/msg/Float64MultiArray",
+        b"\x00\x01\x00\x00garbage",
+        ["/x/cantilever/deflection", "does not deserialise"],
+    ),
+    "not_a_chunk": (
+        "/x/cantilever/tip_sample_force",
+        "std_msgs/msg/Float64MultiArray",
+        _not_a_chunk(),
+        ["/x/cantilever/tip_sample_force", "not a sample chunk in the afm_ros layout"],
+    ),
+    "not_a_batch": (
+        "/x/lockin/outputs",
+        "std_msgs/msg/Float64MultiArray",
+        _not_a_chunk(),
+        ["/x/lockin/outputs", "not a lock-in output batch in the afm_ros layout"],
+    ),
+    "garbage_amplitude": (
+        "/x/lockin/amplitude",
+        "std_msgs/msg/Float64",
+        b"\x00\x01\x00",
+        ["/x/lockin/amplitude", "does not deserialise as std_msgs/msg/Float64"],
+    ),
+    "clock_of_other_type": (
+        "/clock",
+        "std_msgs/msg/Float64",
+        b"\x00\x01\x00\x00" + bytes(8),
+        ["/clock", "rosgraph_msgs/msg/Clock"],
+    ),
+    "garbage_parameter_event": (
+        "/parameter_events",
+        "rcl_interfaces/msg/ParameterEvent",
+        b"\x00\x01\x00\x00\xff",
+        ["/parameter_events", "does not deserialise"],
+    ),
 }
 
 

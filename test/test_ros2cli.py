@@ -14,6 +14,7 @@ Each test runs its nodes in its own namespace with ROS_AUTOMATIC_DISCOVERY_RANGE
 private ROS_DOMAIN_ID; every ros2 command runs with --no-daemon (no daemon is spawned or used)
 and waits for the node with --timeout instead of sleeping.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -31,10 +32,13 @@ ROS2 = VENV_BIN / "ros2"
 WAIT = "30"  # seconds a ros2 command waits for the node to appear
 
 pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("ros2cli") is None or importlib.util.find_spec("ros2param") is None
+    importlib.util.find_spec("ros2cli") is None
+    or importlib.util.find_spec("ros2param") is None
     or not ROS2.exists(),
-    reason="the ros2 CLI (ros2cli, ros2param) is not installed in this Python environment; it is not on "
-           "PyPI: build it from the ros2cli Jazzy sources as this module's docstring says")
+    reason="the ros2 CLI (ros2cli, ros2param) is not installed in this Python environment; it is "
+    "not on "
+    "PyPI: build it from the ros2cli Jazzy sources as this module's docstring says",
+)
 
 
 def _domain_id(namespace: str) -> str:
@@ -45,8 +49,12 @@ def _domain_id(namespace: str) -> str:
 @pytest.fixture
 def ros2_env(tmp_path, ros_namespace):
     env = dict(os.environ)
-    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=_domain_id(ros_namespace),
-               ROS_LOG_DIR=str(tmp_path / "ros_log"), PYTHONUNBUFFERED="1")
+    env.update(
+        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+        ROS_DOMAIN_ID=_domain_id(ros_namespace),
+        ROS_LOG_DIR=str(tmp_path / "ros_log"),
+        PYTHONUNBUFFERED="1",
+    )
     env.pop("ROS_STATIC_PEERS", None)
     return env
 
@@ -56,10 +64,22 @@ def afm_processes(ros2_env, ros_namespace, tmp_path):
     """cantilever_node and z_controller_node, as installed in the venv, in the test's namespace.
     The cantilever runs at real_time_factor 0.01 so that it leaves the CPU to the test."""
     procs = []
-    for exe, extra in (("cantilever_node", ["-p", "real_time_factor:=0.01"]), ("z_controller_node", [])):
+    for exe, extra in (
+        ("cantilever_node", ["-p", "real_time_factor:=0.01"]),
+        ("z_controller_node", []),
+    ):
         log = open(tmp_path / f"{exe}.log", "wb")
-        procs.append((subprocess.Popen([str(VENV_BIN / exe), "--ros-args", "-r", f"__ns:={ros_namespace}", *extra],
-                                       env=ros2_env, stdout=log, stderr=subprocess.STDOUT), log))
+        procs.append(
+            (
+                subprocess.Popen(
+                    [str(VENV_BIN / exe), "--ros-args", "-r", f"__ns:={ros_namespace}", *extra],
+                    env=ros2_env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                ),
+                log,
+            )
+        )
     yield
     for proc, _ in procs:
         if proc.poll() is None:
@@ -74,7 +94,8 @@ def afm_processes(ros2_env, ros_namespace, tmp_path):
 
 
 def ros2(env, command, verb, *args):
-    """Run `ros2 COMMAND VERB --no-daemon --timeout 30 ARGS`; return (exit code, stdout, stderr)."""
+    """Run `ros2 COMMAND VERB --no-daemon --timeout 30 ARGS`; return (exit code, stdout,
+    stderr)."""
     cmd = [str(ROS2), command, verb, "--no-daemon", "--timeout", WAIT, *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
     return proc.returncode, proc.stdout, proc.stderr
@@ -84,45 +105,100 @@ def test_readme_param_commands(afm_processes, ros2_env, ros_namespace):
     cantilever, z_controller = f"{ros_namespace}/cantilever", f"{ros_namespace}/z_controller"
 
     # exponent form without a dot: a string for YAML 1.1, a double for the node
-    assert ros2(ros2_env, "param", "set", cantilever, "z_base", "30e-9") == (0, "Set parameter successful\n", "")
-    assert ros2(ros2_env, "param", "get", cantilever, "z_base") == (0, "Double value is: 3e-08\n", "")
-    assert ros2(ros2_env, "param", "set", z_controller, "setpoint", "40e-9") == (0, "Set parameter successful\n", "")
-    assert ros2(ros2_env, "param", "get", z_controller, "setpoint") == (0, "Double value is: 4e-08\n", "")
+    assert ros2(ros2_env, "param", "set", cantilever, "z_base", "30e-9") == (
+        0,
+        "Set parameter successful\n",
+        "",
+    )
+    assert ros2(ros2_env, "param", "get", cantilever, "z_base") == (
+        0,
+        "Double value is: 3e-08\n",
+        "",
+    )
+    assert ros2(ros2_env, "param", "set", z_controller, "setpoint", "40e-9") == (
+        0,
+        "Set parameter successful\n",
+        "",
+    )
+    assert ros2(ros2_env, "param", "get", z_controller, "setpoint") == (
+        0,
+        "Double value is: 4e-08\n",
+        "",
+    )
 
     # a negative exponent value: argparse needs "--" before it (README)
-    assert ros2(ros2_env, "param", "set", z_controller, "z_min", "--", "-1.5e-7") == \
-        (0, "Set parameter successful\n", "")
-    assert ros2(ros2_env, "param", "get", z_controller, "z_min") == (0, "Double value is: -1.5e-07\n", "")
+    assert ros2(ros2_env, "param", "set", z_controller, "z_min", "--", "-1.5e-7") == (
+        0,
+        "Set parameter successful\n",
+        "",
+    )
+    assert ros2(ros2_env, "param", "get", z_controller, "z_min") == (
+        0,
+        "Double value is: -1.5e-07\n",
+        "",
+    )
 
     # an integer for a double: stays a double
-    assert ros2(ros2_env, "param", "set", cantilever, "quality_factor", "30") == (0, "Set parameter successful\n", "")
-    assert ros2(ros2_env, "param", "get", cantilever, "quality_factor") == (0, "Double value is: 30.0\n", "")
+    assert ros2(ros2_env, "param", "set", cantilever, "quality_factor", "30") == (
+        0,
+        "Set parameter successful\n",
+        "",
+    )
+    assert ros2(ros2_env, "param", "get", cantilever, "quality_factor") == (
+        0,
+        "Double value is: 30.0\n",
+        "",
+    )
 
     # refused, with the node's reason; ros2 param set prints it on stderr (exit status 0)
     code, out, err = ros2(ros2_env, "param", "set", cantilever, "quality_factor", "0.2")
-    assert err == "Setting parameter failed: quality_factor=0.2 is out of range; allowed range (0.5, 1e+06]\n"
+    assert (
+        err == "Setting parameter failed: quality_factor=0.2 is out of range; allowed range (0.5, "
+        "1e+06]\n"
+    )
     code, out, err = ros2(ros2_env, "param", "set", cantilever, "z_base", "abc")
-    assert err == "Setting parameter failed: z_base='abc' is not a number; allowed range [-1e-06, 0.0001] m\n"
-    assert ros2(ros2_env, "param", "get", cantilever, "quality_factor") == (0, "Double value is: 30.0\n", "")
+    assert (
+        err == "Setting parameter failed: z_base='abc' is not a number; allowed range [-1e-06, "
+        "0.0001] m\n"
+    )
+    assert ros2(ros2_env, "param", "get", cantilever, "quality_factor") == (
+        0,
+        "Double value is: 30.0\n",
+        "",
+    )
 
     # describe: the type never changed, the range is shown
-    code, out, err = ros2(ros2_env, "param", "describe", cantilever, "z_base", "quality_factor", "steps_per_period")
+    code, out, err = ros2(
+        ros2_env, "param", "describe", cantilever, "z_base", "quality_factor", "steps_per_period"
+    )
     assert code == 0, err
     assert out.startswith(
-        "Parameter name: z_base\n  Type: double\n  Description: rest position of the cantilever base above the sample "
-        "surface (gap at zero deflection and zero piezo) [m]; allowed [-1e-06, 0.0001] m\n  Constraints:\n"
-        "    Min value: -1e-06\n    Max value: 0.0001\n    Additional constraints: allowed [-1e-06, 0.0001] m\n"), out
+        "Parameter name: z_base\n  Type: double\n  Description: rest position of the cantilever "
+        "base above the sample "
+        "surface (gap at zero deflection and zero piezo) [m]; allowed [-1e-06, 0.0001] m\n  "
+        "Constraints:\n"
+        "    Min value: -1e-06\n    Max value: 0.0001\n    Additional constraints: allowed "
+        "[-1e-06, 0.0001] m\n"
+    ), out
     assert "Parameter name: quality_factor\n  Type: double\n" in out
-    assert "    Min value: 0.5\n    Max value: 1000000.0\n    Additional constraints: allowed (0.5, 1e+06]\n" in out
-    assert ("Parameter name: steps_per_period\n  Type: integer\n" in out
-            and "    Min value: 20\n    Max value: 100000\n    Step: 1\n" in out), out
+    assert (
+        "    Min value: 0.5\n    Max value: 1000000.0\n    Additional constraints: allowed (0.5, "
+        "1e+06]\n" in out
+    )
+    assert (
+        "Parameter name: steps_per_period\n  Type: integer\n" in out
+        and "    Min value: 20\n    Max value: 100000\n    Step: 1\n" in out
+    ), out
 
 
 def test_dump_then_load_the_same_file(afm_processes, ros2_env, ros_namespace, tmp_path):
     for node in ("cantilever", "z_controller"):
         name = f"{ros_namespace}/{node}"
         if node == "cantilever":
-            assert ros2(ros2_env, "param", "set", name, "z_base", "30e-9")[1] == "Set parameter successful\n"
+            assert (
+                ros2(ros2_env, "param", "set", name, "z_base", "30e-9")[1]
+                == "Set parameter successful\n"
+            )
         code, dumped, err = ros2(ros2_env, "param", "dump", name)
         assert code == 0 and err == "", err
         path = tmp_path / f"{node}.yaml"
@@ -130,10 +206,16 @@ def test_dump_then_load_the_same_file(afm_processes, ros2_env, ros_namespace, tm
         params = yaml.safe_load(dumped)[name]["ros__parameters"]
         code, out, err = ros2(ros2_env, "param", "load", name, str(path))
         assert code == 0, err
-        expected_ok = [f"Set parameter {p} successful" for p in sorted(params) if p != "start_type_description_service"]
+        expected_ok = [
+            f"Set parameter {p} successful"
+            for p in sorted(params)
+            if p != "start_type_description_service"
+        ]
         assert out.splitlines() == expected_ok, out
         # rclpy declares start_type_description_service read-only: every ROS node refuses it back
-        assert err == ("Set parameter start_type_description_service failed: Trying to set a read-only "
-                       "parameter: start_type_description_service.\n"), err
+        assert err == (
+            "Set parameter start_type_description_service failed: Trying to set a read-only "
+            "parameter: start_type_description_service.\n"
+        ), err
         assert yaml.safe_load(ros2(ros2_env, "param", "dump", name)[1]) == yaml.safe_load(dumped)
     assert params["setpoint"] == 4.8e-08  # (z_controller: the last node dumped)

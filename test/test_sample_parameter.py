@@ -3,12 +3,14 @@ points 17 and 18): one loading path with afm_study scan (a .gwy map is taken, no
 a map above the size bound refused before it is read with the file, its size and the limit, and
 a map too fine for the tip refused at set time instead of stopping the loop at the next chunk.
 A refused value keeps the old one and the loop goes on."""
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
 import pytest
+from conftest import EXACT_PHYSICS
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -16,7 +18,6 @@ from rclpy.parameter_client import AsyncParameterClient
 from afm_ros.core.samples import from_file, rough
 from afm_ros.formats.gwy import write_gwy
 from afm_ros.nodes.cantilever_node import CantileverNode
-from conftest import EXACT_PHYSICS
 
 
 def spin_until(executor, condition, timeout=120.0):
@@ -29,9 +30,19 @@ def spin_until(executor, condition, timeout=120.0):
 @pytest.fixture
 def live(ros_context, ros_executor, ros_namespace):
     """A free-running cantilever (no feedback, no consumers) and a parameter client to it."""
-    cantilever = CantileverNode(context=ros_context, namespace=ros_namespace, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {**EXACT_PHYSICS, "real_time_factor": 0.0, "feedback_sync": "free",
-                                            "run_until": -1.0}.items()])
+    cantilever = CantileverNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[
+            Parameter(k, value=v)
+            for k, v in {
+                **EXACT_PHYSICS,
+                "real_time_factor": 0.0,
+                "feedback_sync": "free",
+                "run_until": -1.0,
+            }.items()
+        ],
+    )
     user = Node("user", context=ros_context, namespace=ros_namespace)
     for n in (cantilever, user):
         ros_executor.add_node(n)
@@ -80,14 +91,18 @@ def test_a_huge_map_is_refused_by_name_size_and_limit(live, tmp_path):
     before = cantilever.get_parameter("sample").value
     result, _ = set_sample(str(tmp_path / "huge.yaml"))
     assert not result.successful
-    assert "huge.npy" in result.reason and "512.0 MiB" in result.reason and "at most 256 MiB" in result.reason
+    assert (
+        "huge.npy" in result.reason
+        and "512.0 MiB" in result.reason
+        and "at most 256 MiB" in result.reason
+    )
     assert cantilever.get_parameter("sample").value == before
     runs_on()
 
 
 def test_a_map_too_fine_for_the_tip_is_refused_at_set_time(live, tmp_path):
-    """64 x 64 pixels over 2 nm: the 20 nm tip spans over a million pixel offsets. The dilation used
-    to fail at the chunk boundary that applied the sample, which stopped the cantilever."""
+    """64 x 64 pixels over 2 nm: the 20 nm tip spans over a million pixel offsets. The dilation
+    used to fail at the chunk boundary that applied the sample, which stopped the cantilever."""
     cantilever, set_sample, runs_on, _ = live
     np.save(tmp_path / "fine.npy", np.zeros((64, 64)))
     (tmp_path / "fine.yaml").write_text("generator: from_file\npath: fine.npy\nsize: 2.0e-9\n")

@@ -1,5 +1,6 @@
 """afm_ros.core.samples: the documented properties of each generator, tip dilation, surface_at,
 file loaders and sample descriptions (docs/samples.md)."""
+
 import hashlib
 import inspect
 import json
@@ -13,19 +14,38 @@ from numba import njit
 from PIL import Image
 from scipy import ndimage
 
-from afm_ros.formats.gwy import write_gwy
+from afm_ros.core.samples import (
+    GENERATORS,
+    SPECS,
+    Sample,
+    blend,
+    describe,
+    dilate,
+    from_file,
+    grating,
+    load_sample_file,
+    rough,
+    sample_from_description,
+    surface_at,
+    terraces,
+)
 from afm_ros.core.samples.generators import check
-from afm_ros.core.samples import (GENERATORS, SPECS, Sample, blend, describe, dilate, from_file, grating,
-                             load_sample_file, rough, sample_from_description, surface_at, terraces)
+from afm_ros.formats.gwy import write_gwy
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = sorted((ROOT / "config" / "samples").glob("*.yaml"))
 
 
-def random_sample(rows=40, cols=56, size=(5.6e-6, 2.0e-6), seed=0, materials=("polystyrene", "ldpe")):
+def random_sample(
+    rows=40, cols=56, size=(5.6e-6, 2.0e-6), seed=0, materials=("polystyrene", "ldpe")
+):
     rng = np.random.default_rng(seed)
-    return Sample(rng.normal(scale=3e-9, size=(rows, cols)), rng.integers(0, len(materials), (rows, cols)),
-                  materials, *size)
+    return Sample(
+        rng.normal(scale=3e-9, size=(rows, cols)),
+        rng.integers(0, len(materials), (rows, cols)),
+        materials,
+        *size,
+    )
 
 
 # --- Sample ----------------------------------------------------------------------------------
@@ -33,21 +53,35 @@ def test_sample_pixel_sizes_and_copies():
     h = np.zeros((30, 40))
     s = Sample(h, np.zeros((30, 40), np.uint8), ("silicon",), 4e-6, 6e-6)
     assert s.shape == (30, 40)
-    assert s.pixel_x == pytest.approx(1e-7, rel=1e-12, abs=0) and s.pixel_y == pytest.approx(2e-7, rel=1e-12, abs=0)
+    assert s.pixel_x == pytest.approx(1e-7, rel=1e-12, abs=0) and s.pixel_y == pytest.approx(
+        2e-7, rel=1e-12, abs=0
+    )
     h[0, 0] = 1.0
     assert s.height[0, 0] == 0.0  # the sample keeps its own copy
     assert s.height.dtype == np.float64 and s.material_index.dtype == np.uint8
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    (dict(height=np.zeros(5)), "height"), (dict(height=np.full((4, 4), np.nan)), "height"),
-    (dict(material_index=np.zeros((3, 4))), "material_index"),
-    (dict(material_index=np.full((4, 4), 2)), "material_index"),
-    (dict(materials=("teflon",)), "material='teflon'.*allowed: 'seed'"), (dict(materials=()), "materials"),
-    (dict(size_x=0.0), "size_x"), (dict(size_y=float("nan")), "size_y")])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(height=np.zeros(5)), "height"),
+        (dict(height=np.full((4, 4), np.nan)), "height"),
+        (dict(material_index=np.zeros((3, 4))), "material_index"),
+        (dict(material_index=np.full((4, 4), 2)), "material_index"),
+        (dict(materials=("teflon",)), "material='teflon'.*allowed: 'seed'"),
+        (dict(materials=()), "materials"),
+        (dict(size_x=0.0), "size_x"),
+        (dict(size_y=float("nan")), "size_y"),
+    ],
+)
 def test_sample_rejects_bad_fields_by_name(kwargs, field):
-    args = dict(height=np.zeros((4, 4)), material_index=np.zeros((4, 4), np.uint8),
-                materials=("silicon", "mica"), size_x=1e-6, size_y=1e-6)
+    args = dict(
+        height=np.zeros((4, 4)),
+        material_index=np.zeros((4, 4), np.uint8),
+        materials=("silicon", "mica"),
+        size_x=1e-6,
+        size_y=1e-6,
+    )
     args.update(kwargs)
     with pytest.raises(ValueError, match=field):
         Sample(**args)
@@ -57,8 +91,14 @@ def test_sample_rejects_bad_fields_by_name(kwargs, field):
 def test_surface_at_pixel_centres_give_the_pixel_values():
     s = random_sample()
     for i, j in [(0, 0), (7, 13), (39, 55), (20, 0)]:
-        z, k = surface_at(s.height, s.material_index, s.size_x, s.size_y,
-                          (j + 0.5) * s.pixel_x, (i + 0.5) * s.pixel_y)
+        z, k = surface_at(
+            s.height,
+            s.material_index,
+            s.size_x,
+            s.size_y,
+            (j + 0.5) * s.pixel_x,
+            (i + 0.5) * s.pixel_y,
+        )
         assert z == pytest.approx(s.height[i, j], rel=1e-12, abs=1e-24)
         assert k == s.material_index[i, j]
 
@@ -68,10 +108,14 @@ def test_surface_at_material_is_the_pixel_containing_the_point():
     eps = 1e-6 * s.pixel_x
     for i, j in [(3, 5), (0, 0), (39, 55)]:
         y = (i + 0.5) * s.pixel_y
-        assert surface_at(s.height, s.material_index, s.size_x, s.size_y, j * s.pixel_x + eps, y)[1] \
+        assert (
+            surface_at(s.height, s.material_index, s.size_x, s.size_y, j * s.pixel_x + eps, y)[1]
             == s.material_index[i, j]
-        assert surface_at(s.height, s.material_index, s.size_x, s.size_y, j * s.pixel_x - eps, y)[1] \
+        )
+        assert (
+            surface_at(s.height, s.material_index, s.size_x, s.size_y, j * s.pixel_x - eps, y)[1]
             == s.material_index[i, (j - 1) % s.shape[1]]
+        )
 
 
 def test_surface_at_is_exact_on_a_plane():
@@ -95,7 +139,9 @@ def test_surface_at_wraps_periodically():
     for x, y in zip(rng.uniform(0, s.size_x, 50), rng.uniform(0, s.size_y, 50)):
         z0, k0 = surface_at(s.height, s.material_index, s.size_x, s.size_y, x, y)
         for m, n in [(1, 0), (-1, 0), (0, 2), (-3, -1), (5, 7)]:
-            z, k = surface_at(s.height, s.material_index, s.size_x, s.size_y, x + m * s.size_x, y + n * s.size_y)
+            z, k = surface_at(
+                s.height, s.material_index, s.size_x, s.size_y, x + m * s.size_x, y + n * s.size_y
+            )
             assert z == pytest.approx(z0, rel=1e-9, abs=1e-9 * 3e-9) and k == k0
     # between the last column's centre and the first's: at x = 0 the average of the two
     y = 0.5 * s.pixel_y
@@ -107,7 +153,9 @@ def test_surface_at_far_away_and_non_finite_positions():
     s = random_sample()
     x, y = 1.234e-6, 0.567e-6
     z0, k0 = surface_at(s.height, s.material_index, s.size_x, s.size_y, x, y)
-    far = surface_at(s.height, s.material_index, s.size_x, s.size_y, x + 1000 * s.size_x, y - 1000 * s.size_y)
+    far = surface_at(
+        s.height, s.material_index, s.size_x, s.size_y, x + 1000 * s.size_x, y - 1000 * s.size_y
+    )
     assert far[0] == pytest.approx(z0, rel=1e-6, abs=0) and far[1] == k0
     for bad in (math.nan, math.inf, -math.inf):
         z, k = surface_at(s.height, s.material_index, s.size_x, s.size_y, bad, y)
@@ -130,7 +178,10 @@ def test_surface_at_runs_inside_another_numba_kernel():
     s = random_sample()
     n = 1000
     mean, count = mean_line(s.height, s.material_index, s.size_x, s.size_y, 1e-6, n)
-    pairs = [surface_at(s.height, s.material_index, s.size_x, s.size_y, k * s.size_x / n, 1e-6) for k in range(n)]
+    pairs = [
+        surface_at(s.height, s.material_index, s.size_x, s.size_y, k * s.size_x / n, 1e-6)
+        for k in range(n)
+    ]
     assert mean == pytest.approx(np.mean([p[0] for p in pairs]), rel=1e-12, abs=0)
     assert count == sum(p[1] for p in pairs)
 
@@ -138,7 +189,10 @@ def test_surface_at_runs_inside_another_numba_kernel():
 def test_sample_surface_names_the_material():
     s = random_sample()
     z, name = s.surface((3 + 0.5) * s.pixel_x, (2 + 0.5) * s.pixel_y)
-    assert z == pytest.approx(s.height[2, 3], rel=1e-12, abs=0) and name == s.materials[s.material_index[2, 3]]
+    assert (
+        z == pytest.approx(s.height[2, 3], rel=1e-12, abs=0)
+        and name == s.materials[s.material_index[2, 3]]
+    )
 
 
 # --- tip dilation ----------------------------------------------------------------------------
@@ -152,7 +206,11 @@ def brute_force_dilation(s, radius):
             r2 = (di * s.pixel_y) ** 2 + (dj * s.pixel_x) ** 2
             if r2 > radius * radius:
                 continue
-            shifted = np.roll(s.height, (-di, -dj), axis=(0, 1)) + math.sqrt(radius * radius - r2) - radius
+            shifted = (
+                np.roll(s.height, (-di, -dj), axis=(0, 1))
+                + math.sqrt(radius * radius - r2)
+                - radius
+            )
             better = shifted > best
             best = np.where(better, shifted, best)
             contact = np.where(better, np.roll(s.material_index, (-di, -dj), axis=(0, 1)), contact)
@@ -197,7 +255,7 @@ def test_a_spike_dilates_to_a_spherical_cap(pixel_x, pixel_y):
     i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     r2 = ((i - i0) * pixel_y) ** 2 + ((j - j0) * pixel_x) ** 2
     # spike >= R: inside the disk the cap is above the flat 0, outside the flat is all there is
-    cap = np.where(r2 <= radius ** 2, spike - radius + np.sqrt(np.maximum(radius ** 2 - r2, 0)), 0.0)
+    cap = np.where(r2 <= radius**2, spike - radius + np.sqrt(np.maximum(radius**2 - r2, 0)), 0.0)
     np.testing.assert_allclose(d, cap, rtol=0, atol=1e-20)
 
 
@@ -210,12 +268,17 @@ def test_a_step_edge_broadens_by_the_circle_profile():
     s = Sample(h, np.zeros((rows, cols), np.uint8), ("silicon",), cols * px, rows * px)
     d = dilate(s, radius).height
     j = np.arange(cols)
-    distance = np.where(j < 100, np.minimum(100 - j, j + 1), 0) * px  # to column 100 or (wrapping) 199
-    expected = np.where(distance <= radius,
-                        step - radius + np.sqrt(np.maximum(radius ** 2 - distance ** 2, 0)), 0.0)
+    distance = (
+        np.where(j < 100, np.minimum(100 - j, j + 1), 0) * px
+    )  # to column 100 or (wrapping) 199
+    expected = np.where(
+        distance <= radius, step - radius + np.sqrt(np.maximum(radius**2 - distance**2, 0)), 0.0
+    )
     for row in d:
         np.testing.assert_allclose(row, expected, rtol=0, atol=1e-20)
-    assert np.count_nonzero(d[0] > 0) == 100 + 2 * 15  # broadened by the 15 pixels within R on each side
+    assert (
+        np.count_nonzero(d[0] > 0) == 100 + 2 * 15
+    )  # broadened by the 15 pixels within R on each side
 
 
 def test_dilation_records_the_tip_radius_and_is_reproduced_from_its_description():
@@ -243,7 +306,9 @@ def test_dilation_of_a_1024_map_takes_seconds():
     little can be skipped. A loose bound (about 1.5 s measured on the development machine):
     it catches an algorithm of the wrong order, not a busy machine."""
     s = rough(rms=2e-9, correlation_length=20e-9, size=1.024e-6, pixels=1024, seed=2)
-    dilate(Sample(np.zeros((8, 8)), np.zeros((8, 8), np.uint8), ("silicon",), 8e-9, 8e-9), 2e-9)  # compiled
+    dilate(
+        Sample(np.zeros((8, 8)), np.zeros((8, 8), np.uint8), ("silicon",), 8e-9, 8e-9), 2e-9
+    )  # compiled
     start = time.perf_counter()
     d = dilate(s, 20e-9)
     elapsed = time.perf_counter() - start
@@ -260,8 +325,14 @@ def dominant_period(profile, length):
 @pytest.mark.parametrize("orientation", ["x", "y"])
 def test_grating_period_step_height_duty_and_materials(orientation):
     pitch, step, duty = 2e-6, 35e-9, 0.3
-    s = grating(step_height=step, pitch=pitch, duty=duty, size=(10e-6, 8e-6), pixels=(500, 400),
-                orientation=orientation)
+    s = grating(
+        step_height=step,
+        pitch=pitch,
+        duty=duty,
+        size=(10e-6, 8e-6),
+        pixels=(500, 400),
+        orientation=orientation,
+    )
     profile = s.height.mean(axis=0) if orientation == "x" else s.height.mean(axis=1)
     length, px = (s.size_x, s.pixel_x) if orientation == "x" else (s.size_y, s.pixel_y)
     assert dominant_period(profile, length) == pytest.approx(pitch, rel=1e-9, abs=0)
@@ -277,7 +348,9 @@ def test_grating_period_step_height_duty_and_materials(orientation):
 
 
 def test_grating_needs_a_whole_number_of_periods():
-    with pytest.raises(ValueError, match=r"pitch=3e-06 m must fit a whole number .* e\.g\. pitch="):
+    with pytest.raises(
+        ValueError, match=r"pitch=3e-06 m must fit a whole number .* e\.g\. pitch="
+    ):
         grating(pitch=3e-6, size=10e-6)
     with pytest.raises(ValueError, match="duty"):
         grating(duty=0.001)
@@ -299,21 +372,34 @@ def islands_of(s):
     centres = ndimage.center_of_mass(tiled, labels, range(1, n + 1))
     sizes = ndimage.sum(tiled, labels, range(1, n + 1))
     rows, cols = s.shape
-    return np.array([size for (ci, cj), size in zip(centres, sizes)
-                     if rows <= ci < 2 * rows and cols <= cj < 2 * cols])
+    return np.array(
+        [
+            size
+            for (ci, cj), size in zip(centres, sizes)
+            if rows <= ci < 2 * rows and cols <= cj < 2 * cols
+        ]
+    )
 
 
 def disk_pixels(radius, px, py):
     """Pixel centres within ``radius`` of a pixel centre (the documented island shape)."""
     n = int(radius / min(px, py)) + 2
-    i, j = np.mgrid[-n:n + 1, -n:n + 1]
-    return int(np.count_nonzero((i * py) ** 2 + (j * px) ** 2 <= radius ** 2))
+    i, j = np.mgrid[-n : n + 1, -n : n + 1]
+    return int(np.count_nonzero((i * py) ** 2 + (j * px) ** 2 <= radius**2))
 
 
-@pytest.mark.parametrize("fraction, radius, seed", [(0.3, 0.5e-6, 0), (0.1, 0.3e-6, 1), (0.45, 0.4e-6, 2)])
+@pytest.mark.parametrize(
+    "fraction, radius, seed", [(0.3, 0.5e-6, 0), (0.1, 0.3e-6, 1), (0.45, 0.4e-6, 2)]
+)
 def test_blend_fraction_heights_and_separate_round_islands(fraction, radius, seed):
-    s = blend(island_fraction=fraction, island_radius=radius, height_difference=-12e-9, seed=seed,
-              size=(10e-6, 8e-6), pixels=(400, 300))
+    s = blend(
+        island_fraction=fraction,
+        island_radius=radius,
+        height_difference=-12e-9,
+        seed=seed,
+        size=(10e-6, 8e-6),
+        pixels=(400, 300),
+    )
     assert s.materials == ("polystyrene", "ldpe")
     island = s.material_index == 1
     per_island = disk_pixels(radius, s.pixel_x, s.pixel_y)
@@ -337,7 +423,9 @@ def test_blend_too_crowded_names_the_fraction():
         blend(island_fraction=0.5, island_radius=2.5e-9, size=64e-9, pixels=64)  # jams near 0.3
     with pytest.raises(ValueError, match="island_radius"):
         blend(island_radius=1e-9)  # less than 2 pixels
-    with pytest.raises(ValueError, match=r"island_fraction=0.6 is out of range; allowed range \(0, 0.5\]"):
+    with pytest.raises(
+        ValueError, match=r"island_fraction=0.6 is out of range; allowed range \(0, 0.5\]"
+    ):
         blend(island_fraction=0.6)
 
 
@@ -345,8 +433,13 @@ def test_blend_too_crowded_names_the_fraction():
 @pytest.mark.parametrize("steps, orientation", [(5, "x"), (1, "x"), (3, "y")])
 def test_terraces_are_single_steps_up_then_down(steps, orientation):
     step, width = 0.7e-9, 0.5e-6
-    s = terraces(step_height=step, terrace_width=width, steps=steps, pixels=(200 * steps, 100) if orientation == "x"
-                 else (100, 200 * steps), orientation=orientation)
+    s = terraces(
+        step_height=step,
+        terrace_width=width,
+        steps=steps,
+        pixels=(200 * steps, 100) if orientation == "x" else (100, 200 * steps),
+        orientation=orientation,
+    )
     profile = s.height[0] if orientation == "x" else s.height[:, 0]
     px = s.pixel_x if orientation == "x" else s.pixel_y
     assert (s.size_x if orientation == "x" else s.size_y) == pytest.approx(2 * steps * width)
@@ -397,8 +490,11 @@ def test_rough_rms_and_gaussian_correlation_length(seed):
     assert z.std() == pytest.approx(1.5e-9, rel=1e-12, abs=0)
     assert abs(z.mean()) < 1e-12 * 1.5e-9
     rho = autocorrelation(z)
-    along = 0.5 * (rho[0, :n // 2] + rho[:n // 2, 0])  # x and y lags averaged
-    t = 0.5 * (one_over_e_crossing(rho[0, :n // 2], s.pixel_x) + one_over_e_crossing(rho[:n // 2, 0], s.pixel_y))
+    along = 0.5 * (rho[0, : n // 2] + rho[: n // 2, 0])  # x and y lags averaged
+    t = 0.5 * (
+        one_over_e_crossing(rho[0, : n // 2], s.pixel_x)
+        + one_over_e_crossing(rho[: n // 2, 0], s.pixel_y)
+    )
     assert t == pytest.approx(t_px * 1e-9, rel=0.04)
     assert along[t_px // 2] == pytest.approx(math.exp(-0.25), abs=0.011)
     assert along[2 * t_px] == pytest.approx(math.exp(-4), abs=0.04)
@@ -412,14 +508,18 @@ def test_rough_is_periodic_and_reproducible():
     inside = np.diff(s.height, axis=1).std()
     across = (s.height[:, 0] - s.height[:, -1]).std()
     assert 1 / 1.33 < across / inside < 1.33
-    np.testing.assert_array_equal(rough(seed=3, pixels=64, size=1e-6, correlation_length=40e-9).height,
-                                  rough(seed=3, pixels=64, size=1e-6, correlation_length=40e-9).height)
+    np.testing.assert_array_equal(
+        rough(seed=3, pixels=64, size=1e-6, correlation_length=40e-9).height,
+        rough(seed=3, pixels=64, size=1e-6, correlation_length=40e-9).height,
+    )
 
 
 def test_rough_correlation_length_limits_are_named():
     with pytest.raises(ValueError, match="correlation_length.*fewer than 2 pixels"):
         rough(correlation_length=5e-9)  # 2 um / 512 px = 3.9 nm pixels
-    with pytest.raises(ValueError, match=r"correlation_length=5e-07 m is out of range; allowed up to 1/8"):
+    with pytest.raises(
+        ValueError, match=r"correlation_length=5e-07 m is out of range; allowed up to 1/8"
+    ):
         rough(correlation_length=0.5e-6)
 
 
@@ -430,7 +530,9 @@ def test_from_npy(tmp_path):
     s = from_file(tmp_path / "map.npy", size=[5e-6, 3e-6], material="mica")
     np.testing.assert_array_equal(s.height, h)
     assert (s.size_x, s.size_y, s.materials) == (5e-6, 3e-6, ("mica",))
-    np.testing.assert_array_equal(from_file(tmp_path / "map.npy", size=1e-6, z_scale=1e-9).height, h * 1e-9)
+    np.testing.assert_array_equal(
+        from_file(tmp_path / "map.npy", size=1e-6, z_scale=1e-9).height, h * 1e-9
+    )
 
 
 @pytest.mark.parametrize("dtype, full", [(np.uint8, 255), (np.uint16, 65535)])
@@ -447,7 +549,10 @@ def test_from_png_scales_full_scale_to_z_scale(tmp_path, dtype, full):
 
 def test_from_png_rejects_colour_and_missing_scale(tmp_path):
     Image.new("RGB", (8, 8)).save(tmp_path / "rgb.png")
-    with pytest.raises(ValueError, match="rgb.png: PNG of bit depth 8, colour type 2; allowed: 8- or 16-bit grayscale"):
+    with pytest.raises(
+        ValueError,
+        match="rgb.png: PNG of bit depth 8, colour type 2; allowed: 8- or 16-bit grayscale",
+    ):
         from_file(tmp_path / "rgb.png", size=1e-6, z_scale=1e-9)
     Image.new("L", (8, 8)).save(tmp_path / "gray.png")
     with pytest.raises(ValueError, match="gray.png: z_scale"):
@@ -459,13 +564,17 @@ def test_from_png_rejects_colour_and_missing_scale(tmp_path):
 def test_from_gwy_reproduces_the_height_map(tmp_path):
     s = rough(pixels=(96, 64), size=(3e-6, 2e-6), correlation_length=0.1e-6, seed=4)
     path = tmp_path / "scan.gwy"
-    write_gwy(path, {"Phase": (np.zeros(s.shape), "deg"), "Height": (s.height, "m")}, s.size_x, s.size_y)
+    write_gwy(
+        path, {"Phase": (np.zeros(s.shape), "deg"), "Height": (s.height, "m")}, s.size_x, s.size_y
+    )
     loaded = from_file(path, channel="Height")
     np.testing.assert_array_equal(loaded.height, s.height)
     assert (loaded.size_x, loaded.size_y) == (s.size_x, s.size_y)
     assert describe(loaded)["channel"] == "Height"
     assert describe(loaded)["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
-    with pytest.raises(ValueError, match=r"channel='Topo' is not in the file; allowed: 'Phase', 'Height'"):
+    with pytest.raises(
+        ValueError, match=r"channel='Topo' is not in the file; allowed: 'Phase', 'Height'"
+    ):
         from_file(path, channel="Topo")
     with pytest.raises(ValueError, match="scan.gwy: channel 'Phase' has z unit 'deg'"):
         from_file(path)  # the first channel is not a height
@@ -475,7 +584,10 @@ def test_from_file_errors_name_the_file(tmp_path):
     with pytest.raises(OSError, match="missing.npy"):
         from_file(tmp_path / "missing.npy", size=1e-6)
     (tmp_path / "map.txt").write_text("1 2 3")
-    with pytest.raises(ValueError, match=r"path=.*map.txt' has the extension '.txt'; allowed: '.gwy', '.npy', '.png'"):
+    with pytest.raises(
+        ValueError,
+        match=r"path=.*map.txt' has the extension '.txt'; allowed: '.gwy', '.npy', '.png'",
+    ):
         from_file(tmp_path / "map.txt", size=1e-6)
     (tmp_path / "broken.npy").write_bytes(b"not numpy")
     with pytest.raises(ValueError, match="broken.npy"):
@@ -519,13 +631,19 @@ def test_example_description_files_load_and_describe_themselves(path):
 
 
 def test_example_files_are_there():
-    assert {p.name for p in EXAMPLES} >= {"tgz_grating.yaml", "ps_ldpe_blend.yaml", "terraces.yaml"}
+    assert {p.name for p in EXAMPLES} >= {
+        "tgz_grating.yaml",
+        "ps_ldpe_blend.yaml",
+        "terraces.yaml",
+    }
 
 
 def test_yaml_numbers_without_a_dot_are_numbers(tmp_path):
     path = tmp_path / "s.yaml"
-    path.write_text("generator: terraces\nstep_height: 3e-9\nterrace_width: 1e-6\nsteps: 2\n"
-                    "size_across: [2e-6]\npixels: 64\n".replace("[2e-6]", "2e-6"))
+    path.write_text(
+        "generator: terraces\nstep_height: 3e-9\nterrace_width: 1e-6\nsteps: 2\n"
+        "size_across: [2e-6]\npixels: 64\n".replace("[2e-6]", "2e-6")
+    )
     s = load_sample_file(path)
     assert describe(s)["step_height"] == 3e-9 and s.size_x == pytest.approx(4e-6)
 
@@ -534,27 +652,60 @@ def test_from_file_path_is_relative_to_the_description_file(tmp_path):
     (tmp_path / "maps").mkdir()
     h = np.random.default_rng(1).normal(size=(16, 16)) * 1e-9
     np.save(tmp_path / "maps" / "m.npy", h)
-    (tmp_path / "s.json").write_text(json.dumps({"generator": "from_file", "path": "maps/m.npy",
-                                                 "size": [1e-6, 1e-6], "material": "polystyrene"}))
+    (tmp_path / "s.json").write_text(
+        json.dumps(
+            {
+                "generator": "from_file",
+                "path": "maps/m.npy",
+                "size": [1e-6, 1e-6],
+                "material": "polystyrene",
+            }
+        )
+    )
     s = load_sample_file(tmp_path / "s.json")
     np.testing.assert_array_equal(s.height, h)
     assert describe(s)["path"] == str(tmp_path / "maps" / "m.npy")
     assert s.materials == ("polystyrene",)
 
 
-@pytest.mark.parametrize("description, message", [
-    ({"generator": "spiral"}, r"generator='spiral' is not known; allowed: 'grating', 'blend', 'terraces', 'rough', 'from_file'"),
-    ({"step_height": 1e-9}, "generator=None is not known"),
-    ({"generator": "grating", "hieght": 1e-9}, r"unknown key\(s\) 'hieght' for generator 'grating'; allowed: .*'step_height'"),
-    ({"generator": "grating", "step_height": 1.0}, r"step_height=1.0 m is out of range; allowed range \[0, 1e-05\] m"),
-    ({"generator": "grating", "step_height": "tall"}, "step_height='tall' is not a number"),
-    ({"generator": "blend", "islands": "teflon"}, r"islands='teflon' is not allowed; allowed: one of 'seed', 'polystyrene'"),
-    ({"generator": "rough", "pixels": [64, 2]}, r"pixels\[1\]=2 is out of range; allowed range \[4, 4096\]"),
-    ({"generator": "rough", "size": [1e-6, 1e-6, 1e-6]}, "size=.* must be one number or a pair"),
-    ({"generator": "terraces", "orientation": "z"}, "orientation='z' is not allowed; allowed: one of 'x', 'y'"),
-    ({"generator": "terraces", "tip_radius": 0.0}, r"tip_radius=0.0 m is out of range"),
-    ({"generator": "rough", "seed": 1.5}, "seed=1.5 is not an integer"),
-])
+@pytest.mark.parametrize(
+    "description, message",
+    [
+        (
+            {"generator": "spiral"},
+            r"generator='spiral' is not known; allowed: 'grating', 'blend', 'terraces', 'rough', "
+            r"'from_file'",
+        ),
+        ({"step_height": 1e-9}, "generator=None is not known"),
+        (
+            {"generator": "grating", "hieght": 1e-9},
+            r"unknown key\(s\) 'hieght' for generator 'grating'; allowed: .*'step_height'",
+        ),
+        (
+            {"generator": "grating", "step_height": 1.0},
+            r"step_height=1.0 m is out of range; allowed range \[0, 1e-05\] m",
+        ),
+        ({"generator": "grating", "step_height": "tall"}, "step_height='tall' is not a number"),
+        (
+            {"generator": "blend", "islands": "teflon"},
+            r"islands='teflon' is not allowed; allowed: one of 'seed', 'polystyrene'",
+        ),
+        (
+            {"generator": "rough", "pixels": [64, 2]},
+            r"pixels\[1\]=2 is out of range; allowed range \[4, 4096\]",
+        ),
+        (
+            {"generator": "rough", "size": [1e-6, 1e-6, 1e-6]},
+            "size=.* must be one number or a pair",
+        ),
+        (
+            {"generator": "terraces", "orientation": "z"},
+            "orientation='z' is not allowed; allowed: one of 'x', 'y'",
+        ),
+        ({"generator": "terraces", "tip_radius": 0.0}, r"tip_radius=0.0 m is out of range"),
+        ({"generator": "rough", "seed": 1.5}, "seed=1.5 is not an integer"),
+    ],
+)
 def test_description_errors_name_the_field_and_the_allowed_values(description, message):
     with pytest.raises(ValueError, match=message):
         sample_from_description(description)
@@ -618,10 +769,16 @@ def test_an_all_digit_sha256_in_yaml_is_text(tmp_path):
     base = "generator: from_file\npath: m.npy\nsize: 1.0e-6\n"
     digits = "1" * 64
     (tmp_path / "digits.yaml").write_text(base + f"sha256: {digits}\n")
-    with pytest.raises(ValueError, match=f"SHA-256 is {digest}, the description expects sha256='{digits}'"):
-        load_sample_file(tmp_path / "digits.yaml")  # read as text and compared, not "is not a string"
+    with pytest.raises(
+        ValueError, match=f"SHA-256 is {digest}, the description expects sha256='{digits}'"
+    ):
+        load_sample_file(
+            tmp_path / "digits.yaml"
+        )  # read as text and compared, not "is not a string"
     (tmp_path / "short.yaml").write_text(base + "sha256: 0123\n")  # YAML 1.1: octal 83
-    with pytest.raises(ValueError, match=r"short.yaml: sha256=83 must be text of 64 hex digits.*quote it"):
+    with pytest.raises(
+        ValueError, match=r"short.yaml: sha256=83 must be text of 64 hex digits.*quote it"
+    ):
         load_sample_file(tmp_path / "short.yaml")
     (tmp_path / "bad.yaml").write_text(base + "sha256: xyz\n")
     with pytest.raises(ValueError, match="sha256='xyz' is not 64 hex digits"):
@@ -651,17 +808,23 @@ def test_a_map_above_the_bound_is_refused_before_it_is_read(tmp_path):
     _sparse_npy(big, 8192, 8192)  # 512 MiB
     (tmp_path / "big.yaml").write_text("generator: from_file\npath: big.npy\nsize: 1.0e-5\n")
     wide = tmp_path / "wide.npy"
-    _sparse_npy(wide, 4097, 4096, np.float32)  # 64 MiB: within the file bound, but more pixels than 4096 x 4096
+    _sparse_npy(
+        wide, 4097, 4096, np.float32
+    )  # 64 MiB: within the file bound, but more pixels than 4096 x 4096
     tracemalloc.start()
     try:
-        with pytest.raises(ValueError, match=r"big.npy: the file has 512.0 MiB; allowed at most 256 MiB"):
+        with pytest.raises(
+            ValueError, match=r"big.npy: the file has 512.0 MiB; allowed at most 256 MiB"
+        ):
             from_file(big, size=1e-5)
         with pytest.raises(ValueError, match=r"big.yaml: .*big.npy: the file has 512.0 MiB"):
             resolve_sample(str(tmp_path / "big.yaml"))
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert peak < 8 * 2 ** 20, peak
-    assert wide.stat().st_size <= 256 * 2 ** 20  # the documented file bound
-    with pytest.raises(ValueError, match=r"wide.npy: the map has 4096 x 4097 pixels; allowed at most 16777216"):
+    assert peak < 8 * 2**20, peak
+    assert wide.stat().st_size <= 256 * 2**20  # the documented file bound
+    with pytest.raises(
+        ValueError, match=r"wide.npy: the map has 4096 x 4097 pixels; allowed at most 16777216"
+    ):
         from_file(wide, size=1e-5)

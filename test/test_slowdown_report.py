@@ -1,19 +1,20 @@
-"""The cantilever's slowdown warning (afm_ros.core.flow.SlowdownReporter): a machine that cannot run
-the loop at the requested real-time factor gets one actionable line, not a stream of them.
+"""The cantilever's slowdown warning (afm_ros.core.flow.SlowdownReporter): a machine that cannot
+run the loop at the requested real-time factor gets one actionable line, not a stream of them.
 
-A synthetic pacing timeline (wall seconds, 0.1 s timer ticks) replaces the machine, so the rules are
-checked exactly: no report for a short stall (a start-up compile), the first report after 5 s of one
-slowdown with the factor achieved since the slowdown began, then at most one per 60 s; the reported
-bottleneck is the gate the loop waited at most (or the integration itself).
+A synthetic pacing timeline (wall seconds, 0.1 s timer ticks) replaces the machine, so the rules
+are checked exactly: no report for a short stall (a start-up compile), the first report after 5 s
+of one slowdown with the factor achieved since the slowdown began, then at most one per 60 s; the
+reported bottleneck is the gate the loop waited at most (or the integration itself).
 """
+
 import re
 
 from afm_ros.core.flow import SlowdownReporter
 
 
 def run(reporter, seconds, speed, waits_per_s=None, start=(0.0, 0.0, 0.0), tick=0.1):
-    """Advance a timeline from ``start`` = (wall, sim, given_up) at ``speed`` simulated s per wall s
-    against a requested factor 1; returns (reports with their wall time, end state)."""
+    """Advance a timeline from ``start`` = (wall, sim, given_up) at ``speed`` simulated s per wall
+    s against a requested factor 1; returns (reports with their wall time, end state)."""
     wall, sim, given = start
     waits = {"feedback": 0.0, "consumers": 0.0}
     reasons = {"feedback": "waiting for z_controller/z_command answering sample index 42"}
@@ -45,10 +46,13 @@ def test_first_report_after_five_seconds_then_at_most_one_a_minute():
     assert 5.0 <= times[0] <= 5.0 + 2 * 0.1 + 1e-9
     assert [round(b - a) for a, b in zip(times, times[1:])] == [60, 60, 60]
     text = reports[0][1]
-    # the factor achieved over the slowdown, the requested one, what to do, and that nothing is lost
+    # the factor achieved over the slowdown, the requested one, what to do, and that nothing is
+    # lost
     assert re.search(r"running at 0\.68x real time instead of the requested 1x", text)
     assert "real_time_factor 0.6" in text and "Nothing is lost" in text
-    assert "integration (RK4 worker)" in text  # no gate held the loop: the integration is the limit
+    assert (
+        "integration (RK4 worker)" in text
+    )  # no gate held the loop: the integration is the limit
 
 
 def test_the_bottleneck_is_the_gate_the_loop_waited_at():

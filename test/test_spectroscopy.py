@@ -11,6 +11,7 @@ earlier: z + r D on the approach (the gap was larger), z - r D on the retract, w
 (latency - 1) and (latency + 1) chunks plus Q / (pi f0) plus the lock-in filter's order x time
 constant (expected_lag).
 """
+
 from __future__ import annotations
 
 import json
@@ -19,19 +20,23 @@ import time
 
 import numpy as np
 import pytest
+from conftest import EXACT_PHYSICS
 
 from afm_ros.core.approach import Z_NODE_SPECS
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, SpectroscopyCurve, expected_lag
 from afm_ros.core.wired import WiredInstrument
 from afm_ros.formats.spectroscopy_layout import pack_curve, unpack_curve
 from afm_ros.tools.study import sweep
-from conftest import EXACT_PHYSICS
 
 RATE = 50e-9  # [m/s] a slow ramp: 10 nm up, 30 nm down and back (1.6 s simulated)
-# the loop has settled already (SETTLE): the ramp holds at once (the settling before a curve is tested
-# on its own below)
-VALUES = {"spectroscopy_rate": RATE, "spectroscopy_retract": 10e-9, "spectroscopy_distance": 30e-9,
-          "spectroscopy_settle_time": 0.0}
+# the loop has settled already (SETTLE): the ramp holds at once (the settling before a curve is
+# tested on its own below)
+VALUES = {
+    "spectroscopy_rate": RATE,
+    "spectroscopy_retract": 10e-9,
+    "spectroscopy_distance": 30e-9,
+    "spectroscopy_settle_time": 0.0,
+}
 SETTLE = 0.1  # [s] the loop engages at z_base and settles (26 ms settling time) before the curve
 LOCKIN_DELAY = 4 * 20e-6  # [s] the lock-in's 4 stages of 20 us each (the default filter)
 RIPPLE_AMPLITUDE = 0.02e-9  # [m] lock-in ripple and the staircase's settling left in one output
@@ -40,8 +45,8 @@ RIPPLE_PHASE = 0.03  # [deg]
 
 @pytest.fixture(scope="module")
 def run():
-    """One slow curve on the default (flat, DMT) sample and the steady-state sweep of the same lever
-    on a 1 nm grid over the curve's gaps, approaching then retracting."""
+    """One slow curve on the default (flat, DMT) sample and the steady-state sweep of the same
+    lever on a 1 nm grid over the curve's gaps, approaching then retracting."""
     w = WiredInstrument(cantilever=EXACT_PHYSICS, keep_records=True)
     w.run_until(SETTLE)
     z_engaged = w.controller.z
@@ -50,13 +55,29 @@ def run():
     w.run_until(w.t + 0.05)
     s = w.setup
     grid = np.arange(3e-9, 37.01e-9, 1e-9)[::-1]
-    rows = sweep(list(grid), s.cantilever, s.drive, s.force_model, s.steps_per_period, retract=True, progress=False)
+    rows = sweep(
+        list(grid),
+        s.cantilever,
+        s.drive,
+        s.force_model,
+        s.steps_per_period,
+        retract=True,
+        progress=False,
+    )
     steady = {}
     for d in ("approach", "retract"):
         r = sorted((row for row in rows if row["direction"] == d), key=lambda row: row["z_base_m"])
-        steady[d] = {k: np.array([row[k] for row in r]) for k in ("z_base_m", "amplitude_m", "phase_deg",
-                                                                   "mean_force_N", "mean_deflection_m")}
-    return {"w": w, "curve": curve, "z_engaged": z_engaged, "steady": steady, "after": w.records[after:]}
+        steady[d] = {
+            k: np.array([row[k] for row in r])
+            for k in ("z_base_m", "amplitude_m", "phase_deg", "mean_force_N", "mean_deflection_m")
+        }
+    return {
+        "w": w,
+        "curve": curve,
+        "z_engaged": z_engaged,
+        "steady": steady,
+        "after": w.records[after:],
+    }
 
 
 def test_the_ramp_follows_its_path_and_records_every_output(run):
@@ -66,7 +87,9 @@ def test_the_ramp_follows_its_path_and_records_every_output(run):
     assert c.t.shape[0] == pytest.approx(1600, abs=2) and c.missing_chunks == 0
     assert c.z_piezo.max() == pytest.approx(c.z_held + 10e-9, abs=RATE * 1e-3)
     assert c.z_piezo.min() == pytest.approx(c.z_held - 20e-9, abs=RATE * 1e-3)
-    assert np.array_equal(c.z_gap, c.z_offset + c.z_piezo) and c.z_offset == 40e-9  # z_base, no motor
+    assert (
+        np.array_equal(c.z_gap, c.z_offset + c.z_piezo) and c.z_offset == 40e-9
+    )  # z_base, no motor
     for leg, sign in (("lift", 1), ("approach", -1), ("retract", 1), ("return", -1)):
         dz = np.diff(c.z_piezo[c.branch(leg)])
         assert np.allclose(dz, sign * RATE * 1e-3, rtol=1e-6, atol=0), leg  # one output per ms
@@ -89,24 +112,35 @@ def test_a_slow_ramp_agrees_with_the_steady_state_within_the_ramp_lag(run, branc
     expected_lag: 2.26 to 6.26 ms at 50 nm/s, i.e. 0.11 to 0.31 nm), plus the lock-in's ripple;
     without the shift they would miss (the lag is real and resolved)."""
     c, steady = run["curve"], run["steady"][branch]
-    lo_s, hi_s = expected_lag(c.chunk_duration, c.feedback_latency, c.quality_factor, c.resonance_frequency,
-                              LOCKIN_DELAY)
-    assert (lo_s, hi_s) == pytest.approx((2e-3 + 0.177e-3 + 0.08e-3, 6e-3 + 0.177e-3 + 0.08e-3), abs=2e-6)
-    # after a turn the cantilever still has the previous leg's z for D: from D_hi after the leg's start
+    lo_s, hi_s = expected_lag(
+        c.chunk_duration, c.feedback_latency, c.quality_factor, c.resonance_frequency, LOCKIN_DELAY
+    )
+    assert (lo_s, hi_s) == pytest.approx(
+        (2e-3 + 0.177e-3 + 0.08e-3, 6e-3 + 0.177e-3 + 0.08e-3), abs=2e-6
+    )
+    # after a turn the cantilever still has the previous leg's z for D: from D_hi after the leg's
+    # start
     leg_start = c.t[c.branch(branch)][0]
     m = c.branch(branch) & (c.t > leg_start + hi_s) & (c.z_gap > 5e-9) & (c.z_gap < 35e-9)
     z, a, p = c.z_gap[m], c.amplitude[m], c.phase[m]
     a_lo, a_hi, p_lo, p_hi = _bracket(steady, z, sign * RATE * lo_s, sign * RATE * hi_s)
     # the 1 nm grid's linear interpolation: the amplitude's curvature moves it < 0.005 nm
-    assert np.all(a >= a_lo - RIPPLE_AMPLITUDE) and np.all(a <= a_hi + RIPPLE_AMPLITUDE), \
+    assert np.all(a >= a_lo - RIPPLE_AMPLITUDE) and np.all(a <= a_hi + RIPPLE_AMPLITUDE), (
         np.max(np.maximum(a_lo - a, a - a_hi)) * 1e9
-    assert np.all(p >= p_lo - RIPPLE_PHASE) and np.all(p <= p_hi + RIPPLE_PHASE), np.max(np.maximum(p_lo - p, p - p_hi))
+    )
+    assert np.all(p >= p_lo - RIPPLE_PHASE) and np.all(p <= p_hi + RIPPLE_PHASE), np.max(
+        np.maximum(p_lo - p, p - p_hi)
+    )
     # the best single shift (least squares on a 0.01 nm grid) is inside the predicted range
     shifts = np.arange(-1e-9, 1e-9, 0.01e-9)
-    cost = [np.sum((np.interp(z + s, steady["z_base_m"], steady["amplitude_m"]) - a) ** 2) for s in shifts]
+    cost = [
+        np.sum((np.interp(z + s, steady["z_base_m"], steady["amplitude_m"]) - a) ** 2)
+        for s in shifts
+    ]
     best = shifts[int(np.argmin(cost))] * sign
     assert RATE * lo_s - 0.01e-9 <= best <= RATE * hi_s + 0.01e-9, best
-    # against the unshifted steady state the error is the slope (~0.95 nm/nm) x r D, far above the ripple
+    # against the unshifted steady state the error is the slope (~0.95 nm/nm) x r D, far above the
+    # ripple
     direct = np.max(np.abs(a - np.interp(z, steady["z_base_m"], steady["amplitude_m"])))
     assert 0.5 * RATE * lo_s < direct < 1.1 * RATE * hi_s
 
@@ -122,7 +156,9 @@ def test_mean_force_is_k_times_mean_deflection_and_the_steady_states(run):
     for branch in ("approach", "retract"):
         m = c.chunk_branch(branch) & (c.chunk_z_gap > 5e-9) & (c.chunk_z_gap < 35e-9)
         assert m.sum() > 250
-        f_ss = np.interp(c.chunk_z_gap[m], steady[branch]["z_base_m"], steady[branch]["mean_force_N"])
+        f_ss = np.interp(
+            c.chunk_z_gap[m], steady[branch]["z_base_m"], steady[branch]["mean_force_N"]
+        )
         kd = c.spring_constant * c.chunk_deflection[m]
         assert np.all(f_ss > 4e-9)  # repulsive tapping: 5 to 11 nN over these gaps
         assert np.max(np.abs(kd / f_ss - 1)) < 0.005
@@ -132,9 +168,9 @@ def test_mean_force_is_k_times_mean_deflection_and_the_steady_states(run):
 
 
 def test_the_feedback_resumes_at_the_held_point(run):
-    """After the curve the loop regulates again from z_held: the amplitude is at the setpoint within
-    0.1 % (the loop's settling time is 26 ms; the last 25 ms of the 50 ms after the curve) and z is
-    back within 0.05 nm of where it was held (the same gap on a flat sample)."""
+    """After the curve the loop regulates again from z_held: the amplitude is at the setpoint
+    within 0.1 % (the loop's settling time is 26 ms; the last 25 ms of the 50 ms after the curve)
+    and z is back within 0.05 nm of where it was held (the same gap on a flat sample)."""
     w, c = run["w"], run["curve"]
     assert w.engaged and w.stage.state == "engaged" and w.controller.params["enabled"]
     tail = run["after"][-12:]
@@ -145,17 +181,29 @@ def test_the_feedback_resumes_at_the_held_point(run):
 
 def test_refused_when_not_engaged_and_bad_values_by_name():
     w = WiredInstrument(cantilever=EXACT_PHYSICS, approach_values={"start_withdrawn": True})
-    with pytest.raises(ValueError, match=r"spectroscopy refused: the z stage is withdrawn; it needs the tip engaged"):
+    with pytest.raises(
+        ValueError,
+        match=r"spectroscopy refused: the z stage is withdrawn; it needs the tip engaged",
+    ):
         w.spectroscopy()
     w = WiredInstrument(cantilever=EXACT_PHYSICS)
-    with pytest.raises(ValueError, match=r"spectroscopy_rate=1\.0 m/s is out of range; allowed range \[1e-10, 0\.001\] m/s"):
+    with pytest.raises(
+        ValueError,
+        match=r"spectroscopy_rate=1\.0 m/s is out of range; allowed range \[1e-10, 0\.001\] m/s",
+    ):
         w.spectroscopy({"spectroscopy_rate": 1.0})
     with pytest.raises(ValueError, match=r"'spectroscopy_speed' is not a spectroscopy parameter"):
         w.spectroscopy({"spectroscopy_speed": 1e-7})
     # the default z range is [-200, 100] nm: a 400 nm ramp from z = 0 would pass z_min
-    with pytest.raises(ValueError, match=r"spectroscopy_distance=4e-07 m reaches z piezo -3\.9e-07 m, below z_min=-2e-07 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"spectroscopy_distance=4e-07 m reaches z piezo -3\.9e-07 m, below z_min=-2e-07 m",
+    ):
         w.spectroscopy({"spectroscopy_distance": 400e-9})
-    with pytest.raises(ValueError, match=r"spectroscopy_retract=2e-07 m lifts the z piezo from 0 m above z_max=1e-07 m"):
+    with pytest.raises(
+        ValueError,
+        match=r"spectroscopy_retract=2e-07 m lifts the z piezo from 0 m above z_max=1e-07 m",
+    ):
         w.spectroscopy({"spectroscopy_retract": 200e-9})
     assert w.stage.state == "engaged" and w.controller.params["enabled"]  # nothing changed
     assert set(SPECTROSCOPY_SPECS) <= set(Z_NODE_SPECS)  # the z controller node's parameters
@@ -169,15 +217,16 @@ def test_the_curve_round_trips_through_its_message_and_dict(run):
         unpack_curve(pack_curve(c)[:-1])
 
 
-def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reported(ros_context, ros_executor,
-                                                                                 ros_namespace, tmp_path):
-    """The z controller node's service on live nodes (real DDS) in lockstep: the cantilever paused at
-    50 ms, the service called there (its ramp starts at the last lock-in output, as the wired one),
-    then released; the node takes each chunk's means from cantilever/deflection and
+def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reported(
+    ros_context, ros_executor, ros_namespace, tmp_path
+):
+    """The z controller node's service on live nodes (real DDS) in lockstep: the cantilever paused
+    at 50 ms, the service called there (its ramp starts at the last lock-in output, as the wired
+    one), then released; the node takes each chunk's means from cantilever/deflection and
     cantilever/tip_sample_force while the ramp runs. The curve on z_controller/spectroscopy equals
-    the wired instrument's from the same time, bit for bit, and the stage is engaged again. A recorder
-    that leaves out the raw streams (as afm_instrument's) records the curve, and afm_report draws it
-    and gives its numbers."""
+    the wired instrument's from the same time, bit for bit, and the stage is engaged again. A
+    recorder that leaves out the raw streams (as afm_instrument's) records the curve, and
+    afm_report draws it and gives its numbers."""
     from rclpy.parameter import Parameter
     from std_msgs.msg import Float64MultiArray, String
     from std_srvs.srv import Trigger
@@ -186,9 +235,9 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
     from afm_ros.nodes.cantilever_node import CantileverNode
     from afm_ros.nodes.lockin_node import LockInNode
     from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.nodes.z_controller_node import SPECTROSCOPY_TOPIC, ZControllerNode
     from afm_ros.tools import report
     from afm_ros.tools.afm_instrument import RAW_EXCLUDE
-    from afm_ros.nodes.z_controller_node import SPECTROSCOPY_TOPIC, ZControllerNode
 
     def spin_until(condition, timeout=120.0, what="condition"):
         end = time.monotonic() + timeout
@@ -197,33 +246,75 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
             ros_executor.spin_once(timeout_sec=0.01)
 
     start = 0.05
-    values = {"spectroscopy_rate": 1e-6, "spectroscopy_retract": 5e-9, "spectroscopy_distance": 15e-9}
+    values = {
+        "spectroscopy_rate": 1e-6,
+        "spectroscopy_retract": 5e-9,
+        "spectroscopy_distance": 15e-9,
+    }
     ns = ros_namespace
-    cantilever = CantileverNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in {**EXACT_PHYSICS, "real_time_factor": 0.0, "run_until": 0.0,
-                                            "feedback_sync": "lockstep"}.items()])
+    cantilever = CantileverNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[
+            Parameter(k, value=v)
+            for k, v in {
+                **EXACT_PHYSICS,
+                "real_time_factor": 0.0,
+                "run_until": 0.0,
+                "feedback_sync": "lockstep",
+            }.items()
+        ],
+    )
     lockin = LockInNode(context=ros_context, namespace=ns)
-    controller = ZControllerNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter(k, value=v) for k, v in values.items()])
+    controller = ZControllerNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[Parameter(k, value=v) for k, v in values.items()],
+    )
     curves, stages = [], []
-    controller.create_subscription(Float64MultiArray, SPECTROSCOPY_TOPIC, lambda m: curves.append(unpack_curve(m)),
-                                   topics.LATCHED_QOS)
-    controller.create_subscription(String, topics.Z_STAGE, lambda m: stages.append(json.loads(m.data)["state"]),
-                                   topics.LATCHED_QOS)
+    controller.create_subscription(
+        Float64MultiArray,
+        SPECTROSCOPY_TOPIC,
+        lambda m: curves.append(unpack_curve(m)),
+        topics.LATCHED_QOS,
+    )
+    controller.create_subscription(
+        String,
+        topics.Z_STAGE,
+        lambda m: stages.append(json.loads(m.data)["state"]),
+        topics.LATCHED_QOS,
+    )
     session = tmp_path / "spectroscopy.mcap"
-    recorder = RecorderNode(context=ros_context, namespace=ns, parameter_overrides=[
-        Parameter("output", value=str(session)), Parameter("exclude", value=RAW_EXCLUDE)])
+    recorder = RecorderNode(
+        context=ros_context,
+        namespace=ns,
+        parameter_overrides=[
+            Parameter("output", value=str(session)),
+            Parameter("exclude", value=RAW_EXCLUDE),
+        ],
+    )
     nodes = (cantilever, lockin, controller, recorder)
     for n in nodes:
         ros_executor.add_node(n)
     try:
-        spin_until(lambda: controller.stage is not None and {f"{ns}/lockin", f"{ns}/recorder"} <= set(cantilever.consumers),
-                   what="the cantilever's set-up and the lock-in")
+        spin_until(
+            lambda: (
+                controller.stage is not None
+                and {f"{ns}/lockin", f"{ns}/recorder"} <= set(cantilever.consumers)
+            ),
+            what="the cantilever's set-up and the lock-in",
+        )
         client = controller.create_client(Trigger, f"{ns}/z_controller/spectroscopy")
         spin_until(client.service_is_ready, 30, "z_controller/spectroscopy")
         cantilever.set_parameters([Parameter("run_until", value=start)])
-        spin_until(lambda: cantilever.paused and controller.stage.t_last is not None
-                   and controller.stage.t_last >= start - 1.5e-3, what="the pause at 50 ms")
+        spin_until(
+            lambda: (
+                cantilever.paused
+                and controller.stage.t_last is not None
+                and controller.stage.t_last >= start - 1.5e-3
+            ),
+            what="the pause at 50 ms",
+        )
         future = client.call_async(Trigger.Request())
         spin_until(future.done, 30, "the answer")
         assert future.result().success, future.result().message
@@ -231,7 +322,11 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
         spin_until(again.done, 30, "the second answer")
         assert not again.result().success and "already running" in again.result().message
         # the cantilever publishes the force only to subscribers: released once the node's matched
-        spin_until(lambda: cantilever._pub_force.get_subscription_count() > 0, 30, "the force subscription")
+        spin_until(
+            lambda: cantilever._pub_force.get_subscription_count() > 0,
+            30,
+            "the force subscription",
+        )
         cantilever.set_parameters([Parameter("run_until", value=-1.0)])
         spin_until(lambda: curves, what="the curve")
         spin_until(lambda: stages and stages[-1] == "engaged", what="the stage engaged again")
@@ -247,18 +342,25 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
     w = WiredInstrument(cantilever=EXACT_PHYSICS)
     w.run_until(start)
     wired = w.spectroscopy(values)
-    # the loop settled 0.1 s (the default) and held at the output where that ended; then every output after
-    # the hold and before the end of the 40 ms path at 1 kHz (the one on the end itself by float rounding)
+    # the loop settled 0.1 s (the default) and held at the output where that ended; then every
+    # output after the hold and before the end of the 40 ms path at 1 kHz (the one on the end
+    # itself by float rounding)
     assert ros_curve.t_start == pytest.approx(start + 0.1, abs=1.5e-3)
     assert ros_curve.missing_chunks == 0 and ros_curve.t.shape[0] in (39, 40)
-    assert ros_curve.equal(wired), {k: (v, wired.to_dict()[k]) for k, v in ros_curve.to_dict().items()
-                                    if not isinstance(v, list) and v != wired.to_dict()[k]}
+    assert ros_curve.equal(wired), {
+        k: (v, wired.to_dict()[k])
+        for k, v in ros_curve.to_dict().items()
+        if not isinstance(v, list) and v != wired.to_dict()[k]
+    }
     assert math.isfinite(ros_curve.chunk_force.sum())
     rep = report.make_report(session, tmp_path / "report")
     g = rep.numbers["spectroscopy"]
     a = ros_curve.branch("approach")
     assert g["outputs"] == ros_curve.t.shape[0] and g["missing_chunks"] == 0
-    assert g["amplitude_top_m"] == ros_curve.amplitude[a][0] and g["amplitude_bottom_m"] == ros_curve.amplitude[a][-1]
+    assert (
+        g["amplitude_top_m"] == ros_curve.amplitude[a][0]
+        and g["amplitude_bottom_m"] == ros_curve.amplitude[a][-1]
+    )
     assert g["max_mean_force_N"] == np.nanmax(ros_curve.chunk_force)
     # 1 um/s: the curve lags 2.18 to 6.18 nm (latency 2 chunks of 2 ms, Q/(pi f0) = 0.18 ms)
     assert g["lag_z_m"] == pytest.approx([2.177e-9, 6.177e-9], abs=1e-12)

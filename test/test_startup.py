@@ -1,7 +1,8 @@
-"""Start-up: numba cache location (read-only installs), one compiled specialisation per kernel,
-no heavy imports on the node paths. Timing itself is measured by ``python -m benchmarks.bench_startup``,
-not here.
+"""Start-up: numba cache location (read-only installs), one compiled specialisation per kernel, no
+heavy imports on the node paths. Timing itself is measured by ``python -m
+benchmarks.bench_startup``, not here.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,9 +26,12 @@ PACKAGE = Path(afm_ros.__file__).resolve().parent
 # --- choice of the cache directory (in process) -----------------------------------------------
 @pytest.fixture
 def clean_cache_state(monkeypatch):
-    """configure() may set NUMBA_CACHE_DIR and numba's config: restore both after the test (else every
-    later compile and every later child process of the suite uses a deleted temporary cache: cold)."""
-    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # records the original state (delenv of an unset name would not)
+    """configure() may set NUMBA_CACHE_DIR and numba's config: restore both after the test (else
+    every later compile and every later child process of the suite uses a deleted temporary cache:
+    cold)."""
+    monkeypatch.setenv(
+        "NUMBA_CACHE_DIR", ""
+    )  # records the original state (delenv of an unset name would not)
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setattr(numba_cache, "chosen", numba_cache.chosen)
     monkeypatch.setattr(numba_cache, "reason", numba_cache.reason)
@@ -54,6 +58,7 @@ def test_read_only_package_falls_back_to_xdg_cache_home(clean_cache_state, tmp_p
     assert numba_cache.configure() == expected
     assert os.environ["NUMBA_CACHE_DIR"] == expected and Path(expected).is_dir()
     import numba.core.config
+
     assert numba.core.config.CACHE_DIR == expected  # numba already imported here: told directly
 
 
@@ -111,11 +116,18 @@ def _mechanisms():
         return out
     setpriv, runuser = shutil.which("setpriv"), shutil.which("runuser")
     if setpriv:
-        out.append(("nobody via setpriv", [setpriv, "--reuid=nobody", "--regid=nogroup", "--clear-groups"]))
+        out.append(
+            (
+                "nobody via setpriv",
+                [setpriv, "--reuid=nobody", "--regid=nogroup", "--clear-groups"],
+            )
+        )
     if runuser:
         out.append(("nobody via runuser", [runuser, "-u", "nobody", "--"]))
     if setpriv:  # uid 0 without any capability: permission bits apply, the owner's included
-        out.append(("root without capabilities", [setpriv, "--bounding-set=-all", "--inh-caps=-all"]))
+        out.append(
+            ("root without capabilities", [setpriv, "--bounding-set=-all", "--inh-caps=-all"])
+        )
     return out
 
 
@@ -127,7 +139,9 @@ def read_only_install():
     try:
         base.chmod(0o755)
         install = base / "install"
-        shutil.copytree(PACKAGE, install / "afm_ros", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        shutil.copytree(
+            PACKAGE, install / "afm_ros", ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
+        )
         home = base / "home"
         home.mkdir()
         home.chmod(0o777)
@@ -136,18 +150,33 @@ def read_only_install():
                 os.chmod(os.path.join(root, f), 0o444)
         for root, dirs, files in os.walk(install, topdown=False):
             os.chmod(root, 0o555)
-        env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "PYTHONPATH")}
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "PYTHONPATH")
+        }
         env.update(HOME=str(home), PYTHONPATH=str(install), PYTHONDONTWRITEBYTECODE="1")
         reasons = []
         for name, prefix in _mechanisms():
-            probe = subprocess.run(prefix + [sys.executable, "-c", PROBE, str(install / "afm_ros"), str(home)],
-                                   env=env, cwd=str(home), capture_output=True, text=True, timeout=60)
+            probe = subprocess.run(
+                prefix + [sys.executable, "-c", PROBE, str(install / "afm_ros"), str(home)],
+                env=env,
+                cwd=str(home),
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
             if probe.returncode == 0:
                 yield name, prefix, install, home, env
                 break
-            reasons.append(f"{name}: {(probe.stderr.strip().splitlines() or ['exit %d' % probe.returncode])[-1]}")
+            reasons.append(
+                f"{name}: "
+                f"{(probe.stderr.strip().splitlines() or ['exit %d' % probe.returncode])[-1]}"
+            )
         else:
-            pytest.skip("cannot run a process that is denied writing the install: " + "; ".join(reasons))
+            pytest.skip(
+                "cannot run a process that is denied writing the install: " + "; ".join(reasons)
+            )
     finally:
         for root, dirs, files in os.walk(base):
             os.chmod(root, stat.S_IRWXU)
@@ -159,8 +188,14 @@ def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_inst
     print(f"unprivileged process: {name}")
 
     def start():
-        run = subprocess.run(prefix + [sys.executable, "-c", CHILD], env=env, cwd=str(home),
-                             capture_output=True, text=True, timeout=300)
+        run = subprocess.run(
+            prefix + [sys.executable, "-c", CHILD],
+            env=env,
+            cwd=str(home),
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode == 0, f"{name}: {run.stderr[-2000:]}"
         return json.loads(run.stdout.strip().splitlines()[-1])
 
@@ -183,6 +218,7 @@ def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_inst
 # --- compiled specialisations and imports ------------------------------------------------------
 def test_rk4_kernel_has_one_specialisation_for_any_argument_types():
     from afm_ros.core.physics import events, integrators, seed_simulation
+
     for method, kernel in (("rk4", integrators._advance), ("rk4_event", events.advance_event)):
         sim = seed_simulation(z_base=40e-9, method=method)
         sim.advance(10)
@@ -195,19 +231,28 @@ def test_rk4_kernel_has_one_specialisation_for_any_argument_types():
 
 def test_lockin_filter_stage_is_inlined_not_compiled_per_column():
     from afm_ros.core import lockin
+
     lockin.LockIn().warm_up()
     assert len(lockin._demodulate.signatures) == 1
     assert lockin._cascade.signatures == []  # inlined into _demodulate: no own compilation
 
 
-@pytest.mark.parametrize("module,forbidden", [
-    ("afm_ros.nodes.cantilever_node", ("matplotlib", "tqdm", "scipy.integrate", "afm_ros.core.physics.analysis")),
-    ("afm_ros.nodes.lockin_node", ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal", "scipy.special")),
-    ("afm_ros.nodes.z_controller_node", ("matplotlib", "tqdm", "numba", "scipy")),
-])
+@pytest.mark.parametrize(
+    "module,forbidden",
+    [
+        (
+            "afm_ros.nodes.cantilever_node",
+            ("matplotlib", "tqdm", "scipy.integrate", "afm_ros.core.physics.analysis"),
+        ),
+        (
+            "afm_ros.nodes.lockin_node",
+            ("matplotlib", "tqdm", "scipy.integrate", "scipy.signal", "scipy.special"),
+        ),
+        ("afm_ros.nodes.z_controller_node", ("matplotlib", "tqdm", "numba", "scipy")),
+    ],
+)
 def test_node_imports_stay_light(module, forbidden):
-    code = (f"import sys, {module}; "
-            f"print([m for m in {list(forbidden)!r} if m in sys.modules])")
+    code = f"import sys, {module}; print([m for m in {list(forbidden)!r} if m in sys.modules])"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.strip() == "[]", f"{module} imports {run.stdout.strip()}"
@@ -218,20 +263,25 @@ def test_every_folder_with_numba_kernels_is_checked_for_the_in_tree_cache():
     kernels (cache=True writes beside their sources): a folder missing there would send every
     start to the fallback cache (it happened when the package was split into subpackages)."""
     import pathlib
+
     package = pathlib.Path(numba_cache.PACKAGE_DIR)
     with_kernels = {str(p.parent) for p in package.rglob("*.py") if "njit(" in p.read_text()}
-    assert with_kernels <= set(map(os.path.normpath, numba_cache.KERNEL_DIRS)), sorted(with_kernels)
+    assert with_kernels <= set(map(os.path.normpath, numba_cache.KERNEL_DIRS)), sorted(
+        with_kernels
+    )
 
 
 def test_cached_kernels_are_dropped_when_any_kernel_source_changes(tmp_path):
-    """numba checks a cached kernel against its own file only; the scanning kernel inlines the event
-    kernel of another file. The stamp of every kernel source decides: unchanged sources keep the cache,
-    a changed one (any file) drops it."""
+    """numba checks a cached kernel against its own file only; the scanning kernel inlines the
+    event kernel of another file. The stamp of every kernel source decides: unchanged sources keep
+    the cache, a changed one (any file) drops it."""
     from afm_ros import numba_cache
 
     cached = tmp_path / "integrators.advance_surface-184.py311.nbi"
     cached.write_text("x")
-    assert numba_cache.drop_stale(str(tmp_path), [str(cached)])  # no stamp yet: dropped, stamp written
+    assert numba_cache.drop_stale(
+        str(tmp_path), [str(cached)]
+    )  # no stamp yet: dropped, stamp written
     cached.write_text("x")
     assert not numba_cache.drop_stale(str(tmp_path), [str(cached)]) and cached.exists()
     (tmp_path / "afm_ros_sources.stamp").write_text("an older set of sources\n")

@@ -4,6 +4,7 @@ Plant used by the core tests: a tapping cantilever whose amplitude is limited by
 ``A = min(A_free, slope * max(0, z_base + z))`` (slope 1: the amplitude equals the gap once in
 contact). The controller sees the amplitude produced by the previous output (one-sample delay).
 """
+
 from __future__ import annotations
 
 import math
@@ -17,10 +18,10 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64, Float64MultiArray
 
-from afm_ros.nodes import topics
-from afm_ros.formats.chunk_layout import OutputBatch, pack_outputs, unpack_z_command
-from afm_ros.nodes.z_controller_node import Z_QOS, ZControllerNode
 from afm_ros.core.controller import Z_CONTROLLER_SPECS, ZController
+from afm_ros.formats.chunk_layout import OutputBatch, pack_outputs, unpack_z_command
+from afm_ros.nodes import topics
+from afm_ros.nodes.z_controller_node import Z_QOS, ZControllerNode
 
 A_FREE = 60e-9  # [m]
 SETPOINT = Z_CONTROLLER_SPECS["setpoint"].default
@@ -133,7 +134,10 @@ def test_bumpless_enable_and_gain_change():
     assert abs(e_before) > 1e-9
     ctrl.configure(p_gain=2.0)
     z_after = ctrl.update(plant(ctrl.z, z_base=77e-9), t3[-1] + 2 * dt)
-    assert abs(z_after - z_before) <= I * abs(ctrl.error) * dt + 2.0 * abs(ctrl.error - e_before) + 1e-18
+    assert (
+        abs(z_after - z_before)
+        <= I * abs(ctrl.error) * dt + 2.0 * abs(ctrl.error - e_before) + 1e-18
+    )
 
 
 def test_hold_and_withdraw():
@@ -158,11 +162,19 @@ def test_hold_and_withdraw():
     assert ctrl.update(60e-9, 4000 * 0.5e-3) == ctrl.params["z_max"]
 
 
-@pytest.mark.parametrize("changes,names", [
-    ({"p_gain": -1.0}, ["p_gain"]), ({"i_gain": math.inf}, ["i_gain"]), ({"setpoint": 2e-6}, ["setpoint"]),
-    ({"z_min": 200e-9}, ["z_min", "z_max"]), ({"z_max": -300e-9}, ["z_min", "z_max"]),
-    ({"disabled_action": "park"}, ["disabled_action"]), ({"enabled": 1}, ["enabled"]),
-    ({"max_slew_rate": -1.0}, ["max_slew_rate"])])
+@pytest.mark.parametrize(
+    "changes,names",
+    [
+        ({"p_gain": -1.0}, ["p_gain"]),
+        ({"i_gain": math.inf}, ["i_gain"]),
+        ({"setpoint": 2e-6}, ["setpoint"]),
+        ({"z_min": 200e-9}, ["z_min", "z_max"]),
+        ({"z_max": -300e-9}, ["z_min", "z_max"]),
+        ({"disabled_action": "park"}, ["disabled_action"]),
+        ({"enabled": 1}, ["enabled"]),
+        ({"max_slew_rate": -1.0}, ["max_slew_rate"]),
+    ],
+)
 def test_invalid_parameters_rejected(changes, names):
     with pytest.raises(ValueError) as info:
         ZController(**changes)
@@ -175,33 +187,56 @@ def test_invalid_parameters_rejected(changes, names):
 
 
 # --- node over DDS -------------------------------------------------------------------------
-RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+RECORD_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE
+)
 
 
 class Harness(Node):
-    """Plays the lock-in (publishes lockin/outputs batches, one output sample per deflection chunk of
-    CHUNK samples, with sim-time stamps) and records the z controller's outputs and z commands."""
+    """Plays the lock-in (publishes lockin/outputs batches, one output sample per deflection chunk
+    of CHUNK samples, with sim-time stamps) and records the z controller's outputs and z
+    commands."""
 
     CHUNK = 1000
 
     def __init__(self, ctx, ns):
         super().__init__("harness", context=ctx, namespace=ns)
-        self.pub = self.create_publisher(Float64MultiArray, topics.LOCKIN_OUTPUTS, topics.HISTORY_QOS)
+        self.pub = self.create_publisher(
+            Float64MultiArray, topics.LOCKIN_OUTPUTS, topics.HISTORY_QOS
+        )
         self.z, self.error, self.commands = [], [], []
         self.next_index = 0
-        z_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=Z_QOS.durability)
-        self.create_subscription(Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), z_qos)
-        self.create_subscription(Float64, "z_controller/error", lambda m: self.error.append(m.data), RECORD_QOS)
-        self.create_subscription(Float64MultiArray, topics.Z_COMMAND,
-                                 lambda m: self.commands.append(unpack_z_command(m.data)), topics.CONSUMER_QOS)
+        z_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=10000,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=Z_QOS.durability,
+        )
+        self.create_subscription(
+            Float64, "z_controller/z_piezo", lambda m: self.z.append(m.data), z_qos
+        )
+        self.create_subscription(
+            Float64, "z_controller/error", lambda m: self.error.append(m.data), RECORD_QOS
+        )
+        self.create_subscription(
+            Float64MultiArray,
+            topics.Z_COMMAND,
+            lambda m: self.commands.append(unpack_z_command(m.data)),
+            topics.CONSUMER_QOS,
+        )
 
     def send(self, amplitude, t_ns):
         t = t_ns * 1e-9
         first, self.next_index = self.next_index, self.next_index + self.CHUNK
         # amplitude split over X and Y: the node must use |X + iY|
-        batch = OutputBatch(first, self.next_index, t + 1e-6, np.array([t]),
-                            np.array([amplitude * math.cos(1.2)]), np.array([-amplitude * math.sin(1.2)]))
+        batch = OutputBatch(
+            first,
+            self.next_index,
+            t + 1e-6,
+            np.array([t]),
+            np.array([amplitude * math.cos(1.2)]),
+            np.array([-amplitude * math.sin(1.2)]),
+        )
         self.pub.publish(Float64MultiArray(data=pack_outputs(batch).tolist()))
 
 
@@ -213,14 +248,23 @@ def spin_until(executor, condition, timeout=15.0):
 
 
 def start(ctx, executor, ns, **params):
-    node = ZControllerNode(context=ctx, namespace=ns,
-                           parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    node = ZControllerNode(
+        context=ctx,
+        namespace=ns,
+        parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+    )
     harness = Harness(ctx, ns)
     executor.add_node(node)
     executor.add_node(harness)
-    spin_until(executor, lambda: harness.pub.get_subscription_count() > 0
-               and node.pub_error.get_subscription_count() > 0 and len(harness.z) >= 1
-               and len(harness.commands) >= 1)  # the initial z arrives (transient local)
+    spin_until(
+        executor,
+        lambda: (
+            harness.pub.get_subscription_count() > 0
+            and node.pub_error.get_subscription_count() > 0
+            and len(harness.z) >= 1
+            and len(harness.commands) >= 1
+        ),
+    )  # the initial z arrives (transient local)
     return node, harness
 
 
@@ -240,7 +284,9 @@ def test_node_direction_error_sign_and_sim_time(ros_context, ros_executor, ros_n
     feed(ros_executor, harness, [high] * 20, 0, step)
     z = np.array(harness.z[1:])
     err = np.array(harness.error)
-    assert np.allclose(err, SETPOINT - high, rtol=1e-12, atol=0) and np.all(err < 0)  # error = setpoint - amplitude
+    assert np.allclose(err, SETPOINT - high, rtol=1e-12, atol=0) and np.all(
+        err < 0
+    )  # error = setpoint - amplitude
     assert np.all(np.diff(z) < 0) and z[-1] < 0.0  # amplitude too large -> approach (z decreases)
     # constant error: each step is i_gain * error * (simulated dt), not wall time
     assert np.allclose(np.diff(z), I * (SETPOINT - high) * 1e-3, rtol=1e-9, atol=0)
@@ -270,15 +316,23 @@ def test_node_parameters(ros_context, ros_executor, ros_namespace):
     assert not r.successful and "z_min" in r.reason and "z_max" in r.reason
     r = set_params(Parameter("disabled_action", value="park"))[0]
     assert not r.successful and "disabled_action" in r.reason and "withdraw" in r.reason
-    assert node.get_parameter("setpoint").value == SETPOINT and node.get_parameter("z_min").value == -200e-9
-    assert node.controller.params["setpoint"] == SETPOINT and node.controller.params["z_min"] == -200e-9
+    assert (
+        node.get_parameter("setpoint").value == SETPOINT
+        and node.get_parameter("z_min").value == -200e-9
+    )
+    assert (
+        node.controller.params["setpoint"] == SETPOINT
+        and node.controller.params["z_min"] == -200e-9
+    )
     # accepted: a new setpoint shows in the error (setpoint - amplitude), and the node kept running
     assert set_params(Parameter("setpoint", value=40e-9))[0].successful
     feed(ros_executor, harness, [50e-9] * 3, 5_000_000, 1_000_000)
     assert harness.error[-1] == pytest.approx(40e-9 - 50e-9, rel=1e-12, abs=0)
     # disable with withdraw: z_max is published at once, without waiting for a sample
     n = len(harness.z)
-    results = set_params(Parameter("disabled_action", value="withdraw"), Parameter("enabled", value=False))
+    results = set_params(
+        Parameter("disabled_action", value="withdraw"), Parameter("enabled", value=False)
+    )
     assert all(r.successful for r in results)
     spin_until(ros_executor, lambda: len(harness.z) > n and harness.z[-1] == 100e-9)
 
@@ -288,12 +342,19 @@ def test_node_answers_every_chunk_in_order(ros_context, ros_executor, ros_namesp
     output sample is one controller step, and each batch gets its z command, so with a constant
     error z ends at z0 + i_gain * e * (t_last - t_first)."""
     node, harness = start(ros_context, ros_executor, ros_namespace, p_gain=0.0)
-    assert harness.commands[0].answered_end_index == 0 and harness.commands[0].z == 0.0  # start position
+    assert (
+        harness.commands[0].answered_end_index == 0 and harness.commands[0].z == 0.0
+    )  # start position
     feed(ros_executor, harness, [55e-9], 0, 0)  # first sample: initialises (no integration)
     z0 = harness.z[-1]
     for k in range(1, 200):
         harness.send(55e-9, k * 1_000_000)  # 199 samples, 1 ms apart, without spinning
-    spin_until(ros_executor, lambda: harness.commands and harness.commands[-1].answered_end_index == 200 * Harness.CHUNK)
+    spin_until(
+        ros_executor,
+        lambda: (
+            harness.commands and harness.commands[-1].answered_end_index == 200 * Harness.CHUNK
+        ),
+    )
     assert len(harness.error) == 200
     answered = [c.answered_end_index for c in harness.commands[1:]]
     assert answered == [Harness.CHUNK * (k + 1) for k in range(200)]
@@ -311,4 +372,6 @@ def test_non_finite_samples_and_time_going_back():
     assert ctrl.rejected_samples == 2 and math.isfinite(ctrl.integrator)
     # the simulation restarts at t = 0: no step for the jump, then integration resumes
     assert ctrl.update(55e-9, 0.0) == z and ctrl.non_monotonic_samples == 1
-    assert ctrl.update(55e-9, 0.001) == pytest.approx(z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9, abs=0)
+    assert ctrl.update(55e-9, 0.001) == pytest.approx(
+        z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9, abs=0
+    )

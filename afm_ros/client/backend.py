@@ -2,12 +2,20 @@
 (:class:`afm_ros.client.ros_backend.RosBackend`) and in-process
 (:class:`afm_ros.client.local_backend.LocalBackend`). SI units; refusals raise the errors of
 :mod:`afm_ros.client.errors`."""
+
 from __future__ import annotations
 
 from typing import Any, Callable, Protocol
 
-from afm_ros.client.results import ApproachResult, Feedback, ScanSettings, StageState, Truth, TuneResult, \
-    WithdrawResult
+from afm_ros.client.results import (
+    ApproachResult,
+    Feedback,
+    ScanSettings,
+    StageState,
+    Truth,
+    TuneResult,
+    WithdrawResult,
+)
 
 
 class Backend(Protocol):

@@ -1,9 +1,11 @@
-"""The client's errors (no ROS import): every one a :class:`ClientError` whose ``str()`` is one line.
+"""The client's errors (no ROS import): every one a :class:`ClientError` whose ``str()`` is one
+line.
 
 A node's refusal carries a machine-readable reason code (:mod:`afm_ros.core.refusals`) that
 :func:`refusal` maps to the exception type: :class:`NotEngaged` for ``not_engaged``, else
 :class:`Refused`; the words are the node's own.
 """
+
 from __future__ import annotations
 
 import difflib
@@ -22,8 +24,14 @@ class NodeNotFound(ClientError):
     in other namespaces; for any node, the namespaces that have nodes (a wrong namespace is the
     usual cause)."""
 
-    def __init__(self, name: str | None, namespace: str, timeout: float, present: list[str] = (),
-                 elsewhere: list[str] = ()):
+    def __init__(
+        self,
+        name: str | None,
+        namespace: str,
+        timeout: float,
+        present: list[str] = (),
+        elsewhere: list[str] = (),
+    ):
         self.name, self.namespace, self.timeout = name, namespace, timeout
         self.present, self.elsewhere = list(present), list(elsewhere)
         if name is None:
@@ -32,8 +40,11 @@ class NodeNotFound(ClientError):
                 text += f"; there are nodes in {', '.join(self.elsewhere)}"
         else:
             text = f"node {name} not found within {timeout:g} s"
-            text += f" (nodes in {namespace}: {', '.join(self.present)})" if self.present else \
-                f" (no nodes in {namespace})"
+            text += (
+                f" (nodes in {namespace}: {', '.join(self.present)})"
+                if self.present
+                else f" (no nodes in {namespace})"
+            )
             if self.elsewhere:
                 text += f"; found as {', '.join(self.elsewhere)}"
         super().__init__(text)
@@ -79,8 +90,9 @@ class Interrupted(KeyboardInterrupt):
 
 
 class Refused(ClientError):
-    """The instrument refused a setting or an action; ``reason`` is the node's own words, ``code`` why
-    (:mod:`afm_ros.core.refusals`: not_engaged, engaged, busy, scanning, not_ready, bad_value, internal)."""
+    """The instrument refused a setting or an action; ``reason`` is the node's own words, ``code``
+    why (:mod:`afm_ros.core.refusals`: not_engaged, engaged, busy, scanning, not_ready, bad_value,
+    internal)."""
 
     def __init__(self, what: str, reason: str, code: str = refusals.BAD_VALUE):
         super().__init__(f"{what}: {reason}")
@@ -88,11 +100,13 @@ class Refused(ClientError):
 
 
 class NotEngaged(Refused):
-    """An action that needs the tip on the surface (a scan, a spectroscopy) while the z stage is not engaged."""
+    """An action that needs the tip on the surface (a scan, a spectroscopy) while the z stage is
+    not engaged."""
 
 
 class WorkflowFailed(ClientError):
-    """A workflow step (tune, approach, withdraw) ended without reaching its goal; the message says why."""
+    """A workflow step (tune, approach, withdraw) ended without reaching its goal; the message says
+    why."""
 
 
 class BadArgument(ClientError, ValueError):
@@ -101,14 +115,15 @@ class BadArgument(ClientError, ValueError):
 
 
 class LongWork(UserWarning):
-    """A verb whose work will take more than a minute of wall time (or a GB): said before it starts,
-    with the estimate (simulated time and the wall time per simulated second measured so far)."""
+    """A verb whose work will take more than a minute of wall time (or a GB): said before it
+    starts, with the estimate (simulated time and the wall time per simulated second measured so
+    far)."""
 
 
 def refusal(what: str, reason) -> Refused:
-    """The exception for a refusal of ``what``: ``reason`` is a node's message (``[code] text``, see
-    :mod:`afm_ros.core.refusals`) or a core's exception (a Refusal carries its code, another ValueError
-    is a bad value); :class:`NotEngaged` for not_engaged, else :class:`Refused`."""
+    """The exception for a refusal of ``what``: ``reason`` is a node's message (``[code] text``,
+    see :mod:`afm_ros.core.refusals`) or a core's exception (a Refusal carries its code, another
+    ValueError is a bad value); :class:`NotEngaged` for not_engaged, else :class:`Refused`."""
     if isinstance(reason, BaseException):
         code, text = refusals.code_of(reason), str(reason)
     else:

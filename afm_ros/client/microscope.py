@@ -20,6 +20,7 @@ engaged: :class:`NotEngaged`), :class:`WorkflowFailed` an approach that failed a
 :class:`~afm_ros.client.ros_link.NoAnswer` a timeout naming what did not answer. Nothing waits
 forever: every wait has a timeout, and the simulated time must keep advancing.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,15 +32,29 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from afm_ros.client.backend import Backend
 from afm_ros.client.errors import BadArgument, LongWork
 from afm_ros.client.local_backend import LocalBackend
-from afm_ros.client.results import (ApproachResult, Feedback, ScanSettings, StageState, Truth, TuneResult,
-                                    WithdrawResult)
+from afm_ros.client.results import (
+    ApproachResult,
+    Feedback,
+    ScanSettings,
+    StageState,
+    Truth,
+    TuneResult,
+    WithdrawResult,
+)
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 
 LONG_WALL_S = 60.0  # [s] wall: a verb expected to take longer says so first (LongWork)
 ASSUMED_WALL_PER_SIMULATED = 1.0  # [s/s] before the instrument has run: real time
 
-def _number(name: str, value, low: float = -math.inf, high: float = math.inf, low_open: bool = False,
-            unit: str = "") -> float:
+
+def _number(
+    name: str,
+    value,
+    low: float = -math.inf,
+    high: float = math.inf,
+    low_open: bool = False,
+    unit: str = "",
+) -> float:
     """``value`` as a finite float in the range; BadArgument naming ``name`` otherwise."""
     lb, unit_text = "(" if low_open or low == -math.inf else "[", f" {unit}" if unit else ""
     allowed = f"{lb}{low:g}, {high:g}]{unit_text}"
@@ -54,12 +69,15 @@ def _number(name: str, value, low: float = -math.inf, high: float = math.inf, lo
 def _pair(name: str, value, unit: str = "m") -> tuple[float, float]:
     """``value`` as two finite floats (x, y); BadArgument naming ``name`` otherwise."""
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
-        raise BadArgument(f"{name}={value!r} must be a pair (x, y) [{unit}], e.g. {name}=(2e-6, 2e-6)")
+        raise BadArgument(
+            f"{name}={value!r} must be a pair (x, y) [{unit}], e.g. {name}=(2e-6, 2e-6)"
+        )
     return _number(f"{name}[0]", value[0], unit=unit), _number(f"{name}[1]", value[1], unit=unit)
 
 
 def _integer(name: str, value) -> int:
-    """``value`` as an int (its range is the node's to check); BadArgument naming ``name`` otherwise."""
+    """``value`` as an int (its range is the node's to check); BadArgument naming ``name``
+    otherwise."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise BadArgument(f"{name}={value!r} is not an integer")
     return int(value)
@@ -86,38 +104,74 @@ class Microscope:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="afm-client")
 
     @classmethod
-    def connect(cls, namespace: str = "/", timeout: float = 10.0, hold: bool = True) -> "Microscope":
+    def connect(
+        cls, namespace: str = "/", timeout: float = 10.0, hold: bool = True
+    ) -> "Microscope":
         """The instrument running as ROS nodes in ``namespace`` (cantilever, lockin, z_controller,
         scanner). ``timeout`` [s]: the longest any node may take to be discovered or to answer.
         ``hold``: the client pauses the simulation between verbs (the cantilever's run_until) and
-        runs it in lockstep, so a script gives the same results every time; False: it runs freely."""
+        runs it in lockstep, so a script gives the same results every time; False: it runs
+        freely."""
         from afm_ros.client.ros_backend import RosBackend  # noqa: PLC0415 - rclpy only for this backend
 
         if not isinstance(namespace, str):
             raise BadArgument(f"namespace={namespace!r} must be a string, e.g. '/afm1'")
-        return cls(RosBackend(namespace, _number("timeout", timeout, 0.0, 1e6, low_open=True, unit="s"), hold))
+        return cls(
+            RosBackend(
+                namespace, _number("timeout", timeout, 0.0, 1e6, low_open=True, unit="s"), hold
+            )
+        )
 
     @classmethod
-    def local(cls, sample: str = "ps_ldpe_blend", force_model: str = "viscoelastic_dmt", ideal: bool = False,
-              withdrawn: bool = True, cantilever: dict | None = None, lockin: dict | None = None,
-              z_controller: dict | None = None, scanner: dict | None = None, approach: dict | None = None,
-              tip: dict | None = None) -> "Microscope":
-        """The same blocks wired in this process, no ROS (:class:`afm_ros.core.wired.WiredInstrument`).
+    def local(
+        cls,
+        sample: str = "ps_ldpe_blend",
+        force_model: str = "viscoelastic_dmt",
+        ideal: bool = False,
+        withdrawn: bool = True,
+        cantilever: dict | None = None,
+        lockin: dict | None = None,
+        z_controller: dict | None = None,
+        scanner: dict | None = None,
+        approach: dict | None = None,
+        tip: dict | None = None,
+    ) -> "Microscope":
+        """The same blocks wired in this process, no ROS
+        (:class:`afm_ros.core.wired.WiredInstrument`).
 
         Defaults are the nodes' (a real instrument: room-temperature noise, the scanner's
         imperfections, a wearing tip, a 3 um z piezo range), with the tip ``withdrawn`` 5 um above
         ``sample`` (a built-in name, a description file or a .gwy map); ``ideal``: no noise, no
         imperfections, no wear. The dicts override parameters by name (the nodes' tables)."""
-        for name, value in (("cantilever", cantilever), ("lockin", lockin), ("z_controller", z_controller),
-                            ("scanner", scanner), ("approach", approach), ("tip", tip)):
+        for name, value in (
+            ("cantilever", cantilever),
+            ("lockin", lockin),
+            ("z_controller", z_controller),
+            ("scanner", scanner),
+            ("approach", approach),
+            ("tip", tip),
+        ):
             if value is not None and not isinstance(value, dict):
                 raise BadArgument(f"{name}={value!r} must be a dict of parameter values by name")
         if not isinstance(sample, (str, os.PathLike)):
             raise BadArgument(f"sample={sample!r} must be a name or a file path")
-        return cls(LocalBackend(os.fspath(sample), force_model, ideal, withdrawn, cantilever or {}, lockin or {},
-                                z_controller or {}, scanner or {}, approach or {}, tip or {}))
+        return cls(
+            LocalBackend(
+                os.fspath(sample),
+                force_model,
+                ideal,
+                withdrawn,
+                cantilever or {},
+                lockin or {},
+                z_controller or {},
+                scanner or {},
+                approach or {},
+                tip or {},
+            )
+        )
 
-    # --- life cycle ---------------------------------------------------------------------------------
+    # --- life cycle
+    # ---------------------------------------------------------------------------------
     def close(self) -> None:
         self._pool.shutdown(wait=True)
         self._backend.close()
@@ -132,8 +186,8 @@ class Microscope:
         return self._pool.submit(fn, *args, **kwargs)
 
     def _run(self, verb: str, *args):
-        """The backend's ``verb``; on Ctrl-C the backend puts the instrument where the next verb works
-        (its ``recover``), then the KeyboardInterrupt goes on."""
+        """The backend's ``verb``; on Ctrl-C the backend puts the instrument where the next verb
+        works (its ``recover``), then the KeyboardInterrupt goes on."""
         try:
             return getattr(self._backend, verb)(*args)
         except KeyboardInterrupt:
@@ -141,27 +195,45 @@ class Microscope:
             raise
 
     def _announce(self, what: str, simulated_s: float) -> None:
-        """A :class:`LongWork` warning if ``simulated_s`` of simulated time will take over a minute."""
+        """A :class:`LongWork` warning if ``simulated_s`` of simulated time will take over a
+        minute."""
         per = self._backend.wall_per_simulated_second()
         measured = math.isfinite(per) and per > 0
         wall = simulated_s * (per if measured else ASSUMED_WALL_PER_SIMULATED)
         if wall > LONG_WALL_S:
-            basis = (f"the {per:.3g} s of wall time per simulated second measured so far" if measured else
-                     "real time (nothing measured yet)")
-            warnings.warn(LongWork(f"{what} simulates {simulated_s:.4g} s: about {_duration_text(wall)} of wall time "
-                                   f"at {basis}; Ctrl-C stops it and leaves the instrument usable"), stacklevel=3)
+            basis = (
+                f"the {per:.3g} s of wall time per simulated second measured so far"
+                if measured
+                else "real time (nothing measured yet)"
+            )
+            warnings.warn(
+                LongWork(
+                    f"{what} simulates {simulated_s:.4g} s: about {_duration_text(wall)} of wall "
+                    "time "
+                    f"at {basis}; Ctrl-C stops it and leaves the instrument usable"
+                ),
+                stacklevel=3,
+            )
 
-    # --- settings -------------------------------------------------------------------------------------
-    def set_scan(self, center: tuple[float, float] | None = None, top_left: tuple[float, float] | None = None,
-                 size: tuple[float, float] | None = None, pixels: int | None = None, lines: int | None = None,
-                 line_rate: float | None = None, slow_scan_direction: str | None = None,
-                 angle: float | None = None) -> ScanSettings:
+    # --- settings
+    # -------------------------------------------------------------------------------------
+    def set_scan(
+        self,
+        center: tuple[float, float] | None = None,
+        top_left: tuple[float, float] | None = None,
+        size: tuple[float, float] | None = None,
+        pixels: int | None = None,
+        lines: int | None = None,
+        line_rate: float | None = None,
+        slow_scan_direction: str | None = None,
+        angle: float | None = None,
+    ) -> ScanSettings:
         """The next scan's region and raster: ``center`` or ``top_left`` (x, y) [m] in sample
-        coordinates (the image's top-left corner: its first pixel of the highest row), ``size`` (x, y)
-        [m], ``angle`` [deg] (the fast axis turned counterclockwise from the sample's x axis, about
-        the centre), ``pixels`` per line, ``lines``, ``line_rate`` [lines/s], ``slow_scan_direction``
-        ('up' or 'down'). All or nothing: a refused value (:class:`Refused`, the node's reason)
-        changes none. Returns the scan settings."""
+        coordinates (the image's top-left corner: its first pixel of the highest row), ``size`` (x,
+        y) [m], ``angle`` [deg] (the fast axis turned counterclockwise from the sample's x axis,
+        about the centre), ``pixels`` per line, ``lines``, ``line_rate`` [lines/s],
+        ``slow_scan_direction`` ('up' or 'down'). All or nothing: a refused value
+        (:class:`Refused`, the node's reason) changes none. Returns the scan settings."""
         if center is not None and top_left is not None:
             raise BadArgument("give center or top_left, not both")
         values: dict = {}
@@ -177,7 +249,10 @@ class Microscope:
             sx = values.get("scan_size_x", current.get("scan_size_x"))
             sy = values.get("scan_size_y", current.get("scan_size_y"))
             turn = math.radians(values.get("scan_angle", current.get("scan_angle", 0.0)))
-            u, v = 0.5 * sx, -0.5 * sy  # the centre from the top-left corner, in the scan's own frame
+            u, v = (
+                0.5 * sx,
+                -0.5 * sy,
+            )  # the centre from the top-left corner, in the scan's own frame
             values["scan_center_x"] = corner[0] + u * math.cos(turn) - v * math.sin(turn)
             values["scan_center_y"] = corner[1] + u * math.sin(turn) + v * math.cos(turn)
         for name, value in (("pixels", pixels), ("lines", lines)):
@@ -187,7 +262,9 @@ class Microscope:
             values["line_rate"] = _number("line_rate", line_rate, unit="lines/s")
         if slow_scan_direction is not None:
             if slow_scan_direction not in ("up", "down"):
-                raise BadArgument(f"slow_scan_direction={slow_scan_direction!r}; allowed 'up' or 'down'")
+                raise BadArgument(
+                    f"slow_scan_direction={slow_scan_direction!r}; allowed 'up' or 'down'"
+                )
             values["slow_scan_direction"] = slow_scan_direction
         self._backend.set_values("scanner", values)
         return self.scan_settings()
@@ -196,12 +273,19 @@ class Microscope:
         """The scan's parameters (the scanner node's names, SI units)."""
         return self._backend.scan_settings()
 
-    def set_feedback(self, setpoint: float | None = None, p_gain: float | None = None,
-                     i_gain: float | None = None) -> Feedback:
+    def set_feedback(
+        self,
+        setpoint: float | None = None,
+        p_gain: float | None = None,
+        i_gain: float | None = None,
+    ) -> Feedback:
         """The z loop's ``setpoint`` [m] (amplitude), ``p_gain`` [1] and ``i_gain`` [1/s]; all or
         nothing (:class:`Refused` with the node's reason). Returns the feedback settings."""
-        values = {k: _number(k, v) for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
-                  if v is not None}
+        values = {
+            k: _number(k, v)
+            for k, v in (("setpoint", setpoint), ("p_gain", p_gain), ("i_gain", i_gain))
+            if v is not None
+        }
         self._backend.set_values("z_controller", values)
         return self.feedback()
 
@@ -212,7 +296,9 @@ class Microscope:
     def set(self, node: str, **values) -> None:
         """Any parameters of one node by name (the README's tables), all or nothing."""
         if not isinstance(node, str):
-            raise BadArgument(f"node={node!r} must be a node name (cantilever, lockin, z_controller, scanner)")
+            raise BadArgument(
+                f"node={node!r} must be a node name (cantilever, lockin, z_controller, scanner)"
+            )
         self._backend.set_values(node, values)
 
     def get(self, node: str, *names: str) -> dict:
@@ -221,7 +307,8 @@ class Microscope:
             raise BadArgument(f"get(node, *names) takes names as strings; got {node!r}, {names!r}")
         return self._backend.get_values(node, list(names))
 
-    # --- actions ----------------------------------------------------------------------------------------
+    # --- actions
+    # ----------------------------------------------------------------------------------------
     def tune(self) -> TuneResult:
         """Sweep the drive around the resonance with the tip free, fit f0 [Hz] and Q, and set the
         working point (drive frequency, drive for the free amplitude, phase zero). Refused while
@@ -230,8 +317,8 @@ class Microscope:
 
     def approach(self) -> ApproachResult:
         """Coarse approach and engage: the motor and z piezo bring the tip down until the amplitude
-        falls to the setpoint, then the z loop regulates. Returns the approach's numbers
-        (cycles, motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
+        falls to the setpoint, then the z loop regulates. Returns the approach's numbers (cycles,
+        motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
         return self._run("approach")
 
     def engage(self) -> ApproachResult | StageState:
@@ -249,13 +336,17 @@ class Microscope:
         ``save``: also write it as a Gwyddion file there (the values the .gwy holds are the
         Dataset's). :class:`NotEngaged` if the tip is not on the surface."""
         if progress is not None and not callable(progress):
-            raise BadArgument(f"progress={progress!r} must be a function progress(lines_done, lines) or None")
+            raise BadArgument(
+                f"progress={progress!r} must be a function progress(lines_done, lines) or None"
+            )
         if save is not None and not isinstance(save, (str, os.PathLike)):
             raise BadArgument(f"save={save!r} must be a file path or None")
         if self.state()["stage"] == "engaged":  # (else refused at once: nothing long to announce)
             settings = self.scan_settings()
-            self._announce(f"scan() of {settings['lines']} lines at {settings['line_rate']:g} lines/s",
-                           settings["lines"] / settings["line_rate"])
+            self._announce(
+                f"scan() of {settings['lines']} lines at {settings['line_rate']:g} lines/s",
+                settings["lines"] / settings["line_rate"],
+            )
         frame = self._run("scan", progress)
         if save is not None:
             from afm_ros.client.frames import save_frame
@@ -264,7 +355,8 @@ class Microscope:
         return frame
 
     def move_tip(self, x: float, y: float) -> None:
-        """Move the tip to (x, y) [m] (sample coordinates) and hold it there (not while scanning)."""
+        """Move the tip to (x, y) [m] (sample coordinates) and hold it there (not while
+        scanning)."""
         self._backend.move_tip(_number("x", x, unit="m"), _number("y", y, unit="m"))
 
     def spectroscopy(self, x: float | None = None, y: float | None = None, **values):
@@ -278,13 +370,27 @@ class Microscope:
             raise BadArgument("give both x and y, or neither")
         unknown = [k for k in values if k not in SPECTROSCOPY_SPECS]
         if unknown:
-            raise BadArgument(f"{unknown[0]!r} is not a spectroscopy parameter; allowed: {', '.join(SPECTROSCOPY_SPECS)}")
+            raise BadArgument(
+                f"{unknown[0]!r} is not a spectroscopy parameter; allowed: "
+                f"{', '.join(SPECTROSCOPY_SPECS)}"
+            )
         v = {**self.get("z_controller", *SPECTROSCOPY_SPECS), **values}
         try:
-            rate = _number("spectroscopy_rate", v["spectroscopy_rate"], 0.0, math.inf, low_open=True, unit="m/s")
-            legs = 2 * (_number("spectroscopy_retract", v["spectroscopy_retract"], unit="m")
-                        + _number("spectroscopy_distance", v["spectroscopy_distance"], unit="m"))
-            settle = _number("spectroscopy_settle_time", v["spectroscopy_settle_time"], 0.0, unit="s")
+            rate = _number(
+                "spectroscopy_rate",
+                v["spectroscopy_rate"],
+                0.0,
+                math.inf,
+                low_open=True,
+                unit="m/s",
+            )
+            legs = 2 * (
+                _number("spectroscopy_retract", v["spectroscopy_retract"], unit="m")
+                + _number("spectroscopy_distance", v["spectroscopy_distance"], unit="m")
+            )
+            settle = _number(
+                "spectroscopy_settle_time", v["spectroscopy_settle_time"], 0.0, unit="s"
+            )
         except BadArgument:
             rate, legs, settle = 1.0, 0.0, 0.0  # the node refuses it with its own reason
         if x is not None:
@@ -301,8 +407,8 @@ class Microscope:
         self._run("advance", seconds)
 
     def flags(self) -> dict:
-        """The problem flags of the last frame, by name (what an instrument could see: feedback,
-        z range, drift, tip; docs/imperfections.md); {} if it raised none or no frame was scanned."""
+        """The problem flags of the last frame, by name (what an instrument could see: feedback, z
+        range, drift, tip; docs/imperfections.md); {} if it raised none or no frame was scanned."""
         return self._backend.flags()
 
     def truth(self) -> Truth:
@@ -311,10 +417,12 @@ class Microscope:
         return self._backend.truth()
 
     def state(self) -> StageState:
-        """Simulated time ``t_s`` [s] and the z stage's ``stage`` (engaged, withdrawn, approaching, ...)."""
+        """Simulated time ``t_s`` [s] and the z stage's ``stage`` (engaged, withdrawn, approaching,
+        ...)."""
         return self._backend.state()
 
-    # --- the same verbs, asynchronous -------------------------------------------------------------------
+    # --- the same verbs, asynchronous
+    # -------------------------------------------------------------------
     def tune_async(self) -> Future:
         return self._submit(self.tune)
 
@@ -327,5 +435,7 @@ class Microscope:
     def scan_async(self, progress=None, save=None) -> Future:
         return self._submit(self.scan, progress, save)
 
-    def spectroscopy_async(self, x: float | None = None, y: float | None = None, **values) -> Future:
+    def spectroscopy_async(
+        self, x: float | None = None, y: float | None = None, **values
+    ) -> Future:
         return self._submit(self.spectroscopy, x, y, **values)

@@ -1,5 +1,7 @@
 """What the client's verbs return, field by field (SI units in the names): TypedDicts, so a script
-author's editor shows the fields, and the values stay plain dicts (JSON-ready, as the nodes send them)."""
+author's editor shows the fields, and the values stay plain dicts (JSON-ready, as the nodes send
+them)."""
+
 from __future__ import annotations
 
 from typing import TypedDict
@@ -83,7 +85,8 @@ class ScanSettings(TypedDict, total=False):
 
 
 class Truth(TypedDict, total=False):
-    """:meth:`Microscope.truth`: the emulator's ground truth now (zero where an imperfection is off)."""
+    """:meth:`Microscope.truth`: the emulator's ground truth now (zero where an imperfection is
+    off)."""
 
     t_s: float
     hysteresis_x_m: float  # true minus commanded tip position [m]

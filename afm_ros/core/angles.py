@@ -4,6 +4,7 @@ The phase of an output (X, Y) is the lag behind the reference: ``atan2(-Y, X)``;
 use ``math`` (what the nodes compute per output), the array forms numpy, so each path gives the
 same bits as before it was shared.
 """
+
 from __future__ import annotations
 
 import math

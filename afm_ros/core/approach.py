@@ -27,37 +27,89 @@ independent of how the run is split into chunks. The motor's position is part of
 (``motor`` [m], 0 = the position at which the sample surface is at the gap z_base with the piezo at
 0, as without approach).
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
 
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
-from afm_ros.core.refusals import NOT_ENGAGED, Refusal
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
+from afm_ros.core.refusals import NOT_ENGAGED, Refusal
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, SpectroscopyRamp
 
-APPROACH_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("approach_start_distance", 5e-6, "m",
-              "gap between the tip's rest position (piezo retracted) and the sample when the approach starts; "
-              "at most motor_travel plus the z range", 0.0, 0.1),
-    ParamSpec("motor_step", 50e-9, "m", "coarse motor step (stick-slip or stepper)", 1e-9, 1e-6),
-    ParamSpec("motor_step_time", 1e-3, "s", "time per motor step", 1e-5, 1.0),
-    ParamSpec("motor_travel", 5e-3, "m", "largest distance the motor can move towards the sample", 1e-6, 0.1),
-    ParamSpec("approach_speed", 2e-6, "m/s", "z piezo extension speed while watching the amplitude", 1e-8, 1e-3),
-    ParamSpec("retract_speed", 20e-6, "m/s", "z piezo retraction speed between cycles and on withdraw", 1e-8, 1e-2),
-    ParamSpec("approach_cycle_fraction", 0.8, "1",
-              "motor travel per cycle as a fraction of the z piezo range", 0.1, 0.95),
-    ParamSpec("withdraw_distance", 1e-6, "m", "the motor backs off this far on withdraw (piezo retracted too)",
-              0.0, 1e-3),
-    ParamSpec("start_withdrawn", False, "",
-              "start far from the sample: withdrawn at approach_start_distance with the feedback off, as a real "
-              "session starts (tune, then approach); false: engaged at z_base from the first chunk (the ideal start)",
-              kind=bool),
-)}
+APPROACH_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "approach_start_distance",
+            5e-6,
+            "m",
+            "gap between the tip's rest position (piezo retracted) and the sample when the "
+            "approach starts; "
+            "at most motor_travel plus the z range",
+            0.0,
+            0.1,
+        ),
+        ParamSpec(
+            "motor_step", 50e-9, "m", "coarse motor step (stick-slip or stepper)", 1e-9, 1e-6
+        ),
+        ParamSpec("motor_step_time", 1e-3, "s", "time per motor step", 1e-5, 1.0),
+        ParamSpec(
+            "motor_travel",
+            5e-3,
+            "m",
+            "largest distance the motor can move towards the sample",
+            1e-6,
+            0.1,
+        ),
+        ParamSpec(
+            "approach_speed",
+            2e-6,
+            "m/s",
+            "z piezo extension speed while watching the amplitude",
+            1e-8,
+            1e-3,
+        ),
+        ParamSpec(
+            "retract_speed",
+            20e-6,
+            "m/s",
+            "z piezo retraction speed between cycles and on withdraw",
+            1e-8,
+            1e-2,
+        ),
+        ParamSpec(
+            "approach_cycle_fraction",
+            0.8,
+            "1",
+            "motor travel per cycle as a fraction of the z piezo range",
+            0.1,
+            0.95,
+        ),
+        ParamSpec(
+            "withdraw_distance",
+            1e-6,
+            "m",
+            "the motor backs off this far on withdraw (piezo retracted too)",
+            0.0,
+            1e-3,
+        ),
+        ParamSpec(
+            "start_withdrawn",
+            False,
+            "",
+            "start far from the sample: withdrawn at approach_start_distance with the feedback "
+            "off, as a real "
+            "session starts (tune, then approach); false: engaged at z_base from the first chunk "
+            "(the ideal start)",
+            kind=bool,
+        ),
+    )
+}
 
-# a real session's z stage (afm_instrument's workflow, afm_study scan --approach): a 3 um z piezo range
-# (retracted at 0), the tip withdrawn far from the sample at the start
+# a real session's z stage (afm_instrument's workflow, afm_study scan --approach): a 3 um z piezo
+# range (retracted at 0), the tip withdrawn far from the sample at the start
 INSTRUMENT_Z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True}
 
 ARM_TIMEOUT_S = 0.5  # [s] simulated: the free oscillation must rise above the setpoint within this
@@ -73,17 +125,22 @@ def validate(values: dict) -> dict:
     return validate_values(APPROACH_SPECS, values, "an approach")
 
 
-def blind_time(chunk_duration: float, feedback_latency: int, quality_factor: float,
-               resonance_frequency: float) -> float:
-    """[s] simulated after a jump of the z command during which the loop's outputs still tell of the
-    position before it: the command reaches the cantilever ``feedback_latency`` chunks later, the
-    lock-in output of a chunk reads it a chunk after that, and the oscillation needs a few time
+def blind_time(
+    chunk_duration: float, feedback_latency: int, quality_factor: float, resonance_frequency: float
+) -> float:
+    """[s] simulated after a jump of the z command during which the loop's outputs still tell of
+    the position before it: the command reaches the cantilever ``feedback_latency`` chunks later,
+    the lock-in output of a chunk reads it a chunk after that, and the oscillation needs a few time
     constants Q / (pi f0) to ring to its new amplitude."""
-    return ((feedback_latency + 2) * chunk_duration
-            + RING_UP_TIME_CONSTANTS * quality_factor / (math.pi * resonance_frequency))
+    return (feedback_latency + 2) * chunk_duration + RING_UP_TIME_CONSTANTS * quality_factor / (
+        math.pi * resonance_frequency
+    )
 
 
-SIGNALS = {False: ("amplitude", "m"), True: ("frequency shift", "Hz")}  # the loop's signal: tapping, FM
+SIGNALS = {
+    False: ("amplitude", "m"),
+    True: ("frequency shift", "Hz"),
+}  # the loop's signal: tapping, FM
 
 
 @dataclass
@@ -101,10 +158,21 @@ class AutoApproach:
     """The approach state machine; :meth:`update` takes each lock-in amplitude [m] and its time [s]
     and returns the z piezo command [m]; :attr:`motor` [m] is the motor's position."""
 
-    def __init__(self, values: dict, z_min: float, z_max: float, setpoint: float, z_base: float, t: float,
-                 motor: float | None = None, blind_until: float = -math.inf, fm: bool = False):
+    def __init__(
+        self,
+        values: dict,
+        z_min: float,
+        z_max: float,
+        setpoint: float,
+        z_base: float,
+        t: float,
+        motor: float | None = None,
+        blind_until: float = -math.inf,
+        fm: bool = False,
+    ):
         """``blind_until`` [s]: outputs before it are not judged (they come from chunks integrated
-        before the approach moved the z command); ``fm``: the signal is the frequency shift [Hz]."""
+        before the approach moved the z command); ``fm``: the signal is the frequency shift
+        [Hz]."""
         self.values = v = validate(values)
         self.blind_until = float(blind_until)
         self.signal, self.unit = SIGNALS[fm]
@@ -112,7 +180,9 @@ class AutoApproach:
             raise ValueError(f"z_min={z_min!r} m must be below z_max={z_max!r} m")
         self.z_min, self.z_max, self.setpoint = float(z_min), float(z_max), float(setpoint)
         # the gap at rest (piezo at z_max) is z_base + motor + z_max
-        self.motor = v["approach_start_distance"] - z_base - z_max if motor is None else float(motor)
+        self.motor = (
+            v["approach_start_distance"] - z_base - z_max if motor is None else float(motor)
+        )
         self.motor_start = self.motor
         self.state = "extending"
         self.z = self.z_max
@@ -125,9 +195,13 @@ class AutoApproach:
         self.log.cycles.append((float(t), self.motor, self.z))
         travel_needed = v["approach_start_distance"] - (z_max - z_min)
         if travel_needed > v["motor_travel"]:
-            raise ValueError(f"approach_start_distance={v['approach_start_distance']:g} m is beyond the motor's "
-                             f"reach: motor_travel={v['motor_travel']:g} m plus the z range {z_max - z_min:g} m; "
-                             f"allowed up to {v['motor_travel'] + z_max - z_min:g} m")
+            raise ValueError(
+                f"approach_start_distance={v['approach_start_distance']:g} m is beyond the "
+                "motor's "
+                f"reach: motor_travel={v['motor_travel']:g} m plus the z range {z_max - z_min:g} "
+                "m; "
+                f"allowed up to {v['motor_travel'] + z_max - z_min:g} m"
+            )
 
     @property
     def active(self) -> bool:
@@ -142,15 +216,20 @@ class AutoApproach:
         if t < self.blind_until:  # an output of the position before the approach moved it
             return self.z
         if self.state == "extending" and not self.armed:
-            # the oscillation must first be there (free, above the setpoint); it rings up in a few Q/(pi f0)
+            # the oscillation must first be there (free, above the setpoint); it rings up in a few
+            # Q/(pi f0)
             if math.isfinite(amplitude) and amplitude > self.setpoint:
                 self.armed = True
                 self._phase_t = t
             elif t - self.log.started_at > ARM_TIMEOUT_S:
                 self.state = "failed"
-                self.reason = (f"the {self.signal} stayed at or below the setpoint {self.setpoint:g} {self.unit} for "
-                               f"{ARM_TIMEOUT_S:g} s before moving: is the tip already on the surface (withdraw "
-                               "first) or the drive off?")
+                self.reason = (
+                    f"the {self.signal} stayed at or below the setpoint {self.setpoint:g} "
+                    f"{self.unit} for "
+                    f"{ARM_TIMEOUT_S:g} s before moving: is the tip already on the surface "
+                    "(withdraw "
+                    "first) or the drive off?"
+                )
             return self.z
         if self.state == "extending":
             self.z = max(self.z_min, self._phase_z - v["approach_speed"] * (t - self._phase_t))
@@ -169,7 +248,9 @@ class AutoApproach:
                     self.reason = f"no surface within the motor's travel motor_travel={v['motor_travel']:g} m"
                     return self.z
                 steps = max(1, int(v["approach_cycle_fraction"] * self.range / v["motor_step"]))
-                steps = min(steps, int(round((v["motor_travel"] - travelled) / v["motor_step"])) or 1)
+                steps = min(
+                    steps, int(round((v["motor_travel"] - travelled) / v["motor_step"])) or 1
+                )
                 self._steps_left = steps
                 self.state, self._phase_t = "stepping", t
         elif self.state == "stepping":
@@ -206,7 +287,9 @@ class ZStage:
         self.reason = ""
         self._withdraw: dict | None = None
         self.ramp: SpectroscopyRamp | None = None  # the z spectroscopy running or last run
-        self.settling: dict | None = None  # a spectroscopy's settling under feedback before it holds
+        self.settling: dict | None = (
+            None  # a spectroscopy's settling under feedback before it holds
+        )
         self._held_params: dict | None = None  # the controller's settings before a spectroscopy
         self.t_last: float | None = None  # simulated time of the last lock-in output [s]
 
@@ -228,12 +311,19 @@ class ZStage:
 
     def start_approach(self, values: dict, t: float, blind: float = 0.0) -> AutoApproach:
         """Start an approach from ``approach_start_distance`` at time t [s] (ValueError naming the
-        field for bad values; nothing changes then). ``blind`` [s] (:func:`blind_time`): if the start
-        moves the z command (from engaged, or a motor elsewhere), the outputs of the next ``blind``
-        seconds still come from the old position and are not taken as the approach's."""
+        field for bad values; nothing changes then). ``blind`` [s] (:func:`blind_time`): if the
+        start moves the z command (from engaged, or a motor elsewhere), the outputs of the next
+        ``blind`` seconds still come from the old position and are not taken as the approach's."""
         c = self.controller.params
-        auto = AutoApproach(values, c["z_min"], c["z_max"], self.controller.setpoint, self.z_base, t,
-                            fm=self.controller.fm)
+        auto = AutoApproach(
+            values,
+            c["z_min"],
+            c["z_max"],
+            self.controller.setpoint,
+            self.z_base,
+            t,
+            fm=self.controller.fm,
+        )
         if auto.z + auto.motor != self.command:
             auto.blind_until = t + blind
         self.auto, self.settling = auto, None
@@ -244,8 +334,8 @@ class ZStage:
         return auto
 
     def place_withdrawn(self, values: dict) -> None:
-        """Before the first chunk: the head far from the sample (gap approach_start_distance at rest,
-        piezo retracted, feedback off): where a real session starts."""
+        """Before the first chunk: the head far from the sample (gap approach_start_distance at
+        rest, piezo retracted, feedback off): where a real session starts."""
         v = validate(values)
         c = self.controller
         c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
@@ -256,28 +346,43 @@ class ZStage:
     def start_withdraw(self, values: dict | None, t: float) -> None:
         """Feedback off; the piezo retracts to z_max at retract_speed, then the motor backs off by
         withdraw_distance, one step per motor_step_time."""
-        v = validate(values if values is not None else (self.auto.values if self.auto is not None else {}))
+        v = validate(
+            values if values is not None else (self.auto.values if self.auto is not None else {})
+        )
         if self.state == "spectroscopy":  # abandoned: the piezo retracts from where the ramp is
             self.controller.z = self.controller.integrator = self.z
         self.settling = None
-        self.controller.configure(enabled=False, disabled_action="withdraw", max_slew_rate=v["retract_speed"])
+        self.controller.configure(
+            enabled=False, disabled_action="withdraw", max_slew_rate=v["retract_speed"]
+        )
         steps = int(round(v["withdraw_distance"] / v["motor_step"]))
         self._withdraw = {"values": v, "steps": steps, "t_motor": None}
         self.state, self.reason = "withdrawing", ""
 
     def start_spectroscopy(self, values: dict, t: float, meta: dict) -> SpectroscopyRamp:
-        """A z spectroscopy (:mod:`afm_ros.core.spectroscopy`) requested at time t [s]: the feedback
-        first regulates for ``spectroscopy_settle_time`` (after a move the loop needs it to reach the
-        setpoint at the new point), then holds where it is and the ramp starts (at once without
-        settling). ``meta`` completes the curve's set-up (x, y, spring_constant, ...). ValueError with
-        the reason when the stage is not engaged or a value is bad (nothing changes then); the ramp
-        is returned (its path is placed when the hold begins)."""
+        """A z spectroscopy (:mod:`afm_ros.core.spectroscopy`) requested at time t [s]: the
+        feedback first regulates for ``spectroscopy_settle_time`` (after a move the loop needs it
+        to reach the setpoint at the new point), then holds where it is and the ramp starts (at
+        once without settling). ``meta`` completes the curve's set-up (x, y, spring_constant, ...).
+        ValueError with the reason when the stage is not engaged or a value is bad (nothing changes
+        then); the ramp is returned (its path is placed when the hold begins)."""
         if self.state != "engaged":
-            raise Refusal(NOT_ENGAGED, f"spectroscopy refused: the z stage is {self.state}"
-                          + (f" ({self.reason})" if self.reason else "") + "; it needs the tip engaged (approach first)")
+            raise Refusal(
+                NOT_ENGAGED,
+                f"spectroscopy refused: the z stage is {self.state}"
+                + (f" ({self.reason})" if self.reason else "")
+                + "; it needs the tip engaged (approach first)",
+            )
         c = self.controller
-        ramp = SpectroscopyRamp(values, c.z, t, c.params["z_min"], c.params["z_max"], self.z_base + self.motor,
-                                {**meta, "setpoint": c.params["setpoint"]})
+        ramp = SpectroscopyRamp(
+            values,
+            c.z,
+            t,
+            c.params["z_min"],
+            c.params["z_max"],
+            self.z_base + self.motor,
+            {**meta, "setpoint": c.params["setpoint"]},
+        )
         settle = ramp.values["spectroscopy_settle_time"]
         self.ramp, self.state, self.reason = ramp, "spectroscopy", ""
         if settle > 0.0:
@@ -288,14 +393,17 @@ class ZStage:
 
     def _hold(self, ramp: SpectroscopyRamp) -> None:
         c = self.controller
-        self._held_params = {k: c.params[k] for k in ("enabled", "disabled_action", "max_slew_rate")}
+        self._held_params = {
+            k: c.params[k] for k in ("enabled", "disabled_action", "max_slew_rate")
+        }
         c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
 
     def stop(self, why: str) -> str:
         """Stop what the stage is doing now (an interrupted verb, Motor.StopMove): an approach or
-        withdraw leaves the piezo and motor where they are with the feedback off (state ``stopped``,
-        ``reason`` = ``why``); a spectroscopy resumes the feedback from where the ramp is (state
-        engaged; its curve is abandoned). Returns the state it stopped ('' if nothing ran)."""
+        withdraw leaves the piezo and motor where they are with the feedback off (state
+        ``stopped``, ``reason`` = ``why``); a spectroscopy resumes the feedback from where the ramp
+        is (state engaged; its curve is abandoned). Returns the state it stopped ('' if nothing
+        ran)."""
         was = self.state
         c = self.controller
         if was in ("approaching", "withdrawing"):
@@ -315,9 +423,10 @@ class ZStage:
             self.state, self.reason = "engaged", why
             return was
         return ""
+
     def update(self, amplitude: float, t: float, phase: float = math.nan) -> float:
-        """Take one lock-in output (amplitude [m], time [s], phase [deg]: recorded by a spectroscopy)
-        and return the z piezo position [m]."""
+        """Take one lock-in output (amplitude [m], time [s], phase [deg]: recorded by a
+        spectroscopy) and return the z piezo position [m]."""
         self.t_last = t
         if self.settling is not None:  # a spectroscopy's settling: the loop regulates, then holds
             z = self.controller.update(amplitude, t)
@@ -326,7 +435,9 @@ class ZStage:
                 ramp = self.ramp
                 try:
                     ramp.place(self.controller.z, t)
-                except ValueError as exc:  # the loop settled where the ramp does not fit the z range
+                except (
+                    ValueError
+                ) as exc:  # the loop settled where the ramp does not fit the z range
                     self.state, self.reason = "engaged", f"spectroscopy abandoned: {exc}"
                     ramp.done, ramp.t_end, ramp.failed = True, math.nan, str(exc)
                     return z

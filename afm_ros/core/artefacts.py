@@ -1,4 +1,5 @@
-"""Scanner and sample imperfections (no ROS): thermal drift, piezo creep, piezo hysteresis, sample tilt.
+"""Scanner and sample imperfections (no ROS): thermal drift, piezo creep, piezo hysteresis, sample
+tilt.
 
 Positions, all in sample coordinates [m] (see :mod:`afm_ros.core.scanner`):
 
@@ -15,9 +16,9 @@ Positions, all in sample coordinates [m] (see :mod:`afm_ros.core.scanner`):
 Models and their sources (numbers in ``ARTEFACT_SPECS``, typical values in docs/imperfections.md):
 
 - **Drift**: constant velocity (the linear part of thermal drift over a frame or a few). The
-  lateral direction and the sign of the vertical drift come from ``drift_seed``. Room
-  temperature: a few nm/min laterally, < 1 nm/min vertically; HamsterPark STM-Bench (calibrated on
-  983 intervals of a real STM) uses 5e-11 m/s (3 nm/min) lateral and 8e-12 m/s (0.5 nm/min) vertical.
+  lateral direction and the sign of the vertical drift come from ``drift_seed``. Room temperature:
+  a few nm/min laterally, < 1 nm/min vertically; HamsterPark STM-Bench (calibrated on 983 intervals
+  of a real STM) uses 5e-11 m/s (3 nm/min) lateral and 8e-12 m/s (0.5 nm/min) vertical.
 - **Creep** after each offset move d (a change of the scan centre) at t_m: the piezo keeps moving
   in the direction of the move, c(t) = d g lg((t - t_m) / t0) for t - t_m > t0 (0 before), the
   vendors' law dL(t) = dL(t0) [1 + g lg(t / t0)] (PI, "Piezo creep", t0 = 0.1 s, g = 0.01-0.02
@@ -37,6 +38,7 @@ The slowly varying terms (drift, creep) are evaluated once per block of ``SLOW_B
 steps (blocks aligned on the absolute step index, so chunked runs equal single runs bit for bit);
 over a block (~0.1 ms at the default 220 steps per 45 kHz period) drift moves < 1e-14 m.
 """
+
 from __future__ import annotations
 
 import math
@@ -47,62 +49,183 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
-from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_COS, PLAN_LINE_RATE, PLAN_LINE_STEP,
-                                      PLAN_LINES, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X, PLAN_START, TRUTH_KEYS)  # noqa: F401 (TRUTH_KEYS: re-exported)
+from afm_ros.core.plan_layout import (
+    PLAN_ACTIVE,
+    PLAN_CONTINUOUS,
+    PLAN_COS,
+    PLAN_LINE_RATE,
+    PLAN_LINE_STEP,
+    PLAN_LINES,
+    PLAN_ROTATED,
+    PLAN_SIN,
+    PLAN_SIZE_X,
+    PLAN_START,
+    TRUTH_KEYS,
+)  # noqa: F401 (TRUTH_KEYS: re-exported)
 
 if TYPE_CHECKING:
     from afm_ros.core.scanner import ScanPlan
 
-ARTEFACT_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("drift_lateral_rate", 0.0, "m/s",
-              "thermal drift speed of the sample in x-y (direction from drift_seed); room temperature: "
-              "a few nm/min (5e-11 m/s = 3 nm/min)", 0.0, 1e-8),
-    ParamSpec("drift_vertical_rate", 0.0, "m/s",
-              "thermal drift speed of the sample in z (sign from drift_seed); room temperature: < 1 nm/min "
-              "(8e-12 m/s = 0.5 nm/min)", 0.0, 1e-9),
-    ParamSpec("drift_seed", 0, "1", "seed of the drift's lateral direction and vertical sign", 0, 2 ** 31 - 1,
-              kind=int),
-    ParamSpec("tilt_x", 0.0, "m/m", "sample plane slope dz/dx (a mounted sample: typically up to 0.01-0.02)",
-              -0.2, 0.2),
-    ParamSpec("tilt_y", 0.0, "m/m", "sample plane slope dz/dy", -0.2, 0.2),
-    ParamSpec("slope_compensation_x", 0.0, "m/m",
-              "the scanner's slope compensation: z moves open loop by this plane's dz/dx as the tip scans, so "
-              "the z loop follows only tilt_x minus it (set it to the slope of a first image)", -0.2, 0.2),
-    ParamSpec("slope_compensation_y", 0.0, "m/m", "slope compensation dz/dy (see slope_compensation_x)",
-              -0.2, 0.2),
-    ParamSpec("scanner_field", 20e-6, "m", "x-y scanner range (each axis); scans must fit in it", 1e-7, 1e-3),
-    ParamSpec("closed_loop", False, "", "closed-loop scanner (position sensors): no hysteresis and no creep",
-              kind=bool),
-    ParamSpec("hysteresis_small", 0.0, "1",
-              "open-loop hysteresis loop width (retrace minus trace at the centre) as a fraction of a small "
-              "scan (PI: ~0.02)", 0.0, 0.2),
-    ParamSpec("hysteresis_large", 0.0, "1",
-              "loop width as a fraction of a scan over the whole scanner_field (PI: 0.10-0.15 open loop)",
-              0.0, 0.3),
-    ParamSpec("creep_per_decade", 0.0, "1",
-              "piezo creep g after an offset move d: d g lg(t/creep_time) (PI: 0.01-0.02, up to 0.05)", 0.0, 0.1),
-    ParamSpec("creep_time", 0.1, "s", "creep reference time t0 (the move is complete at t0)", 1e-3, 10.0),
-)}
+ARTEFACT_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "drift_lateral_rate",
+            0.0,
+            "m/s",
+            "thermal drift speed of the sample in x-y (direction from drift_seed); room "
+            "temperature: "
+            "a few nm/min (5e-11 m/s = 3 nm/min)",
+            0.0,
+            1e-8,
+        ),
+        ParamSpec(
+            "drift_vertical_rate",
+            0.0,
+            "m/s",
+            "thermal drift speed of the sample in z (sign from drift_seed); room temperature: < 1 "
+            "nm/min "
+            "(8e-12 m/s = 0.5 nm/min)",
+            0.0,
+            1e-9,
+        ),
+        ParamSpec(
+            "drift_seed",
+            0,
+            "1",
+            "seed of the drift's lateral direction and vertical sign",
+            0,
+            2**31 - 1,
+            kind=int,
+        ),
+        ParamSpec(
+            "tilt_x",
+            0.0,
+            "m/m",
+            "sample plane slope dz/dx (a mounted sample: typically up to 0.01-0.02)",
+            -0.2,
+            0.2,
+        ),
+        ParamSpec("tilt_y", 0.0, "m/m", "sample plane slope dz/dy", -0.2, 0.2),
+        ParamSpec(
+            "slope_compensation_x",
+            0.0,
+            "m/m",
+            "the scanner's slope compensation: z moves open loop by this plane's dz/dx as the tip "
+            "scans, so "
+            "the z loop follows only tilt_x minus it (set it to the slope of a first image)",
+            -0.2,
+            0.2,
+        ),
+        ParamSpec(
+            "slope_compensation_y",
+            0.0,
+            "m/m",
+            "slope compensation dz/dy (see slope_compensation_x)",
+            -0.2,
+            0.2,
+        ),
+        ParamSpec(
+            "scanner_field",
+            20e-6,
+            "m",
+            "x-y scanner range (each axis); scans must fit in it",
+            1e-7,
+            1e-3,
+        ),
+        ParamSpec(
+            "closed_loop",
+            False,
+            "",
+            "closed-loop scanner (position sensors): no hysteresis and no creep",
+            kind=bool,
+        ),
+        ParamSpec(
+            "hysteresis_small",
+            0.0,
+            "1",
+            "open-loop hysteresis loop width (retrace minus trace at the centre) as a fraction of "
+            "a small "
+            "scan (PI: ~0.02)",
+            0.0,
+            0.2,
+        ),
+        ParamSpec(
+            "hysteresis_large",
+            0.0,
+            "1",
+            "loop width as a fraction of a scan over the whole scanner_field (PI: 0.10-0.15 open "
+            "loop)",
+            0.0,
+            0.3,
+        ),
+        ParamSpec(
+            "creep_per_decade",
+            0.0,
+            "1",
+            "piezo creep g after an offset move d: d g lg(t/creep_time) (PI: 0.01-0.02, up to "
+            "0.05)",
+            0.0,
+            0.1,
+        ),
+        ParamSpec(
+            "creep_time",
+            0.1,
+            "s",
+            "creep reference time t0 (the move is complete at t0)",
+            1e-3,
+            10.0,
+        ),
+    )
+}
 
-# what a real instrument at room temperature shows (afm_instrument's defaults; docs/imperfections.md)
-INSTRUMENT_ARTEFACTS = {"drift_lateral_rate": 5e-11, "drift_vertical_rate": 8e-12, "tilt_x": 0.008,
-                        "tilt_y": -0.005, "hysteresis_small": 0.02, "hysteresis_large": 0.12,
-                        "creep_per_decade": 0.015}
+# what a real instrument at room temperature shows (afm_instrument's defaults;
+# docs/imperfections.md)
+INSTRUMENT_ARTEFACTS = {
+    "drift_lateral_rate": 5e-11,
+    "drift_vertical_rate": 8e-12,
+    "tilt_x": 0.008,
+    "tilt_y": -0.005,
+    "hysteresis_small": 0.02,
+    "hysteresis_large": 0.12,
+    "creep_per_decade": 0.015,
+}
 
-# the scanner node's parameters: a real instrument by default (the cores, WiredInstrument and afm_study
-# default to the ideal one: ARTEFACT_SPECS)
+# the scanner node's parameters: a real instrument by default (the cores, WiredInstrument and
+# afm_study default to the ideal one: ARTEFACT_SPECS)
 ARTEFACT_NODE_SPECS: dict[str, ParamSpec] = {
-    name: replace(spec, default=INSTRUMENT_ARTEFACTS[name],
-                  description=spec.description + "; default: a real open-loop instrument (0 = ideal)")
-    if name in INSTRUMENT_ARTEFACTS else spec for name, spec in ARTEFACT_SPECS.items()}
+    name: replace(
+        spec,
+        default=INSTRUMENT_ARTEFACTS[name],
+        description=spec.description + "; default: a real open-loop instrument (0 = ideal)",
+    )
+    if name in INSTRUMENT_ARTEFACTS
+    else spec
+    for name, spec in ARTEFACT_SPECS.items()
+}
 IDEAL_ARTEFACTS = {name: ARTEFACT_SPECS[name].default for name in INSTRUMENT_ARTEFACTS}
 
 SLOW_BLOCK = 1024  # integration steps per evaluation of drift and creep
 CREEP_MOVES = 8
 
 # packed layout (float64) read by the integration kernel
-(ART_ON, ART_VX, ART_VY, ART_VZ, ART_TILT_X, ART_TILT_Y, ART_X0, ART_Y0, ART_W_FAST, ART_W_SLOW, ART_G, ART_T0,
- ART_FROZEN_X, ART_FROZEN_Y, ART_MOVES) = range(15)
+(
+    ART_ON,
+    ART_VX,
+    ART_VY,
+    ART_VZ,
+    ART_TILT_X,
+    ART_TILT_Y,
+    ART_X0,
+    ART_Y0,
+    ART_W_FAST,
+    ART_W_SLOW,
+    ART_G,
+    ART_T0,
+    ART_FROZEN_X,
+    ART_FROZEN_Y,
+    ART_MOVES,
+) = range(15)
 ART_LENGTH = ART_MOVES + 3 * CREEP_MOVES  # (t, dx, dy) per move; t = inf: unused
 
 
@@ -123,17 +246,23 @@ def check_plan(values: dict, plan: "ScanPlan") -> None:
     f = values["scanner_field"]
     for name, size in (("scan_size_x", plan.size_x), ("scan_size_y", plan.size_y)):
         if size > f * (1 + 1e-12):
-            raise ValueError(f"{name}={size:g} m exceeds the scanner's field scanner_field={f:g} m; "
-                             f"allowed range [1e-09, {f:g}] m")
+            raise ValueError(
+                f"{name}={size:g} m exceeds the scanner's field scanner_field={f:g} m; "
+                f"allowed range [1e-09, {f:g}] m"
+            )
     wide, high = plan.extent
     if max(wide, high) > f * (1 + 1e-12):
-        raise ValueError(f"scan_angle={plan.angle:g} deg turns the {plan.size_x:g} x {plan.size_y:g} m scan into a "
-                         f"{wide:.4g} x {high:.4g} m box, beyond the scanner's field scanner_field={f:g} m; "
-                         f"make it smaller or turn it less")
+        raise ValueError(
+            f"scan_angle={plan.angle:g} deg turns the {plan.size_x:g} x {plan.size_y:g} m scan "
+            "into a "
+            f"{wide:.4g} x {high:.4g} m box, beyond the scanner's field scanner_field={f:g} m; "
+            f"make it smaller or turn it less"
+        )
 
 
 def drift_velocity(values: dict) -> tuple[float, float, float]:
-    """(vx, vy, vz) [m/s] of the sample: magnitudes from the parameters, directions from drift_seed."""
+    """(vx, vy, vz) [m/s] of the sample: magnitudes from the parameters, directions from
+    drift_seed."""
     rng = np.random.default_rng([int(values["drift_seed"]), 0xD81F7])
     angle = rng.uniform(0.0, 2.0 * math.pi)
     sign = 1.0 if rng.uniform() < 0.5 else -1.0
@@ -146,19 +275,26 @@ def loop_width(values: dict, size: float) -> float:
     if values["closed_loop"]:
         return 0.0
     ratio = min(size / values["scanner_field"], 1.0)
-    return values["hysteresis_small"] + (values["hysteresis_large"] - values["hysteresis_small"]) * ratio
+    return (
+        values["hysteresis_small"]
+        + (values["hysteresis_large"] - values["hysteresis_small"]) * ratio
+    )
 
 
 @dataclass
 class Imperfections:
-    """The imperfection state of one instrument: parameters, the scan's loop widths, the creep moves.
+    """The imperfection state of one instrument: parameters, the scan's loop widths, the creep
+    moves.
 
     ``packed(plan)`` gives the kernel's array for the current plan (or for the parked tip: None);
     :meth:`move` registers an offset move (for creep) at simulated time t [s].
     """
 
     values: dict = field(default_factory=dict)
-    sample_size: tuple = (0.0, 0.0)  # (size_x, size_y) of the sample map [m]: the tilt's pivot is its centre
+    sample_size: tuple = (
+        0.0,
+        0.0,
+    )  # (size_x, size_y) of the sample map [m]: the tilt's pivot is its centre
 
     def __post_init__(self):
         self.values = validate(self.values)
@@ -169,24 +305,33 @@ class Imperfections:
     @property
     def enabled(self) -> bool:
         v = self.values
-        return bool(v["drift_lateral_rate"] or v["drift_vertical_rate"] or v["tilt_x"] != v["slope_compensation_x"]
-                    or v["tilt_y"] != v["slope_compensation_y"]
-                    or (not v["closed_loop"] and (v["hysteresis_small"] or v["hysteresis_large"]
-                                                  or v["creep_per_decade"])))
+        return bool(
+            v["drift_lateral_rate"]
+            or v["drift_vertical_rate"]
+            or v["tilt_x"] != v["slope_compensation_x"]
+            or v["tilt_y"] != v["slope_compensation_y"]
+            or (
+                not v["closed_loop"]
+                and (v["hysteresis_small"] or v["hysteresis_large"] or v["creep_per_decade"])
+            )
+        )
 
     def configure(self, **changes) -> None:
         """Validate every change, then apply all (ValueError naming the field: nothing applied)."""
         self.values = validate({**self.values, **changes})
 
     def move(self, center_x: float, center_y: float, t: float) -> None:
-        """The scan centre is now (center_x, center_y) [m] from simulated time t [s]: a creep move."""
+        """The scan centre is now (center_x, center_y) [m] from simulated time t [s]: a creep
+        move."""
         if self.last_center is not None:
             dx, dy = center_x - self.last_center[0], center_y - self.last_center[1]
             if dx or dy:
                 self.moves.append((float(t), dx, dy))
                 if len(self.moves) > CREEP_MOVES:
                     t_old, ox, oy = self.moves.pop(0)
-                    c = creep_factor(self.values["creep_per_decade"], self.values["creep_time"], t - t_old)
+                    c = creep_factor(
+                        self.values["creep_per_decade"], self.values["creep_time"], t - t_old
+                    )
                     self.frozen = (self.frozen[0] + ox * c, self.frozen[1] + oy * c)
         self.last_center = (float(center_x), float(center_y))
 
@@ -197,7 +342,9 @@ class Imperfections:
         v = self.values
         out[ART_ON] = 1.0
         out[ART_VX], out[ART_VY], out[ART_VZ] = drift_velocity(v)
-        out[ART_TILT_X] = v["tilt_x"] - v["slope_compensation_x"]  # the plane the z loop must follow
+        out[ART_TILT_X] = (
+            v["tilt_x"] - v["slope_compensation_x"]
+        )  # the plane the z loop must follow
         out[ART_TILT_Y] = v["tilt_y"] - v["slope_compensation_y"]
         out[ART_X0], out[ART_Y0] = 0.5 * self.sample_size[0], 0.5 * self.sample_size[1]
         if plan is not None:
@@ -207,7 +354,7 @@ class Imperfections:
             out[ART_G], out[ART_T0] = v["creep_per_decade"], v["creep_time"]
             out[ART_FROZEN_X], out[ART_FROZEN_Y] = self.frozen
             for i, (t, dx, dy) in enumerate(self.moves):
-                out[ART_MOVES + 3 * i:ART_MOVES + 3 * i + 3] = (t, dx, dy)
+                out[ART_MOVES + 3 * i : ART_MOVES + 3 * i + 3] = (t, dx, dy)
         return out
 
 
@@ -269,14 +416,21 @@ def hysteresis_offsets(art, plan, t):
 
 
 def truth(art: np.ndarray, plan: np.ndarray, t) -> dict:
-    """Ground truth at simulated times t [s]: the piezo's ``hysteresis_x/y`` and ``creep_x/y`` (true
-    minus commanded position [m]) and the sample's ``drift_x/y/z`` [m]. (The kernel holds drift and
-    creep per block of SLOW_BLOCK steps: they differ from these by < 1e-11 m.)"""
+    """Ground truth at simulated times t [s]: the piezo's ``hysteresis_x/y`` and ``creep_x/y``
+    (true minus commanded position [m]) and the sample's ``drift_x/y/z`` [m]. (The kernel holds
+    drift and creep per block of SLOW_BLOCK steps: they differ from these by < 1e-11 m.)"""
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     out = np.zeros((7, t.shape[0]))
     _truth(art, plan, t, out)
-    return {"hysteresis_x": out[0], "hysteresis_y": out[1], "creep_x": out[2], "creep_y": out[3],
-            "drift_x": out[4], "drift_y": out[5], "drift_z": out[6]}
+    return {
+        "hysteresis_x": out[0],
+        "hysteresis_y": out[1],
+        "creep_x": out[2],
+        "creep_y": out[3],
+        "drift_x": out[4],
+        "drift_y": out[5],
+        "drift_z": out[6],
+    }
 
 
 @njit(cache=True)
@@ -284,7 +438,10 @@ def _truth(art, plan, t, out):
     for i in range(t.shape[0]):
         hx, hy = hysteresis_offsets(art, plan, t[i])
         if plan[PLAN_ROTATED] != 0.0:  # along the rotated scan's axes
-            hx, hy = hx * plan[PLAN_COS] - hy * plan[PLAN_SIN], hx * plan[PLAN_SIN] + hy * plan[PLAN_COS]
+            hx, hy = (
+                hx * plan[PLAN_COS] - hy * plan[PLAN_SIN],
+                hx * plan[PLAN_SIN] + hy * plan[PLAN_COS],
+            )
         dx, dy, dz, cx, cy = slow_terms(art, t[i])
         out[0, i] = hx
         out[1, i] = hy

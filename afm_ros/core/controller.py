@@ -3,7 +3,8 @@
 Error ``e = setpoint - amplitude`` [m]; in FM-AFM (``feedback_signal`` 'frequency_shift') the same
 loop runs on the PLL's frequency shift: ``e = df_setpoint - df`` [Hz] with ``df_p_gain`` [m/Hz] and
 ``df_i_gain`` [m/(Hz s)]. The sign is the same: on the attractive branch df falls (more negative)
-as the tip approaches, as the amplitude does in tapping, so a df below the setpoint retracts. The output (z piezo position [m], the topography) is::
+as the tip approaches, as the amplitude does in tapping, so a df below the setpoint retracts. The
+output (z piezo position [m], the topography) is::
 
     z = I + p_gain * e,        dI/dt = i_gain * e
 
@@ -20,36 +21,120 @@ bumpless: at the first sample after enabling, ``I = z - p_gain * e`` so z does n
 live change of ``p_gain`` re-initialises I the same way. Disabled: ``hold`` keeps z, ``withdraw``
 moves z to ``z_max`` (the retracted end), at most at ``max_slew_rate`` if that is set.
 """
+
 from __future__ import annotations
 
 import math
 
 from afm_ros.core.physics.parameters import ParamSpec
 
-Z_CONTROLLER_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("setpoint", 48e-9, "m",
-              "absolute amplitude setpoint (peak); default 80 % of the seed's 60 nm free amplitude", 0.0, 1e-6),
-    ParamSpec("p_gain", 0.1, "m/m", "proportional gain: metres of z per metre of amplitude error", 0.0, 100.0),
-    ParamSpec("i_gain", 100.0, "1/s",
-              "integral gain: z moves at i_gain*error [m/s] per metre of error (Nanonis I gain)", 0.0, 1e7),
-    ParamSpec("feedback_signal", "amplitude", "",
-              "what the z loop regulates: 'amplitude' (tapping, setpoint/p_gain/i_gain) or 'frequency_shift' "
-              "(FM-AFM, df_setpoint/df_p_gain/df_i_gain, the PLL's df)", kind=str,
-              choices=("amplitude", "frequency_shift")),
-    ParamSpec("df_setpoint", -20.0, "Hz",
-              "frequency shift setpoint (FM), negative: the z loop regulates on the attractive branch, where df "
-              "falls below 0 as the tip approaches (farther than the df minimum); a df of 0 or above is only "
-              "reached past that minimum, where the loop's sign is inverted", -1e5, 0.0, high_open=True),
-    ParamSpec("df_p_gain", 1e-11, "m/Hz", "FM proportional gain: metres of z per Hz of df error", 0.0, 1e-3),
-    ParamSpec("df_i_gain", 1e-9, "m/(Hz s)",
-              "FM integral gain: z moves at df_i_gain*error [m/s] per Hz of error", 0.0, 1e-1),
-    ParamSpec("z_min", -200e-9, "m", "lowest z piezo position (most extended towards the sample)", -1e-4, 1e-4),
-    ParamSpec("z_max", 100e-9, "m", "highest z piezo position (retracted; the withdraw position)", -1e-4, 1e-4),
-    ParamSpec("enabled", True, "", "feedback on; when off, z holds or withdraws (disabled_action)", kind=bool),
-    ParamSpec("disabled_action", "hold", "", "what z does while the feedback is off",
-              kind=str, choices=("hold", "withdraw")),
-    ParamSpec("max_slew_rate", 0.0, "m/s", "largest z speed in simulated time; 0 = unlimited", 0.0, 10.0),
-)}
+Z_CONTROLLER_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "setpoint",
+            48e-9,
+            "m",
+            "absolute amplitude setpoint (peak); default 80 % of the seed's 60 nm free amplitude",
+            0.0,
+            1e-6,
+        ),
+        ParamSpec(
+            "p_gain",
+            0.1,
+            "m/m",
+            "proportional gain: metres of z per metre of amplitude error",
+            0.0,
+            100.0,
+        ),
+        ParamSpec(
+            "i_gain",
+            100.0,
+            "1/s",
+            "integral gain: z moves at i_gain*error [m/s] per metre of error (Nanonis I gain)",
+            0.0,
+            1e7,
+        ),
+        ParamSpec(
+            "feedback_signal",
+            "amplitude",
+            "",
+            "what the z loop regulates: 'amplitude' (tapping, setpoint/p_gain/i_gain) or "
+            "'frequency_shift' "
+            "(FM-AFM, df_setpoint/df_p_gain/df_i_gain, the PLL's df)",
+            kind=str,
+            choices=("amplitude", "frequency_shift"),
+        ),
+        ParamSpec(
+            "df_setpoint",
+            -20.0,
+            "Hz",
+            "frequency shift setpoint (FM), negative: the z loop regulates on the attractive "
+            "branch, where df "
+            "falls below 0 as the tip approaches (farther than the df minimum); a df of 0 or "
+            "above is only "
+            "reached past that minimum, where the loop's sign is inverted",
+            -1e5,
+            0.0,
+            high_open=True,
+        ),
+        ParamSpec(
+            "df_p_gain",
+            1e-11,
+            "m/Hz",
+            "FM proportional gain: metres of z per Hz of df error",
+            0.0,
+            1e-3,
+        ),
+        ParamSpec(
+            "df_i_gain",
+            1e-9,
+            "m/(Hz s)",
+            "FM integral gain: z moves at df_i_gain*error [m/s] per Hz of error",
+            0.0,
+            1e-1,
+        ),
+        ParamSpec(
+            "z_min",
+            -200e-9,
+            "m",
+            "lowest z piezo position (most extended towards the sample)",
+            -1e-4,
+            1e-4,
+        ),
+        ParamSpec(
+            "z_max",
+            100e-9,
+            "m",
+            "highest z piezo position (retracted; the withdraw position)",
+            -1e-4,
+            1e-4,
+        ),
+        ParamSpec(
+            "enabled",
+            True,
+            "",
+            "feedback on; when off, z holds or withdraws (disabled_action)",
+            kind=bool,
+        ),
+        ParamSpec(
+            "disabled_action",
+            "hold",
+            "",
+            "what z does while the feedback is off",
+            kind=str,
+            choices=("hold", "withdraw"),
+        ),
+        ParamSpec(
+            "max_slew_rate",
+            0.0,
+            "m/s",
+            "largest z speed in simulated time; 0 = unlimited",
+            0.0,
+            10.0,
+        ),
+    )
+}
 
 
 def check_limits(values: dict) -> None:
@@ -65,7 +150,10 @@ class ZController:
         values = {name: spec.default for name, spec in Z_CONTROLLER_SPECS.items()}
         for name, value in params.items():
             if name not in Z_CONTROLLER_SPECS:
-                raise ValueError(f"{name!r} is not a z-controller parameter; known: {', '.join(Z_CONTROLLER_SPECS)}")
+                raise ValueError(
+                    f"{name!r} is not a z-controller parameter; known: "
+                    f"{', '.join(Z_CONTROLLER_SPECS)}"
+                )
             values[name] = value
         values = {name: Z_CONTROLLER_SPECS[name].validate(v) for name, v in values.items()}
         check_limits(values)
@@ -85,7 +173,10 @@ class ZController:
         """Validate all changes (and z_min < z_max), then apply them together."""
         for name in changes:
             if name not in Z_CONTROLLER_SPECS:
-                raise ValueError(f"{name!r} is not a z-controller parameter; known: {', '.join(Z_CONTROLLER_SPECS)}")
+                raise ValueError(
+                    f"{name!r} is not a z-controller parameter; known: "
+                    f"{', '.join(Z_CONTROLLER_SPECS)}"
+                )
         validated = {name: Z_CONTROLLER_SPECS[name].validate(v) for name, v in changes.items()}
         merged = {**self.params, **validated}
         check_limits(merged)
@@ -95,8 +186,9 @@ class ZController:
             self._needs_init = True
         if merged["feedback_signal"] != old["feedback_signal"]:
             self._needs_init = True  # another signal: the error is new, re-initialise bumpless
-        elif self.gains[0] != (old["df_p_gain"] if old["feedback_signal"] == "frequency_shift" else old["p_gain"]) \
-                and not math.isnan(self.error):
+        elif self.gains[0] != (
+            old["df_p_gain"] if old["feedback_signal"] == "frequency_shift" else old["p_gain"]
+        ) and not math.isnan(self.error):
             self.integrator = self.z - self.gains[0] * self.error  # bumpless gain change
         if merged["z_min"] != old["z_min"] or merged["z_max"] != old["z_max"]:
             self.z = min(max(self.z, merged["z_min"]), merged["z_max"])
@@ -135,8 +227,8 @@ class ZController:
         return min(max(target, self.z - step), self.z + step)
 
     def update(self, amplitude: float, t: float) -> float:
-        """Process amplitude [m] (FM: frequency shift [Hz]) measured at simulated time t [s]; return
-        the new z [m]."""
+        """Process amplitude [m] (FM: frequency shift [Hz]) measured at simulated time t [s];
+        return the new z [m]."""
         p = self.params
         if not (math.isfinite(amplitude) and math.isfinite(t)):
             self.rejected_samples += 1  # a NaN would poison the integrator for good

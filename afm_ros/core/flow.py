@@ -11,6 +11,7 @@ The cantilever integrates chunk ``k`` (samples ``[S_k, S_k+1)``) only when both 
   (lock-in, recorder, monitors) may be at most ``flow_window`` chunks behind; a slow consumer
   slows the instrument down (its real-time factor drops) instead of losing samples.
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -21,7 +22,8 @@ FEEDBACK_SYNC_MODES = ("auto", "lockstep", "free")
 
 
 class ChunkStarts:
-    """Start indices of the recent chunks, ending with the start of the chunk about to be integrated."""
+    """Start indices of the recent chunks, ending with the start of the chunk about to be
+    integrated."""
 
     def __init__(self, first_index: int = 0, keep: int = 64):
         self._starts: deque[int] = deque([int(first_index)], maxlen=max(2, keep))
@@ -40,20 +42,22 @@ class ChunkStarts:
         self._starts.append(int(end_index))
 
     def unpublish(self) -> None:
-        """Take back the last booked chunk (it was never published, e.g. the integration blew up)."""
+        """Take back the last booked chunk (it was never published, e.g. the integration blew
+        up)."""
         if len(self._starts) > 1:
             self._starts.pop()
 
     def back(self, chunks: int) -> int:
-        """Start index of the chunk ``chunks - 1`` chunks before the next one (``back(1)`` = next_index);
-        the oldest kept start if fewer chunks were published."""
+        """Start index of the chunk ``chunks - 1`` chunks before the next one (``back(1)`` =
+        next_index); the oldest kept start if fewer chunks were published."""
         n = len(self._starts)
         return self._starts[max(0, n - chunks)]
 
 
 class FeedbackGate:
-    """Picks the z [m] of the next chunk from the z controller's commands (see module docstring); the
-    same gate picks the FM excitation (frequency, force) from the PLL's commands (``value`` of a command).
+    """Picks the z [m] of the next chunk from the z controller's commands (see module docstring);
+    the same gate picks the FM excitation (frequency, force) from the PLL's commands (``value`` of
+    a command).
 
     mode ``lockstep``: always wait for the answer; ``auto``: lockstep once a synchronised command
     (``answered_end_index >= 0``) arrived from a controller that is still present, free before;
@@ -62,12 +66,17 @@ class FeedbackGate:
 
     def __init__(self, mode: str = "auto", latency: int = 1, z_initial: float = 0.0):
         if mode not in FEEDBACK_SYNC_MODES:
-            raise ValueError(f"feedback_sync={mode!r} is not allowed; allowed: {', '.join(FEEDBACK_SYNC_MODES)}")
+            raise ValueError(
+                f"feedback_sync={mode!r} is not allowed; allowed: {', '.join(FEEDBACK_SYNC_MODES)}"
+            )
         self.mode = mode
         self.latency = int(latency)
-        # the value of the last chunk: z [m] for the z command, (frequency [Hz], force [N]) for the excitation
+        # the value of the last chunk: z [m] for the z command, (frequency [Hz], force [N]) for the
+        # excitation
         self.z = float(z_initial) if isinstance(z_initial, (int, float)) else z_initial
-        self._commands: deque[tuple[int, float]] = deque()  # synchronised (answered index, z), ascending
+        self._commands: deque[tuple[int, float]] = (
+            deque()
+        )  # synchronised (answered index, z), ascending
         self._synced_seen = False
         self.ignored_unsynchronised = 0
         self.stale_commands = 0  # synchronised commands older than the newest held one
@@ -90,7 +99,10 @@ class FeedbackGate:
         self._synced_seen = True
         if self._commands and cmd.answered_end_index <= self._commands[-1][0]:
             if cmd.answered_end_index == self._commands[-1][0]:
-                self._commands[-1] = (cmd.answered_end_index, cmd.value)  # a re-sent answer: newest wins
+                self._commands[-1] = (
+                    cmd.answered_end_index,
+                    cmd.value,
+                )  # a re-sent answer: newest wins
             else:
                 self.stale_commands += 1  # e.g. a restarted controller replaying its history
             return
@@ -126,10 +138,14 @@ class FeedbackGate:
         chosen = None
         while self._commands and self._commands[0][0] <= need:
             chosen = self._commands.popleft()
-        if chosen is None:  # only newer answers (a controller that joined late): the oldest of them
+        if (
+            chosen is None
+        ):  # only newer answers (a controller that joined late): the oldest of them
             chosen = self._commands[0]
         else:
-            self._commands.appendleft(chosen)  # may serve the next chunk too if nothing newer comes
+            self._commands.appendleft(
+                chosen
+            )  # may serve the next chunk too if nothing newer comes
         self.z = chosen[1]
         return self.z
 
@@ -177,11 +193,11 @@ class SlowdownReporter:
     """When, and in what words, to tell the user that the loop runs slower than asked (wall s).
 
     A slowdown is an episode in which the pacing gives up simulated time (it cannot keep up). The
-    first report comes only after ``first_after`` wall seconds of one episode (a start-up compile or
-    a short stall is not news), later ones at most every ``period`` seconds; each gives the factor
-    achieved since the previous report, what limits it (the gate the loop spent most of that wall
-    time waiting at, else the integration itself) and what the user can do. Nothing is ever lost
-    by a slowdown: the loop waits, the session stays exact.
+    first report comes only after ``first_after`` wall seconds of one episode (a start-up compile
+    or a short stall is not news), later ones at most every ``period`` seconds; each gives the
+    factor achieved since the previous report, what limits it (the gate the loop spent most of that
+    wall time waiting at, else the integration itself) and what the user can do. Nothing is ever
+    lost by a slowdown: the loop waits, the session stays exact.
     """
 
     def __init__(self, first_after: float = 5.0, period: float = 60.0, gap: float = 2.0):
@@ -189,14 +205,23 @@ class SlowdownReporter:
         self._episode: float | None = None  # wall time the current episode started
         self._last_giveup = -float("inf")  # wall time simulated time was last given up
         self._given_up = 0.0
-        self._mark: tuple[float, float, dict] | None = None  # (wall, simulated, waits) the next report measures from
+        self._mark: tuple[float, float, dict] | None = (
+            None  # (wall, simulated, waits) the next report measures from
+        )
         self._last_report = -float("inf")
 
-    def update(self, now: float, sim_time: float, given_up: float, requested: float,
-               waits: dict[str, float], reasons: dict[str, str]) -> str | None:
-        """Feed the pacing state: ``given_up`` simulated seconds given up so far, ``waits`` the wall
-        seconds spent at each gate so far ('feedback', 'consumers') and ``reasons`` the last wait
-        reason of each. Returns a warning text or None."""
+    def update(
+        self,
+        now: float,
+        sim_time: float,
+        given_up: float,
+        requested: float,
+        waits: dict[str, float],
+        reasons: dict[str, str],
+    ) -> str | None:
+        """Feed the pacing state: ``given_up`` simulated seconds given up so far, ``waits`` the
+        wall seconds spent at each gate so far ('feedback', 'consumers') and ``reasons`` the last
+        wait reason of each. Returns a warning text or None."""
         if given_up <= self._given_up:
             if self._episode is not None and now - self._last_giveup > self.gap:
                 self._episode = None  # caught up again
@@ -218,11 +243,17 @@ class SlowdownReporter:
         self._mark = (now, sim_time, dict(waits))
         self._last_report = now
         suggest = float(f"{max(achieved * 0.9, 0.01):.1g}")
-        return (f"running at {achieved:.2f}x real time instead of the requested {requested:g}x: "
-                f"{slowdown_bottleneck(kind, reasons.get(kind, ''))} cannot keep up on this machine. Nothing is "
-                f"lost (the loop waits, every sample is computed and the session stays exact). To run steadily, "
-                f"lower the cantilever's real_time_factor, e.g. 'afm_ctl set cantilever real_time_factor "
-                f"{suggest:g}' (0 = as fast as possible); next report in {self.period:g} s at the earliest")
+        return (
+            f"running at {achieved:.2f}x real time instead of the requested {requested:g}x: "
+            f"{slowdown_bottleneck(kind, reasons.get(kind, ''))} cannot keep up on this machine. "
+            "Nothing is "
+            "lost (the loop waits, every sample is computed and the session stays exact). To run "
+            "steadily, "
+            "lower the cantilever's real_time_factor, e.g. 'afm_ctl set cantilever "
+            "real_time_factor "
+            f"{suggest:g}' (0 = as fast as possible); next report in {self.period:g} s at the "
+            "earliest"
+        )
 
 
 def slowdown_bottleneck(wait_kind: str | None, wait_reason: str) -> str:

@@ -1,4 +1,5 @@
-"""Frequency-modulation (nc-AFM) oscillation control (no ROS): phase-locked loop and amplitude controller.
+"""Frequency-modulation (nc-AFM) oscillation control (no ROS): phase-locked loop and amplitude
+controller.
 
 The cantilever is self-excited: it is driven at the frequency of the loop's oscillator (not at a
 fixed drive frequency), with the force amplitude the amplitude controller sets. The phase
@@ -24,11 +25,12 @@ Both integrators use conditional integration at their limits (anti-windup) and i
 time and :func:`design_gains` the gains that give a chosen bandwidth with it (docs/fm.md).
 
 Loop model (linear, high Q): the phase lag deviation ``psi`` [deg] of a resonator driven at ``f``
-obeys ``dpsi/dt = 360 (f - f_r) - psi / tau_c`` with ``tau_c = Q / (pi f0)``; the PLL closes it with
-the PI above through the dead time ``T``: open-loop gain ``360 (Kp + Ki/s) e^{-sT} / (s + 1/tau_c)``,
-crossover ``f_c ~ 360 Kp / (2 pi)`` [Hz]. The amplitude obeys ``dA/dt = (w0 / 2k) (F - k A / Q)``:
-crossover ``f_c ~ (w0 / 2k) Kp_A / (2 pi)``.
+obeys ``dpsi/dt = 360 (f - f_r) - psi / tau_c`` with ``tau_c = Q / (pi f0)``; the PLL closes it
+with the PI above through the dead time ``T``: open-loop gain ``360 (Kp + Ki/s) e^{-sT} / (s +
+1/tau_c)``, crossover ``f_c ~ 360 Kp / (2 pi)`` [Hz]. The amplitude obeys ``dA/dt = (w0 / 2k) (F -
+k A / Q)``: crossover ``f_c ~ (w0 / 2k) Kp_A / (2 pi)``.
 """
+
 from __future__ import annotations
 
 import math
@@ -36,76 +38,170 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afm_ros.core.physics.parameters import ParamSpec, validate_values
 from afm_ros.core.angles import phase_deg, wrap_deg  # noqa: F401 - wrap_deg re-exported
+from afm_ros.core.physics.parameters import ParamSpec, validate_values
 
-FM_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("center_frequency", 45e3, "Hz",
-              "oscillator centre frequency: the free resonance found by the tune; df = f - center_frequency",
-              10.0, 1e8),
-    ParamSpec("phase_setpoint", 90.0, "deg",
-              "phase lag of the tip behind the drive the PLL holds (90 deg: drive at resonance)", 0.0, 180.0),
-    ParamSpec("pll_p_gain", 0.35, "Hz/deg",
-              "PLL proportional gain: oscillator frequency change per degree of phase error "
-              "(crossover ~ 360 pll_p_gain / (2 pi) Hz = 20 Hz)", 0.0, 1e4),
-    ParamSpec("pll_i_gain", 11.0, "Hz/(deg s)",
-              "PLL integral gain (its zero at pll_i_gain / (2 pi pll_p_gain) = 5 Hz)", 0.0, 1e7),
-    ParamSpec("frequency_range", 500.0, "Hz",
-              "largest |df| the oscillator can follow (lock range); beyond it the PLL saturates and unlocks",
-              0.0, 1e6, low_open=True),
-    ParamSpec("pll_enabled", True, "", "PLL on; off: the oscillator holds its frequency (integrator kept)",
-              kind=bool),
-    ParamSpec("amplitude_setpoint", 5e-9, "m", "oscillation amplitude (peak) the amplitude controller holds",
-              0.0, 1e-6, low_open=True),
-    ParamSpec("amplitude_p_gain", 8.9e-3, "N/m",
-              "amplitude controller proportional gain: drive force per metre of amplitude error "
-              "(crossover ~ w0 amplitude_p_gain / (4 pi k) = 20 Hz at k 10 N/m, f0 45 kHz)", 0.0, 1e3),
-    ParamSpec("amplitude_i_gain", 0.28, "N/(m s)",
-              "amplitude controller integral gain (its zero at 5 Hz with the default P gain)", 0.0, 1e6),
-    ParamSpec("drive_max", 1e-9, "N", "largest drive force amplitude (the excitation's limit)", 0.0, 1e-3,
-              low_open=True),
-    ParamSpec("drive_initial", 5e-12, "N",
-              "drive force amplitude at the start (k A / Q of the default FM set-up: 10 N/m, 5 nm, Q 1e4)",
-              0.0, 1e-3),
-    ParamSpec("amplitude_enabled", True, "",
-              "amplitude controller on; off: constant excitation (the drive holds its value)", kind=bool),
-)}
+FM_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "center_frequency",
+            45e3,
+            "Hz",
+            "oscillator centre frequency: the free resonance found by the tune; df = f - "
+            "center_frequency",
+            10.0,
+            1e8,
+        ),
+        ParamSpec(
+            "phase_setpoint",
+            90.0,
+            "deg",
+            "phase lag of the tip behind the drive the PLL holds (90 deg: drive at resonance)",
+            0.0,
+            180.0,
+        ),
+        ParamSpec(
+            "pll_p_gain",
+            0.35,
+            "Hz/deg",
+            "PLL proportional gain: oscillator frequency change per degree of phase error "
+            "(crossover ~ 360 pll_p_gain / (2 pi) Hz = 20 Hz)",
+            0.0,
+            1e4,
+        ),
+        ParamSpec(
+            "pll_i_gain",
+            11.0,
+            "Hz/(deg s)",
+            "PLL integral gain (its zero at pll_i_gain / (2 pi pll_p_gain) = 5 Hz)",
+            0.0,
+            1e7,
+        ),
+        ParamSpec(
+            "frequency_range",
+            500.0,
+            "Hz",
+            "largest |df| the oscillator can follow (lock range); beyond it the PLL saturates "
+            "and unlocks",
+            0.0,
+            1e6,
+            low_open=True,
+        ),
+        ParamSpec(
+            "pll_enabled",
+            True,
+            "",
+            "PLL on; off: the oscillator holds its frequency (integrator kept)",
+            kind=bool,
+        ),
+        ParamSpec(
+            "amplitude_setpoint",
+            5e-9,
+            "m",
+            "oscillation amplitude (peak) the amplitude controller holds",
+            0.0,
+            1e-6,
+            low_open=True,
+        ),
+        ParamSpec(
+            "amplitude_p_gain",
+            8.9e-3,
+            "N/m",
+            "amplitude controller proportional gain: drive force per metre of amplitude error "
+            "(crossover ~ w0 amplitude_p_gain / (4 pi k) = 20 Hz at k 10 N/m, f0 45 kHz)",
+            0.0,
+            1e3,
+        ),
+        ParamSpec(
+            "amplitude_i_gain",
+            0.28,
+            "N/(m s)",
+            "amplitude controller integral gain (its zero at 5 Hz with the default P gain)",
+            0.0,
+            1e6,
+        ),
+        ParamSpec(
+            "drive_max",
+            1e-9,
+            "N",
+            "largest drive force amplitude (the excitation's limit)",
+            0.0,
+            1e-3,
+            low_open=True,
+        ),
+        ParamSpec(
+            "drive_initial",
+            5e-12,
+            "N",
+            "drive force amplitude at the start (k A / Q of the default FM set-up: 10 N/m, 5 nm, "
+            "Q 1e4)",
+            0.0,
+            1e-3,
+        ),
+        ParamSpec(
+            "amplitude_enabled",
+            True,
+            "",
+            "amplitude controller on; off: constant excitation (the drive holds its value)",
+            kind=bool,
+        ),
+    )
+}
 
 
 def validate(values: dict) -> dict:
-    """Every FM_SPECS value validated (missing: defaults); ValueError naming the field and range."""
+    """Every FM_SPECS value validated (missing: defaults); ValueError naming the field and
+    range."""
     v = validate_values(FM_SPECS, values, "an FM (PLL / amplitude controller)")
     if v["drive_initial"] > v["drive_max"]:
-        raise ValueError(f"drive_initial={v['drive_initial']:g} N is above drive_max={v['drive_max']:g} N; "
-                         f"allowed: drive_initial in [0, drive_max]")
+        raise ValueError(
+            f"drive_initial={v['drive_initial']:g} N is above drive_max={v['drive_max']:g} N; "
+            f"allowed: drive_initial in [0, drive_max]"
+        )
     return v
 
 
-def loop_delay(chunk_duration: float, latency: int, output_rate: float, time_constant: float = 0.0,
-               filter_order: int = 0) -> float:
-    """Dead time [s] of the chunk-level loop: an output taken at the start of chunk k (the worst case,
-    on the output grid) acts from chunk k + latency on and is held for one chunk (half a chunk on
-    average), the output grid adds half an output interval where several outputs fall in a chunk,
-    and the lock-in's cascade delays by ``filter_order * time_constant`` (its group delay at low frequency)."""
+def loop_delay(
+    chunk_duration: float,
+    latency: int,
+    output_rate: float,
+    time_constant: float = 0.0,
+    filter_order: int = 0,
+) -> float:
+    """Dead time [s] of the chunk-level loop: an output taken at the start of chunk k (the worst
+    case, on the output grid) acts from chunk k + latency on and is held for one chunk (half a
+    chunk on average), the output grid adds half an output interval where several outputs fall in a
+    chunk, and the lock-in's cascade delays by ``filter_order * time_constant`` (its group delay at
+    low frequency)."""
     hold = 0.5 * chunk_duration
     grid = 0.5 / output_rate if output_rate * chunk_duration > 1.0 + 1e-9 else 0.0
     return latency * chunk_duration + hold - grid + filter_order * time_constant
 
 
-def design_gains(bandwidth: float, spring_constant: float, resonance_frequency: float,
-                 integral_corner: float = 0.25) -> dict:
+def design_gains(
+    bandwidth: float,
+    spring_constant: float,
+    resonance_frequency: float,
+    integral_corner: float = 0.25,
+) -> dict:
     """PI gains for a loop crossover ``bandwidth`` [Hz] and integral zero at ``integral_corner`` x
     bandwidth: PLL (Hz/deg, Hz/(deg s)) and amplitude controller (N/m, N/(m s))."""
     wc = 2.0 * math.pi * bandwidth
     wz = integral_corner * wc
     p_pll = wc / 360.0
     p_amp = wc * 2.0 * spring_constant / (2.0 * math.pi * resonance_frequency)
-    return {"pll_p_gain": p_pll, "pll_i_gain": p_pll * wz, "amplitude_p_gain": p_amp, "amplitude_i_gain": p_amp * wz}
+    return {
+        "pll_p_gain": p_pll,
+        "pll_i_gain": p_pll * wz,
+        "amplitude_p_gain": p_amp,
+        "amplitude_i_gain": p_amp * wz,
+    }
 
 
 def phase_margin(bandwidth: float, delay: float, integral_corner: float = 0.25) -> float:
-    """Phase margin [deg] of an integrator plant with a PI (zero at ``integral_corner`` x crossover)
-    and dead time ``delay`` [s], at the crossover ``bandwidth`` [Hz]."""
+    """Phase margin [deg] of an integrator plant with a PI (zero at ``integral_corner`` x
+    crossover) and dead time ``delay`` [s], at the crossover ``bandwidth`` [Hz]."""
     return 90.0 - math.degrees(math.atan(integral_corner)) - 360.0 * bandwidth * delay
 
 
@@ -122,8 +218,8 @@ class FMOutputs:
 
 
 class OscillationController:
-    """PLL + amplitude controller (module docstring). :meth:`process` takes a lock-in batch (t, X, Y);
-    :attr:`frequency` [Hz] and :attr:`drive` [N] are the excitation to apply."""
+    """PLL + amplitude controller (module docstring). :meth:`process` takes a lock-in batch (t, X,
+    Y); :attr:`frequency` [Hz] and :attr:`drive` [N] are the excitation to apply."""
 
     def __init__(self, **values):
         self.params = validate(values)
@@ -138,14 +234,16 @@ class OscillationController:
         self.rejected_samples = 0
 
     def configure(self, **changes) -> None:
-        """Validate all changes together, then apply (bumpless for gain changes: the integrators keep
-        the output where it is)."""
+        """Validate all changes together, then apply (bumpless for gain changes: the integrators
+        keep the output where it is)."""
         merged = validate({**self.params, **changes})
         old, self.params = self.params, merged
         if merged["pll_p_gain"] != old["pll_p_gain"] and math.isfinite(self.phase_error):
             self.integral = self.df + merged["pll_p_gain"] * self.phase_error
         if merged["amplitude_p_gain"] != old["amplitude_p_gain"] and math.isfinite(self.amplitude):
-            self.amp_integral = self.drive - merged["amplitude_p_gain"] * (merged["amplitude_setpoint"] - self.amplitude)
+            self.amp_integral = self.drive - merged["amplitude_p_gain"] * (
+                merged["amplitude_setpoint"] - self.amplitude
+            )
         shift = merged["center_frequency"] - old["center_frequency"]
         if shift:  # re-centred (e.g. auto-zero far from the surface): the oscillator does not jump
             self.integral -= shift
@@ -196,7 +294,9 @@ class OscillationController:
         """A lock-in batch: every output in order; returns the loop's outputs after each."""
         n = len(t)
         out = FMOutputs(np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
-        for i, (ti, xi, yi) in enumerate(zip(np.asarray(t).tolist(), np.asarray(x).tolist(), np.asarray(y).tolist())):
+        for i, (ti, xi, yi) in enumerate(
+            zip(np.asarray(t).tolist(), np.asarray(x).tolist(), np.asarray(y).tolist())
+        ):
             self.update(ti, xi, yi)
             out.t[i], out.df[i], out.drive[i] = ti, self.df, self.drive
             out.phase_error[i], out.amplitude[i] = self.phase_error, self.amplitude
@@ -207,4 +307,7 @@ def dissipation_from_drive(drive, amplitude, spring_constant: float, quality_fac
     """Tip-sample energy dissipated per cycle [J] from the drive force [N] at amplitude [m], phase
     90 deg: ``pi A F - pi k A^2 / Q`` (0 for a conservative force)."""
     a = np.asarray(amplitude, dtype=float)
-    return math.pi * a * np.asarray(drive, dtype=float) - math.pi * spring_constant * a * a / quality_factor
+    return (
+        math.pi * a * np.asarray(drive, dtype=float)
+        - math.pi * spring_constant * a * a / quality_factor
+    )

@@ -16,15 +16,16 @@ Foxglove channels. What a screen cannot show is decimated here:
 
 - ``lockin/amplitude``, ``lockin/phase``, ``z_controller/z_piezo`` and ``z_controller/error`` (one
   std_msgs/Float64 per lock-in output, 1 kHz) and, in FM-AFM, ``pll/frequency_shift`` [Hz],
-  ``pll/phase_error`` [deg] and ``pll/drive`` [N] are served in full but built from the batch topics
-  ``lockin/outputs``, ``z_controller/trace`` and ``pll/outputs`` (:data:`DERIVED`, one message per
-  input chunk, always published), with the values the lock-in, the z controller and the PLL publish
-  on them, bit for bit: those nodes publish their per-output copies only while subscribed (~10 us
-  each), so a viewer costs them nothing.
+  ``pll/phase_error`` [deg] and ``pll/drive`` [N] are served in full but built from the batch
+  topics ``lockin/outputs``, ``z_controller/trace`` and ``pll/outputs`` (:data:`DERIVED`, one
+  message per input chunk, always published), with the values the lock-in, the z controller and the
+  PLL publish on them, bit for bit: those nodes publish their per-output copies only while
+  subscribed (~10 us each), so a viewer costs them nothing.
 
 Everything else is forwarded as received: the ROS 2 message bytes (CDR) with the ``ros2msg``
 definition the recorder writes, which Foxglove decodes natively.
 """
+
 from __future__ import annotations
 
 import base64
@@ -33,50 +34,119 @@ import struct
 
 import numpy as np
 
-from afm_ros.core.physics.parameters import ParamSpec
-from afm_ros.formats.channels import IMAGE_TAIL_CUT, tail_cut_limits  # noqa: F401 - re-exported
 from afm_ros.core.angles import phase_deg
+from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.formats import chunk_layout
+from afm_ros.formats.channels import IMAGE_TAIL_CUT, tail_cut_limits  # noqa: F401 - re-exported
 
-LIVE_VIEW_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("address", "127.0.0.1", "", "address the Foxglove WebSocket server binds to; the protocol has no "
-              "authentication: 0.0.0.0 lets anyone on the network read the instrument and change its parameters",
-              kind=str, live=False),
-    ParamSpec("port", 8765, "", "TCP port of the Foxglove WebSocket server (0 = any free port, logged at start)",
-              0, 65535, kind=int, live=False),
-    ParamSpec("deflection_decimation", 25, "chunks", "forward one deflection (and force) chunk in N: the chunks whose "
-              "number (first sample index / samples per chunk) is a multiple of N; 25 = 20 chunks/s at the "
-              "defaults", 1, 100000, kind=int),
-    ParamSpec("message_backlog", 256, "messages", "messages queued per viewer before the oldest view frame is "
-              "dropped (a slow or stalled viewer loses view frames, the instrument never waits)", 16, 100000,
-              kind=int, live=False),
-    ParamSpec("discovery_period", 1.0, "s", "wall-clock period of looking for new topics and nodes", 0.05, 60.0,
-              live=False),
-    ParamSpec("parameter_timeout", 3.0, "s", "wall-clock time a parameter write or service call from a viewer may "
-              "take before it is reported as failed", 0.1, 60.0),
-)}
+LIVE_VIEW_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "address",
+            "127.0.0.1",
+            "",
+            "address the Foxglove WebSocket server binds to; the protocol has no "
+            "authentication: 0.0.0.0 lets anyone on the network read the instrument and change "
+            "its parameters",
+            kind=str,
+            live=False,
+        ),
+        ParamSpec(
+            "port",
+            8765,
+            "",
+            "TCP port of the Foxglove WebSocket server (0 = any free port, logged at start)",
+            0,
+            65535,
+            kind=int,
+            live=False,
+        ),
+        ParamSpec(
+            "deflection_decimation",
+            25,
+            "chunks",
+            "forward one deflection (and force) chunk in N: the chunks whose "
+            "number (first sample index / samples per chunk) is a multiple of N; 25 = 20 chunks/s "
+            "at the "
+            "defaults",
+            1,
+            100000,
+            kind=int,
+        ),
+        ParamSpec(
+            "message_backlog",
+            256,
+            "messages",
+            "messages queued per viewer before the oldest view frame is "
+            "dropped (a slow or stalled viewer loses view frames, the instrument never waits)",
+            16,
+            100000,
+            kind=int,
+            live=False,
+        ),
+        ParamSpec(
+            "discovery_period",
+            1.0,
+            "s",
+            "wall-clock period of looking for new topics and nodes",
+            0.05,
+            60.0,
+            live=False,
+        ),
+        ParamSpec(
+            "parameter_timeout",
+            3.0,
+            "s",
+            "wall-clock time a parameter write or service call from a viewer may "
+            "take before it is reported as failed",
+            0.1,
+            60.0,
+        ),
+    )
+}
 
-DEFLECTION_TOPICS = ("cantilever/deflection", "cantilever/tip_sample_force")  # relative to the namespace
+DEFLECTION_TOPICS = (
+    "cantilever/deflection",
+    "cantilever/tip_sample_force",
+)  # relative to the namespace
 PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "pll", "scanner", "recorder")
 SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
 IMAGE_PREFIX = "scanner/image/"
 # per-output topics served from the batch topics the loop always publishes, so the lock-in, the z
-# controller and the PLL never publish per-output copies for a viewer: topic -> (source topic, field)
-DERIVED = {"lockin/amplitude": ("lockin/outputs", "amplitude"), "lockin/phase": ("lockin/outputs", "phase"),
-           "z_controller/z_piezo": ("z_controller/trace", "z"), "z_controller/error": ("z_controller/trace", "error"),
-           "pll/frequency_shift": ("pll/outputs", "df"), "pll/phase_error": ("pll/outputs", "phase_error"),
-           "pll/drive": ("pll/outputs", "drive")}
+# controller and the PLL never publish per-output copies for a viewer: topic -> (source topic,
+# field)
+DERIVED = {
+    "lockin/amplitude": ("lockin/outputs", "amplitude"),
+    "lockin/phase": ("lockin/outputs", "phase"),
+    "z_controller/z_piezo": ("z_controller/trace", "z"),
+    "z_controller/error": ("z_controller/trace", "error"),
+    "pll/frequency_shift": ("pll/outputs", "df"),
+    "pll/phase_error": ("pll/outputs", "phase_error"),
+    "pll/drive": ("pll/outputs", "drive"),
+}
 FM_FIELDS = ("df", "phase_error", "drive")  # blocks of a pll/outputs batch served as they are
-PARAMETER_SEPARATOR = "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
+PARAMETER_SEPARATOR = (
+    "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
+)
 
 # foxglove.RawImage as JSON (Foxglove decodes its well-known schemas in JSON encoding too)
 RAW_IMAGE_SCHEMA = {
-    "title": "foxglove.RawImage", "type": "object",
+    "title": "foxglove.RawImage",
+    "type": "object",
     "properties": {
-        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
-        "frame_id": {"type": "string"}, "width": {"type": "integer"}, "height": {"type": "integer"},
-        "encoding": {"type": "string"}, "step": {"type": "integer"},
-        "data": {"type": "string", "contentEncoding": "base64"}}}
+        "timestamp": {
+            "type": "object",
+            "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+        },
+        "frame_id": {"type": "string"},
+        "width": {"type": "integer"},
+        "height": {"type": "integer"},
+        "encoding": {"type": "string"},
+        "step": {"type": "integer"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
 
 
 def parameter_name(node_fqn: str, name: str) -> str:
@@ -85,7 +155,8 @@ def parameter_name(node_fqn: str, name: str) -> str:
 
 
 def split_parameter_name(full: str) -> tuple[str, str]:
-    """(node fqn, parameter name) of a Foxglove parameter name; ValueError if it has no node part."""
+    """(node fqn, parameter name) of a Foxglove parameter name; ValueError if it has no node
+    part."""
     node, sep, name = full.partition(PARAMETER_SEPARATOR)
     if not sep or not node.startswith("/") or not name:
         raise ValueError(f"parameter {full!r} is not of the form /<node>.<name>")
@@ -152,17 +223,16 @@ def derived_values(field: str, data: np.ndarray) -> tuple[list[float], list[floa
     return tr.t.tolist(), (tr.z if field == "z" else tr.error).tolist(), tr.input_end_time
 
 
-
-
 def forward_chunk(first_index: int, samples: int, decimation: int) -> bool:
-    """True for the chunks a viewer gets: chunk number ``first_index // samples`` a multiple of ``decimation``."""
+    """True for the chunks a viewer gets: chunk number ``first_index // samples`` a multiple of
+    ``decimation``."""
     return (first_index // samples) % decimation == 0
 
 
 def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
     """``image`` (float, NaN = no data) scaled to uint8 between its :func:`tail_cut_limits` (0 and
-    255); NaN -> 0, pixels beyond the limits are clipped to 0 or 255. Returns (pixels, low, high); a
-    constant image is all 128, an image without data all 0."""
+    255); NaN -> 0, pixels beyond the limits are clipped to 0 or 255. Returns (pixels, low, high);
+    a constant image is all 128, an image without data all 0."""
     finite = np.isfinite(image)
     values = image[finite]
     if values.size == 0:
@@ -170,7 +240,9 @@ def mono8(image: np.ndarray) -> tuple[np.ndarray, float, float]:
     low, high = tail_cut_limits(values)
     out = np.zeros(image.shape, np.uint8)
     if high > low:
-        out[finite] = np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
+        out[finite] = np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(
+            np.uint8
+        )
     else:
         out[finite] = 128
     return out, low, high
@@ -180,6 +252,12 @@ def raw_image_json(image: np.ndarray, stamp_sec: int, stamp_nsec: int, frame_id:
     """foxglove.RawImage (JSON encoding, mono8) of a float image, row 0 first."""
     pixels, _, _ = mono8(image)
     height, width = pixels.shape
-    return {"timestamp": {"sec": int(stamp_sec), "nsec": int(stamp_nsec)}, "frame_id": frame_id,
-            "width": int(width), "height": int(height), "encoding": "mono8", "step": int(width),
-            "data": base64.b64encode(np.ascontiguousarray(pixels).tobytes()).decode("ascii")}
+    return {
+        "timestamp": {"sec": int(stamp_sec), "nsec": int(stamp_nsec)},
+        "frame_id": frame_id,
+        "width": int(width),
+        "height": int(height),
+        "encoding": "mono8",
+        "step": int(width),
+        "data": base64.b64encode(np.ascontiguousarray(pixels).tobytes()).decode("ascii"),
+    }

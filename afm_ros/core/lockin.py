@@ -18,41 +18,91 @@ the step response is the Erlang CDF ``1 - exp(-t/tau) sum_{k<n} (t/tau)^k / k!``
 settling time to a fraction ``q`` is ``tau * P^-1(n, q)`` (regularised incomplete gamma);
 see :func:`settling_time` and :data:`SETTLING_99_IN_TAU`.
 """
+
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
-from afm_ros.formats.chunk_layout import ChunkHeader
-from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.angles import phases_deg
-import time
+from afm_ros.core.physics.parameters import ParamSpec
+from afm_ros.formats.chunk_layout import ChunkHeader
 
 MAX_ORDER = 8
 
-LOCKIN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("reference_source", "drive", "",
-              "'drive': reference phase and frequency from each chunk preamble (follows live drive "
-              "changes); 'fixed': own phase-continuous oscillator at reference_frequency",
-              kind=str, choices=("drive", "fixed")),
-    ParamSpec("reference_frequency", 45e3, "Hz",
-              "frequency of the own oscillator (used only when reference_source is 'fixed')",
-              0.0, 1e8, low_open=True),
-    ParamSpec("harmonic", 1, "1", "demodulate at this multiple of the reference frequency", 1, 8, kind=int),
-    ParamSpec("time_constant", 20e-6, "s", "time constant tau of each first-order low-pass stage",
-              1e-8, 100.0),
-    ParamSpec("filter_order", 4, "1", "number of cascaded first-order low-pass stages (roll-off 6 dB/oct each)",
-              1, MAX_ORDER, kind=int),
-    ParamSpec("output_rate", 1000.0, "Hz",
-              "rate of the output samples (amplitude, phase, X/Y); taken at the first input sample at or "
-              "after each multiple of 1/output_rate of simulated time", 1.0, 1e6),
-    ParamSpec("phase_offset", 0.0, "deg",
-              "subtracted from the measured phase (X + iY rotated by it, amplitude unchanged); the tune sets it so "
-              "that the free phase reads tune_phase_target at the working frequency", -180.0, 180.0),
-)}
+LOCKIN_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "reference_source",
+            "drive",
+            "",
+            "'drive': reference phase and frequency from each chunk preamble (follows live drive "
+            "changes); 'fixed': own phase-continuous oscillator at reference_frequency",
+            kind=str,
+            choices=("drive", "fixed"),
+        ),
+        ParamSpec(
+            "reference_frequency",
+            45e3,
+            "Hz",
+            "frequency of the own oscillator (used only when reference_source is 'fixed')",
+            0.0,
+            1e8,
+            low_open=True,
+        ),
+        ParamSpec(
+            "harmonic",
+            1,
+            "1",
+            "demodulate at this multiple of the reference frequency",
+            1,
+            8,
+            kind=int,
+        ),
+        ParamSpec(
+            "time_constant",
+            20e-6,
+            "s",
+            "time constant tau of each first-order low-pass stage",
+            1e-8,
+            100.0,
+        ),
+        ParamSpec(
+            "filter_order",
+            4,
+            "1",
+            "number of cascaded first-order low-pass stages (roll-off 6 dB/oct each)",
+            1,
+            MAX_ORDER,
+            kind=int,
+        ),
+        ParamSpec(
+            "output_rate",
+            1000.0,
+            "Hz",
+            "rate of the output samples (amplitude, phase, X/Y); taken at the first input sample "
+            "at or "
+            "after each multiple of 1/output_rate of simulated time",
+            1.0,
+            1e6,
+        ),
+        ParamSpec(
+            "phase_offset",
+            0.0,
+            "deg",
+            "subtracted from the measured phase (X + iY rotated by it, amplitude unchanged); the "
+            "tune sets it so "
+            "that the free phase reads tune_phase_target at the working frequency",
+            -180.0,
+            180.0,
+        ),
+    )
+}
 
 # Re-anchor the reference phase after this many samples so n * cycles_per_sample stays small
 # (float64 keeps the phase to ~1e-10 rad below 2**24 samples).
@@ -60,12 +110,15 @@ _ANCHOR_SPAN = 1 << 24
 # Tolerances that decide whether a chunk preamble continues the previous reference/time or jumps.
 _PHASE_JUMP_RAD = 1e-6
 _TIME_JUMP_FRACTION = 1e-3  # of the sample interval
-_GRID_EPS = 1e-6  # of an output period: an input sample this close before a grid point counts as on it
+_GRID_EPS = (
+    1e-6  # of an output period: an input sample this close before a grid point counts as on it
+)
 TWO_PI = 2.0 * math.pi
 
 
 def lowpass_alpha(dt: float, tau: float) -> float:
-    """Update weight of one first-order stage for sample interval dt [s] and time constant tau [s]."""
+    """Update weight of one first-order stage for sample interval dt [s] and time constant tau
+    [s]."""
     return -math.expm1(-dt / tau)
 
 
@@ -75,7 +128,8 @@ def bandwidth_3db(tau: float, order: int) -> float:
 
 
 def noise_equivalent_bandwidth(tau: float, order: int) -> float:
-    """Noise-equivalent power bandwidth [Hz] (one-sided): Gamma(n - 1/2) / (4 sqrt(pi) tau Gamma(n))."""
+    """Noise-equivalent power bandwidth [Hz] (one-sided): Gamma(n - 1/2) / (4 sqrt(pi) tau
+    Gamma(n))."""
     return math.gamma(order - 0.5) / (4.0 * math.sqrt(math.pi) * tau * math.gamma(order))
 
 
@@ -87,12 +141,15 @@ def attenuation(frequency: float, tau: float, order: int) -> float:
 def settling_time(tau: float, order: int, fraction: float = 0.99) -> float:
     """Time [s] for the step response (Erlang CDF) of ``order`` stages to reach ``fraction``."""
     from scipy.special import gammaincinv  # scipy only needed for this helper
+
     return tau * float(gammaincinv(order, fraction))
 
 
-# 99 % settling time in units of tau for orders 1..8 (Erlang CDF): 4.61, 6.64, 8.41, 10.05, 11.6, 13.11, 14.57, 16.0
+# 99 % settling time in units of tau for orders 1..8 (Erlang CDF): 4.61, 6.64, 8.41, 10.05, 11.6,
+# 13.11, 14.57, 16.0
 def __getattr__(name: str):
-    """SETTLING_99_IN_TAU is computed on first use, so importing the lock-in does not load scipy."""
+    """SETTLING_99_IN_TAU is computed on first use, so importing the lock-in does not load
+    scipy."""
     if name == "SETTLING_99_IN_TAU":
         table = {n: settling_time(1.0, n) for n in range(1, MAX_ORDER + 1)}
         globals()[name] = table
@@ -124,12 +181,28 @@ def lowpass(x, alpha, order, state):
 
 
 @njit(cache=True, nogil=True)
-def _demodulate(z, n0, phase_a, cycles_per_sample, harmonic, t_a, interval, alpha, order, state,
-                rate, next_k, out_j, out_x, out_y, out_t):
+def _demodulate(
+    z,
+    n0,
+    phase_a,
+    cycles_per_sample,
+    harmonic,
+    t_a,
+    interval,
+    alpha,
+    order,
+    state,
+    rate,
+    next_k,
+    out_j,
+    out_x,
+    out_y,
+    out_t,
+):
     """Demodulate chunk samples z (sample j is n0 + j samples after the anchor).
 
-    Reference phase theta = phase_a + 2 pi frac(n * cycles_per_sample); time t = t_a + n * interval.
-    Writes an output at the first sample with t * rate >= next_k (grid point); returns
+    Reference phase theta = phase_a + 2 pi frac(n * cycles_per_sample); time t = t_a + n *
+    interval. Writes an output at the first sample with t * rate >= next_k (grid point); returns
     (number of outputs, next_k).
     """
     written = 0
@@ -179,7 +252,9 @@ class LockInOutput:
     def concatenate(parts: list["LockInOutput"]) -> "LockInOutput":
         if not parts:
             return LockInOutput(np.empty(0), np.empty(0, dtype=np.int64), np.empty(0), np.empty(0))
-        return LockInOutput(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "index", "x", "y")))
+        return LockInOutput(
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("t", "index", "x", "y"))
+        )
 
 
 @dataclass
@@ -212,7 +287,9 @@ class LockIn:
         values = {name: spec.default for name, spec in LOCKIN_SPECS.items()}
         for name, value in params.items():
             if name not in LOCKIN_SPECS:
-                raise ValueError(f"{name!r} is not a lock-in parameter; known: {', '.join(LOCKIN_SPECS)}")
+                raise ValueError(
+                    f"{name!r} is not a lock-in parameter; known: {', '.join(LOCKIN_SPECS)}"
+                )
             values[name] = value
         self.params = {name: LOCKIN_SPECS[name].validate(v) for name, v in values.items()}
         self.state = np.zeros((MAX_ORDER, 2))
@@ -228,20 +305,24 @@ class LockIn:
         """Validate and apply parameter changes (all or none)."""
         for name in changes:
             if name not in LOCKIN_SPECS:
-                raise ValueError(f"{name!r} is not a lock-in parameter; known: {', '.join(LOCKIN_SPECS)}")
+                raise ValueError(
+                    f"{name!r} is not a lock-in parameter; known: {', '.join(LOCKIN_SPECS)}"
+                )
         validated = {name: LOCKIN_SPECS[name].validate(v) for name, v in changes.items()}
         old = dict(self.params)
         self.params.update(validated)
         p = self.params
         if p["filter_order"] > old["filter_order"]:
             last = old["filter_order"] - 1
-            self.state[last + 1:p["filter_order"], :] = self.state[last, :]
+            self.state[last + 1 : p["filter_order"], :] = self.state[last, :]
         if p["time_constant"] != old["time_constant"]:
             self._alpha = None
         if p["output_rate"] != old["output_rate"] and self._anchor is not None:
             self._next_k = -math.inf  # restart the output grid at the new rate
-        if (p["reference_source"] != old["reference_source"]
-                or (p["reference_source"] == "fixed" and p["reference_frequency"] != old["reference_frequency"])):
+        if p["reference_source"] != old["reference_source"] or (
+            p["reference_source"] == "fixed"
+            and p["reference_frequency"] != old["reference_frequency"]
+        ):
             self._reanchor_continuous()
 
     def warm_up(self) -> None:
@@ -257,7 +338,8 @@ class LockIn:
 
     # --- reference bookkeeping ----------------------------------------------------------------
     def _predict(self, index: int) -> tuple[float, float]:
-        """(time [s], reference phase [rad, wrapped]) of sample ``index`` from the current anchor."""
+        """(time [s], reference phase [rad, wrapped]) of sample ``index`` from the current
+        anchor."""
         a_index, a_time, a_phase, cps, _ = self._anchor
         n = index - a_index
         c = n * cps
@@ -288,20 +370,31 @@ class LockIn:
                 c = p["reference_frequency"] * (header.t_start - a_time)
                 phase = (a_phase + TWO_PI * (c - math.floor(c))) % TWO_PI
             cps = p["reference_frequency"] * interval
-        self._anchor = (header.first_sample_index, header.t_start, phase, cps, header.drive_frequency)
+        self._anchor = (
+            header.first_sample_index,
+            header.t_start,
+            phase,
+            cps,
+            header.drive_frequency,
+        )
 
     def _prepare(self, header: ChunkHeader) -> None:
         """Decide from the preamble whether the chunk continues the anchored reference/time."""
         p = self.params
         stats = self.stats
         if not (header.sample_interval > 0.0 and math.isfinite(header.sample_interval)):
-            raise ValueError(f"sample_interval={header.sample_interval!r} s must be positive and finite")
+            raise ValueError(
+                f"sample_interval={header.sample_interval!r} s must be positive and finite"
+            )
         if self._interval is not None and header.sample_interval != self._interval:
             stats.interval_changes += 1
             if self._anchor is None or header.drive_frequency == self._anchor[4]:
-                # (with a new drive frequency it is expected: the integration step follows the drive)
-                stats.messages.append(f"sample interval changed from {self._interval:.6g} s to "
-                                      f"{header.sample_interval:.6g} s at sample {header.first_sample_index}")
+                # (with a new drive frequency it is expected: the integration step follows the
+                # drive)
+                stats.messages.append(
+                    f"sample interval changed from {self._interval:.6g} s to "
+                    f"{header.sample_interval:.6g} s at sample {header.first_sample_index}"
+                )
             if p["reference_source"] == "fixed" and self._anchor is not None:
                 self._set_anchor(header)  # before _interval changes: continue the oscillator
             else:
@@ -324,15 +417,23 @@ class LockIn:
         if jump:
             stats.reference_jumps += 1
             if time_jump:
-                stats.messages.append(f"simulated time jumped by {header.t_start - t_pred:.6g} s "
-                                      f"at sample {header.first_sample_index}")
+                stats.messages.append(
+                    f"simulated time jumped by {header.t_start - t_pred:.6g} s "
+                    f"at sample {header.first_sample_index}"
+                )
                 self._next_k = -math.inf  # restart the output grid at the new time
             self._set_anchor(header)
         elif header.first_sample_index - a_index > _ANCHOR_SPAN:
             if p["reference_source"] == "drive":
                 self._set_anchor(header)
             else:
-                self._anchor = (header.first_sample_index, t_pred, phase_pred, self._anchor[3], self._anchor[4])
+                self._anchor = (
+                    header.first_sample_index,
+                    t_pred,
+                    phase_pred,
+                    self._anchor[3],
+                    self._anchor[4],
+                )
 
     # --- processing -----------------------------------------------------------------------
     def process(self, header: ChunkHeader, samples: np.ndarray) -> LockInOutput:
@@ -342,9 +443,13 @@ class LockIn:
             if not math.isfinite(getattr(header, name)):
                 raise ValueError(f"chunk {name}={getattr(header, name)!r} is not finite")
         if not (header.sample_interval > 0.0):
-            raise ValueError(f"chunk sample_interval={header.sample_interval!r} s must be positive")
+            raise ValueError(
+                f"chunk sample_interval={header.sample_interval!r} s must be positive"
+            )
         if not np.isfinite(samples).all():  # would poison the filter state for good
-            raise ValueError(f"chunk at index {header.first_sample_index} holds non-finite samples; ignored")
+            raise ValueError(
+                f"chunk at index {header.first_sample_index} holds non-finite samples; ignored"
+            )
         stats = self.stats
         first = int(header.first_sample_index)
         if self._next_index is not None and first != self._next_index:
@@ -352,27 +457,41 @@ class LockIn:
                 missing = first - self._next_index
                 stats.gap_events += 1
                 stats.missing_samples += missing
-                stats.messages.append(f"sample index gap: expected {self._next_index}, got {first} "
-                                      f"({missing} samples missing)")
+                stats.messages.append(
+                    f"sample index gap: expected {self._next_index}, got {first} "
+                    f"({missing} samples missing)"
+                )
             else:
-                consistent = self._anchor is not None and self._interval == header.sample_interval and \
-                    abs(header.t_start - self._predict(first)[0]) <= _TIME_JUMP_FRACTION * header.sample_interval
+                consistent = (
+                    self._anchor is not None
+                    and self._interval == header.sample_interval
+                    and abs(header.t_start - self._predict(first)[0])
+                    <= _TIME_JUMP_FRACTION * header.sample_interval
+                )
                 if consistent:  # a repeated (duplicate / overlapping) chunk: drop what was seen
                     drop = min(self._next_index - first, samples.shape[0])
                     stats.duplicate_samples += drop
-                    stats.messages.append(f"dropped {drop} already processed samples from index {first}")
+                    stats.messages.append(
+                        f"dropped {drop} already processed samples from index {first}"
+                    )
                     samples = samples[drop:]
                     if samples.shape[0] == 0:
                         return LockInOutput.concatenate([])
-                    header = ChunkHeader(first + drop, header.t_start + drop * header.sample_interval,
-                                         header.sample_interval,
-                                         header.drive_phase + TWO_PI * header.drive_frequency * drop
-                                         * header.sample_interval,
-                                         header.drive_frequency, header.z_offset)
+                    header = ChunkHeader(
+                        first + drop,
+                        header.t_start + drop * header.sample_interval,
+                        header.sample_interval,
+                        header.drive_phase
+                        + TWO_PI * header.drive_frequency * drop * header.sample_interval,
+                        header.drive_frequency,
+                        header.z_offset,
+                    )
                     first += drop
                 else:
                     stats.restarts += 1
-                    stats.messages.append(f"sample stream restarted at index {first} (expected {self._next_index})")
+                    stats.messages.append(
+                        f"sample stream restarted at index {first} (expected {self._next_index})"
+                    )
                     self._anchor = None
                     self._next_k = -math.inf
         self._prepare(header)
@@ -385,9 +504,24 @@ class LockIn:
         cap = min(n, int(n * self._interval * rate) + 2)
         out_j = np.empty(cap, dtype=np.int64)
         out_x, out_y, out_t = np.empty(cap), np.empty(cap), np.empty(cap)
-        count, self._next_k = _demodulate(samples, first - a_index, a_phase, cps, float(self.params["harmonic"]),
-                                          a_time, self._interval, self._alpha, self.params["filter_order"],
-                                          self.state, rate, self._next_k, out_j, out_x, out_y, out_t)
+        count, self._next_k = _demodulate(
+            samples,
+            first - a_index,
+            a_phase,
+            cps,
+            float(self.params["harmonic"]),
+            a_time,
+            self._interval,
+            self._alpha,
+            self.params["filter_order"],
+            self.state,
+            rate,
+            self._next_k,
+            out_j,
+            out_x,
+            out_y,
+            out_t,
+        )
         self._next_index = first + n
         stats.chunks += 1
         stats.samples += n
@@ -408,8 +542,10 @@ def benchmark(samples: int = 1_800_000, chunk: int = 1800, repeats: int = 3) -> 
     fs, f = 900e3, 45e3
     dt = 1.0 / fs
     z = 60e-9 * np.cos(TWO_PI * f * np.arange(samples) * dt - 1.0) + 1e-9
-    headers = [ChunkHeader(i, i * dt, dt, (TWO_PI * ((f * i * dt) % 1.0)) % TWO_PI, f, 0.0)
-               for i in range(0, samples, chunk)]
+    headers = [
+        ChunkHeader(i, i * dt, dt, (TWO_PI * ((f * i * dt) % 1.0)) % TWO_PI, f, 0.0)
+        for i in range(0, samples, chunk)
+    ]
     rows = []
     for order in (1, 4, 8):
         lockin = LockIn(filter_order=order)
@@ -420,7 +556,7 @@ def benchmark(samples: int = 1_800_000, chunk: int = 1800, repeats: int = 3) -> 
             t0 = time.perf_counter()
             for h in headers:
                 i = h.first_sample_index
-                lockin.process(h, z[i:i + chunk])
+                lockin.process(h, z[i : i + chunk])
             best = min(best, time.perf_counter() - t0)
         a = lowpass_alpha(dt, LOCKIN_SPECS["time_constant"].default)
         zi = [np.zeros(1, dtype=complex) for _ in range(order)]
@@ -430,20 +566,33 @@ def benchmark(samples: int = 1_800_000, chunk: int = 1800, repeats: int = 3) -> 
             for h in headers:
                 i = h.first_sample_index
                 n = min(chunk, samples - i)
-                d = z[i:i + n] * np.exp(-1j * (h.drive_phase + TWO_PI * h.drive_frequency * dt * np.arange(n)))
+                d = z[i : i + n] * np.exp(
+                    -1j * (h.drive_phase + TWO_PI * h.drive_frequency * dt * np.arange(n))
+                )
                 for k in range(order):
                     d, zi[k] = lfilter([a], [1.0, a - 1.0], d, zi=zi[k])
                 d[::450] * 2.0
             base = min(base, time.perf_counter() - t0)
-        rows.append({"order": order, "ns_per_sample": best / samples * 1e9,
-                     "baseline_ns_per_sample": base / samples * 1e9,
-                     "max_input_rate_Ss": samples / best})
+        rows.append(
+            {
+                "order": order,
+                "ns_per_sample": best / samples * 1e9,
+                "baseline_ns_per_sample": base / samples * 1e9,
+                "max_input_rate_Ss": samples / best,
+            }
+        )
     return rows
 
 
 if __name__ == "__main__":
     print("lock-in core, one core, chunks of 1800 samples at 900 kS/s (best of 3):")
-    print(f"{'order':>5} {'numba ns/sample':>16} {'numpy+scipy ns/sample':>22} {'max rate [MS/s]':>16}")
+    print(
+        f"{'order':>5} {'numba ns/sample':>16} {'numpy+scipy ns/sample':>22} "
+        f"{'max rate [MS/s]':>16}"
+    )
     for row in benchmark():
-        print(f"{row['order']:>5} {row['ns_per_sample']:>16.1f} {row['baseline_ns_per_sample']:>22.1f} "
-              f"{row['max_input_rate_Ss'] / 1e6:>16.1f}")
+        print(
+            f"{row['order']:>5} {row['ns_per_sample']:>16.1f} "
+            f"{row['baseline_ns_per_sample']:>22.1f} "
+            f"{row['max_input_rate_Ss'] / 1e6:>16.1f}"
+        )

@@ -5,6 +5,7 @@ brackets, ``[not_engaged] scan refused: not engaged: the z stage is withdrawn; .
 for a person, the code for a program (the client maps it to its exception types; a Nanonis error
 section can carry it). The cores raise :class:`Refusal` (a ValueError with a ``code``).
 """
+
 from __future__ import annotations
 
 import re
@@ -14,7 +15,9 @@ ENGAGED = "engaged"  # needs the cantilever free (a tune)
 BUSY = "busy"  # the same work is running (a tune, an approach, a scan, a spectroscopy)
 SCANNING = "scanning"  # needs the tip parked
 NOT_READY = "not_ready"  # the node does not know what it needs yet (another node has not spoken)
-BAD_VALUE = "bad_value"  # a value out of its range, or a request that does not fit (the z range, the rate)
+BAD_VALUE = (
+    "bad_value"  # a value out of its range, or a request that does not fit (the z range, the rate)
+)
 INTERNAL = "internal"  # an exception in the node's own code (afm_ros.nodes.guard)
 CODES = (NOT_ENGAGED, ENGAGED, BUSY, SCANNING, NOT_READY, BAD_VALUE, INTERNAL)
 
@@ -32,7 +35,8 @@ class Refusal(ValueError):
 
 
 def code_of(exc: BaseException) -> str:
-    """The code of an exception a core raised: a Refusal's own, else BAD_VALUE (a ValueError names a value)."""
+    """The code of an exception a core raised: a Refusal's own, else BAD_VALUE (a ValueError names
+    a value)."""
     return exc.code if isinstance(exc, Refusal) else BAD_VALUE
 
 

@@ -15,6 +15,7 @@ Sample coordinates are Gwyddion's: x to the right, y along increasing image rows
 the top of Gwyddion's display), origin at the sample map's corner; the scan centre is given in
 them.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,37 +24,97 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, ARTEFACT_SPECS, check_plan as check_in_field
+from afm_ros.core.artefacts import (
+    ARTEFACT_NODE_SPECS,
+    ARTEFACT_SPECS,
+)
+from afm_ros.core.artefacts import (
+    check_plan as check_in_field,
+)
+from afm_ros.core.cantilever_params import build, default_values
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.physics.parameters import ParamSpec
-from afm_ros.core.cantilever_params import build, default_values
-from afm_ros.core.plan_layout import (PLAN_ACTIVE, PLAN_CENTER_X, PLAN_CENTER_Y,  # noqa: F401 - re-exported
-                                      PLAN_CONTINUOUS, PLAN_COS, PLAN_LENGTH, PLAN_LINE_RATE, PLAN_LINE_STEP,
-                                      PLAN_LINES, PLAN_PARK_X, PLAN_PARK_Y, PLAN_ROTATED, PLAN_SIN, PLAN_SIZE_X,
-                                      PLAN_START, PLAN_X_LEFT, PLAN_Y_FIRST)
+from afm_ros.core.plan_layout import (
+    PLAN_ACTIVE,
+    PLAN_CENTER_X,
+    PLAN_CENTER_Y,  # noqa: F401 - re-exported
+    PLAN_CONTINUOUS,
+    PLAN_COS,
+    PLAN_LENGTH,
+    PLAN_LINE_RATE,
+    PLAN_LINE_STEP,
+    PLAN_LINES,
+    PLAN_PARK_X,
+    PLAN_PARK_Y,
+    PLAN_ROTATED,
+    PLAN_SIN,
+    PLAN_SIZE_X,
+    PLAN_START,
+    PLAN_X_LEFT,
+    PLAN_Y_FIRST,
+)
 from afm_ros.formats.folders import check_output_directory
 
-SCAN_SPECS: dict[str, ParamSpec] = {s.name: s for s in (
-    ParamSpec("scan_size_x", 5e-6, "m", "fast-axis scan size (trace and retrace along x)", 1e-9, 1e-3),
-    ParamSpec("scan_size_y", 5e-6, "m", "slow-axis scan size (lines along y)", 1e-9, 1e-3),
-    ParamSpec("scan_center_x", 5e-6, "m", "scan centre x in sample coordinates (the sample repeats outside its map)",
-              -1e-2, 1e-2),
-    ParamSpec("scan_center_y", 5e-6, "m", "scan centre y in sample coordinates", -1e-2, 1e-2),
-    ParamSpec("pixels_per_line", 128, "1", "pixels per line (each direction)", 2, 4096, kind=int),
-    ParamSpec("lines", 128, "1", "lines per frame", 1, 4096, kind=int),
-    ParamSpec("line_rate", 1.0, "Hz", "lines per second; a line is one trace and one retrace", 1e-3, 100.0),
-    ParamSpec("slow_scan_direction", "up", "", "up: first line at the lowest y (image row 0); down: at the highest",
-              kind=str, choices=("up", "down")),
-    ParamSpec("continuous", False, "", "scan frame after frame (else one frame, then park)", kind=bool),
-    ParamSpec("scan_angle", 0.0, "deg", "scan rotation about the scan centre, counterclockwise from the sample's x "
-              "axis: the fast axis runs along this angle (the image keeps its rows and columns)", -180.0, 180.0),
-)}
-
+SCAN_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "scan_size_x", 5e-6, "m", "fast-axis scan size (trace and retrace along x)", 1e-9, 1e-3
+        ),
+        ParamSpec("scan_size_y", 5e-6, "m", "slow-axis scan size (lines along y)", 1e-9, 1e-3),
+        ParamSpec(
+            "scan_center_x",
+            5e-6,
+            "m",
+            "scan centre x in sample coordinates (the sample repeats outside its map)",
+            -1e-2,
+            1e-2,
+        ),
+        ParamSpec("scan_center_y", 5e-6, "m", "scan centre y in sample coordinates", -1e-2, 1e-2),
+        ParamSpec(
+            "pixels_per_line", 128, "1", "pixels per line (each direction)", 2, 4096, kind=int
+        ),
+        ParamSpec("lines", 128, "1", "lines per frame", 1, 4096, kind=int),
+        ParamSpec(
+            "line_rate",
+            1.0,
+            "Hz",
+            "lines per second; a line is one trace and one retrace",
+            1e-3,
+            100.0,
+        ),
+        ParamSpec(
+            "slow_scan_direction",
+            "up",
+            "",
+            "up: first line at the lowest y (image row 0); down: at the highest",
+            kind=str,
+            choices=("up", "down"),
+        ),
+        ParamSpec(
+            "continuous",
+            False,
+            "",
+            "scan frame after frame (else one frame, then park)",
+            kind=bool,
+        ),
+        ParamSpec(
+            "scan_angle",
+            0.0,
+            "deg",
+            "scan rotation about the scan centre, counterclockwise from the sample's x "
+            "axis: the fast axis runs along this angle (the image keeps its rows and columns)",
+            -180.0,
+            180.0,
+        ),
+    )
+}
 
 
 @dataclass(frozen=True)
 class ScanPlan:
-    """One scan: geometry [m], pixels, lines, line rate [Hz], and its start in simulated time [s]."""
+    """One scan: geometry [m], pixels, lines, line rate [Hz], and its start in simulated time
+    [s]."""
 
     size_x: float
     size_y: float
@@ -69,20 +130,42 @@ class ScanPlan:
 
     @classmethod
     def from_values(cls, values: dict, start_time: float = 0.0) -> "ScanPlan":
-        """From scanner parameter values (SCAN_SPECS names), validated (ValueError naming the field)."""
-        v = {name: spec.validate(values.get(name, spec.default)) for name, spec in SCAN_SPECS.items()}
+        """From scanner parameter values (SCAN_SPECS names), validated (ValueError naming the
+        field)."""
+        v = {
+            name: spec.validate(values.get(name, spec.default))
+            for name, spec in SCAN_SPECS.items()
+        }
         if not math.isfinite(start_time):
             raise ValueError(f"start_time={start_time!r} s is not finite")
-        return cls(v["scan_size_x"], v["scan_size_y"], v["scan_center_x"], v["scan_center_y"], v["pixels_per_line"],
-                   v["lines"], v["line_rate"], v["slow_scan_direction"], v["continuous"], float(start_time),
-                   v["scan_angle"])
+        return cls(
+            v["scan_size_x"],
+            v["scan_size_y"],
+            v["scan_center_x"],
+            v["scan_center_y"],
+            v["pixels_per_line"],
+            v["lines"],
+            v["line_rate"],
+            v["slow_scan_direction"],
+            v["continuous"],
+            float(start_time),
+            v["scan_angle"],
+        )
 
     def values(self) -> dict:
         """Scanner parameter values of this plan (SCAN_SPECS names)."""
-        return {"scan_size_x": self.size_x, "scan_size_y": self.size_y, "scan_center_x": self.center_x,
-                "scan_center_y": self.center_y, "pixels_per_line": self.pixels, "lines": self.lines,
-                "line_rate": self.line_rate, "slow_scan_direction": self.slow_scan_direction,
-                "continuous": self.continuous, "scan_angle": self.angle}
+        return {
+            "scan_size_x": self.size_x,
+            "scan_size_y": self.size_y,
+            "scan_center_x": self.center_x,
+            "scan_center_y": self.center_y,
+            "pixels_per_line": self.pixels,
+            "lines": self.lines,
+            "line_rate": self.line_rate,
+            "slow_scan_direction": self.slow_scan_direction,
+            "continuous": self.continuous,
+            "scan_angle": self.angle,
+        }
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -145,16 +228,23 @@ class ScanPlan:
         out[PLAN_X_LEFT] = self.x_left
         out[PLAN_SIZE_X] = self.size_x
         out[PLAN_Y_FIRST] = self.line_y(0)
-        out[PLAN_LINE_STEP] = self.line_pitch if self.slow_scan_direction == "up" else -self.line_pitch
+        out[PLAN_LINE_STEP] = (
+            self.line_pitch if self.slow_scan_direction == "up" else -self.line_pitch
+        )
         out[PLAN_LINE_RATE] = self.line_rate
         out[PLAN_LINES] = self.lines
         out[PLAN_CONTINUOUS] = 1.0 if self.continuous else 0.0
         out[PLAN_PARK_X] = self.x_left
         out[PLAN_PARK_Y] = self.line_y(0)
-        if self.angle != 0.0:  # angle 0 stays on the unrotated path (the same bits as before rotation existed)
+        if (
+            self.angle != 0.0
+        ):  # angle 0 stays on the unrotated path (the same bits as before rotation existed)
             out[PLAN_ROTATED] = 1.0
             out[PLAN_CENTER_X], out[PLAN_CENTER_Y] = self.center_x, self.center_y
-            out[PLAN_COS], out[PLAN_SIN] = math.cos(math.radians(self.angle)), math.sin(math.radians(self.angle))
+            out[PLAN_COS], out[PLAN_SIN] = (
+                math.cos(math.radians(self.angle)),
+                math.sin(math.radians(self.angle)),
+            )
         return out
 
     @property
@@ -164,7 +254,8 @@ class ScanPlan:
         return c * self.size_x + s * self.size_y, s * self.size_x + c * self.size_y
 
     def to_sample(self, x, y):
-        """Sample coordinates [m] of scan-frame positions (x, y) [m] (the unrotated raster's), arrays or floats."""
+        """Sample coordinates [m] of scan-frame positions (x, y) [m] (the unrotated raster's),
+        arrays or floats."""
         if self.angle == 0.0:
             return x, y
         c, s = math.cos(math.radians(self.angle)), math.sin(math.radians(self.angle))
@@ -172,7 +263,8 @@ class ScanPlan:
         return self.center_x + du * c - dv * s, self.center_y + du * s + dv * c
 
     def slots(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(frame, line, direction 0 trace / 1 retrace, pixel) of each time t [s]; frame -1 outside the scan."""
+        """(frame, line, direction 0 trace / 1 retrace, pixel) of each time t [s]; frame -1 outside
+        the scan."""
         t = np.ascontiguousarray(t, dtype=np.float64).reshape(-1)
         out = np.empty((4, t.shape[0]), dtype=np.int64)
         _slots(t, self.start_time, self.line_rate, self.lines, self.pixels, self.continuous, out)
@@ -229,21 +321,29 @@ WRITE_BYTES_PER_PIXEL = 320
 # A scan's frame buffers may take at most this (and at most the memory available when it starts):
 # 2048 x 2048 needs 1.9 GiB, 4096 x 4096 (the largest the specs allow) 7.4 GiB, which a 2-core
 # workstation running the instrument beside it cannot spare, and which could never be written.
-MAX_FRAME_MEMORY_BYTES = 4 * 2 ** 30
+MAX_FRAME_MEMORY_BYTES = 4 * 2**30
 GWY_BYTES_PER_PIXEL = 2 * 5 * 8  # 10 float64 channels
-FRAME_FILES_OVERHEAD_BYTES = 12 * 2 ** 20  # metadata + ten PNG previews (each < 1 MiB: a fixed-size figure)
+FRAME_FILES_OVERHEAD_BYTES = (
+    12 * 2**20
+)  # metadata + ten PNG previews (each < 1 MiB: a fixed-size figure)
 
 
 def max_pixels(line_rate: float, output_rate: float, sample_interval: float) -> int:
     """Most pixels per line for which every pixel holds a lock-in output: a pixel lasts
     1 / (2 line_rate pixels) [s] and the outputs come every 1/output_rate [s], each at the first
     input sample at or after its grid time (up to one sample interval [s] late)."""
-    return int(math.floor(1.0 / (2.0 * line_rate * (1.0 / output_rate + sample_interval)) * (1.0 + 1e-12)))
+    return int(
+        math.floor(1.0 / (2.0 * line_rate * (1.0 / output_rate + sample_interval)) * (1.0 + 1e-12))
+    )
 
 
 def frame_memory_bytes(pixels: int, lines: int, continuous: bool = False) -> int:
     """Estimated peak memory [bytes] of one scan's frame buffers (accumulator, frame, writing)."""
-    per_pixel = ACCUMULATOR_BYTES_PER_PIXEL + FRAME_BYTES_PER_PIXEL * (2 if continuous else 1) + WRITE_BYTES_PER_PIXEL
+    per_pixel = (
+        ACCUMULATOR_BYTES_PER_PIXEL
+        + FRAME_BYTES_PER_PIXEL * (2 if continuous else 1)
+        + WRITE_BYTES_PER_PIXEL
+    )
     return int(pixels) * int(lines) * per_pixel
 
 
@@ -281,17 +381,23 @@ class ScanNeeds:
 
 
 def _gib(n: float) -> str:
-    return f"{n / 2 ** 30:.2f} GiB" if n >= 2 ** 30 else f"{n / 2 ** 20:.0f} MiB"
+    return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
 
 
-def check_scan(values, lockin_output_rate: float, sample_interval: float | None = None,
-               memory_limit: int | None = None) -> ScanNeeds:
+def check_scan(
+    values,
+    lockin_output_rate: float,
+    sample_interval: float | None = None,
+    memory_limit: int | None = None,
+) -> ScanNeeds:
     """Check a scan before it starts (``values``: scanner parameter values or a ScanPlan):
 
     - every pixel gets a lock-in output: ``pixels_per_line <= max_pixels(line_rate,
-      lockin_output_rate [Hz], sample_interval [s])`` (default interval: the cantilever's defaults);
+      lockin_output_rate [Hz], sample_interval [s])`` (default interval: the cantilever's
+      defaults);
     - its frame buffers (accumulator + frame + writing, :func:`frame_memory_bytes`) fit in
-      ``memory_limit`` [bytes] (default :data:`MAX_FRAME_MEMORY_BYTES` and the memory available now).
+      ``memory_limit`` [bytes] (default :data:`MAX_FRAME_MEMORY_BYTES` and the memory available
+      now).
 
     ValueError naming the field, the value and the allowed range; else the :class:`ScanNeeds`.
     """
@@ -307,12 +413,17 @@ def check_scan(values, lockin_output_rate: float, sample_interval: float | None 
         hints = []
         if room > 0 and needed / room <= LOCKIN_SPECS["output_rate"].high:
             hints.append(f"raise the lock-in output_rate to >= {math.ceil(needed / room)} Hz")
-        hints.append(f"lower line_rate to <= {1.0 / (2.0 * plan.pixels * (1.0 / rate + interval)):.3g} Hz")
+        hints.append(
+            f"lower line_rate to <= {1.0 / (2.0 * plan.pixels * (1.0 / rate + interval)):.3g} Hz"
+        )
         raise ValueError(
-            f"pixels_per_line={plan.pixels} needs {2 * plan.pixels} lock-in outputs per line (one per pixel, trace "
-            f"and retrace) at line_rate={plan.line_rate:g} Hz; the lock-in output_rate={rate:g} Hz gives "
+            f"pixels_per_line={plan.pixels} needs {2 * plan.pixels} lock-in outputs per line (one "
+            "per pixel, trace "
+            f"and retrace) at line_rate={plan.line_rate:g} Hz; the lock-in output_rate={rate:g} "
+            "Hz gives "
             f"{rate / plan.line_rate:.6g}: allowed pixels_per_line [2, {max(limit, 0)}] here, or "
-            + " or ".join(hints))
+            + " or ".join(hints)
+        )
     memory = frame_memory_bytes(plan.pixels, plan.lines, plan.continuous)
     if memory_limit is None:
         available = available_memory_bytes()
@@ -324,32 +435,80 @@ def check_scan(values, lockin_output_rate: float, sample_interval: float | None 
     if memory > bound:
         per_pixel = memory / (plan.pixels * plan.lines)
         raise ValueError(
-            f"pixels_per_line={plan.pixels} x lines={plan.lines} needs about {_gib(memory)} for the frame buffers "
-            f"(accumulator, frame and writing the .gwy: {per_pixel:.0f} bytes per pixel); allowed at most "
-            f"{_gib(bound)} ({why}): at most {int(bound // per_pixel)} pixels per frame")
+            f"pixels_per_line={plan.pixels} x lines={plan.lines} needs about {_gib(memory)} for "
+            "the frame buffers "
+            f"(accumulator, frame and writing the .gwy: {per_pixel:.0f} bytes per pixel); allowed "
+            "at most "
+            f"{_gib(bound)} ({why}): at most {int(bound // per_pixel)} pixels per frame"
+        )
     return ScanNeeds(plan, limit, memory, frame_file_bytes(plan.pixels, plan.lines))
 
 
 # the scanner node's parameters: the scan settings above plus where frames go
-SCANNER_NODE_SPECS: dict[str, ParamSpec] = {**SCAN_SPECS, **ARTEFACT_NODE_SPECS, **{s.name: s for s in (
-    ParamSpec("output_directory", "", "", "folder for the frames' .gwy files and PNG previews ('' = the working "
-              "directory); checked when set and at each scan start; a missing last level is created then (never "
-              "a chain of folders, never at /)", kind=str),
-    ParamSpec("file_prefix", "afm_frame", "", "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
-              kind=str),
-    ParamSpec("write_files", True, "", "write each finished frame as .gwy + PNG previews", kind=bool),
-    ParamSpec("tip_x", 5e-6, "m", "x of the position scanner/move_tip moves the tip to (sample coordinates; refused "
-              "while scanning)", -1e-3, 1e-3),
-    ParamSpec("tip_y", 5e-6, "m", "y of the position scanner/move_tip moves the tip to", -1e-3, 1e-3),
-    ParamSpec("write_partial_frames", True, "", "a stopped scan writes the lines completed so far as "
-              "<prefix>_<date>_<time>_<frame>_partial.gwy (+ PNG previews), if write_files", kind=bool),
-)}}
+SCANNER_NODE_SPECS: dict[str, ParamSpec] = {
+    **SCAN_SPECS,
+    **ARTEFACT_NODE_SPECS,
+    **{
+        s.name: s
+        for s in (
+            ParamSpec(
+                "output_directory",
+                "",
+                "",
+                "folder for the frames' .gwy files and PNG previews ('' = the working "
+                "directory); checked when set and at each scan start; a missing last level is "
+                "created then (never "
+                "a chain of folders, never at /)",
+                kind=str,
+            ),
+            ParamSpec(
+                "file_prefix",
+                "afm_frame",
+                "",
+                "frame files are <prefix>_<date>_<time>_<frame>.gwy (+ PNG previews)",
+                kind=str,
+            ),
+            ParamSpec(
+                "write_files",
+                True,
+                "",
+                "write each finished frame as .gwy + PNG previews",
+                kind=bool,
+            ),
+            ParamSpec(
+                "tip_x",
+                5e-6,
+                "m",
+                "x of the position scanner/move_tip moves the tip to (sample coordinates; refused "
+                "while scanning)",
+                -1e-3,
+                1e-3,
+            ),
+            ParamSpec(
+                "tip_y",
+                5e-6,
+                "m",
+                "y of the position scanner/move_tip moves the tip to",
+                -1e-3,
+                1e-3,
+            ),
+            ParamSpec(
+                "write_partial_frames",
+                True,
+                "",
+                "a stopped scan writes the lines completed so far as "
+                "<prefix>_<date>_<time>_<frame>_partial.gwy (+ PNG previews), if write_files",
+                kind=bool,
+            ),
+        )
+    },
+}
 
 
 @njit(cache=True, nogil=True, inline="always")
 def slot_of(t, start, rate, lines, pixels, continuous):
-    """(frame, line, direction, pixel, line count) of time t [s]; frame -1 before the start or after a
-    single frame. The line count floor((t - start) rate) says how far the scan has gone."""
+    """(frame, line, direction, pixel, line count) of time t [s]; frame -1 before the start or
+    after a single frame. The line count floor((t - start) rate) says how far the scan has gone."""
     rel = (t - start) * rate
     total = math.floor(rel)
     u = rel - total
@@ -382,7 +541,9 @@ def bin_into(t, values, start, rate, lines, pixels, continuous, frame_index, sum
     seen (-1 if none)."""
     passed = -1
     for i in range(t.shape[0]):
-        frame, line, direction, pixel, count = slot_of(t[i], start, rate, lines, pixels, continuous)
+        frame, line, direction, pixel, count = slot_of(
+            t[i], start, rate, lines, pixels, continuous
+        )
         if count > passed:
             passed = count
         if frame != frame_index:
@@ -396,15 +557,20 @@ def bin_into(t, values, start, rate, lines, pixels, continuous, frame_index, sum
 
 def check_scanner_values(values: dict) -> ScanPlan:
     """The scanner node's parameter values (SCANNER_NODE_SPECS names), what can be checked when
-    they are set: the scan (:meth:`ScanPlan.from_values`; it fits in ``scanner_field``), ``file_prefix`` (a file name part) and
-    ``output_directory`` (not a file, its parent exists; writing and space are checked when a scan
-    starts). ValueError naming the field; else the plan."""
+    they are set: the scan (:meth:`ScanPlan.from_values`; it fits in ``scanner_field``),
+    ``file_prefix`` (a file name part) and ``output_directory`` (not a file, its parent exists;
+    writing and space are checked when a scan starts). ValueError naming the field; else the
+    plan."""
 
     plan = ScanPlan.from_values(values)
-    check_in_field({name: values.get(name, spec.default) for name, spec in ARTEFACT_SPECS.items()}, plan)
+    check_in_field(
+        {name: values.get(name, spec.default) for name, spec in ARTEFACT_SPECS.items()}, plan
+    )
     prefix = values.get("file_prefix", SCANNER_NODE_SPECS["file_prefix"].default)
     if not prefix or "/" in prefix or "\\" in prefix or "\0" in prefix or prefix in (".", ".."):
-        raise ValueError(f"file_prefix={prefix!r} must be a non-empty file name part without '/' or '\\'; "
-                         f"the folder is output_directory")
+        raise ValueError(
+            f"file_prefix={prefix!r} must be a non-empty file name part without '/' or '\\'; "
+            f"the folder is output_directory"
+        )
     check_output_directory(values.get("output_directory", ""), probe_write=False)
     return plan

@@ -1,4 +1,5 @@
-"""Running statistics of a session (no ROS import): what the instrument's summary and the report say.
+"""Running statistics of a session (no ROS import): what the instrument's summary and the report
+say.
 
 All times are simulated seconds, amplitudes and z in metres, phases in degrees. Memory does not
 grow with the session: windows keep sums, the rolling window keeps 10 ms bins of its span.
@@ -9,6 +10,7 @@ grow with the session: windows keep sums, the rolling window keeps 10 ms bins of
 set``, Foxglove) is placed at the simulated time it took effect, and each change gets its own
 settling time.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,7 +21,8 @@ import numpy as np
 
 @dataclass
 class WindowStats:
-    """Running mean/std of lock-in amplitude [m] and phase [deg], and mean z [m], over [t0, t1) simulated."""
+    """Running mean/std of lock-in amplitude [m] and phase [deg], and mean z [m], over [t0, t1)
+    simulated."""
 
     t0: float
     t1: float
@@ -72,7 +75,9 @@ class RollingStats:
         self.span = span
         self.t0 = t0
         self.bins: dict[int, list] = {}  # bin -> [n, sum da, sum da^2, sum phase, nz, sum z]
-        self.ref: float | None = None  # amplitudes are summed relative to the first one (precision)
+        self.ref: float | None = (
+            None  # amplitudes are summed relative to the first one (precision)
+        )
 
     def _bin(self, t: float) -> list:
         k = int(math.floor(t / self.BIN_S))
@@ -133,7 +138,8 @@ class RollingStats:
 
 @dataclass
 class SettlingTracker:
-    """Simulated time from ``t_enable`` until |A - setpoint| <= band for good (incremental); None: not settled."""
+    """Simulated time from ``t_enable`` until |A - setpoint| <= band for good (incremental); None:
+    not settled."""
 
     t_enable: float
     setpoint: float
@@ -157,7 +163,9 @@ class SettlingTracker:
         return None if self.inside_since is None else self.inside_since - self.t_enable
 
 
-SETPOINT_TOLERANCE_M = 1e-15  # a reconstructed setpoint differs from the one in force by round-off only
+SETPOINT_TOLERANCE_M = (
+    1e-15  # a reconstructed setpoint differs from the one in force by round-off only
+)
 
 
 @dataclass
@@ -170,17 +178,23 @@ class SetpointChange:
     settling: SettlingTracker
 
     def as_dict(self) -> dict:
-        return {"time_s": self.time_s, "old_m": self.old_m, "new_m": self.new_m,
-                "settling_time_s": self.settling.settling_time, "band_m": self.settling.band}
+        return {
+            "time_s": self.time_s,
+            "old_m": self.old_m,
+            "new_m": self.new_m,
+            "settling_time_s": self.settling.settling_time,
+            "band_m": self.settling.band,
+        }
 
 
 @dataclass
 class SetpointHistory:
     """Setpoint segments from ``t_enable`` on: the engage setpoint, then each live change.
 
-    ``band_fraction`` x setpoint is each segment's settling band; ``on_change(change)`` is called for
-    each change found and ``on_settled(change, t)`` when the amplitude enters the band of a changed
-    setpoint at ``t`` [s] (again, if it left it), e.g. to restart the hold statistics there."""
+    ``band_fraction`` x setpoint is each segment's settling band; ``on_change(change)`` is called
+    for each change found and ``on_settled(change, t)`` when the amplitude enters the band of a
+    changed setpoint at ``t`` [s] (again, if it left it), e.g. to restart the hold statistics
+    there."""
 
     t_enable: float
     setpoint: float
@@ -190,27 +204,36 @@ class SetpointHistory:
     changes: list = field(default_factory=list)  # SetpointChange after the engage one
 
     def __post_init__(self):
-        self.engage = SettlingTracker(self.t_enable, self.setpoint, self.band_fraction * self.setpoint)
+        self.engage = SettlingTracker(
+            self.t_enable, self.setpoint, self.band_fraction * self.setpoint
+        )
 
     @property
     def current(self) -> SettlingTracker:
         return self.changes[-1].settling if self.changes else self.engage
 
     def add(self, t: np.ndarray, amplitude: np.ndarray, error: np.ndarray) -> None:
-        """Lock-in outputs (time [s], amplitude [m]) and the z controller's error [m] at the same outputs."""
+        """Lock-in outputs (time [s], amplitude [m]) and the z controller's error [m] at the same
+        outputs."""
         sel = t >= self.t_enable
         t, a = t[sel], amplitude[sel]
         s = a + error[sel]
         start = 0
         while True:
-            off = np.flatnonzero(np.isfinite(s[start:]) & (np.abs(s[start:] - self.setpoint) > SETPOINT_TOLERANCE_M))
+            off = np.flatnonzero(
+                np.isfinite(s[start:]) & (np.abs(s[start:] - self.setpoint) > SETPOINT_TOLERANCE_M)
+            )
             if not off.size:
                 break
             i = start + int(off[0])
             self._add_current(t[start:i], a[start:i])
             new = float(s[i])
-            change = SetpointChange(float(t[i]), self.setpoint, new,
-                                    SettlingTracker(float(t[i]), new, self.band_fraction * new))
+            change = SetpointChange(
+                float(t[i]),
+                self.setpoint,
+                new,
+                SettlingTracker(float(t[i]), new, self.band_fraction * new),
+            )
             self.changes.append(change)
             self.setpoint = new
             start = i
@@ -222,15 +245,19 @@ class SetpointHistory:
         tracker = self.current
         before = tracker.inside_since
         tracker.add(t, a)
-        if self.changes and self.on_settled is not None and tracker.inside_since is not None \
-                and tracker.inside_since != before:
+        if (
+            self.changes
+            and self.on_settled is not None
+            and tracker.inside_since is not None
+            and tracker.inside_since != before
+        ):
             self.on_settled(self.changes[-1], tracker.inside_since)
 
 
 @dataclass
 class FmWindow:
-    """Running mean and spread of the FM loop's outputs over [t0, t1) simulated [s]: df [Hz], drive [N],
-    amplitude [m] and phase error [deg] (:class:`afm_ros.core.fm.FMOutputs` batches)."""
+    """Running mean and spread of the FM loop's outputs over [t0, t1) simulated [s]: df [Hz], drive
+    [N], amplitude [m] and phase error [deg] (:class:`afm_ros.core.fm.FMOutputs` batches)."""
 
     t0: float
     t1: float
@@ -245,7 +272,9 @@ class FmWindow:
         sel = (t >= self.t0) & (t < self.t1)
         if not sel.any():
             return
-        block = np.array([np.asarray(v, dtype=float)[sel] for v in (df, drive, amplitude, phase_error)])
+        block = np.array(
+            [np.asarray(v, dtype=float)[sel] for v in (df, drive, amplitude, phase_error)]
+        )
         self.n += int(sel.sum())
         self.sums += block.sum(axis=1)
         self.squares += (block * block).sum(axis=1)

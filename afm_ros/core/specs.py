@@ -4,6 +4,7 @@
 from :data:`NODE_SPECS`; ``python -m afm_ros.tools.config_gen yaml|table`` prints them and a test
 checks that the committed files agree.
 """
+
 from __future__ import annotations
 
 from afm_ros.core.approach import Z_NODE_SPECS
@@ -41,10 +42,14 @@ def node_key(node: str) -> str:
 
 def yaml_text(nodes: dict | None = None) -> str:
     nodes = node_specs() if nodes is None else nodes
-    lines = ["# Defaults of every afm_ros node: the seed notebook's cantilever and DMT sample.",
-             "# Generated from the parameter specs by `python -m afm_ros.tools.config_gen yaml`; SI units.",
-             "# Use with: ros2 run afm_ros <node> --ros-args --params-file config/afm.yaml",
-             "# The keys are /**/<node name>, so the file applies under any namespace (-r __ns:=/afm1)."]
+    lines = [
+        "# Defaults of every afm_ros node: the seed notebook's cantilever and DMT sample.",
+        "# Generated from the parameter specs by `python -m afm_ros.tools.config_gen yaml`; SI "
+        "units.",
+        "# Use with: ros2 run afm_ros <node> --ros-args --params-file config/afm.yaml",
+        "# The keys are /**/<node name>, so the file applies under any namespace (-r "
+        "__ns:=/afm1).",
+    ]
     for node, specs in nodes.items():
         lines += [f"{node_key(node)}:", "  ros__parameters:"]
         for name, spec in specs.items():
@@ -55,17 +60,25 @@ def yaml_text(nodes: dict | None = None) -> str:
 
 
 def spec_cells(spec) -> tuple[str, str, str, str]:
-    """(default, unit, range, live) of a spec as the parameter tables show them (README, ``--help``)."""
-    default = yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
+    """(default, unit, range, live) of a spec as the parameter tables show them (README,
+    ``--help``)."""
+    default = (
+        yaml_value(spec.default) if not isinstance(spec.default, str) else f"`{spec.default}`"
+    )
     return default, spec.unit or "-", spec.range_text(), "yes" if spec.live else "no"
 
 
 def table_text(nodes: dict | None = None) -> str:
     nodes = node_specs() if nodes is None else nodes
-    rows = ["| node | name | default | unit | range | live | description |",
-            "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| node | name | default | unit | range | live | description |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for node, specs in nodes.items():
         for name, spec in specs.items():
             default, unit, allowed, live = spec_cells(spec)
-            rows.append(f"| {node} | `{name}` | {default} | {unit} | {allowed} | {live} | {spec.description} |")
+            rows.append(
+                f"| {node} | `{name}` | {default} | {unit} | {allowed} | {live} | "
+                f"{spec.description} |"
+            )
     return "\n".join(rows) + "\n"

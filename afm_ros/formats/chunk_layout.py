@@ -6,6 +6,7 @@ and the simulated time ``t_start + i * sample_interval`` [s]; the drive phase at
 ``drive_phase + 2 pi drive_frequency i sample_interval`` [rad]; the tip-sample gap is
 ``z_offset + deflection`` [m].
 """
+
 from __future__ import annotations
 
 import math
@@ -14,8 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PREAMBLE_FIELDS = ("first_sample_index", "t_start_s", "sample_interval_s", "drive_phase_rad",
-                   "drive_frequency_hz", "z_offset_m")
+PREAMBLE_FIELDS = (
+    "first_sample_index",
+    "t_start_s",
+    "sample_interval_s",
+    "drive_phase_rad",
+    "drive_frequency_hz",
+    "z_offset_m",
+)
 PREAMBLE_LENGTH = len(PREAMBLE_FIELDS)
 SAMPLES_LABEL = "samples"
 
@@ -30,14 +37,25 @@ class ChunkHeader:
     z_offset: float  # z_base + z_piezo [m]; gap = z_offset + deflection
 
     def as_array(self) -> np.ndarray:
-        return np.array([float(self.first_sample_index), self.t_start, self.sample_interval,
-                         self.drive_phase, self.drive_frequency, self.z_offset])
+        return np.array(
+            [
+                float(self.first_sample_index),
+                self.t_start,
+                self.sample_interval,
+                self.drive_phase,
+                self.drive_frequency,
+                self.z_offset,
+            ]
+        )
 
     def times(self, count: int) -> np.ndarray:
         return self.t_start + np.arange(count) * self.sample_interval
 
     def drive_phases(self, count: int) -> np.ndarray:
-        return self.drive_phase + 2.0 * np.pi * self.drive_frequency * np.arange(count) * self.sample_interval
+        return (
+            self.drive_phase
+            + 2.0 * np.pi * self.drive_frequency * np.arange(count) * self.sample_interval
+        )
 
 
 def pack(header: ChunkHeader, samples: np.ndarray) -> np.ndarray:
@@ -50,19 +68,28 @@ def pack(header: ChunkHeader, samples: np.ndarray) -> np.ndarray:
 
 def unpack(data) -> tuple[ChunkHeader, np.ndarray]:
     """Inverse of :func:`pack` for a message's ``data`` (array.array, list or ndarray)."""
-    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
+    arr = (
+        np.frombuffer(data, dtype=np.float64)
+        if isinstance(data, (bytes, memoryview))
+        else np.asarray(data, dtype=np.float64)
+    )
     if arr.shape[0] < PREAMBLE_LENGTH:
-        raise ValueError(f"chunk has {arr.shape[0]} values, fewer than the {PREAMBLE_LENGTH}-value preamble")
+        raise ValueError(
+            f"chunk has {arr.shape[0]} values, fewer than the {PREAMBLE_LENGTH}-value preamble"
+        )
     p = arr[:PREAMBLE_LENGTH]
-    header = ChunkHeader(int(p[0]), float(p[1]), float(p[2]), float(p[3]), float(p[4]), float(p[5]))
+    header = ChunkHeader(
+        int(p[0]), float(p[1]), float(p[2]), float(p[3]), float(p[4]), float(p[5])
+    )
     return header, arr[PREAMBLE_LENGTH:]
 
 
 # --- lock-in output batch (topic ``lockin/outputs``) --------------------------------------------
-# One message per input chunk: ``data[0:3] = [input_first_index, input_end_index, input_end_time_s]``
-# (the deflection chunk the outputs come from: samples [first, end), ``end`` is also the index of the
-# next input sample), then the n output samples as three blocks ``t[0:n]`` [s], ``x[0:n]`` [m],
-# ``y[0:n]`` [m]. ``layout.data_offset = 3``; ``layout.dim[0] = ("outputs", n, 3 n)``.
+# One message per input chunk: ``data[0:3] = [input_first_index, input_end_index,
+# input_end_time_s]`` (the deflection chunk the outputs come from: samples [first, end), ``end`` is
+# also the index of the next input sample), then the n output samples as three blocks ``t[0:n]``
+# [s], ``x[0:n]`` [m], ``y[0:n]`` [m]. ``layout.data_offset = 3``; ``layout.dim[0] = ("outputs", n,
+# 3 n)``.
 OUTPUTS_PREAMBLE_FIELDS = ("input_first_index", "input_end_index", "input_end_time_s")
 OUTPUTS_PREAMBLE_LENGTH = len(OUTPUTS_PREAMBLE_FIELDS)
 OUTPUTS_LABEL = "outputs"
@@ -84,26 +111,34 @@ def _pack_blocks(preamble: tuple, blocks: tuple) -> np.ndarray:
     """``preamble`` values followed by equally long ``blocks``, as one float64 array."""
     n = blocks[0].shape[0]
     out = np.empty(len(preamble) + len(blocks) * n)
-    out[:len(preamble)] = preamble
+    out[: len(preamble)] = preamble
     for i, block in enumerate(blocks):
-        out[len(preamble) + i * n:len(preamble) + (i + 1) * n] = block
+        out[len(preamble) + i * n : len(preamble) + (i + 1) * n] = block
     return out
 
 
 def _unpack_blocks(data, preamble_length: int, count: int, what: str) -> tuple[np.ndarray, list]:
     """(preamble, [block, ...]) of :func:`_pack_blocks`' layout; ValueError naming ``what``."""
-    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) else np.asarray(data, dtype=np.float64)
+    arr = (
+        np.frombuffer(data, dtype=np.float64)
+        if isinstance(data, (bytes, memoryview))
+        else np.asarray(data, dtype=np.float64)
+    )
     body = arr.shape[0] - preamble_length
     if body < 0 or body % count:
-        raise ValueError(f"{what} has {arr.shape[0]} values; expected {preamble_length} + {count} n")
+        raise ValueError(
+            f"{what} has {arr.shape[0]} values; expected {preamble_length} + {count} n"
+        )
     n = body // count
     p = preamble_length
-    return arr[:p], [arr[p + i * n:p + (i + 1) * n] for i in range(count)]
+    return arr[:p], [arr[p + i * n : p + (i + 1) * n] for i in range(count)]
 
 
 def pack_outputs(batch: OutputBatch) -> np.ndarray:
-    return _pack_blocks((float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
-                        (batch.t, batch.x, batch.y))
+    return _pack_blocks(
+        (float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
+        (batch.t, batch.x, batch.y),
+    )
 
 
 def unpack_outputs(data) -> OutputBatch:
@@ -112,13 +147,14 @@ def unpack_outputs(data) -> OutputBatch:
     return OutputBatch(int(pre[0]), int(pre[1]), float(pre[2]), t, x, y)
 
 
-# --- z command (topic ``z_controller/z_command``) -------------------------------------------------
-# ``data = [answered_end_index, answered_end_time_s, z_piezo_m]``: the z piezo position [m] computed
-# from every lock-in output of the deflection samples before ``answered_end_index``. The cantilever
-# applies it to the chunk that starts ``feedback_latency`` chunks after the answered one (lockstep).
-# ``answered_end_index`` 0: the controller's initial position (nothing processed yet). A negative
-# index marks an unsynchronised command (e.g. from a hand-written controller): applied at the next
-# chunk boundary, never waited for.
+# --- z command (topic ``z_controller/z_command``)
+# ------------------------------------------------- ``data = [answered_end_index,
+# answered_end_time_s, z_piezo_m]``: the z piezo position [m] computed from every lock-in output of
+# the deflection samples before ``answered_end_index``. The cantilever applies it to the chunk that
+# starts ``feedback_latency`` chunks after the answered one (lockstep). ``answered_end_index`` 0:
+# the controller's initial position (nothing processed yet). A negative index marks an
+# unsynchronised command (e.g. from a hand-written controller): applied at the next chunk boundary,
+# never waited for.
 Z_COMMAND_FIELDS = ("answered_end_index", "answered_end_time_s", "z_piezo_m")
 Z_COMMAND_LABEL = "z_command"
 
@@ -142,17 +178,20 @@ def pack_z_command(cmd: ZCommand) -> np.ndarray:
 def unpack_z_command(data) -> ZCommand:
     arr = np.asarray(data, dtype=np.float64)
     if arr.shape[0] != len(Z_COMMAND_FIELDS):
-        raise ValueError(f"z command has {arr.shape[0]} values; expected {len(Z_COMMAND_FIELDS)} "
-                         f"({', '.join(Z_COMMAND_FIELDS)})")
+        raise ValueError(
+            f"z command has {arr.shape[0]} values; expected {len(Z_COMMAND_FIELDS)} "
+            f"({', '.join(Z_COMMAND_FIELDS)})"
+        )
     return ZCommand(int(arr[0]), float(arr[1]), float(arr[2]))
 
 
 # --- excitation command (topic ``pll/excitation``, FM mode) --------------------------------------
-# ``data = [answered_end_index, answered_end_time_s, frequency_hz, drive_force_n]``: the drive the PLL
-# and amplitude controller (afm_ros.core.fm) computed from every lock-in output of the deflection
-# samples before ``answered_end_index``; the cantilever (excitation 'pll') drives the chunk that starts
-# ``feedback_latency`` chunks after the answered one with it (lockstep, as the z command). Index 0:
-# the initial excitation; a negative index: unsynchronised (applied at the next chunk, never waited for).
+# ``data = [answered_end_index, answered_end_time_s, frequency_hz, drive_force_n]``: the drive the
+# PLL and amplitude controller (afm_ros.core.fm) computed from every lock-in output of the
+# deflection samples before ``answered_end_index``; the cantilever (excitation 'pll') drives the
+# chunk that starts ``feedback_latency`` chunks after the answered one with it (lockstep, as the z
+# command). Index 0: the initial excitation; a negative index: unsynchronised (applied at the next
+# chunk, never waited for).
 EXCITATION_FIELDS = ("answered_end_index", "answered_end_time_s", "frequency_hz", "drive_force_n")
 EXCITATION_LABEL = "excitation"
 
@@ -171,21 +210,26 @@ class ExcitationCommand:
 
 
 def pack_excitation(cmd: ExcitationCommand) -> np.ndarray:
-    return np.array([float(cmd.answered_end_index), cmd.answered_end_time, cmd.frequency, cmd.force])
+    return np.array(
+        [float(cmd.answered_end_index), cmd.answered_end_time, cmd.frequency, cmd.force]
+    )
 
 
 def unpack_excitation(data) -> ExcitationCommand:
     arr = np.asarray(data, dtype=np.float64)
     if arr.shape[0] != len(EXCITATION_FIELDS):
-        raise ValueError(f"excitation command has {arr.shape[0]} values; expected {len(EXCITATION_FIELDS)} "
-                         f"({', '.join(EXCITATION_FIELDS)})")
+        raise ValueError(
+            f"excitation command has {arr.shape[0]} values; expected {len(EXCITATION_FIELDS)} "
+            f"({', '.join(EXCITATION_FIELDS)})"
+        )
     return ExcitationCommand(int(arr[0]), float(arr[1]), float(arr[2]), float(arr[3]))
 
 
-# --- FM loop outputs (topic ``pll/outputs``) -------------------------------------------------------
-# One message per lock-in batch: ``data[0:3] = [input_first_index, input_end_index, input_end_time_s]``
-# (as the lock-in batch), then the loop's n outputs (one per lock-in output) as five blocks ``t`` [s],
-# ``df`` [Hz] (frequency shift), ``drive`` [N] (excitation force amplitude), ``phase_error`` [deg],
+# --- FM loop outputs (topic ``pll/outputs``)
+# ------------------------------------------------------- One message per lock-in batch:
+# ``data[0:3] = [input_first_index, input_end_index, input_end_time_s]`` (as the lock-in batch),
+# then the loop's n outputs (one per lock-in output) as five blocks ``t`` [s], ``df`` [Hz]
+# (frequency shift), ``drive`` [N] (excitation force amplitude), ``phase_error`` [deg],
 # ``amplitude`` [m]. ``layout.data_offset = 3``; ``layout.dim[0] = ("fm_outputs", n, 5 n)``.
 FM_OUTPUTS_LABEL = "fm_outputs"
 FM_OUTPUT_BLOCKS = ("t", "df", "drive", "phase_error", "amplitude")
@@ -204,21 +248,26 @@ class FMBatch:
 
 
 def pack_fm_outputs(batch: FMBatch) -> np.ndarray:
-    return _pack_blocks((float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
-                        tuple(getattr(batch, name) for name in FM_OUTPUT_BLOCKS))
+    return _pack_blocks(
+        (float(batch.input_first_index), float(batch.input_end_index), batch.input_end_time),
+        tuple(getattr(batch, name) for name in FM_OUTPUT_BLOCKS),
+    )
 
 
 def unpack_fm_outputs(data) -> FMBatch:
     """Inverse of :func:`pack_fm_outputs`; ValueError for a malformed message."""
-    pre, blocks = _unpack_blocks(data, OUTPUTS_PREAMBLE_LENGTH, len(FM_OUTPUT_BLOCKS), "FM output batch")
+    pre, blocks = _unpack_blocks(
+        data, OUTPUTS_PREAMBLE_LENGTH, len(FM_OUTPUT_BLOCKS), "FM output batch"
+    )
     return FMBatch(int(pre[0]), int(pre[1]), float(pre[2]), *blocks)
 
 
-# --- z controller trace (topic ``z_controller/trace``) ---------------------------------------------
-# One message per answered lock-in batch: ``data[0:2] = [input_end_index, input_end_time_s]`` (as in
-# the z command), then the controller's n outputs, one per lock-in output, as three blocks
-# ``t[0:n]`` [s], ``z[0:n]`` [m] (z piezo after that output) and ``error[0:n]`` [m] (setpoint -
-# amplitude). ``layout.data_offset = 2``; ``layout.dim[0] = ("z_trace", n, 3 n)``.
+# --- z controller trace (topic ``z_controller/trace``)
+# --------------------------------------------- One message per answered lock-in batch: ``data[0:2]
+# = [input_end_index, input_end_time_s]`` (as in the z command), then the controller's n outputs,
+# one per lock-in output, as three blocks ``t[0:n]`` [s], ``z[0:n]`` [m] (z piezo after that
+# output) and ``error[0:n]`` [m] (setpoint - amplitude). ``layout.data_offset = 2``;
+# ``layout.dim[0] = ("z_trace", n, 3 n)``.
 Z_TRACE_PREAMBLE_FIELDS = ("input_end_index", "input_end_time_s")
 Z_TRACE_PREAMBLE_LENGTH = len(Z_TRACE_PREAMBLE_FIELDS)
 Z_TRACE_LABEL = "z_trace"
@@ -236,7 +285,9 @@ class ZTrace:
 
 
 def pack_z_trace(trace: ZTrace) -> np.ndarray:
-    return _pack_blocks((float(trace.input_end_index), trace.input_end_time), (trace.t, trace.z, trace.error))
+    return _pack_blocks(
+        (float(trace.input_end_index), trace.input_end_time), (trace.t, trace.z, trace.error)
+    )
 
 
 def unpack_z_trace(data) -> ZTrace:
@@ -245,11 +296,11 @@ def unpack_z_trace(data) -> ZTrace:
     return ZTrace(int(pre[0]), float(pre[1]), t, z, error)
 
 
-# --- consumer acknowledgement (topic ``cantilever/ack``, std_msgs/Int64MultiArray) ----------------
-# ``layout.dim[0].label`` = the consumer's fully qualified node name, ``data = [next_index]``: every
-# deflection sample before ``next_index`` has been received and handled. ``READY`` (-1): subscribed
-# and waiting, nothing received yet. ``LEAVING`` (-2): stops consuming (closing, or its output
-# failed): not to be waited for any more.
+# --- consumer acknowledgement (topic ``cantilever/ack``, std_msgs/Int64MultiArray)
+# ---------------- ``layout.dim[0].label`` = the consumer's fully qualified node name, ``data =
+# [next_index]``: every deflection sample before ``next_index`` has been received and handled.
+# ``READY`` (-1): subscribed and waiting, nothing received yet. ``LEAVING`` (-2): stops consuming
+# (closing, or its output failed): not to be waited for any more.
 ACK_READY = -1
 ACK_LEAVING = -2
 
@@ -300,7 +351,7 @@ def cdr_float64_array(data) -> tuple[int, np.ndarray]:
         pos = 4 + ((pos - 4 + 7) & ~7)
     if pos + 8 * count > len(mv):
         raise ValueError(f"{count} values announced, the message holds fewer")
-    arr = np.frombuffer(mv[pos:pos + 8 * count], dtype=order + "f8")
+    arr = np.frombuffer(mv[pos : pos + 8 * count], dtype=order + "f8")
     return offset, (arr.astype(np.float64) if order == ">" else arr)
 
 
@@ -313,12 +364,22 @@ def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:
     """
     offset, arr = cdr_float64_array(data)
     if offset != PREAMBLE_LENGTH or arr.shape[0] < PREAMBLE_LENGTH:
-        raise ChunkLayoutError(f"layout.data_offset {offset} and {arr.shape[0]} values (the afm_ros chunk layout "
-                               f"has a {PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})")
+        raise ChunkLayoutError(
+            f"layout.data_offset {offset} and {arr.shape[0]} values (the afm_ros chunk layout "
+            f"has a {PREAMBLE_LENGTH}-value preamble, data_offset {PREAMBLE_LENGTH})"
+        )
     p = arr[:PREAMBLE_LENGTH].tolist()
-    if not (math.isfinite(p[0]) and p[0] >= 0 and p[0] == int(p[0]) and math.isfinite(p[1])
-            and math.isfinite(p[2]) and p[2] > 0):
-        raise ChunkLayoutError(f"implausible preamble (first index {p[0]}, t_start {p[1]}, interval {p[2]})")
+    if not (
+        math.isfinite(p[0])
+        and p[0] >= 0
+        and p[0] == int(p[0])
+        and math.isfinite(p[1])
+        and math.isfinite(p[2])
+        and p[2] > 0
+    ):
+        raise ChunkLayoutError(
+            f"implausible preamble (first index {p[0]}, t_start {p[1]}, interval {p[2]})"
+        )
     return ChunkHeader(int(p[0]), p[1], p[2], p[3], p[4], p[5]), arr[PREAMBLE_LENGTH:]
 
 

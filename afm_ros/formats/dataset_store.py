@@ -10,6 +10,7 @@ the frame's parameters (one float64 or int variable each, named with their unit)
 imperfections in force, and ``done`` (bool): a frame's data are written first and ``done`` last,
 so a frame is whole or not at all, and a run continues where one stopped.
 """
+
 from __future__ import annotations
 
 import json
@@ -31,7 +32,12 @@ def _layout(first: dict) -> dict:
     lines, pixels = first["measured"].shape[-2:]
     image = (("direction", "y", "x"), (2, lines, pixels))
     out = {
-        "measured": (("direction", "channel", "y", "x"), (2, len(CHANNELS), lines, pixels), np.float32, np.nan),
+        "measured": (
+            ("direction", "channel", "y", "x"),
+            (2, len(CHANNELS), lines, pixels),
+            np.float32,
+            np.nan,
+        ),
         "true_height": (*image, np.float32, np.nan),
         "dilated_height": (*image, np.float32, np.nan),
         "material": (*image, np.uint8, 0),
@@ -40,7 +46,12 @@ def _layout(first: dict) -> dict:
         "apex_y_m": (*image, np.float64, np.nan),
         "x_m": (("x",), (pixels,), np.float64, np.nan),
         "y_m": (("y",), (lines,), np.float64, np.nan),
-        "imperfections_packed": (("art",), (first["imperfections_packed"].shape[0],), np.float64, np.nan),
+        "imperfections_packed": (
+            ("art",),
+            (first["imperfections_packed"].shape[0],),
+            np.float64,
+            np.nan,
+        ),
         "tip_radius_end_m": ((), (), np.float64, np.nan),
         "done": ((), (), bool, None),
     }
@@ -56,34 +67,55 @@ def _layout(first: dict) -> dict:
 
 def bytes_per_frame(first: dict) -> int:
     """Uncompressed bytes one frame takes in the store (an upper bound of what it writes)."""
-    return sum(int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
-               for _, shape, dtype, _ in _layout(first).values())
+    return sum(
+        int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        for _, shape, dtype, _ in _layout(first).values()
+    )
 
 
 def create(path, spec: dict, first: dict) -> None:
     """Make the (empty) store at ``path`` for ``spec``, shaped by frame 0's data ``first``: only
     metadata, whatever the number of frames (a chunk is written when its frame is). The group's
-    ``format`` attribute is written last: an interrupted creation is not a store (:func:`spec_of`)."""
+    ``format`` attribute is written last: an interrupted creation is not a store
+    (:func:`spec_of`)."""
     import zarr
 
     frames = spec["frames"]
     group = zarr.open_group(str(path), mode="w-", zarr_format=2)
     for name, values in (("direction", list(DIRECTIONS)), ("channel", list(CHANNELS))):
-        coord = group.create_array(name, shape=(len(values),), chunks=(len(values),),
-                                   dtype=f"<U{max(map(len, values))}", fill_value=None)
+        coord = group.create_array(
+            name,
+            shape=(len(values),),
+            chunks=(len(values),),
+            dtype=f"<U{max(map(len, values))}",
+            fill_value=None,
+        )
         coord[:] = np.array(values)
         coord.attrs["_ARRAY_DIMENSIONS"] = [name]
     for name, (dims, shape, dtype, fill) in _layout(first).items():
-        # floats: NaN where no frame was written; integers and flags without a fill value (xarray would
-        # otherwise mask them into floats): their unwritten chunks read 0 (done: False)
+        # floats: NaN where no frame was written; integers and flags without a fill value (xarray
+        # would otherwise mask them into floats): their unwritten chunks read 0 (done: False)
         fill = fill if np.dtype(dtype).kind == "f" else None
-        array = group.create_array(name, shape=(frames, *shape), chunks=(1, *shape), dtype=dtype, fill_value=fill)
+        array = group.create_array(
+            name, shape=(frames, *shape), chunks=(1, *shape), dtype=dtype, fill_value=fill
+        )
         array.attrs["_ARRAY_DIMENSIONS"] = ["frame", *dims]
-    group.attrs.update(spec=json.dumps(spec, sort_keys=True), materials=json.dumps(first["materials"]),
-                       force_models=json.dumps(FORCE_MODELS),
-                       units=json.dumps({"measured": "per channel: height m, amplitude m, phase deg, amplitude_error "
-                                                     "m, dissipation J", "true_height": "m", "dilated_height": "m",
-                                         "sample_plane": "m", "x_m": "m", "y_m": "m"}))
+    group.attrs.update(
+        spec=json.dumps(spec, sort_keys=True),
+        materials=json.dumps(first["materials"]),
+        force_models=json.dumps(FORCE_MODELS),
+        units=json.dumps(
+            {
+                "measured": "per channel: height m, amplitude m, phase deg, amplitude_error "
+                "m, dissipation J",
+                "true_height": "m",
+                "dilated_height": "m",
+                "sample_plane": "m",
+                "x_m": "m",
+                "y_m": "m",
+            }
+        ),
+    )
     group.attrs["format"] = FORMAT
     zarr.consolidate_metadata(str(path), zarr_format=2)
 
@@ -125,9 +157,21 @@ def write_frame(path, index: int, data: dict) -> None:
     group = zarr.open_group(str(path), mode="r+")
     materials = json.loads(group.attrs["materials"])
     if list(data["materials"]) != materials:
-        raise ValueError(f"frame {index}: materials {data['materials']} differ from the store's {materials}")
-    for name in ("measured", "true_height", "dilated_height", "material", "sample_plane", "apex_x_m", "apex_y_m",
-                 "x_m", "y_m", "imperfections_packed"):
+        raise ValueError(
+            f"frame {index}: materials {data['materials']} differ from the store's {materials}"
+        )
+    for name in (
+        "measured",
+        "true_height",
+        "dilated_height",
+        "material",
+        "sample_plane",
+        "apex_x_m",
+        "apex_y_m",
+        "x_m",
+        "y_m",
+        "imperfections_packed",
+    ):
         group[name][index] = data[name]
     group["tip_radius_end_m"][index] = data["tip_radius_end_m"]
     for name, value in data["values"].items():
@@ -136,9 +180,10 @@ def write_frame(path, index: int, data: dict) -> None:
 
 
 def open_dataset(path, only_done: bool = True):
-    """The store as an xarray Dataset (lazy); with ``only_done`` the frames not (yet) written are left
-    out. Without dask chunks (``chunks=None``: arrays read on access), so a store planned for millions
-    of frames opens at once (dask makes a task per frame and variable: a minute per 1e7 frames)."""
+    """The store as an xarray Dataset (lazy); with ``only_done`` the frames not (yet) written are
+    left out. Without dask chunks (``chunks=None``: arrays read on access), so a store planned for
+    millions of frames opens at once (dask makes a task per frame and variable: a minute per 1e7
+    frames)."""
     import xarray as xr
 
     ds = xr.open_zarr(str(path), chunks=None)
@@ -149,5 +194,6 @@ def open_dataset(path, only_done: bool = True):
 
 def check_output(path) -> None:
     """ValueError naming ``--out`` if ``path`` cannot hold a store: the one folder rule of
-    :func:`afm_ros.formats.folders.check_output_directory` (not a file, its parent exists, writable)."""
+    :func:`afm_ros.formats.folders.check_output_directory` (not a file, its parent exists,
+    writable)."""
     check_output_directory(path, create=False, probe_write=True, field="--out")

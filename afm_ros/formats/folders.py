@@ -16,6 +16,7 @@ engages:
 
 Every refusal is a ValueError naming the field, the value and what is needed.
 """
+
 from __future__ import annotations
 
 import os
@@ -25,7 +26,7 @@ from pathlib import Path
 
 
 def _size(n: float) -> str:
-    for unit, factor in (("GiB", 2 ** 30), ("MiB", 2 ** 20), ("KiB", 2 ** 10)):
+    for unit, factor in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
         if n >= factor:
             return f"{n / factor:.1f} {unit}"
     return f"{int(n)} bytes"
@@ -37,31 +38,48 @@ def _probe(folder: Path, field: str, text: str) -> None:
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as exc:
-        raise ValueError(f"{field}={text!r}: cannot write in {folder} ({exc.strerror}); allowed: a folder "
-                         f"this process can write to") from None
+        raise ValueError(
+            f"{field}={text!r}: cannot write in {folder} ({exc.strerror}); allowed: a folder "
+            f"this process can write to"
+        ) from None
 
 
-def check_output_directory(path, need_bytes: int = 0, create: bool = False, probe_write: bool = True,
-                           field: str = "output_directory") -> Path:
+def check_output_directory(
+    path,
+    need_bytes: int = 0,
+    create: bool = False,
+    probe_write: bool = True,
+    field: str = "output_directory",
+) -> Path:
     """Check (and with ``create`` make) the output folder ``path`` by the rule of the module doc;
     return its absolute path. ``probe_write=False`` checks only what is cheap and cannot change by
     itself (a parameter being set): not a file, its parent exists. ValueError naming ``field``."""
     text = os.fspath(path) if path is not None else ""
     if not isinstance(text, str) or "\0" in text:
-        raise ValueError(f"{field}={text!r} is not a usable path; allowed: a folder path ('' = the working directory)")
+        raise ValueError(
+            f"{field}={text!r} is not a usable path; allowed: a folder path ('' = the working "
+            "directory)"
+        )
     folder = Path(os.path.abspath(os.path.expanduser(text or ".")))
     if folder.exists():
         if not folder.is_dir():
-            raise ValueError(f"{field}={text!r} is a file, not a folder; allowed: an existing folder, or a new "
-                             f"folder under an existing one")
+            raise ValueError(
+                f"{field}={text!r} is a file, not a folder; allowed: an existing folder, or a new "
+                f"folder under an existing one"
+            )
     else:
         parent = folder.parent
         if not parent.is_dir():
-            raise ValueError(f"{field}={text!r}: {parent} does not exist; only the last level of a folder is "
-                             f"created: create {parent} first, or choose an existing folder")
+            raise ValueError(
+                f"{field}={text!r}: {parent} does not exist; only the last level of a folder is "
+                f"created: create {parent} first, or choose an existing folder"
+            )
         if parent == Path(parent.anchor):
-            raise ValueError(f"{field}={text!r} would be a new folder at the file-system root; create it yourself, "
-                             f"or choose a folder under an existing one")
+            raise ValueError(
+                f"{field}={text!r} would be a new folder at the file-system root; create it "
+                "yourself, "
+                f"or choose a folder under an existing one"
+            )
         if not (create and probe_write):
             if probe_write:
                 _probe(parent, field, text)
@@ -72,12 +90,17 @@ def check_output_directory(path, need_bytes: int = 0, create: bool = False, prob
             if not folder.is_dir():
                 raise ValueError(f"{field}={text!r} is a file, not a folder") from None
         except OSError as exc:
-            raise ValueError(f"{field}={text!r}: cannot create {folder} ({exc.strerror})") from None
+            raise ValueError(
+                f"{field}={text!r}: cannot create {folder} ({exc.strerror})"
+            ) from None
     if probe_write:
         _probe(folder, field, text)
         if need_bytes > 0:
             free = shutil.disk_usage(folder).free
             if free < need_bytes:
-                raise ValueError(f"{field}={text!r}: {_size(free)} free on its file system, a frame needs about "
-                                 f"{_size(need_bytes)}; free some space or choose another folder")
+                raise ValueError(
+                    f"{field}={text!r}: {_size(free)} free on its file system, a frame needs "
+                    "about "
+                    f"{_size(need_bytes)}; free some space or choose another folder"
+                )
     return folder

@@ -23,6 +23,7 @@ so it appears complete or not at all. A frame with pixels that were never acquir
 incomplete frame, or more pixels per line than lock-in outputs per pass) is rejected with a
 ``ValueError`` naming the channel and the count: a ``.gwy`` file holds no NaN.
 """
+
 from __future__ import annotations
 
 import json
@@ -35,13 +36,28 @@ import numpy as np
 from afm_ros.formats.channels import DIRECTIONS, IMAGE_TAIL_CUT, UNITS, tail_cut_limits
 from afm_ros.formats.gwy import write_gwy
 
-CHANNEL_TITLES = {"height": "Height", "amplitude": "Amplitude", "phase": "Phase",
-                  "amplitude_error": "Amplitude error", "dissipation": "Dissipation",
-                  "frequency_shift": "Frequency shift", "drive": "Drive", "phase_error": "Phase error",
-                  "frequency_shift_error": "Frequency shift error"}
+CHANNEL_TITLES = {
+    "height": "Height",
+    "amplitude": "Amplitude",
+    "phase": "Phase",
+    "amplitude_error": "Amplitude error",
+    "dissipation": "Dissipation",
+    "frequency_shift": "Frequency shift",
+    "drive": "Drive",
+    "phase_error": "Phase error",
+    "frequency_shift_error": "Frequency shift error",
+}
 
 # display scaling of the previews: (factor, unit text) for a value range of this magnitude
-_PREFIXES = ((1e-18, "a"), (1e-15, "f"), (1e-12, "p"), (1e-9, "n"), (1e-6, "u"), (1e-3, "m"), (1.0, ""))
+_PREFIXES = (
+    (1e-18, "a"),
+    (1e-15, "f"),
+    (1e-12, "p"),
+    (1e-9, "n"),
+    (1e-6, "u"),
+    (1e-3, "m"),
+    (1.0, ""),
+)
 
 
 def channel_title(channel: str, direction: str) -> str:
@@ -55,8 +71,10 @@ def frame_channels(frame) -> dict[str, tuple[np.ndarray, str]]:
     out = {}
     for channel in frame.channels:
         for direction in DIRECTIONS:
-            out[channel_title(channel, direction)] = (np.asarray(frame.images[direction][channel], dtype=np.float64),
-                                                       UNITS[channel])
+            out[channel_title(channel, direction)] = (
+                np.asarray(frame.images[direction][channel], dtype=np.float64),
+                UNITS[channel],
+            )
     return out
 
 
@@ -72,14 +90,16 @@ def _text(value) -> str:
     if value is None:
         return "none"
     if isinstance(value, (list, tuple)):
-        return json.dumps([v if isinstance(v, (int, float, str, bool)) or v is None else _text(v) for v in value])
+        return json.dumps(
+            [v if isinstance(v, (int, float, str, bool)) or v is None else _text(v) for v in value]
+        )
     return str(value)
 
 
 def flatten_metadata(metadata: Mapping | None, units: Mapping | None = None) -> dict[str, str]:
     """Flat {key: text} of a (nested) mapping: ``{"scan": {"line_rate": 1.0}}`` ->
-    ``{"scan.line_rate [Hz]": "1.0"}`` when ``units["scan.line_rate"] == "Hz"``. Numbers are written
-    as their shortest round-trip text, booleans as true/false, lists as JSON."""
+    ``{"scan.line_rate [Hz]": "1.0"}`` when ``units["scan.line_rate"] == "Hz"``. Numbers are
+    written as their shortest round-trip text, booleans as true/false, lists as JSON."""
     out: dict[str, str] = {}
     units = units or {}
 
@@ -110,15 +130,18 @@ def plane_level(image: np.ndarray) -> np.ndarray:
 
 
 def display_range(image: np.ndarray) -> tuple[float, float] | None:
-    """(low, high) colour range of ``image`` in its unit: :data:`IMAGE_TAIL_CUT` of the finite pixels
-    clipped at each end (:func:`tail_cut_limits`); None for an image without two distinct values."""
+    """(low, high) colour range of ``image`` in its unit: :data:`IMAGE_TAIL_CUT` of the finite
+    pixels clipped at each end (:func:`tail_cut_limits`); None for an image without two distinct
+    values."""
     lo, hi = tail_cut_limits(image)
     if not hi > lo:  # constant after the cut (or no data): fall back to the plain extremes
         lo, hi = tail_cut_limits(image, 0.0)
     return (lo, hi) if hi > lo else None
 
 
-RANGE_TEXT = f"colour range: {100 * IMAGE_TAIL_CUT:g}-{100 - 100 * IMAGE_TAIL_CUT:g} % of the pixels"
+RANGE_TEXT = (
+    f"colour range: {100 * IMAGE_TAIL_CUT:g}-{100 - 100 * IMAGE_TAIL_CUT:g} % of the pixels"
+)
 
 
 def display_scale(values: np.ndarray, unit: str) -> tuple[float, str]:
@@ -158,11 +181,13 @@ def write_text_atomically(path, text: str) -> Path:
     return path
 
 
-def display_image(image: np.ndarray, unit: str, levelled: bool = False) -> tuple[np.ndarray, tuple, str]:
-    """What a preview shows of ``image`` (SI ``unit``): (values / display factor, colour range in the
-    same scaled unit, unit text such as "nm"). ``levelled``: plane-levelled (:func:`plane_level`) and
-    shifted so the colour range starts at 0. The colour range is :func:`display_range` (a unit-wide
-    span around a constant image)."""
+def display_image(
+    image: np.ndarray, unit: str, levelled: bool = False
+) -> tuple[np.ndarray, tuple, str]:
+    """What a preview shows of ``image`` (SI ``unit``): (values / display factor, colour range in
+    the same scaled unit, unit text such as "nm"). ``levelled``: plane-levelled
+    (:func:`plane_level`) and shifted so the colour range starts at 0. The colour range is
+    :func:`display_range` (a unit-wide span around a constant image)."""
     shown = plane_level(image) if levelled else np.asarray(image, dtype=np.float64)
     span = display_range(shown)
     if levelled and span is not None:  # heights from the bottom of the colour range
@@ -170,7 +195,11 @@ def display_image(image: np.ndarray, unit: str, levelled: bool = False) -> tuple
     factor, unit_text = display_scale(shown if span is None else np.asarray(span), unit)
     if span is None:
         value = float(np.nanmean(shown)) / factor if np.isfinite(shown).any() else 0.0
-        return shown / factor, (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0)), unit_text
+        return (
+            shown / factor,
+            (value - 0.5 * (abs(value) or 1.0), value + 0.5 * (abs(value) or 1.0)),
+            unit_text,
+        )
     return shown / factor, (span[0] / factor, span[1] / factor), unit_text
 
 
@@ -183,11 +212,21 @@ def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelle
     x0, y0 = plan.x_left * 1e6, plan.y_low * 1e6
     x1, y1 = x0 + plan.size_x * 1e6, y0 + plan.size_y * 1e6
     aspect_w = 5.6
-    fig = Figure(figsize=(aspect_w, max(2.5, min(8.0, aspect_w * plan.size_y / plan.size_x * 0.9 + 0.8))))
+    fig = Figure(
+        figsize=(aspect_w, max(2.5, min(8.0, aspect_w * plan.size_y / plan.size_x * 0.9 + 0.8)))
+    )
     ax = fig.add_subplot()
     # row 0 (lowest y) at the top, as Gwyddion shows it: its y axis points down the rows
-    im = ax.imshow(shown, origin="upper", extent=(x0, x1, y1, y0), cmap="afmhot", interpolation="nearest",
-                   aspect="equal", vmin=lo, vmax=hi)
+    im = ax.imshow(
+        shown,
+        origin="upper",
+        extent=(x0, x1, y1, y0),
+        cmap="afmhot",
+        interpolation="nearest",
+        aspect="equal",
+        vmin=lo,
+        vmax=hi,
+    )
     ax.set_xlabel("x [um]")
     ax.set_ylabel("y [um]")
     ax.set_title(title, fontsize=10)
@@ -201,10 +240,16 @@ def _preview(path: Path, image: np.ndarray, unit: str, title: str, plan, levelle
     _atomic_write(path, write)
 
 
-def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = True,
-                units: Mapping | None = None) -> list[Path]:
-    """Write ``<stem>.gwy`` (every channel, raw SI values, with its :func:`display_range` as Gwyddion's
-    colour range) and, if ``previews``, one PNG per channel and direction (``<stem>_<channel>_<direction>.png``); return the paths written.
+def write_frame(
+    frame,
+    stem,
+    metadata: Mapping | None = None,
+    previews: bool = True,
+    units: Mapping | None = None,
+) -> list[Path]:
+    """Write ``<stem>.gwy`` (every channel, raw SI values, with its :func:`display_range` as
+    Gwyddion's colour range) and, if ``previews``, one PNG per channel and direction
+    (``<stem>_<channel>_<direction>.png``); return the paths written.
 
     ``metadata``: flat or nested mapping (e.g. ``{"scan": {...}, "feedback": {...},
     "cantilever": {...}, "sample": {...}}``), stored flattened to strings in every channel
@@ -218,15 +263,29 @@ def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = T
     for title, (values, _) in channels.items():
         missing = int(np.count_nonzero(~np.isfinite(values)))
         if missing:
-            raise ValueError(f"frame channel {title!r} has {missing} of {values.size} pixels without data "
-                             f"(frame incomplete: {frame.lines_done} of {plan.lines} lines, or more pixels per "
-                             f"line than lock-in outputs per pass)")
+            raise ValueError(
+                f"frame channel {title!r} has {missing} of {values.size} pixels without data "
+                f"(frame incomplete: {frame.lines_done} of {plan.lines} lines, or more pixels per "
+                f"line than lock-in outputs per pass)"
+            )
     stem.parent.mkdir(parents=True, exist_ok=True)
     gwy = stem.with_name(stem.name + ".gwy")
     meta = flatten_metadata(metadata, units)
-    ranges = {title: span for title, (values, _) in channels.items() if (span := display_range(values)) is not None}
-    write_gwy(gwy, channels, xreal=plan.size_x, yreal=plan.size_y, xoff=plan.x_left, yoff=plan.y_low,
-              metadata=meta, display_ranges=ranges)
+    ranges = {
+        title: span
+        for title, (values, _) in channels.items()
+        if (span := display_range(values)) is not None
+    }
+    write_gwy(
+        gwy,
+        channels,
+        xreal=plan.size_x,
+        yreal=plan.size_y,
+        xoff=plan.x_left,
+        yoff=plan.y_low,
+        metadata=meta,
+        display_ranges=ranges,
+    )
     written = [gwy]
     if previews:
         for channel in frame.channels:
@@ -236,7 +295,9 @@ def write_frame(frame, stem, metadata: Mapping | None = None, previews: bool = T
                 levelled = channel == "height"
                 if levelled:
                     title += ": plane-levelled preview\n(raw data in the .gwy)"
-                _preview(path, frame.images[direction][channel], UNITS[channel], title, plan, levelled)
+                _preview(
+                    path, frame.images[direction][channel], UNITS[channel], title, plan, levelled
+                )
                 written.append(path)
     return written
 

@@ -13,16 +13,18 @@ testable without DDS. Layout written (the rosbag2 MCAP storage plugin's, ROS 2 J
   ``publish_time`` = the publisher's source timestamp, both wall clock [ns since the epoch].
 
 Crash safety: the writer closes the current chunk and hands everything to the OS every
-``flush_interval`` seconds, so a SIGKILL loses at most that much. A file is *complete* only
-when it ends with the footer and the closing magic, which are written by :meth:`SessionWriter.close`
-alone and never after a failed write. :func:`read_session` reads complete, truncated and damaged
-files, taking the schemas and channels from the summary section when it is intact (so a damaged
-first chunk loses only its own messages); :func:`recover` rewrites such a file into a complete one.
+``flush_interval`` seconds, so a SIGKILL loses at most that much. A file is *complete* only when it
+ends with the footer and the closing magic, which are written by :meth:`SessionWriter.close` alone
+and never after a failed write. :func:`read_session` reads complete, truncated and damaged files,
+taking the schemas and channels from the summary section when it is intact (so a damaged first
+chunk loses only its own messages); :func:`recover` rewrites such a file into a complete one.
 Budget: :class:`SessionWriter` keeps a file within ``max_size`` and the file system above
 ``min_free_space`` (:class:`BudgetReached`, the file can still be closed complete).
 
-Command line: ``python -m afm_ros.formats.mcap_io info FILE`` and ``python -m afm_ros.formats.mcap_io recover IN OUT``.
+Command line: ``python -m afm_ros.formats.mcap_io info FILE`` and ``python -m
+afm_ros.formats.mcap_io recover IN OUT``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,20 +46,33 @@ from typing import Iterator, NamedTuple
 from mcap import __version__ as _MCAP_VERSION
 from mcap.data_stream import ReadDataStream, RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import (Channel, Chunk, ChunkIndex, Footer, Header, Message, MessageIndex, Metadata, MetadataIndex,
-                          Schema, Statistics)
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+)
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
-
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 PROFILE = "ros2"
 LIBRARY = f"afm_ros 0.1.0; mcap python {_MCAP_VERSION}"
 DEFINITION_DELIMITER = "=" * 80
-COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+COMPRESSIONS = {
+    "none": CompressionType.NONE,
+    "lz4": CompressionType.LZ4,
+    "zstd": CompressionType.ZSTD,
+}
 PARAMETER_METADATA_PREFIX = "afm_ros.parameters:"
-
 
 
 class RecordingError(RuntimeError):
@@ -65,14 +80,29 @@ class RecordingError(RuntimeError):
 
 
 class SessionFileError(RuntimeError):
-    """A session file is missing, not MCAP, unreadable or has an unknown schema (names the file)."""
+    """A session file is missing, not MCAP, unreadable or has an unknown schema (names the
+    file)."""
 
 
 # --- message definitions, type hashes, QoS ------------------------------------------------
 
 _MSG_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
-_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-               "int32", "uint32", "int64", "uint64", "string"}
+_PRIMITIVES = {
+    "bool",
+    "byte",
+    "char",
+    "float32",
+    "float64",
+    "int8",
+    "uint8",
+    "int16",
+    "uint16",
+    "int32",
+    "uint32",
+    "int64",
+    "uint64",
+    "string",
+}
 
 
 def _split_type(type_name: str) -> tuple[str, str, str]:
@@ -86,6 +116,7 @@ def _split_type(type_name: str) -> tuple[str, str, str]:
 
 def _share_dir(package: str) -> Path:
     from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415 - formats: no ROS at load
+
     return Path(get_package_share_directory(package))
 
 
@@ -122,7 +153,9 @@ def message_definition(type_name: str) -> str:
         for dep in _msg_dependencies(text, _split_type(name)[0]):
             if dep not in seen:
                 seen.add(dep)
-                result += "\n" + DEFINITION_DELIMITER + "\nMSG: " + dep + "\n" + append(dep, depth - 1)
+                result += (
+                    "\n" + DEFINITION_DELIMITER + "\nMSG: " + dep + "\n" + append(dep, depth - 1)
+                )
         return result
 
     return append(type_name, 50)
@@ -167,8 +200,10 @@ def qos_profiles_yaml(profiles: list) -> str:
     """``offered_qos_profiles`` text (rosbag2 Jazzy, metadata version 9) for rclpy QoSProfiles."""
     out = []
     for q in profiles:
+
         def name(policy):
             return policy.name.lower() if hasattr(policy, "name") else str(policy)
+
         out.append(
             f"- history: {name(q.history)}\n"
             f"  depth: {int(q.depth)}\n"
@@ -178,19 +213,26 @@ def qos_profiles_yaml(profiles: list) -> str:
             f"  lifespan:\n{_duration_yaml(q.lifespan.nanoseconds, '  ')}"
             f"  liveliness: {name(q.liveliness)}\n"
             f"  liveliness_lease_duration:\n{_duration_yaml(q.liveliness_lease_duration.nanoseconds, '  ')}"
-            f"  avoid_ros_namespace_conventions: {'true' if q.avoid_ros_namespace_conventions else 'false'}")
+            "  avoid_ros_namespace_conventions: "
+            f"{'true' if q.avoid_ros_namespace_conventions else 'false'}"
+        )
     return "\n".join(out)
 
 
-def default_output_path(now: _dt.datetime | None = None, directory: str | os.PathLike | None = None,
-                        namespace: str = "/") -> Path:
-    """``afm_session_[<namespace>_]YYYY_MM_DD-HH_MM_SS.mcap`` in ``directory`` (default: the current
-    directory); the namespace (``/afm1`` -> ``afm1``, ``/lab/afm1`` -> ``lab_afm1``) keeps the files of
-    instruments side by side apart. :class:`SessionWriter` with ``unique=True`` adds ``_2``, ``_3``...
-    if the name is taken."""
+def default_output_path(
+    now: _dt.datetime | None = None,
+    directory: str | os.PathLike | None = None,
+    namespace: str = "/",
+) -> Path:
+    """``afm_session_[<namespace>_]YYYY_MM_DD-HH_MM_SS.mcap`` in ``directory`` (default: the
+    current directory); the namespace (``/afm1`` -> ``afm1``, ``/lab/afm1`` -> ``lab_afm1``) keeps
+    the files of instruments side by side apart. :class:`SessionWriter` with ``unique=True`` adds
+    ``_2``, ``_3``... if the name is taken."""
     now = now or _dt.datetime.now()
     ns = "_".join(part for part in str(namespace).split("/") if part)
-    return Path(directory or os.getcwd()) / now.strftime(f"afm_session_{ns + '_' if ns else ''}%Y_%m_%d-%H_%M_%S.mcap")
+    return Path(directory or os.getcwd()) / now.strftime(
+        f"afm_session_{ns + '_' if ns else ''}%Y_%m_%d-%H_%M_%S.mcap"
+    )
 
 
 # --- writer ------------------------------------------------------------------------------
@@ -221,8 +263,12 @@ class BudgetReached(Exception):
 # bounds used to keep a file within its budget (see SessionWriter.size_bound) [B]
 _MESSAGE_OVERHEAD = 31 + 16  # message record header and fields + its message index entry
 _CHUNK_OVERHEAD = 1024  # chunk record fields + compressor frame headers
-_INDEX_PER_CHANNEL = 15 + 10  # a message index record's header per channel and chunk + its chunk index entry
-_SUMMARY_FIXED = 13 + 55 + 6 * 26 + 29 + len(MCAP_MAGIC) + 256  # data end, statistics, offsets, footer, magic, margin
+_INDEX_PER_CHANNEL = (
+    15 + 10
+)  # a message index record's header per channel and chunk + its chunk index entry
+_SUMMARY_FIXED = (
+    13 + 55 + 6 * 26 + 29 + len(MCAP_MAGIC) + 256
+)  # data end, statistics, offsets, footer, magic, margin
 _PER_CHUNK_INDEX = 96  # a chunk index record without its per-channel entries
 
 
@@ -233,23 +279,34 @@ class SessionWriter:
     the first failure nothing more is written, in particular never a footer, so a damaged file
     never claims to be complete.
 
-    Budget: with ``max_size`` [B] > 0 the closed file (summary and footer included) never exceeds it,
-    and with ``min_free_space`` [B] > 0 the file system keeps at least that much free: before a
+    Budget: with ``max_size`` [B] > 0 the closed file (summary and footer included) never exceeds
+    it, and with ``min_free_space`` [B] > 0 the file system keeps at least that much free: before a
     message would break either, :meth:`write` raises :class:`BudgetReached` without writing it, and
-    :meth:`close` still makes a complete file of everything before. Below ``min_free_space`` at
-    the start, the file is not created (RecordingError). ``unique``: if ``path`` exists, the first
-    free ``<stem>_2.mcap``, ``<stem>_3.mcap``... is created instead (otherwise RecordingError).
+    :meth:`close` still makes a complete file of everything before. Below ``min_free_space`` at the
+    start, the file is not created (RecordingError). ``unique``: if ``path`` exists, the first free
+    ``<stem>_2.mcap``, ``<stem>_3.mcap``... is created instead (otherwise RecordingError).
     """
 
-    def __init__(self, path: str | os.PathLike, compression: str = "zstd", chunk_size: int = 4 << 20,
-                 unique: bool = False, max_size: float = 0, min_free_space: float = 0):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        compression: str = "zstd",
+        chunk_size: int = 4 << 20,
+        unique: bool = False,
+        max_size: float = 0,
+        min_free_space: float = 0,
+    ):
         self.path = Path(path).absolute()
         if compression not in COMPRESSIONS:
-            raise ValueError(f"compression={compression!r} is not allowed; allowed: {', '.join(COMPRESSIONS)}")
+            raise ValueError(
+                f"compression={compression!r} is not allowed; allowed: {', '.join(COMPRESSIONS)}"
+            )
         parent = self.path.parent
         if not parent.is_dir():
-            raise RecordingError(f"cannot record to {self.path}: directory {parent} does not exist "
-                                 "or is not a directory")
+            raise RecordingError(
+                f"cannot record to {self.path}: directory {parent} does not exist "
+                "or is not a directory"
+            )
         self.max_size = int(max_size)
         self.min_free_space = int(min_free_space)
         if self.min_free_space:
@@ -257,8 +314,10 @@ class SessionWriter:
             if free < self.min_free_space:
                 raise RecordingError(
                     f"cannot record to {self.path}: its file system has {free:.3g} B free, below "
-                    f"min_free_space {self.min_free_space:.3g} B (free disk space, record elsewhere, or lower "
-                    "min_free_space; 0 = no check)")
+                    f"min_free_space {self.min_free_space:.3g} B (free disk space, record "
+                    "elsewhere, or lower "
+                    "min_free_space; 0 = no check)"
+                )
         self._stream = self._create(unique)
         self.error: RecordingError | None = None
         self.closed = False
@@ -269,13 +328,20 @@ class SessionWriter:
         self._pending = 0  # [B] records in the open chunk, with their message index entries
         self._chunks = 0  # chunks written
         self._summary_bytes = _SUMMARY_FIXED  # [B] bound of the summary section and footer
-        self._free_checked: tuple[int, int] | None = None  # (free bytes, bytes_written) at the last check
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
-        self._guard(lambda: (self._writer.start(profile=PROFILE, library=LIBRARY), self._stream.flush()))
+        self._free_checked: tuple[int, int] | None = (
+            None  # (free bytes, bytes_written) at the last check
+        )
+        self._writer = Writer(
+            self._stream, chunk_size=chunk_size, compression=COMPRESSIONS[compression]
+        )
+        self._guard(
+            lambda: (self._writer.start(profile=PROFILE, library=LIBRARY), self._stream.flush())
+        )
         self.bytes_written = self._stream.tell()
 
     def _create(self, unique: bool):
-        """Open a new file exclusively (never overwrite); with ``unique``, the first free ``_N`` name."""
+        """Open a new file exclusively (never overwrite); with ``unique``, the first free ``_N``
+        name."""
         candidate = self.path
         for n in range(2, 10_000):
             try:
@@ -284,11 +350,15 @@ class SessionWriter:
                 return stream
             except FileExistsError:
                 if not unique:
-                    raise RecordingError(f"cannot record to {self.path}: the file already exists "
-                                         "(choose another output path)") from None
+                    raise RecordingError(
+                        f"cannot record to {self.path}: the file already exists "
+                        "(choose another output path)"
+                    ) from None
                 candidate = self.path.with_name(f"{self.path.stem}_{n}{self.path.suffix}")
             except OSError as exc:
-                raise RecordingError(f"cannot record to {candidate}: {exc.strerror or exc}") from exc
+                raise RecordingError(
+                    f"cannot record to {candidate}: {exc.strerror or exc}"
+                ) from exc
         raise RecordingError(f"cannot record to {self.path}: it and 9998 numbered variants exist")
 
     def _guard(self, fn):
@@ -306,7 +376,8 @@ class SessionWriter:
         self.error = RecordingError(
             f"writing {self.path} failed: {why}; recording stopped, the file is incomplete "
             f"(no summary or footer; read what was flushed with "
-            f"`python -m afm_ros.formats.mcap_io recover {self.path} OUT.mcap`)")
+            f"`python -m afm_ros.formats.mcap_io recover {self.path} OUT.mcap`)"
+        )
         self.error.errno = exc.errno
         self._abandon()
         raise self.error from exc
@@ -321,31 +392,49 @@ class SessionWriter:
                 pass
         self.closed = True
 
-    def add_channel(self, topic: str, type_name: str, offered_qos_profiles: str = "",
-                    topic_type_hash: str | None = None) -> int:
+    def add_channel(
+        self,
+        topic: str,
+        type_name: str,
+        offered_qos_profiles: str = "",
+        topic_type_hash: str | None = None,
+    ) -> int:
         """Register ``topic`` (schema created once per type) and return its channel id."""
         if topic in self._channels:
             return self._channels[topic]
         if type_name not in self._schemas:
             data = message_definition(type_name).encode()
-            grown = _record_length(Schema(id=0, name=type_name, encoding="ros2msg", data=data))  # in the open chunk and the summary
+            grown = _record_length(
+                Schema(id=0, name=type_name, encoding="ros2msg", data=data)
+            )  # in the open chunk and the summary
             self._schemas[type_name] = self._guard(
-                lambda: self._track(lambda: self._writer.register_schema(type_name, "ros2msg", data), grown))
+                lambda: self._track(
+                    lambda: self._writer.register_schema(type_name, "ros2msg", data), grown
+                )
+            )
             self._summary_bytes += grown
         metadata = {"offered_qos_profiles": offered_qos_profiles}
         h = type_hash(type_name) if topic_type_hash is None else topic_type_hash
         if h:
             metadata["topic_type_hash"] = h
-        grown = _record_length(Channel(id=0, topic=topic, message_encoding="cdr", schema_id=0, metadata=metadata))
-        cid = self._guard(lambda: self._track(lambda: self._writer.register_channel(
-            topic, "cdr", self._schemas[type_name], metadata), grown))
+        grown = _record_length(
+            Channel(id=0, topic=topic, message_encoding="cdr", schema_id=0, metadata=metadata)
+        )
+        cid = self._guard(
+            lambda: self._track(
+                lambda: self._writer.register_channel(
+                    topic, "cdr", self._schemas[type_name], metadata
+                ),
+                grown,
+            )
+        )
         self._channels[topic] = cid
         self._summary_bytes += grown + 10  # + its statistics entry
         return cid
 
     def _track(self, fn, grown: int):
-        """Run a Writer call that adds ``grown`` bytes of records to the open chunk, and account for
-        the chunk it may have closed (then the file grew and the chunk holds those records)."""
+        """Run a Writer call that adds ``grown`` bytes of records to the open chunk, and account
+        for the chunk it may have closed (then the file grew and the chunk holds those records)."""
         before = self.bytes_written
         result = fn()
         self.bytes_written = self._stream.tell()
@@ -357,15 +446,19 @@ class SessionWriter:
         return result
 
     def size_bound(self, extra: int = 0, outside: bool = False) -> int:
-        """Upper bound [B] of the closed file if ``extra`` more bytes of records joined the open chunk
-        (``outside``: were written outside it): what is written, the open chunk compressed (zstd/lz4
-        grow incompressible data by < 1/64) with its message indexes, every chunk's index entry, the
-        repeated schemas and channels, and the rest of the summary, footer and magic."""
+        """Upper bound [B] of the closed file if ``extra`` more bytes of records joined the open
+        chunk (``outside``: were written outside it): what is written, the open chunk compressed
+        (zstd/lz4 grow incompressible data by < 1/64) with its message indexes, every chunk's index
+        entry, the repeated schemas and channels, and the rest of the summary, footer and magic."""
         n = self._pending + (0 if outside else extra)
         per_chunk = _PER_CHUNK_INDEX + _INDEX_PER_CHANNEL * len(self._channels)
-        return (self.bytes_written + (extra if outside else 0)
-                + (n + n // 64 + _CHUNK_OVERHEAD + per_chunk if n else 0)
-                + self._summary_bytes + per_chunk * self._chunks)
+        return (
+            self.bytes_written
+            + (extra if outside else 0)
+            + (n + n // 64 + _CHUNK_OVERHEAD + per_chunk if n else 0)
+            + self._summary_bytes
+            + per_chunk * self._chunks
+        )
 
     def _over_budget(self, extra: int, outside: bool = False) -> BudgetReached | None:
         bound = self.size_bound(extra, outside)
@@ -377,29 +470,55 @@ class SessionWriter:
             free, at = self._free_checked
             left = free - (bound - at)  # free space once everything up to the footer is written
             if left < self.min_free_space:
-                return BudgetReached("min_free_space", f"min_free_space {self.min_free_space:.3g} B reached (the file "
-                                     f"system has {free - (self.bytes_written - at):.3g} B free)")
+                return BudgetReached(
+                    "min_free_space",
+                    f"min_free_space {self.min_free_space:.3g} B reached (the file "
+                    f"system has {free - (self.bytes_written - at):.3g} B free)",
+                )
         return None
 
-    def write(self, channel_id: int, data: bytes, log_time: int, publish_time: int | None = None,
-              sequence: int = 0) -> None:
+    def write(
+        self,
+        channel_id: int,
+        data: bytes,
+        log_time: int,
+        publish_time: int | None = None,
+        sequence: int = 0,
+    ) -> None:
         """Append one CDR message; times in ns (wall clock, see module doc). Raises BudgetReached
-        (nothing written) if the message would break the budget even after closing the open chunk."""
+        (nothing written) if the message would break the budget even after closing the open
+        chunk."""
         if self.error is not None or self.closed:
             self._guard(lambda: None)  # raises the stored error
         size = _MESSAGE_OVERHEAD + len(data)
         if (self.max_size or self.min_free_space) and self._over_budget(size) is not None:
-            if self._pending:  # the bound assumes incompressible data: close the chunk to know its size
+            if (
+                self._pending
+            ):  # the bound assumes incompressible data: close the chunk to know its size
                 self.flush()
             stop = self._over_budget(size)
-            if stop is None and self.max_size and self.max_size - self.size_bound(size) < self.max_size // 100:
+            if (
+                stop is None
+                and self.max_size
+                and self.max_size - self.size_bound(size) < self.max_size // 100
+            ):
                 # within 1 % of max_size: stop rather than close ever smaller chunks
-                stop = BudgetReached("max_size", f"max_size {self.max_size:.3g} B reached (within 1 %)")
+                stop = BudgetReached(
+                    "max_size", f"max_size {self.max_size:.3g} B reached (within 1 %)"
+                )
             if stop is not None:
                 raise stop
         try:
-            self._track(lambda: self._writer.add_message(
-                channel_id, log_time, data, log_time if publish_time is None else publish_time, sequence), size)
+            self._track(
+                lambda: self._writer.add_message(
+                    channel_id,
+                    log_time,
+                    data,
+                    log_time if publish_time is None else publish_time,
+                    sequence,
+                ),
+                size,
+            )
         except OSError as exc:
             self._failed(exc)
         self.message_count += 1
@@ -410,7 +529,7 @@ class SessionWriter:
         record = Metadata(name=name, metadata={str(k): str(v) for k, v in data.items()})
         size = _record_length(record)
         index = 9 + 8 + 8 + 4 + len(name.encode())  # its metadata index in the summary
-        if (self.max_size or self.min_free_space):
+        if self.max_size or self.min_free_space:
             stop = self._over_budget(size + index, outside=True)
             if stop is not None:
                 raise stop
@@ -457,7 +576,11 @@ class Damage(NamedTuple):
 
     def text(self) -> str:
         where = f"chunk {self.chunk[0]} of {self.chunk[1]}" if self.chunk else "a region"
-        held = f"{self.messages} messages" if self.messages is not None else "an unknown number of messages"
+        held = (
+            f"{self.messages} messages"
+            if self.messages is not None
+            else "an unknown number of messages"
+        )
         return f"{where} at byte {self.offset} ({self.length} bytes, {self.reason}): {held} lost there"
 
 
@@ -477,17 +600,24 @@ class SessionScan:
     header: Header | None = None
     compression: str = ""
     damaged: list = field(default_factory=list)  # Damage of every skipped region
-    skipped_messages: int = 0  # messages in skipped chunks (from their message indexes, where intact)
+    skipped_messages: int = (
+        0  # messages in skipped chunks (from their message indexes, where intact)
+    )
     chunks: int = 0  # intact chunks read
-    summary: Summary | None = None  # the file's summary section (CRC checked), if it has an intact one
+    summary: Summary | None = (
+        None  # the file's summary section (CRC checked), if it has an intact one
+    )
     summary_problem: str = ""  # why the summary section was not used ('' if used or absent)
     messages_read: int = 0  # intact messages of every topic (whatever the topic filter)
-    orphan_messages: int = 0  # intact messages whose channel definition was lost (no summary to read it from)
+    orphan_messages: int = (
+        0  # intact messages whose channel definition was lost (no summary to read it from)
+    )
     footer_read: bool = False  # the data section was read up to an intact footer
 
     @property
     def all_read(self) -> bool:
-        """Every message the file's writer wrote was read (at most the closing magic is missing)."""
+        """Every message the file's writer wrote was read (at most the closing magic is
+        missing)."""
         return self.footer_read and not self.damaged and not self.orphan_messages
 
     @property
@@ -516,12 +646,17 @@ class SessionScan:
         size = sum(d.length for d in self.damaged)
         parts = [d.text() for d in self.damaged[:3]]
         if len(self.damaged) > 3:
-            parts.append(f"{len(self.damaged) - 3} more ({self.skipped_messages} messages lost in all)")
+            parts.append(
+                f"{len(self.damaged) - 3} more ({self.skipped_messages} messages lost in all)"
+            )
         total = f" ({size} bytes in all)" if len(self.damaged) > 1 else ""
         text = f"{len(self.damaged)} damaged region(s) skipped{total}: " + "; ".join(parts)
         if self.orphan_messages:
-            text += (f"; {self.orphan_messages} messages of intact chunks could not be read either: the "
-                     "definitions of their topics were in the damaged part and the file has no summary")
+            text += (
+                f"; {self.orphan_messages} messages of intact chunks could not be read either: "
+                "the "
+                "definitions of their topics were in the damaged part and the file has no summary"
+            )
         else:
             text += "; every other chunk was read"
         expected = self.expected_messages
@@ -532,8 +667,10 @@ class SessionScan:
     @property
     def topics(self) -> dict[str, str]:
         """topic -> type name."""
-        return {c.topic: self.schemas[c.schema_id].name if c.schema_id in self.schemas else ""
-                for c in self.channels.values()}
+        return {
+            c.topic: self.schemas[c.schema_id].name if c.schema_id in self.schemas else ""
+            for c in self.channels.values()
+        }
 
 
 def check_mcap_file(path: str | os.PathLike) -> Path:
@@ -545,9 +682,18 @@ def check_mcap_file(path: str | os.PathLike) -> Path:
         raise SessionFileError(f"session file {p} is a directory, not an .mcap file")
     mode = p.stat().st_mode
     if not stat.S_ISREG(mode):
-        kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if (stat.S_ISCHR(mode) or stat.S_ISBLK(mode)) \
-            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file"
-        raise SessionFileError(f"session file {p} is {kind}, not a regular .mcap file (it could block forever)")
+        kind = (
+            "a FIFO"
+            if stat.S_ISFIFO(mode)
+            else "a device"
+            if (stat.S_ISCHR(mode) or stat.S_ISBLK(mode))
+            else "a socket"
+            if stat.S_ISSOCK(mode)
+            else "not a regular file"
+        )
+        raise SessionFileError(
+            f"session file {p} is {kind}, not a regular .mcap file (it could block forever)"
+        )
     try:
         with open(p, "rb") as f:
             head = f.read(len(MCAP_MAGIC))
@@ -555,15 +701,26 @@ def check_mcap_file(path: str | os.PathLike) -> Path:
         raise SessionFileError(f"cannot read session file {p}: {exc.strerror}") from exc
     if head != MCAP_MAGIC:
         what = "empty" if not head else f"starts with {head[:8]!r}"
-        raise SessionFileError(f"{p} is not an MCAP file ({what}; expected the MCAP magic {MCAP_MAGIC!r})")
+        raise SessionFileError(
+            f"{p} is not an MCAP file ({what}; expected the MCAP magic {MCAP_MAGIC!r})"
+        )
     return p
 
 
 _OPCODES = {o.value for o in Opcode}
-_RECORD_CLASSES = {Opcode.HEADER: Header, Opcode.FOOTER: Footer, Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel,
-                   Opcode.CHUNK: Chunk, Opcode.MESSAGE_INDEX: MessageIndex, Opcode.METADATA: Metadata}
+_RECORD_CLASSES = {
+    Opcode.HEADER: Header,
+    Opcode.FOOTER: Footer,
+    Opcode.SCHEMA: Schema,
+    Opcode.CHANNEL: Channel,
+    Opcode.CHUNK: Chunk,
+    Opcode.MESSAGE_INDEX: MessageIndex,
+    Opcode.METADATA: Metadata,
+}
 _RESYNC_WINDOW = 64 << 20  # how far past a damaged record header to look for the next record [B]
-_SUMMARY_LIMIT = 64 << 20  # largest summary section read [B]: an hour of 1 s chunks needs ~8 MB; a flipped bit in
+_SUMMARY_LIMIT = (
+    64 << 20
+)  # largest summary section read [B]: an hour of 1 s chunks needs ~8 MB; a flipped bit in
 # the footer must not make every reader allocate its claim before the CRC can refute it
 
 
@@ -591,8 +748,17 @@ def _plausible_record_at(f, pos: int, size: int) -> bool:
     return bool(nxt) and nxt[0] in _OPCODES
 
 
-_RESYNC_OPCODES = frozenset((Opcode.CHUNK, Opcode.MESSAGE_INDEX, Opcode.DATA_END, Opcode.CHANNEL, Opcode.SCHEMA,
-                             Opcode.METADATA, Opcode.MESSAGE))
+_RESYNC_OPCODES = frozenset(
+    (
+        Opcode.CHUNK,
+        Opcode.MESSAGE_INDEX,
+        Opcode.DATA_END,
+        Opcode.CHANNEL,
+        Opcode.SCHEMA,
+        Opcode.METADATA,
+        Opcode.MESSAGE,
+    )
+)
 
 
 def _resync(f, start: int, size: int) -> int | None:
@@ -616,14 +782,22 @@ def _resync(f, start: int, size: int) -> int | None:
     return None
 
 
-_FOOTER_HEAD = bytes([Opcode.FOOTER]) + struct.pack("<Q", 20)  # opcode and length of every Footer record
-_SUMMARY_CLASSES = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.STATISTICS: Statistics,
-                    Opcode.CHUNK_INDEX: ChunkIndex, Opcode.METADATA_INDEX: MetadataIndex}
+_FOOTER_HEAD = bytes([Opcode.FOOTER]) + struct.pack(
+    "<Q", 20
+)  # opcode and length of every Footer record
+_SUMMARY_CLASSES = {
+    Opcode.SCHEMA: Schema,
+    Opcode.CHANNEL: Channel,
+    Opcode.STATISTICS: Statistics,
+    Opcode.CHUNK_INDEX: ChunkIndex,
+    Opcode.METADATA_INDEX: MetadataIndex,
+}
 
 
 def _read_summary(f, size: int) -> tuple[Summary | None, str]:
-    """The summary section (schemas, channels, statistics, chunk and metadata indexes) found through
-    the footer at the end of the file, CRC checked; ``(None, why)`` if there is none or it is damaged.
+    """The summary section (schemas, channels, statistics, chunk and metadata indexes) found
+    through the footer at the end of the file, CRC checked; ``(None, why)`` if there is none or it
+    is damaged.
 
     MCAP writers repeat every schema and channel there, so a reader that lost the data-section copy
     (in a damaged chunk) still knows every topic. The footer is looked for in the last bytes, so a
@@ -639,7 +813,10 @@ def _read_summary(f, size: int) -> tuple[Summary | None, str]:
     summary_start, offset_start, crc = struct.unpack_from("<QQI", tail, at + 9)
     if summary_start == 0:
         return None, "the file has no summary section"
-    if not len(MCAP_MAGIC) <= summary_start < footer_pos or footer_pos - summary_start > _SUMMARY_LIMIT:
+    if (
+        not len(MCAP_MAGIC) <= summary_start < footer_pos
+        or footer_pos - summary_start > _SUMMARY_LIMIT
+    ):
         return None, f"the footer points to a summary at byte {summary_start}, outside the file"
     f.seek(summary_start)
     body = f.read(footer_pos - summary_start)
@@ -655,7 +832,7 @@ def _read_summary(f, size: int) -> tuple[Summary | None, str]:
             opcode, length = body[pos], struct.unpack_from("<Q", body, pos + 1)[0]
             cls = _SUMMARY_CLASSES.get(opcode)
             if cls is not None:
-                rec = cls.read(ReadDataStream(io.BytesIO(body[pos + 9:pos + 9 + length])))
+                rec = cls.read(ReadDataStream(io.BytesIO(body[pos + 9 : pos + 9 + length])))
                 if cls is Schema:
                     summary.schemas[rec.id] = rec
                 elif cls is Channel:
@@ -690,8 +867,9 @@ def _chunk_number(summary: Summary | None, start: int, end: int) -> tuple[int, i
     return None
 
 
-def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
-                 topics: set[str] | None = None) -> Iterator[SessionMessage]:
+def read_session(
+    path: str | os.PathLike, scan: SessionScan | None = None, topics: set[str] | None = None
+) -> Iterator[SessionMessage]:
     """Yield every readable message in file order (complete, truncated or damaged file).
 
     ``scan`` (optional) is filled while reading: schemas, channels, metadata, counts and, once the
@@ -721,36 +899,52 @@ def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
             f.seek(pos)
             head = f.read(9)
             if len(head) < 9:
-                if not (saw_footer or head == MCAP_MAGIC[:len(head)]):
-                    scan.truncated_reason = f"file ends inside a record header at byte {pos} of {size}"
+                if not (saw_footer or head == MCAP_MAGIC[: len(head)]):
+                    scan.truncated_reason = (
+                        f"file ends inside a record header at byte {pos} of {size}"
+                    )
                 break
             opcode, length = head[0], struct.unpack_from("<Q", head, 1)[0]
             end = pos + 9 + length
             if opcode not in _OPCODES or end > size:
                 if opcode in _OPCODES and _resync(f, pos, size) is None:
-                    scan.truncated_reason = (f"file ends inside a record: intact up to byte {pos} of {size} "
-                                             f"(a {Opcode(opcode).name.lower()} record of {length} bytes)")
+                    scan.truncated_reason = (
+                        f"file ends inside a record: intact up to byte {pos} of {size} "
+                        f"(a {Opcode(opcode).name.lower()} record of {length} bytes)"
+                    )
                     break
                 nxt = _resync(f, pos, size)
                 reason = f"unreadable record header (opcode {opcode:#04x})"
                 if nxt is None:
-                    scan.damaged.append(Damage(pos, size - pos, reason, _chunk_number(scan.summary, pos, size)))
+                    scan.damaged.append(
+                        Damage(pos, size - pos, reason, _chunk_number(scan.summary, pos, size))
+                    )
                     scan.truncated_reason = f"damaged at byte {pos}: no intact record after it"
                     break
-                scan.damaged.append(Damage(pos, nxt - pos, reason, _chunk_number(scan.summary, pos, nxt)))
+                scan.damaged.append(
+                    Damage(pos, nxt - pos, reason, _chunk_number(scan.summary, pos, nxt))
+                )
                 pos = nxt
                 continue
             f.seek(pos + 9)
             body = f.read(length)
             try:
                 record = _parse(opcode, body)
-                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else None
+                inner = (
+                    breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else None
+                )
             except Exception as exc:  # noqa: BLE001 - any parser error is damage of this record
                 reason = f"{type(exc).__name__}: {exc}".strip(": ")
                 is_chunk = opcode == Opcode.CHUNK
-                scan.damaged.append(Damage(pos, end - pos, f"{'chunk' if is_chunk else 'record'} {reason[:200]}",
-                                           _chunk_number(scan.summary, pos, end) if is_chunk else None,
-                                           None if is_chunk else 0))
+                scan.damaged.append(
+                    Damage(
+                        pos,
+                        end - pos,
+                        f"{'chunk' if is_chunk else 'record'} {reason[:200]}",
+                        _chunk_number(scan.summary, pos, end) if is_chunk else None,
+                        None if is_chunk else 0,
+                    )
+                )
                 skipped_chunk_end = end if is_chunk else None
                 pos = end
                 continue
@@ -762,7 +956,9 @@ def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
                 if skipped_chunk_end is not None:  # the index of a skipped chunk: what was lost
                     scan.skipped_messages += len(record.records)
                     last = scan.damaged[-1]
-                    scan.damaged[-1] = last._replace(messages=(last.messages or 0) + len(record.records))
+                    scan.damaged[-1] = last._replace(
+                        messages=(last.messages or 0) + len(record.records)
+                    )
                 records = []
             else:
                 records = [record] if record is not None else []
@@ -777,8 +973,15 @@ def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
                         continue
                     scan.message_counts[ch.topic] = scan.message_counts.get(ch.topic, 0) + 1
                     schema = scan.schemas.get(ch.schema_id)
-                    yield SessionMessage(ch.topic, schema.name if schema else "", rec.data, rec.log_time,
-                                         rec.publish_time, rec.sequence, rec.channel_id)
+                    yield SessionMessage(
+                        ch.topic,
+                        schema.name if schema else "",
+                        rec.data,
+                        rec.log_time,
+                        rec.publish_time,
+                        rec.sequence,
+                        rec.channel_id,
+                    )
                 elif isinstance(rec, Channel):
                     scan.channels.setdefault(rec.id, rec)
                 elif isinstance(rec, Schema):
@@ -796,10 +999,13 @@ def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
                 closing = f.read(len(MCAP_MAGIC) + 1)
                 if closing != MCAP_MAGIC:
                     scan.truncated_reason = (
-                        f"the file is truncated: it ends {len(MCAP_MAGIC) - len(closing)} byte(s) before the end "
+                        f"the file is truncated: it ends {len(MCAP_MAGIC) - len(closing)} byte(s) "
+                        "before the end "
                         f"of its closing magic (every record up to the footer is intact)"
-                        if MCAP_MAGIC.startswith(closing) else
-                        f"the closing magic after the footer at byte {pos} is damaged or followed by extra bytes")
+                        if MCAP_MAGIC.startswith(closing)
+                        else f"the closing magic after the footer at byte {pos} is damaged or "
+                        "followed by extra bytes"
+                    )
                 break
     if not scan.truncated_reason and not saw_footer:
         scan.truncated_reason = "no footer (the recorder did not close the file)"
@@ -808,7 +1014,12 @@ def read_session(path: str | os.PathLike, scan: SessionScan | None = None,
     elif scan.damaged or scan.orphan_messages:
         scan.truncated_reason += "; " + scan.damage_text
     scan.footer_read = saw_footer
-    scan.complete = saw_footer and not scan.damaged and not scan.orphan_messages and scan.truncated_reason == ""
+    scan.complete = (
+        saw_footer
+        and not scan.damaged
+        and not scan.orphan_messages
+        and scan.truncated_reason == ""
+    )
 
 
 def scan_session(path: str | os.PathLike) -> SessionScan:
@@ -836,6 +1047,7 @@ def serialize_exact(msg) -> bytes:
     the message (found by bisection).
     """
     from rclpy.serialization import deserialize_message, serialize_message  # noqa: PLC0415 - no ROS at load
+
     data = serialize_message(msg)
     cls = type(msg)
     lo, hi = 4, len(data)  # hi always deserialises
@@ -852,6 +1064,7 @@ def serialize_exact(msg) -> bytes:
 def decode(message: SessionMessage):
     """Deserialize a recorded message with rclpy (ValueError if its type is not installed)."""
     from rclpy.serialization import deserialize_message  # noqa: PLC0415 - formats: no ROS at load
+
     return deserialize_message(message.data, message_class(message.type_name))
 
 
@@ -867,8 +1080,11 @@ class RecoverResult:
     last_log_time: int
 
 
-def recover(src: str | os.PathLike, dst: str | os.PathLike, compression: str | None = None) -> RecoverResult:
-    """Copy every intact record of ``src`` (typically a killed recording) into a complete file ``dst``."""
+def recover(
+    src: str | os.PathLike, dst: str | os.PathLike, compression: str | None = None
+) -> RecoverResult:
+    """Copy every intact record of ``src`` (typically a killed recording) into a complete file
+    ``dst``."""
     src_path = check_mcap_file(src)
     if compression is None:
         try:
@@ -893,26 +1109,46 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike, compression: str | N
                     continue
                 if schema.name not in out._schemas:
                     out._schemas[schema.name] = out._guard(
-                        lambda: out._writer.register_schema(schema.name, schema.encoding, schema.data))
-                cid = out._guard(lambda: out._writer.register_channel(
-                    ch.topic, ch.message_encoding, out._schemas[schema.name], dict(ch.metadata)))
+                        lambda: out._writer.register_schema(
+                            schema.name, schema.encoding, schema.data
+                        )
+                    )
+                cid = out._guard(
+                    lambda: out._writer.register_channel(
+                        ch.topic, ch.message_encoding, out._schemas[schema.name], dict(ch.metadata)
+                    )
+                )
                 written_channels[m.channel_id] = cid
             out.write(cid, m.data, m.log_time, m.publish_time, m.sequence)
             count += 1
             last = max(last, m.log_time)
         for md in scan.metadata:
             out.add_metadata(md.name, md.metadata)
-        out.add_metadata("afm_ros.recovered", {
-            "source": str(src_path), "source_complete": str(scan.complete).lower(),
-            "reason": scan.truncated_reason, "bytes_read": str(scan.bytes_read),
-            "source_size": str(scan.file_size)})
+        out.add_metadata(
+            "afm_ros.recovered",
+            {
+                "source": str(src_path),
+                "source_complete": str(scan.complete).lower(),
+                "reason": scan.truncated_reason,
+                "bytes_read": str(scan.bytes_read),
+                "source_size": str(scan.file_size),
+            },
+        )
         out.close()
     except BaseException:
         if not out.closed:
             out._abandon()
         raise
-    return RecoverResult(src_path, out.path, count, scan.complete, scan.truncated_reason, scan.bytes_read,
-                         scan.file_size, last)
+    return RecoverResult(
+        src_path,
+        out.path,
+        count,
+        scan.complete,
+        scan.truncated_reason,
+        scan.bytes_read,
+        scan.file_size,
+        last,
+    )
 
 
 def parameter_metadata(scan: SessionScan) -> dict[str, dict[str, str]]:
@@ -920,7 +1156,7 @@ def parameter_metadata(scan: SessionScan) -> dict[str, dict[str, str]]:
     out = {}
     for md in scan.metadata:
         if md.name.startswith(PARAMETER_METADATA_PREFIX):
-            out[md.name[len(PARAMETER_METADATA_PREFIX):]] = dict(md.metadata)
+            out[md.name[len(PARAMETER_METADATA_PREFIX) :]] = dict(md.metadata)
     return out
 
 
@@ -934,19 +1170,37 @@ def _info(path: str) -> int:
     if scan.header is not None:
         print(f"profile: {scan.header.profile}  library: {scan.header.library}")
     if scan.summary is not None:
-        print(f"summary: {len(scan.summary.channels)} topics, {len(scan.summary.chunk_indexes)} chunks"
-              + (f", {scan.expected_messages} messages" if scan.expected_messages is not None else ""))
+        print(
+            f"summary: {len(scan.summary.channels)} topics, {len(scan.summary.chunk_indexes)} "
+            "chunks"
+            + (
+                f", {scan.expected_messages} messages"
+                if scan.expected_messages is not None
+                else ""
+            )
+        )
     elif scan.summary_problem:
-        print(f"summary: not used ({scan.summary_problem}); topics and counts from the data section")
+        print(
+            f"summary: not used ({scan.summary_problem}); topics and counts from the data section"
+        )
     for d in scan.damaged:
         print(f"damaged: {d.text()}")
     expected = scan.expected_counts()
     read = sum(scan.message_counts.values())
     if scan.expected_messages is not None and read != scan.expected_messages:
-        print(f"messages: {read} read of {scan.expected_messages} ({scan.expected_messages - read} lost)")
+        print(
+            f"messages: {read} read of {scan.expected_messages} ({scan.expected_messages - read} "
+            "lost)"
+        )
     else:
-        print(f"messages: {read}" + (f" ({scan.orphan_messages} more in intact chunks without their topic "
-                                     "definitions)" if scan.orphan_messages else ""))
+        print(
+            f"messages: {read}"
+            + (
+                f" ({scan.orphan_messages} more in intact chunks without their topic definitions)"
+                if scan.orphan_messages
+                else ""
+            )
+        )
     for topic, type_name in sorted(scan.topics.items()):
         n = scan.message_counts.get(topic, 0)
         of = f" of {expected[topic]}" if topic in expected and expected[topic] != n else ""
@@ -955,12 +1209,18 @@ def _info(path: str) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.formats.mcap_io",
-                                     description="Inspect or recover afm_ros session files (.mcap).")
+    parser = argparse.ArgumentParser(
+        prog="python -m afm_ros.formats.mcap_io",
+        description="Inspect or recover afm_ros session files (.mcap).",
+    )
     sub = parser.add_subparsers(dest="cmd", required=True)
-    p_info = sub.add_parser("info", help="topics, message counts and completeness of a session file")
+    p_info = sub.add_parser(
+        "info", help="topics, message counts and completeness of a session file"
+    )
     p_info.add_argument("file")
-    p_rec = sub.add_parser("recover", help="copy the intact part of a truncated session into a complete file")
+    p_rec = sub.add_parser(
+        "recover", help="copy the intact part of a truncated session into a complete file"
+    )
     p_rec.add_argument("input")
     p_rec.add_argument("output")
     p_rec.add_argument("--compression", choices=list(COMPRESSIONS), default=None)
@@ -976,8 +1236,10 @@ def main(argv=None) -> int:
         sys.stdout = None
         return 0
     state = "was complete" if res.complete_input else f"was incomplete ({res.reason})"
-    print(f"recovered {res.messages} messages from {res.input} ({state}; {res.bytes_read} of "
-          f"{res.input_size} bytes intact) into {res.output}")
+    print(
+        f"recovered {res.messages} messages from {res.input} ({state}; {res.bytes_read} of "
+        f"{res.input_size} bytes intact) into {res.output}"
+    )
     return 0
 
 

@@ -6,6 +6,7 @@ name as rcl does: ``/afm1/z_controller``, ``z_controller`` (= ``/z_controller``)
 for one namespace level and ``**`` for any number of levels (``/**/z_controller`` matches the
 node in every namespace, as ``config/afm.yaml`` does).
 """
+
 from __future__ import annotations
 
 import re
@@ -18,8 +19,8 @@ PARAMETERS_KEY = "ros__parameters"
 
 
 def yaml_value(value) -> str:
-    """``value`` as YAML text that rcl and YAML 1.1 (PyYAML) read back as the same type: doubles keep a
-    '.' and a signed exponent, strings are single-quoted."""
+    """``value`` as YAML text that rcl and YAML 1.1 (PyYAML) read back as the same type: doubles
+    keep a '.' and a signed exponent, strings are single-quoted."""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
@@ -68,8 +69,8 @@ def _flatten(values: dict, prefix: str = "") -> dict[str, Any]:
 
 
 def read(path: str | Path):
-    """The parameter file's YAML, bounded in size, depth and aliases (:mod:`afm_ros.formats.user_files`);
-    ParamsFileError naming the file."""
+    """The parameter file's YAML, bounded in size, depth and aliases
+    (:mod:`afm_ros.formats.user_files`); ParamsFileError naming the file."""
     try:
         return user_files.load(path, "parameter file")
     except user_files.UserFileError as exc:
@@ -85,13 +86,18 @@ def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
     """
     content = read(path)
     if not isinstance(content, dict) or not content:
-        raise ParamsFileError(f"{path} is not a ROS parameter file (expected '<node>: {{{PARAMETERS_KEY}: ...}}')")
+        raise ParamsFileError(
+            f"{path} is not a ROS parameter file (expected '<node>: {{{PARAMETERS_KEY}: ...}}')"
+        )
     matching = [k for k in content if isinstance(k, str) and key_matches(k, fqn)]
     if not matching:
-        raise ParamsFileError(f"{path} has no parameters for {fqn} (its node keys: "
-                              f"{', '.join(map(str, content))})")
+        raise ParamsFileError(
+            f"{path} has no parameters for {fqn} (its node keys: {', '.join(map(str, content))})"
+        )
     values: dict[str, Any] = {}
-    for key in sorted(matching, key=lambda k: "*" not in k):  # wildcards first, the node's own key last
+    for key in sorted(
+        matching, key=lambda k: "*" not in k
+    ):  # wildcards first, the node's own key last
         entry = content[key]
         if not isinstance(entry, dict) or not isinstance(entry.get(PARAMETERS_KEY), dict):
             raise ParamsFileError(f"{path}: '{key}' has no '{PARAMETERS_KEY}' map")
@@ -99,7 +105,9 @@ def parameters_for(path: str | Path, fqn: str) -> dict[str, Any]:
     return values
 
 
-def dump_text(key: str, values: dict[str, Any], comments: dict[str, str] | None = None, header: str = "") -> str:
+def dump_text(
+    key: str, values: dict[str, Any], comments: dict[str, str] | None = None, header: str = ""
+) -> str:
     """A parameter file with ``values`` (dotted names nested) under node key ``key``; each value
     preceded by ``# comments[name]`` if given. Doubles keep a '.' so that YAML reads them back as
     doubles (see :func:`yaml_value`)."""

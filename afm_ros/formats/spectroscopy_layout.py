@@ -1,4 +1,5 @@
-"""A z spectroscopy curve in a std_msgs/Float64MultiArray (topic ``z_controller/spectroscopy``; no ROS import).
+"""A z spectroscopy curve in a std_msgs/Float64MultiArray (topic ``z_controller/spectroscopy``; no
+ROS import).
 
 ``data = [n_meta, n_outputs, n_chunks]`` followed by the ``n_meta`` set-up values
 (:attr:`SpectroscopyCurve.META` order: x_m, y_m, t_start_s, t_end_s, rate_m_per_s, retract_m,
@@ -10,6 +11,7 @@ direction). ``direction`` indexes ``DIRECTIONS`` (lift, approach, retract, retur
 ``layout.data_offset = 3 + n_meta`` (where the columns start) and ``layout.dim`` names the three
 parts with their column labels (:func:`dims`), for a reader without this module.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,7 +26,8 @@ CHUNK_COLUMNS = ("t_start_s", "t_end_s", "z_gap_m", "deflection_m", "force_N", "
 
 @dataclass
 class SpectroscopyCurve:
-    """One finished curve: per lock-in output and per deflection chunk (SI units), and its set-up."""
+    """One finished curve: per lock-in output and per deflection chunk (SI units), and its
+    set-up."""
 
     # set-up
     x: float  # tip position on the sample [m]
@@ -58,11 +61,33 @@ class SpectroscopyCurve:
     chunk_force: np.ndarray  # mean tip-sample force [N] (repulsive > 0)
     chunk_direction: np.ndarray  # index into DIRECTIONS
 
-    META = ("x", "y", "t_start", "t_end", "rate", "retract", "distance", "z_held", "z_offset", "spring_constant",
-            "quality_factor", "resonance_frequency", "setpoint", "chunk_duration", "feedback_latency",
-            "missing_chunks")
+    META = (
+        "x",
+        "y",
+        "t_start",
+        "t_end",
+        "rate",
+        "retract",
+        "distance",
+        "z_held",
+        "z_offset",
+        "spring_constant",
+        "quality_factor",
+        "resonance_frequency",
+        "setpoint",
+        "chunk_duration",
+        "feedback_latency",
+        "missing_chunks",
+    )
     OUTPUTS = ("t", "z_piezo", "z_gap", "amplitude", "phase", "direction")
-    CHUNKS = ("chunk_t_start", "chunk_t_end", "chunk_z_gap", "chunk_deflection", "chunk_force", "chunk_direction")
+    CHUNKS = (
+        "chunk_t_start",
+        "chunk_t_end",
+        "chunk_z_gap",
+        "chunk_deflection",
+        "chunk_force",
+        "chunk_direction",
+    )
 
     def branch(self, name: str) -> np.ndarray:
         """Mask of the outputs on one leg (``approach``, ``retract``, ``lift``, ``return``)."""
@@ -106,9 +131,24 @@ class SpectroscopyCurve:
         return True
 
 
-META_LABELS = ("x_m", "y_m", "t_start_s", "t_end_s", "rate_m_per_s", "retract_m", "distance_m", "z_held_m",
-               "z_offset_m", "spring_constant_N_per_m", "quality_factor", "resonance_frequency_Hz", "setpoint_m",
-               "chunk_duration_s", "feedback_latency_chunks", "missing_chunks")
+META_LABELS = (
+    "x_m",
+    "y_m",
+    "t_start_s",
+    "t_end_s",
+    "rate_m_per_s",
+    "retract_m",
+    "distance_m",
+    "z_held_m",
+    "z_offset_m",
+    "spring_constant_N_per_m",
+    "quality_factor",
+    "resonance_frequency_Hz",
+    "setpoint_m",
+    "chunk_duration_s",
+    "feedback_latency_chunks",
+    "missing_chunks",
+)
 N_META = len(SpectroscopyCurve.META)
 assert len(META_LABELS) == N_META
 
@@ -116,8 +156,10 @@ assert len(META_LABELS) == N_META
 def pack_curve(curve: SpectroscopyCurve) -> np.ndarray:
     """The message's ``data`` (float64)."""
     n, m = curve.t.shape[0], curve.chunk_t_start.shape[0]
-    parts = [np.array([N_META, n, m], dtype=np.float64),
-             np.array([float(getattr(curve, k)) for k in SpectroscopyCurve.META])]
+    parts = [
+        np.array([N_META, n, m], dtype=np.float64),
+        np.array([float(getattr(curve, k)) for k in SpectroscopyCurve.META]),
+    ]
     parts += [np.asarray(getattr(curve, k), dtype=np.float64) for k in SpectroscopyCurve.OUTPUTS]
     parts += [np.asarray(getattr(curve, k), dtype=np.float64) for k in SpectroscopyCurve.CHUNKS]
     return np.concatenate(parts)
@@ -126,28 +168,35 @@ def pack_curve(curve: SpectroscopyCurve) -> np.ndarray:
 def dims(curve: SpectroscopyCurve) -> list[tuple[str, int, int]]:
     """(label, size, stride) of ``layout.dim``: the set-up, the outputs and the chunks."""
     n, m = curve.t.shape[0], curve.chunk_t_start.shape[0]
-    return [("meta:" + ",".join(META_LABELS), N_META, N_META),
-            ("outputs:" + ",".join(OUTPUT_COLUMNS), n, n * len(OUTPUT_COLUMNS)),
-            ("chunks:" + ",".join(CHUNK_COLUMNS), m, m * len(CHUNK_COLUMNS))]
+    return [
+        ("meta:" + ",".join(META_LABELS), N_META, N_META),
+        ("outputs:" + ",".join(OUTPUT_COLUMNS), n, n * len(OUTPUT_COLUMNS)),
+        ("chunks:" + ",".join(CHUNK_COLUMNS), m, m * len(CHUNK_COLUMNS)),
+    ]
 
 
 def unpack_curve(msg) -> SpectroscopyCurve:
     """The curve of a message (anything with ``.data``) or of its ``data`` array; ValueError if the
     layout does not add up."""
     data = getattr(msg, "data", msg)
-    arr = np.frombuffer(data, dtype=np.float64) if isinstance(data, (bytes, memoryview)) \
+    arr = (
+        np.frombuffer(data, dtype=np.float64)
+        if isinstance(data, (bytes, memoryview))
         else np.asarray(data, dtype=np.float64)
+    )
     if arr.shape[0] < 3:
         raise ValueError(f"spectroscopy curve has {arr.shape[0]} values, fewer than its 3 counts")
     n_meta, n, m = (int(v) for v in arr[:3])
     want = 3 + n_meta + n * len(OUTPUT_COLUMNS) + m * len(CHUNK_COLUMNS)
     if n_meta != N_META or n < 0 or m < 0 or arr.shape[0] != want:
-        raise ValueError(f"spectroscopy curve has {arr.shape[0]} values for counts ({n_meta}, {n}, {m}); "
-                         f"expected {N_META} set-up values and {want} values in all")
-    d = dict(zip(SpectroscopyCurve.META, arr[3:3 + n_meta].tolist()))
+        raise ValueError(
+            f"spectroscopy curve has {arr.shape[0]} values for counts ({n_meta}, {n}, {m}); "
+            f"expected {N_META} set-up values and {want} values in all"
+        )
+    d = dict(zip(SpectroscopyCurve.META, arr[3 : 3 + n_meta].tolist()))
     pos = 3 + n_meta
     for name in SpectroscopyCurve.OUTPUTS:
-        d[name], pos = arr[pos:pos + n].copy(), pos + n
+        d[name], pos = arr[pos : pos + n].copy(), pos + n
     for name in SpectroscopyCurve.CHUNKS:
-        d[name], pos = arr[pos:pos + m].copy(), pos + m
+        d[name], pos = arr[pos : pos + m].copy(), pos + m
     return SpectroscopyCurve.from_dict(d)

@@ -12,6 +12,7 @@ bounded read and one line of error, never memory, a deep recursion or a tracebac
 
 Errors are :class:`UserFileError` (a ValueError) whose text is one line naming the file.
 """
+
 from __future__ import annotations
 
 import json
@@ -31,25 +32,36 @@ class UserFileError(ValueError):
 
 
 def read_text(path, what: str = "file", max_bytes: int = MAX_BYTES) -> str:
-    """The text of ``path`` (UTF-8), at most ``max_bytes``; UserFileError naming ``what`` and the file."""
+    """The text of ``path`` (UTF-8), at most ``max_bytes``; UserFileError naming ``what`` and the
+    file."""
     name = os.fspath(path)
     try:
         with open(name, "rb") as f:
             size = os.fstat(f.fileno()).st_size
             if size > max_bytes:
-                raise UserFileError(f"{what} {name}: {size} bytes; allowed at most {max_bytes} bytes")
-            data = f.read(max_bytes + 1)  # a file that grows while read (or a pipe) is still bounded
+                raise UserFileError(
+                    f"{what} {name}: {size} bytes; allowed at most {max_bytes} bytes"
+                )
+            data = f.read(
+                max_bytes + 1
+            )  # a file that grows while read (or a pipe) is still bounded
     except OSError as exc:
         raise UserFileError(f"{what} {name}: cannot be read ({exc.strerror or exc})") from None
     if len(data) > max_bytes:
-        raise UserFileError(f"{what} {name}: more than {max_bytes} bytes; allowed at most {max_bytes} bytes")
+        raise UserFileError(
+            f"{what} {name}: more than {max_bytes} bytes; allowed at most {max_bytes} bytes"
+        )
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise UserFileError(f"{what} {name}: not a text file (byte 0x{data[exc.start]:02x} at offset {exc.start} "
-                            f"is not UTF-8)") from None
+        raise UserFileError(
+            f"{what} {name}: not a text file (byte 0x{data[exc.start]:02x} at offset {exc.start} "
+            f"is not UTF-8)"
+        ) from None
     if "\x00" in text:
-        raise UserFileError(f"{what} {name}: not a text file (a NUL character at offset {text.index(chr(0))})")
+        raise UserFileError(
+            f"{what} {name}: not a text file (a NUL character at offset {text.index(chr(0))})"
+        )
     return text
 
 
@@ -67,14 +79,17 @@ class _BoundedLoader(yaml.SafeLoader):
         try:
             if self._depth > self.max_depth:
                 mark = self.peek_event().start_mark
-                raise UserFileError(f"nested deeper than {self.max_depth} levels (line {mark.line + 1})")
+                raise UserFileError(
+                    f"nested deeper than {self.max_depth} levels (line {mark.line + 1})"
+                )
             return Composer.compose_node(self, parent, index)
         finally:
             self._depth -= 1
 
 
 def _expanded_size(node, limit: int) -> int:
-    """Values in the composed YAML ``node`` once every alias is expanded, stopping past ``limit``."""
+    """Values in the composed YAML ``node`` once every alias is expanded, stopping past
+    ``limit``."""
     sizes: dict[int, int] = {}
 
     def size(n) -> int:
@@ -100,22 +115,34 @@ def _expanded_size(node, limit: int) -> int:
 
 
 def parse_yaml(text: str, where: str, max_depth: int = MAX_DEPTH, max_nodes: int = MAX_NODES):
-    """The YAML ``text`` as Python values, bounded as the module doc says; UserFileError naming ``where``."""
+    """The YAML ``text`` as Python values, bounded as the module doc says; UserFileError naming
+    ``where``."""
     loader = type("Loader", (_BoundedLoader,), {"max_depth": max_depth})(text)
     try:
         node = loader.get_single_node()
         if node is None:
             return None
         if _expanded_size(node, max_nodes) > max_nodes:
-            raise UserFileError(f"{where}: expands to more than {max_nodes} values (aliases of aliases: refused)")
+            raise UserFileError(
+                f"{where}: expands to more than {max_nodes} values (aliases of aliases: refused)"
+            )
         return loader.construct_document(node)
     except UserFileError as exc:
-        raise UserFileError(str(exc) if str(exc).startswith(where) else f"{where}: {exc}") from None
+        raise UserFileError(
+            str(exc) if str(exc).startswith(where) else f"{where}: {exc}"
+        ) from None
     except yaml.YAMLError as exc:
         text = " ".join(str(exc).split())
         raise UserFileError(f"{where} is not valid YAML: {text[:300]}") from None
-    except (RecursionError, MemoryError, ValueError, TypeError) as exc:  # constructors on odd scalars
-        raise UserFileError(f"{where} cannot be read as YAML: {type(exc).__name__}: {str(exc)[:200]}") from None
+    except (
+        RecursionError,
+        MemoryError,
+        ValueError,
+        TypeError,
+    ) as exc:  # constructors on odd scalars
+        raise UserFileError(
+            f"{where} cannot be read as YAML: {type(exc).__name__}: {str(exc)[:200]}"
+        ) from None
     finally:
         loader.dispose()
 
@@ -138,7 +165,8 @@ def _json_size(value, limit: int, depth: int, max_depth: int) -> int:
 
 
 def parse_json(text: str, where: str, max_depth: int = MAX_DEPTH, max_nodes: int = MAX_NODES):
-    """The JSON ``text`` as Python values, bounded in depth and size; UserFileError naming ``where``."""
+    """The JSON ``text`` as Python values, bounded in depth and size; UserFileError naming
+    ``where``."""
     try:
         value = json.loads(text)
     except RecursionError:
@@ -153,9 +181,15 @@ def parse_json(text: str, where: str, max_depth: int = MAX_DEPTH, max_nodes: int
     return value
 
 
-def load(path, what: str = "file", max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH,
-         max_nodes: int = MAX_NODES):
-    """The YAML (or, for a ``.json`` name, JSON) file ``path`` as Python values, every bound applied."""
+def load(
+    path,
+    what: str = "file",
+    max_bytes: int = MAX_BYTES,
+    max_depth: int = MAX_DEPTH,
+    max_nodes: int = MAX_NODES,
+):
+    """The YAML (or, for a ``.json`` name, JSON) file ``path`` as Python values, every bound
+    applied."""
     name = os.fspath(path)
     text = read_text(name, what, max_bytes)
     parse = parse_json if name.lower().endswith(".json") else parse_yaml

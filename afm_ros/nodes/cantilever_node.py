@@ -6,10 +6,11 @@ Topics (relative names, so a namespace applies to all of them except ``/diagnost
   (std_msgs/Float64MultiArray, layout of :mod:`afm_ros.formats.chunk_layout`; [m] and [N]),
   ``clock`` (rosgraph_msgs/Clock, simulated time, if ``publish_clock``: ``/clock`` in the root
   namespace, ``/<ns>/clock`` under a namespace so two instruments never share one clock) and
-  ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: real-time factor, lag, feedback and consumers),
-- subscribes ``z_controller/z_command`` (std_msgs/Float64MultiArray, :mod:`afm_ros.formats.chunk_layout`:
-  answered index, time, z [m]; the gap is z_base + z_piezo + z) and ``cantilever/ack``
-  (std_msgs/Int64MultiArray: what each consumer has handled).
+  ``/diagnostics`` (diagnostic_msgs/DiagnosticArray: real-time factor, lag, feedback and
+  consumers),
+- subscribes ``z_controller/z_command`` (std_msgs/Float64MultiArray,
+  :mod:`afm_ros.formats.chunk_layout`: answered index, time, z [m]; the gap is z_base + z_piezo +
+  z) and ``cantilever/ack`` (std_msgs/Int64MultiArray: what each consumer has handled).
 
 Each chunk waits for two gates (:mod:`afm_ros.core.flow`): the z controller's answer to the chunk
 ``feedback_latency`` chunks back (lockstep: a deterministic closed loop) and the consumers'
@@ -18,6 +19,7 @@ down instead of losing samples). ``run_until`` pauses the integration at a chunk
 is not ROS (parameter changes, chunk-boundary requests, pacing, gates, blow-ups) is in
 :mod:`afm_ros.core.cantilever_engine`; this node translates between it and the topics.
 """
+
 from __future__ import annotations
 
 import array
@@ -35,19 +37,37 @@ from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, MultiArrayLayout, String
+from std_msgs.msg import (
+    Float64MultiArray,
+    Int64MultiArray,
+    MultiArrayDimension,
+    MultiArrayLayout,
+    String,
+)
 
-from afm_ros.nodes import ros_params, topics
-from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
 from afm_ros.core.cantilever_engine import (  # noqa: F401 - the two constants afm_instrument imports from here
-    CONSUMER_TIMEOUT_S, FREE_RUN_TIMER_PERIOD_S, IDLE_TIMER_PERIOD_S, PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS,
-    CantileverEngine, Job)
+    CONSUMER_TIMEOUT_S,
+    FREE_RUN_TIMER_PERIOD_S,
+    IDLE_TIMER_PERIOD_S,
+    PAUSE_TOLERANCE_S,
+    PHYSICS_REPORT_KEYS,
+    CantileverEngine,
+    Job,
+)
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_values
-from afm_ros.formats.chunk_layout import (PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack, unpack_excitation,
-                                         unpack_z_command)
-from afm_ros.nodes.node_main import run_node
-from afm_ros.nodes.guard import GuardedNode
 from afm_ros.core.physics.simulation import Simulation
+from afm_ros.formats.chunk_layout import (
+    PREAMBLE_LENGTH,
+    SAMPLES_LABEL,
+    ChunkHeader,
+    pack,
+    unpack_excitation,
+    unpack_z_command,
+)
+from afm_ros.nodes import ros_params, topics
+from afm_ros.nodes.guard import GuardedNode
+from afm_ros.nodes.node_main import run_node
+from afm_ros.nodes.topics import CONSUMER_QOS, HISTORY_QOS, LATCHED_QOS
 
 # Sample chunks: reliable, and transient-local with a history of 200 chunks (0.4 s simulated at the
 # default chunk length), so a consumer that matches late (start-up, a restarted lock-in) still gets
@@ -57,7 +77,9 @@ CHUNK_QOS = HISTORY_QOS
 # controller's initial command and a consumer's "ready" reach a cantilever that starts later.
 Z_COMMAND_QOS = CONSUMER_QOS
 ACK_QOS = CONSUMER_QOS
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+CLOCK_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE
+)
 
 ACK_TOPIC = topics.ACK
 Z_COMMAND_TOPIC = topics.Z_COMMAND
@@ -67,13 +89,25 @@ Z_COMMAND_TOPIC = topics.Z_COMMAND
 MAX_BURST = 8
 DIAGNOSTICS_PERIOD_S = 1.0
 CONSUMER_ABSENT_S = 2.0  # an acknowledging consumer absent from the graph this long is forgotten
-DIAGNOSTIC_LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN, "error": DiagnosticStatus.ERROR}
-TIP_LAYOUT = MultiArrayLayout(dim=[MultiArrayDimension(
-    label="t_s,tip_radius_m,worn_taps,second_apex_x_m,second_apex_y_m,second_apex_height_m", size=6, stride=6)])
+DIAGNOSTIC_LEVELS = {
+    "ok": DiagnosticStatus.OK,
+    "warn": DiagnosticStatus.WARN,
+    "error": DiagnosticStatus.ERROR,
+}
+TIP_LAYOUT = MultiArrayLayout(
+    dim=[
+        MultiArrayDimension(
+            label="t_s,tip_radius_m,worn_taps,second_apex_x_m,second_apex_y_m,second_apex_height_m",
+            size=6,
+            stride=6,
+        )
+    ]
+)
 
 
 def chunk_message(header: ChunkHeader, samples: np.ndarray) -> Float64MultiArray:
-    """Float64MultiArray in the chunk layout (``afm_ros.formats.chunk_layout``): preamble, then ``samples``."""
+    """Float64MultiArray in the chunk layout (``afm_ros.formats.chunk_layout``): preamble, then
+    ``samples``."""
     n = samples.shape[0]
     msg = Float64MultiArray()
     msg.layout.dim = [MultiArrayDimension(label=SAMPLES_LABEL, size=n, stride=n)]
@@ -88,40 +122,68 @@ def _time_msg(t: float) -> TimeMsg:
 
 
 class CantileverNode(GuardedNode):
-    """Tapping cantilever over a DMT sample, integrated in paced, gated chunks (see module docstring)."""
+    """Tapping cantilever over a DMT sample, integrated in paced, gated chunks (see module
+    docstring)."""
 
     def __init__(self, **kwargs):
         super().__init__("cantilever", **kwargs)
         values = ros_params.declare(self, CANTILEVER_NODE_SPECS)  # ValueError on a bad start value
         values = self._start_material(values)
-        self.engine = CantileverEngine(values, self.get_logger(), feedback_topic=Z_COMMAND_TOPIC,
-                                       on_applied=self._publish_applied, on_worn_tip=self._publish_tip)
+        self.engine = CantileverEngine(
+            values,
+            self.get_logger(),
+            feedback_topic=Z_COMMAND_TOPIC,
+            on_applied=self._publish_applied,
+            on_worn_tip=self._publish_tip,
+        )
         self._consumer_seen: dict[str, float] = {}
-        self._consumer_progress: dict[str, float] = {}  # wall time of each consumer's last progress
+        self._consumer_progress: dict[
+            str, float
+        ] = {}  # wall time of each consumer's last progress
         self.consumers_dropped: list[str] = []
 
-        self._pub_deflection = self.create_publisher(Float64MultiArray, topics.DEFLECTION, CHUNK_QOS)
+        self._pub_deflection = self.create_publisher(
+            Float64MultiArray, topics.DEFLECTION, CHUNK_QOS
+        )
         self._pub_force = self.create_publisher(Float64MultiArray, topics.FORCE, CHUNK_QOS)
         self._pub_clock = self.create_publisher(ClockMsg, "clock", CLOCK_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._z_sub = self.create_subscription(Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command,
-                                               Z_COMMAND_QOS)
-        self._excitation_sub = self.create_subscription(Float64MultiArray, topics.EXCITATION, self._on_excitation,
-                                                        Z_COMMAND_QOS)
+        self._z_sub = self.create_subscription(
+            Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command, Z_COMMAND_QOS
+        )
+        self._excitation_sub = self.create_subscription(
+            Float64MultiArray, topics.EXCITATION, self._on_excitation, Z_COMMAND_QOS
+        )
         self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
         self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
         self._publish_applied(self.engine.applied())
-        self._plan_sub = self.create_subscription(String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS)
-        self._imperfections_sub = self.create_subscription(String, topics.IMPERFECTIONS, self._on_imperfections,
-                                                           LATCHED_QOS)
-        self._tune_sub = self.create_subscription(String, topics.TUNE_PLAN, self._on_tune_plan, LATCHED_QOS)
+        self._plan_sub = self.create_subscription(
+            String, topics.SCAN_PLAN, self._on_plan, LATCHED_QOS
+        )
+        self._imperfections_sub = self.create_subscription(
+            String, topics.IMPERFECTIONS, self._on_imperfections, LATCHED_QOS
+        )
+        self._tune_sub = self.create_subscription(
+            String, topics.TUNE_PLAN, self._on_tune_plan, LATCHED_QOS
+        )
         self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
         self._pub_tip = self.create_publisher(Float64MultiArray, topics.TRUTH_TIP, LATCHED_QOS)
         self._truth_msg = Float64MultiArray()
-        self._truth_msg.layout.dim = [MultiArrayDimension(label=",".join(topics.TRUTH_FIELDS),
-                                                          size=len(topics.TRUTH_FIELDS), stride=len(topics.TRUTH_FIELDS))]
-        self.add_on_set_parameters_callback(ros_params.make_set_callback(
-            CANTILEVER_NODE_SPECS, self.engine.requested_values, self.engine.check, self._queue_changes))
+        self._truth_msg.layout.dim = [
+            MultiArrayDimension(
+                label=",".join(topics.TRUTH_FIELDS),
+                size=len(topics.TRUTH_FIELDS),
+                stride=len(topics.TRUTH_FIELDS),
+            )
+        ]
+        self.add_on_set_parameters_callback(
+            ros_params.make_set_callback(
+                CANTILEVER_NODE_SPECS,
+                self.engine.requested_values,
+                self.engine.check,
+                self._queue_changes,
+            )
+        )
         self.add_post_set_parameters_callback(self._on_material_set)
 
         self._diag_wall = None
@@ -130,14 +192,19 @@ class CantileverNode(GuardedNode):
         self._stopped = False
         # The RK4 kernel runs in a worker thread (numba nogil), so the second core integrates the
         # next chunk while the executor thread serves the consumers. Chunks are booked under the
-        # engine's step_lock; the worker owns the Simulation while a chunk is in flight, and publishes it.
+        # engine's step_lock; the worker owns the Simulation while a chunk is in flight, and
+        # publishes it.
         self._in_flight = False
         self._published_end = 0  # sample index after the last published chunk
         self.worker_error: BaseException | None = None
         self._jobs: queue.SimpleQueue = queue.SimpleQueue()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._timer = self.create_timer(self.engine.timer_period(), self._on_timer, clock=self._steady)
-        self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}-rk4", daemon=True)
+        self._timer = self.create_timer(
+            self.engine.timer_period(), self._on_timer, clock=self._steady
+        )
+        self._worker = threading.Thread(
+            target=self._work, name=f"{self.get_name()}-rk4", daemon=True
+        )
         self._worker.start()
         self._ready_line()
 
@@ -165,20 +232,26 @@ class CantileverNode(GuardedNode):
     def _ready_line(self) -> None:
         v, s = self.engine.values, self.engine.setup
         self.get_logger().info(
-            f"ready: k={v['spring_constant']:g} N/m, f0={v['resonance_frequency']:g} Hz, Q={v['quality_factor']:g}, "
+            f"ready: k={v['spring_constant']:g} N/m, f0={v['resonance_frequency']:g} Hz, "
+            f"Q={v['quality_factor']:g}, "
             f"A0={v['free_amplitude']:g} m, z_base={v['z_base']:g} m, force {v['force_model']}, "
             f"{v['steps_per_period']} steps/period, {1.0 / s.sample_interval:g} S/s in chunks of "
-            f"{s.samples_per_chunk} samples ({s.chunk_steps * s.dt:g} s), real_time_factor={v['real_time_factor']:g}, "
+            f"{s.samples_per_chunk} samples ({s.chunk_steps * s.dt:g} s), "
+            f"real_time_factor={v['real_time_factor']:g}, "
             f"feedback_sync={v['feedback_sync']} (latency {v['feedback_latency']} chunk), "
-            f"flow_window={v['flow_window']}, run_until={v['run_until']:g} s")
+            f"flow_window={v['flow_window']}, run_until={v['run_until']:g} s"
+        )
 
-    # --- requests and parameters, applied by the engine at the next chunk boundary ----------------
+    # --- requests and parameters, applied by the engine at the next chunk boundary
+    # ----------------
     def _on_plan(self, msg: String) -> None:
         """The scanner's scan request (JSON, see CantileverEngine.request_scan)."""
         try:
             self.engine.request_scan(json.loads(msg.data))
         except (ValueError, TypeError, KeyError) as exc:
-            self.get_logger().error(f"ignoring malformed scan request on {topics.SCAN_PLAN}: {exc}")
+            self.get_logger().error(
+                f"ignoring malformed scan request on {topics.SCAN_PLAN}: {exc}"
+            )
             return
         self._try_step(MAX_BURST)
 
@@ -187,7 +260,9 @@ class CantileverNode(GuardedNode):
         try:
             self.engine.request_imperfections(json.loads(msg.data))
         except (ValueError, TypeError, AttributeError) as exc:
-            self.get_logger().error(f"ignoring malformed imperfections on {topics.IMPERFECTIONS}: {exc}")
+            self.get_logger().error(
+                f"ignoring malformed imperfections on {topics.IMPERFECTIONS}: {exc}"
+            )
 
     def _on_tune_plan(self, msg: String) -> None:
         """The lock-in's tune schedule (JSON): the drive frequency follows it while it runs."""
@@ -213,7 +288,8 @@ class CantileverNode(GuardedNode):
         """Accepted changes are applied at the next chunk boundary."""
         self.engine.queue(changed)
         if "run_until" in changed and self.engine.paused_reported:
-            # a paused cantilever polls slowly: continue at the next fast tick, not the next idle one
+            # a paused cantilever polls slowly: continue at the next fast tick, not the next idle
+            # one
             self._set_timer_period(FREE_RUN_TIMER_PERIOD_S)
             self._timer.reset()
 
@@ -227,10 +303,14 @@ class CantileverNode(GuardedNode):
         try:
             cmd = unpack_z_command(msg.data)
         except ValueError as exc:
-            self.get_logger().warning(f"ignoring malformed z command: {exc}", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"ignoring malformed z command: {exc}", throttle_duration_sec=5.0
+            )
             return
         if not (math.isfinite(cmd.z) and math.isfinite(cmd.answered_end_time)):
-            self.get_logger().warning(f"ignoring non-finite z command z={cmd.z!r}", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"ignoring non-finite z command z={cmd.z!r}", throttle_duration_sec=5.0
+            )
             return
         with self.engine.step_lock:
             self.engine.gate.receive(cmd)
@@ -241,11 +321,19 @@ class CantileverNode(GuardedNode):
         try:
             cmd = unpack_excitation(msg.data)
         except ValueError as exc:
-            self.get_logger().warning(f"ignoring malformed excitation: {exc}", throttle_duration_sec=5.0)
+            self.get_logger().warning(
+                f"ignoring malformed excitation: {exc}", throttle_duration_sec=5.0
+            )
             return
-        if not (math.isfinite(cmd.frequency) and cmd.frequency >= 10.0 and math.isfinite(cmd.force)
-                and 0.0 <= cmd.force <= 1e-3):
-            self.get_logger().warning(f"ignoring excitation outside the drive's range: {cmd}", throttle_duration_sec=5.0)
+        if not (
+            math.isfinite(cmd.frequency)
+            and cmd.frequency >= 10.0
+            and math.isfinite(cmd.force)
+            and 0.0 <= cmd.force <= 1e-3
+        ):
+            self.get_logger().warning(
+                f"ignoring excitation outside the drive's range: {cmd}", throttle_duration_sec=5.0
+            )
             return
         with self.engine.step_lock:
             self.engine.excitation_gate.receive(cmd)
@@ -266,8 +354,9 @@ class CantileverNode(GuardedNode):
             self._publish_diagnostics(time.monotonic(), force=True)
         if new:
             self._consumer_seen[name] = time.monotonic()
-            self.get_logger().info(f"consumer {name} acknowledges the stream (flow_window "
-                                   f"{window.window} chunks)")
+            self.get_logger().info(
+                f"consumer {name} acknowledges the stream (flow_window {window.window} chunks)"
+            )
             self._publish_diagnostics(time.monotonic(), force=True)
         self._try_step(MAX_BURST)
 
@@ -284,7 +373,8 @@ class CantileverNode(GuardedNode):
 
     @property
     def samples_submitted(self) -> int:
-        """Running sample index after the last chunk handed to the integrator (all of them get published)."""
+        """Running sample index after the last chunk handed to the integrator (all of them get
+        published)."""
         return self.engine.starts.next_index
 
     @property
@@ -385,19 +475,22 @@ class CantileverNode(GuardedNode):
             pass
 
     def step_chunk(self, z_piezo: float | None = None) -> None:
-        """Integrate one chunk in the calling thread and publish it (pending parameter changes applied
-        first); ``z_piezo`` [m]: the piezo position for this chunk (default: what the feedback gate holds)."""
+        """Integrate one chunk in the calling thread and publish it (pending parameter changes
+        applied first); ``z_piezo`` [m]: the piezo position for this chunk (default: what the
+        feedback gate holds)."""
         with self.engine.step_lock:
             if self._in_flight:
-                raise RuntimeError("step_chunk: a chunk is being integrated by the worker; stop() the node first")
+                raise RuntimeError(
+                    "step_chunk: a chunk is being integrated by the worker; stop() the node first"
+                )
             job = self.engine.book(self.engine.gate.z if z_piezo is None else z_piezo)
             self._in_flight = True
         self._run_chunk(job)
         self._in_flight = False
 
     def _run_chunk(self, job: Job) -> None:
-        """Integrate a booked chunk and publish it; a blow-up publishes nothing of it (see the engine)
-        and reports on /diagnostics."""
+        """Integrate a booked chunk and publish it; a blow-up publishes nothing of it (see the
+        engine) and reports on /diagnostics."""
         chunk = self.engine.run(job)
         if chunk is None:
             self._publish_diagnostics(time.monotonic(), force=True)
@@ -420,7 +513,11 @@ class CantileverNode(GuardedNode):
         engine = self.engine
         start = time.monotonic()
         if self._diag_wall is None:
-            self._diag_wall, self._diag_sim, self._diag_cpu = start, engine.t_end, time.process_time()
+            self._diag_wall, self._diag_sim, self._diag_cpu = (
+                start,
+                engine.t_end,
+                time.process_time(),
+            )
         self._try_step(MAX_BURST)
         now = time.monotonic()
         warning = engine.pace(now, running=self.worker_error is None)
@@ -437,24 +534,33 @@ class CantileverNode(GuardedNode):
             self._publish_diagnostics(now)
 
     def _check_graph(self, now: float) -> None:
-        """Forget consumers and a z controller that left the graph (a gate must not wait for them)."""
+        """Forget consumers and a z controller that left the graph (a gate must not wait for
+        them)."""
         gate, window = self.engine.gate, self.engine.window
         if gate.locked and gate.mode == "auto" and self._z_sub.get_publisher_count() == 0:
             with self.engine.step_lock:
                 gate.controller_gone()
-            self.get_logger().warning(f"no publisher on {Z_COMMAND_TOPIC} any more: feedback runs free")
+            self.get_logger().warning(
+                f"no publisher on {Z_COMMAND_TOPIC} any more: feedback runs free"
+            )
         ex = self.engine.excitation_gate
         if ex.locked and ex.mode == "auto" and self._excitation_sub.get_publisher_count() == 0:
             with self.engine.step_lock:
                 ex.controller_gone()
-            self.get_logger().warning(f"no publisher on {topics.EXCITATION} any more: the drive holds its last value")
+            self.get_logger().warning(
+                f"no publisher on {topics.EXCITATION} any more: the drive holds its last value"
+            )
         if not window.acks:
             return
-        present = {topics.fqn(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(
-            self.resolve_topic_name(ACK_TOPIC))}
+        present = {
+            topics.fqn(i.node_namespace, i.node_name)
+            for i in self.get_publishers_info_by_topic(self.resolve_topic_name(ACK_TOPIC))
+        }
         for name in present:
             self._consumer_seen[name] = now
-        absent = {n for n in window.acks if now - self._consumer_seen.get(n, now) > CONSUMER_ABSENT_S}
+        absent = {
+            n for n in window.acks if now - self._consumer_seen.get(n, now) > CONSUMER_ABSENT_S
+        }
         with self.engine.step_lock:
             gone = window.forget_absent(set(window.acks) - absent)
         for name in gone:
@@ -466,8 +572,10 @@ class CantileverNode(GuardedNode):
         for name in self.engine.drop_stuck_consumers(now, self._consumer_progress):
             self._consumer_seen.pop(name, None)
             self.consumers_dropped.append(name)
-            self.get_logger().error(f"consumer {name} made no progress for {CONSUMER_TIMEOUT_S:g} s while the "
-                                    f"loop waited for it: no longer waited for (it may lose samples)")
+            self.get_logger().error(
+                f"consumer {name} made no progress for {CONSUMER_TIMEOUT_S:g} s while the "
+                f"loop waited for it: no longer waited for (it may lose samples)"
+            )
 
     def _publish_diagnostics(self, now: float, force: bool = False) -> None:
         e = self.engine
@@ -478,14 +586,29 @@ class CantileverNode(GuardedNode):
         if wall <= 0.0 and not force:
             return
         achieved = (e.t_end - self._diag_sim) / wall if wall > 0 else 0.0
-        failure = None if self.worker_error is None else \
-            f"integration failed: {self.worker_error!r}; the cantilever stopped"
-        level, message, values = e.status(now, wall, achieved, self._published_end, self.consumers_dropped,
-                                          (cpu - self._diag_cpu) / wall if wall > 0 else 0.0, failure)
+        failure = (
+            None
+            if self.worker_error is None
+            else f"integration failed: {self.worker_error!r}; the cantilever stopped"
+        )
+        level, message, values = e.status(
+            now,
+            wall,
+            achieved,
+            self._published_end,
+            self.consumers_dropped,
+            (cpu - self._diag_cpu) / wall if wall > 0 else 0.0,
+            failure,
+        )
         status = DiagnosticStatus(
-            level=DIAGNOSTIC_LEVELS[level], name=f"{self.get_fully_qualified_name()}: simulation",
-            hardware_id="afm_ros", message=message,
-            values=[KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in values])
+            level=DIAGNOSTIC_LEVELS[level],
+            name=f"{self.get_fully_qualified_name()}: simulation",
+            hardware_id="afm_ros",
+            message=message,
+            values=[
+                KeyValue(key=k, value=(v if isinstance(v, str) else f"{v:.6g}")) for k, v in values
+            ],
+        )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)

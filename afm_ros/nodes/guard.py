@@ -5,9 +5,9 @@ rclpy lets an exception raised in a callback leave the executor's spin, which en
 its node registers (subscriptions, services, timers, parameter callbacks) so that an exception
 
 - is logged once with its traceback (later ones of the same callback at most every 5 s),
-- becomes a ``/diagnostics`` status ``<node>: callbacks`` at ERROR naming the callback and the cause
-  (count, first and last), published at once and then every second, so ``afm_ctl status`` and a
-  diagnostics aggregator show it,
+- becomes a ``/diagnostics`` status ``<node>: callbacks`` at ERROR naming the callback and the
+  cause (count, first and last), published at once and then every second, so ``afm_ctl status`` and
+  a diagnostics aggregator show it,
 - answers what was asked as a refusal: a std_srvs-style service returns ``success: false`` with the
   cause, a parameter change is refused with it (the parameter keeps its value),
 - and leaves the node running with the state it had (the callback's work up to the fault stands;
@@ -16,6 +16,7 @@ its node registers (subscriptions, services, timers, parameter callbacks) so tha
 KeyboardInterrupt and SystemExit are not caught: they are how a process is meant to stop; nor
 rclpy's ParameterException, which its parameter services turn into the answer themselves.
 """
+
 from __future__ import annotations
 
 import traceback
@@ -42,35 +43,48 @@ class GuardedNode(Node):
     last_fault = ""
 
     def create_subscription(self, msg_type, topic, callback, *args, **kwargs):
-        return super().create_subscription(msg_type, topic, self._guarded(callback, f"subscription {topic}"),
-                                           *args, **kwargs)
+        return super().create_subscription(
+            msg_type, topic, self._guarded(callback, f"subscription {topic}"), *args, **kwargs
+        )
 
     def create_service(self, srv_type, srv_name, callback, *args, **kwargs):
-        return super().create_service(srv_type, srv_name,
-                                      self._guarded(callback, f"service {srv_name}", srv_type.Response), *args,
-                                      **kwargs)
+        return super().create_service(
+            srv_type,
+            srv_name,
+            self._guarded(callback, f"service {srv_name}", srv_type.Response),
+            *args,
+            **kwargs,
+        )
 
     def create_timer(self, timer_period_sec, callback, *args, **kwargs):
         name = getattr(callback, "__name__", "timer")
-        return super().create_timer(timer_period_sec, self._guarded(callback, f"timer {name}"), *args, **kwargs)
+        return super().create_timer(
+            timer_period_sec, self._guarded(callback, f"timer {name}"), *args, **kwargs
+        )
 
     def add_on_set_parameters_callback(self, callback):
-        return super().add_on_set_parameters_callback(self._guarded(callback, "parameter change", SetParametersResult))
+        return super().add_on_set_parameters_callback(
+            self._guarded(callback, "parameter change", SetParametersResult)
+        )
 
     def add_pre_set_parameters_callback(self, callback):
         def pre_set(parameters):
             try:
                 return callback(parameters)
-            except ParameterException:  # rclpy's own answer (e.g. an unknown name, worded by ros_params)
+            except (
+                ParameterException
+            ):  # rclpy's own answer (e.g. an unknown name, worded by ros_params)
                 raise
             except Exception as exc:  # noqa: BLE001 - the on-set callback still judges the values
                 self._fault("parameter conversion", exc)
                 return parameters
+
         return super().add_pre_set_parameters_callback(pre_set)
 
     def _guarded(self, callback, where: str, answer_type=None):
-        """``callback`` that turns an exception into a fault (and, for a service or a parameter change,
-        into a refusal of type ``answer_type`` naming the cause)."""
+        """``callback`` that turns an exception into a fault (and, for a service or a parameter
+        change, into a refusal of type ``answer_type`` naming the cause)."""
+
         def guarded(*args):
             try:
                 return callback(*args)
@@ -79,15 +93,20 @@ class GuardedNode(Node):
             except Exception as exc:  # noqa: BLE001 - the point of this module
                 cause = self._fault(where, exc)
                 if answer_type is SetParametersResult:
-                    return SetParametersResult(successful=False, reason=f"refused: internal error in {cause}")
+                    return SetParametersResult(
+                        successful=False, reason=f"refused: internal error in {cause}"
+                    )
                 if answer_type is not None:
                     response = args[1] if len(args) > 1 else answer_type()
                     if hasattr(response, "success"):
                         response.success = False
                     if hasattr(response, "message"):
-                        response.message = refusals.tagged(refusals.INTERNAL, f"internal error in {cause}")
+                        response.message = refusals.tagged(
+                            refusals.INTERNAL, f"internal error in {cause}"
+                        )
                     return response
                 return None
+
         guarded.__name__ = getattr(callback, "__name__", "callback")
         return guarded
 
@@ -99,15 +118,23 @@ class GuardedNode(Node):
         self.last_fault = cause
         logger = self.get_logger()
         if self.callback_faults == 1:
-            logger.error(f"exception in {where} (the node goes on; diagnostics '{FAULT_STATUS}' reports it):\n"
-                         + "".join(traceback.format_exception(exc)).rstrip())
+            logger.error(
+                f"exception in {where} (the node goes on; diagnostics '{FAULT_STATUS}' reports "
+                "it):\n" + "".join(traceback.format_exception(exc)).rstrip()
+            )
         else:
-            logger.error(f"exception in {cause} ({self.callback_faults} so far)", throttle_duration_sec=LOG_THROTTLE_S)
+            logger.error(
+                f"exception in {cause} ({self.callback_faults} so far)",
+                throttle_duration_sec=LOG_THROTTLE_S,
+            )
         try:
             if getattr(self, "_fault_pub", None) is None:
                 self._fault_pub = super().create_publisher(DiagnosticArray, "/diagnostics", 10)
-                self._fault_timer = super().create_timer(FAULT_PERIOD_S, self._publish_faults,
-                                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
+                self._fault_timer = super().create_timer(
+                    FAULT_PERIOD_S,
+                    self._publish_faults,
+                    clock=Clock(clock_type=ClockType.STEADY_TIME),
+                )
             self._publish_faults()
         except Exception:  # noqa: BLE001 - e.g. the context is shutting down: the log line stands
             pass
@@ -115,9 +142,17 @@ class GuardedNode(Node):
 
     def _publish_faults(self) -> None:
         try:
-            topics.publish_status(self, self._fault_pub, FAULT_STATUS,
-                                  f"{self.callback_faults} exception(s) in callbacks, last: {self.last_fault}",
-                                  {"faults": self.callback_faults, "first": self.first_fault, "last": self.last_fault},
-                                  level=DiagnosticStatus.ERROR)
+            topics.publish_status(
+                self,
+                self._fault_pub,
+                FAULT_STATUS,
+                f"{self.callback_faults} exception(s) in callbacks, last: {self.last_fault}",
+                {
+                    "faults": self.callback_faults,
+                    "first": self.first_fault,
+                    "last": self.last_fault,
+                },
+                level=DiagnosticStatus.ERROR,
+            )
         except Exception:  # noqa: BLE001 - the context is going away
             pass

@@ -3,12 +3,12 @@
 A WebSocket server in this process (``address``:``port``, 127.0.0.1:8765 by default; the protocol
 has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every
 topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxglove channel under
-its full ROS name, as foxglove_bridge does: the ROS 2
-message bytes (CDR) with the ``ros2msg`` definition the recorder writes, except the scanner's
-images, which go out as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s
-deflection and force, of which one chunk in ``deflection_decimation`` is forwarded, and the
-per-output scalar topics (``lockin/amplitude`` ..., in FM ``pll/frequency_shift``, ``pll/phase_error``,
-``pll/drive``), built from the batch topics (:mod:`afm_ros.core.live_view`).
+its full ROS name, as foxglove_bridge does: the ROS 2 message bytes (CDR) with the ``ros2msg``
+definition the recorder writes, except the scanner's images, which go out as ``foxglove.RawImage``
+mono8 scaled to their own range, and the 900 kS/s deflection and force, of which one chunk in
+``deflection_decimation`` is forwarded, and the per-output scalar topics (``lockin/amplitude`` ...,
+in FM ``pll/frequency_shift``, ``pll/phase_error``, ``pll/drive``), built from the batch topics
+(:mod:`afm_ros.core.live_view`).
 
 A ROS subscription exists only while a viewer subscribes to its channel, and it never slows the
 loop: it does not acknowledge (the cantilever never waits for it), it is best effort with a short
@@ -16,56 +16,85 @@ KEEP_LAST queue (latched state topics: reliable, transient local, depth 1), its 
 received bytes to the SDK, and the SDK queues at most ``message_backlog`` messages per viewer and
 drops the oldest view frames beyond that.
 
-Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pll``, ``scanner`` and
-``recorder`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>`` (foxglove_bridge's
-names), read from the nodes and kept current from ``/parameter_events`` (each change is pushed once
-to the viewers subscribed to it); a write goes to the node's ``set_parameters`` service, so the node
-validates it, and a refusal is sent to the viewer as a warning status with the node's reason (the
-panel keeps the node's value). The scanner's
+Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pll``, ``scanner``
+and ``recorder`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>``
+(foxglove_bridge's names), read from the nodes and kept current from ``/parameter_events`` (each
+change is pushed once to the viewers subscribed to it); a write goes to the node's
+``set_parameters`` service, so the node validates it, and a refusal is sent to the viewer as a
+warning status with the node's reason (the panel keeps the node's value). The scanner's
 ``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` (std_srvs/Trigger) are Foxglove
 services under their full names.
 """
+
 from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
+from ament_index_python.packages import get_package_share_directory
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.client import Client
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_parameter_events
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_parameter_events,
+)
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from std_msgs.msg import Float64MultiArray
-
-from afm_ros.core.live_view import (DEFLECTION_TOPICS, DERIVED, IMAGE_PREFIX, LIVE_VIEW_SPECS, PARAMETER_NODES,
-                                    RAW_IMAGE_SCHEMA, SERVICES, chunk_first_index, derived_values, float64_cdr,
-                                    forward_chunk, multiarray_data, parameter_name, raw_image_json,
-                                    split_parameter_name)
-from afm_ros.formats.mcap_io import message_definition
+from afm_ros.core.live_view import (
+    DEFLECTION_TOPICS,
+    DERIVED,
+    IMAGE_PREFIX,
+    LIVE_VIEW_SPECS,
+    PARAMETER_NODES,
+    RAW_IMAGE_SCHEMA,
+    SERVICES,
+    chunk_first_index,
+    derived_values,
+    float64_cdr,
+    forward_chunk,
+    multiarray_data,
+    parameter_name,
+    raw_image_json,
+    split_parameter_name,
+)
+from afm_ros.formats.mcap_io import message_class, message_definition
+from afm_ros.nodes.guard import GuardedNode
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
-from afm_ros.nodes.guard import GuardedNode
-from ament_index_python.packages import get_package_share_directory
-from pathlib import Path
-from afm_ros.formats.mcap_io import message_class
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 LATCHED_TYPES = ("std_msgs/msg/String", IMAGE_TYPE)
 # streams: never a backlog for a viewer in the middleware (the SDK keeps the per-viewer backlog)
-STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4, reliability=ReliabilityPolicy.BEST_EFFORT,
-                        durability=DurabilityPolicy.VOLATILE)
+STREAM_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=4,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)
 # latched state (images, scan plan, progress): the last one, also for a viewer that joins later
-STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
-RECONCILE_PERIOD_S = 0.1  # how soon a viewer's (un)subscription creates / removes the ROS subscription
-# the WebSocket subprotocol foxglove-sdk accepts (fixed in its Rust handshake, not configurable), and the
-# older name of the same protocol that it refuses with HTTP 400 (docs/live_view.md, "Which viewers connect")
+STATE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+RECONCILE_PERIOD_S = (
+    0.1  # how soon a viewer's (un)subscription creates / removes the ROS subscription
+)
+# the WebSocket subprotocol foxglove-sdk accepts (fixed in its Rust handshake, not configurable),
+# and the older name of the same protocol that it refuses with HTTP 400 (docs/live_view.md, "Which
+# viewers connect")
 SUBPROTOCOL = "foxglove.sdk.v1"
 OLD_SUBPROTOCOL = "foxglove.websocket.v1"
 
@@ -123,58 +152,104 @@ class LiveViewNode(GuardedNode):
         super().__init__("live_view", **kwargs)
         self._fg = foxglove
         self._values = declare(self, LIVE_VIEW_SPECS)
-        self.add_on_set_parameters_callback(make_set_callback(
-            LIVE_VIEW_SPECS, lambda: dict(self._values), None, self._values.update))
+        self.add_on_set_parameters_callback(
+            make_set_callback(
+                LIVE_VIEW_SPECS, lambda: dict(self._values), None, self._values.update
+            )
+        )
         self._lock = threading.Lock()
         self._fg_context = foxglove.Context()
         self._channels: dict[str, tuple] = {}  # full topic -> (foxglove channel, ROS type)
-        self._viewers: dict[str, set] = {}  # full topic -> ids of the viewers subscribed to it (SDK threads)
-        self._subs: dict[tuple, object] = {}  # ("direct", topic) / ("derived", source) -> subscription
+        self._viewers: dict[
+            str, set
+        ] = {}  # full topic -> ids of the viewers subscribed to it (SDK threads)
+        self._subs: dict[
+            tuple, object
+        ] = {}  # ("direct", topic) / ("derived", source) -> subscription
         self._derived_targets: dict[str, list] = {}  # source topic -> [(log, field, served topic)]
-        self.serving: set[str] = set()  # channels with a ROS source right now (executor thread only)
+        self.serving: set[str] = (
+            set()
+        )  # channels with a ROS source right now (executor thread only)
         self._param_clients: dict[str, AsyncParameterClient] = {}
         self._param_pending: set[str] = set()
         self._params: dict[str, dict] = {}  # node fqn -> {name: value}, loaded nodes only
-        # (node fqn, name) -> viewer writes in flight: their parameter events are not pushed, the SDK
-        # pushes the set handler's answer to the subscribed viewers instead (one update per change)
+        # (node fqn, name) -> viewer writes in flight: their parameter events are not pushed, the
+        # SDK pushes the set handler's answer to the subscribed viewers instead (one update per
+        # change)
         self._writing: dict[tuple[str, str], int] = {}
-        self.forwarded: dict[str, int] = {}  # full topic -> messages handed to the SDK (diagnostics, tests)
+        self.forwarded: dict[
+            str, int
+        ] = {}  # full topic -> messages handed to the SDK (diagnostics, tests)
         namespace = self.get_namespace()
         self._scope = "/" if namespace == "/" else namespace.rstrip("/") + "/"
         request_def, response_def = _trigger_definitions()
         schema = foxglove.ServiceSchema(
             "std_srvs/srv/Trigger",
-            request=foxglove.MessageSchema(encoding="cdr", schema=foxglove.Schema(
-                name="std_srvs/srv/Trigger_Request", encoding="ros2msg", data=request_def.encode())),
-            response=foxglove.MessageSchema(encoding="cdr", schema=foxglove.Schema(
-                name="std_srvs/srv/Trigger_Response", encoding="ros2msg", data=response_def.encode())))
+            request=foxglove.MessageSchema(
+                encoding="cdr",
+                schema=foxglove.Schema(
+                    name="std_srvs/srv/Trigger_Request",
+                    encoding="ros2msg",
+                    data=request_def.encode(),
+                ),
+            ),
+            response=foxglove.MessageSchema(
+                encoding="cdr",
+                schema=foxglove.Schema(
+                    name="std_srvs/srv/Trigger_Response",
+                    encoding="ros2msg",
+                    data=response_def.encode(),
+                ),
+            ),
+        )
         self._service_clients = {}
         services = []
         for relative in SERVICES:
             full = self.resolve_service_name(relative)
             self._service_clients[full] = self.create_client(Trigger, relative)
-            services.append(foxglove.Service(full, schema=schema,
-                                             handler=lambda request, full=full: self._call_service(full)))
+            services.append(
+                foxglove.Service(
+                    full,
+                    schema=schema,
+                    handler=lambda request, full=full: self._call_service(full),
+                )
+            )
         try:
             self.server = foxglove.start_server(
-                name=f"afm_ros {self.get_fully_qualified_name()}", host=self._values["address"],
-                port=self._values["port"], capabilities=[Capability.Parameters, Capability.Services],
-                server_listener=_Listener(self), supported_encodings=["cdr"], services=services,
-                context=self._fg_context, message_backlog_size=self._values["message_backlog"])
+                name=f"afm_ros {self.get_fully_qualified_name()}",
+                host=self._values["address"],
+                port=self._values["port"],
+                capabilities=[Capability.Parameters, Capability.Services],
+                server_listener=_Listener(self),
+                supported_encodings=["cdr"],
+                services=services,
+                context=self._fg_context,
+                message_backlog_size=self._values["message_backlog"],
+            )
         except RuntimeError as exc:  # FoxgloveError: the address or port cannot be used
-            raise ValueError(f"cannot serve on address={self._values['address']!r} port={self._values['port']}: "
-                             f"{exc}") from None
+            raise ValueError(
+                f"cannot serve on address={self._values['address']!r} "
+                f"port={self._values['port']}: "
+                f"{exc}"
+            ) from None
         self.port = self.server.port
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_subscription(ParameterEvent, "/parameter_events", self._on_parameter_event,
-                                 qos_profile_parameter_events)
+        self.create_subscription(
+            ParameterEvent,
+            "/parameter_events",
+            self._on_parameter_event,
+            qos_profile_parameter_events,
+        )
         self.create_timer(self._values["discovery_period"], self._discover, clock=self._steady)
         self.create_timer(RECONCILE_PERIOD_S, self._reconcile, clock=self._steady)
         self._discover()
         self.get_logger().info(
-            f"ready: Foxglove WebSocket server on ws://{self._values['address']}:{self.port} (no authentication; "
-            f"subprotocol {SUBPROTOCOL} only: a viewer offering only {OLD_SUBPROTOCOL} gets HTTP 400, see "
-            f"docs/live_view.md); deflection: one chunk in {self._values['deflection_decimation']}")
+            f"ready: Foxglove WebSocket server on ws://{self._values['address']}:{self.port} (no "
+            "authentication; "
+            f"subprotocol {SUBPROTOCOL} only: a viewer offering only {OLD_SUBPROTOCOL} gets HTTP "
+            "400, see "
+            f"docs/live_view.md); deflection: one chunk in {self._values['deflection_decimation']}"
+        )
 
     # --- channels ------------------------------------------------------------------------------
     def _in_scope(self, topic: str) -> bool:
@@ -188,14 +263,23 @@ class LiveViewNode(GuardedNode):
                 continue
             type_name = types[0]
             if type_name == IMAGE_TYPE and topic.startswith(self._scope + IMAGE_PREFIX):
-                channel = self._fg.Channel(topic, schema=RAW_IMAGE_SCHEMA, context=self._fg_context)
+                channel = self._fg.Channel(
+                    topic, schema=RAW_IMAGE_SCHEMA, context=self._fg_context
+                )
             else:
                 try:
                     definition = message_definition(type_name)
                 except ValueError:
-                    continue  # a type without an installed definition: Foxglove could not decode it
-                channel = self._fg.Channel(topic, message_encoding="cdr", context=self._fg_context, schema=self._fg.Schema(
-                    name=type_name, encoding="ros2msg", data=definition.encode()))
+                    # a type without an installed definition: Foxglove could not decode it
+                    continue
+                channel = self._fg.Channel(
+                    topic,
+                    message_encoding="cdr",
+                    context=self._fg_context,
+                    schema=self._fg.Schema(
+                        name=type_name, encoding="ros2msg", data=definition.encode()
+                    ),
+                )
             with self._lock:
                 self._channels[topic] = (channel, type_name)
         self._discover_parameters()
@@ -206,10 +290,11 @@ class LiveViewNode(GuardedNode):
             (viewers.add if subscribed else viewers.discard)(client_id)
 
     def _relative(self, topic: str) -> str | None:
-        return topic[len(self._scope):] if topic.startswith(self._scope) else None
+        return topic[len(self._scope) :] if topic.startswith(self._scope) else None
 
     def _reconcile(self) -> None:
-        """Create the ROS subscriptions viewers want, remove those nobody wants (executor thread)."""
+        """Create the ROS subscriptions viewers want, remove those nobody wants (executor
+        thread)."""
         with self._lock:
             wanted = {t for t, v in self._viewers.items() if v and t in self._channels}
             channels = dict(self._channels)
@@ -219,7 +304,9 @@ class LiveViewNode(GuardedNode):
             relative = self._relative(topic)
             if relative in DERIVED:
                 source, field = DERIVED[relative]
-                derived.setdefault(self._scope + source, []).append((channels[topic][0].base.log, field, topic))
+                derived.setdefault(self._scope + source, []).append(
+                    (channels[topic][0].base.log, field, topic)
+                )
                 needed[("derived", self._scope + source)] = self._scope + source
             else:
                 needed[("direct", topic)] = topic
@@ -241,6 +328,7 @@ class LiveViewNode(GuardedNode):
 
     def _subscribe_derived(self, source: str):
         """One subscription to a batch topic serves its per-output channels (DERIVED)."""
+
         def callback(data: bytes) -> None:
             try:
                 values_data = multiarray_data(data)
@@ -253,18 +341,26 @@ class LiveViewNode(GuardedNode):
                     self.forwarded[topic] += len(values)
             except ValueError:
                 return
+
         return self.create_subscription(Float64MultiArray, source, callback, STREAM_QOS, raw=True)
 
     def _subscribe(self, topic: str, type_name: str, channel):
         infos = self.get_publishers_info_by_topic(topic)
-        latched = (type_name in LATCHED_TYPES and infos
-                   and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                           and i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos))
+        latched = (
+            type_name in LATCHED_TYPES
+            and infos
+            and all(
+                i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                and i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                for i in infos
+            )
+        )
         qos = STATE_QOS if latched else STREAM_QOS
         log = channel.base.log
         self.forwarded.setdefault(topic, 0)
         relative = self._relative(topic)
         if relative in DEFLECTION_TOPICS:
+
             def callback(data: bytes) -> None:
                 try:
                     first, samples = chunk_first_index(data)
@@ -273,20 +369,31 @@ class LiveViewNode(GuardedNode):
                 if forward_chunk(first, samples, self._values["deflection_decimation"]):
                     log(data, time.time_ns())
                     self.forwarded[topic] += 1
-        elif type_name == IMAGE_TYPE and relative is not None and relative.startswith(IMAGE_PREFIX):
+        elif (
+            type_name == IMAGE_TYPE and relative is not None and relative.startswith(IMAGE_PREFIX)
+        ):
+
             def callback(data: bytes) -> None:
                 msg = deserialize_message(data, Image)
                 if msg.encoding != "32FC1" or msg.height * msg.step != len(msg.data):
                     return
                 dtype = ">f4" if msg.is_bigendian else "<f4"
-                image = np.frombuffer(bytes(msg.data), dtype=dtype).reshape(msg.height, msg.step // 4)[:, :msg.width]
-                channel.log(raw_image_json(image, msg.header.stamp.sec, msg.header.stamp.nanosec,
-                                           msg.header.frame_id), log_time=time.time_ns())
+                image = np.frombuffer(bytes(msg.data), dtype=dtype).reshape(
+                    msg.height, msg.step // 4
+                )[:, : msg.width]
+                channel.log(
+                    raw_image_json(
+                        image, msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id
+                    ),
+                    log_time=time.time_ns(),
+                )
                 self.forwarded[topic] += 1
         else:
+
             def callback(data: bytes) -> None:
                 log(data, time.time_ns())
                 self.forwarded[topic] += 1
+
         return self.create_subscription(message_class(type_name), topic, callback, qos, raw=True)
 
     # --- parameters -----------------------------------------------------------------------------
@@ -343,10 +450,10 @@ class LiveViewNode(GuardedNode):
         """Keep the values current and push each change to the subscribed viewers once.
 
         A change written by a viewer through this node is not pushed here: the SDK publishes the
-        set handler's answer to every subscribed viewer (foxglove ServerListener.on_set_parameters),
-        so pushing the event too would send it twice. The answer carries the value read back after
-        the write, so an event that arrives after it finds that value in place and is not pushed
-        again either."""
+        set handler's answer to every subscribed viewer (foxglove
+        ServerListener.on_set_parameters), so pushing the event too would send it twice. The answer
+        carries the value read back after the write, so an event that arrives after it finds that
+        value in place and is not pushed again either."""
         changed = []
         with self._lock:
             values = self._params.get(event.node)
@@ -357,7 +464,9 @@ class LiveViewNode(GuardedNode):
                 unchanged = p.name in values and values[p.name] == value
                 values[p.name] = value
                 if not unchanged and not self._writing.get((event.node, p.name)):
-                    changed.append(_foxglove_parameter(self._fg, parameter_name(event.node, p.name), value))
+                    changed.append(
+                        _foxglove_parameter(self._fg, parameter_name(event.node, p.name), value)
+                    )
             for p in event.deleted_parameters:
                 values.pop(p.name, None)
         if changed:
@@ -366,8 +475,11 @@ class LiveViewNode(GuardedNode):
     def _get_parameters(self, names: list) -> list:
         with self._lock:
             if not names:
-                return [_foxglove_parameter(self._fg, parameter_name(fqn, n), v)
-                        for fqn, values in sorted(self._params.items()) for n, v in sorted(values.items())]
+                return [
+                    _foxglove_parameter(self._fg, parameter_name(fqn, n), v)
+                    for fqn, values in sorted(self._params.items())
+                    for n, v in sorted(values.items())
+                ]
             out = []
             for full in names:
                 try:
@@ -408,12 +520,18 @@ class LiveViewNode(GuardedNode):
                 for key in keys:
                     self._writing[key] = self._writing.get(key, 0) + 1
             try:
-                response = self._wait(client.set_parameters([Parameter(n, value=v) for n, v in items]),
-                                      f"setting parameters of {fqn}")
+                response = self._wait(
+                    client.set_parameters([Parameter(n, value=v) for n, v in items]),
+                    f"setting parameters of {fqn}",
+                )
                 for (name, value), result in zip(items, response.results):
                     if not result.successful:
-                        problems.append(f"{parameter_name(fqn, name)}={value!r} refused: {result.reason}")
-                fetched = self._wait(client.get_parameters([n for n, _ in items]), f"reading parameters of {fqn}")
+                        problems.append(
+                            f"{parameter_name(fqn, name)}={value!r} refused: {result.reason}"
+                        )
+                fetched = self._wait(
+                    client.get_parameters([n for n, _ in items]), f"reading parameters of {fqn}"
+                )
                 with self._lock:
                     values = self._params.setdefault(fqn, {})
                     for (name, _), v in zip(items, fetched.values):
@@ -429,11 +547,15 @@ class LiveViewNode(GuardedNode):
         for text in problems:
             self.get_logger().warning(f"viewer parameter write: {text}")
             # from another thread: the SDK is inside its set-parameters handler right now
-            threading.Thread(target=self.server.publish_status,
-                             args=(text, self._fg.StatusLevel.Warning), daemon=True).start()
+            threading.Thread(
+                target=self.server.publish_status,
+                args=(text, self._fg.StatusLevel.Warning),
+                daemon=True,
+            ).start()
         return self._get_parameters([p.name for p in parameters])
 
-    # --- services ---------------------------------------------------------------------------------
+    # --- services
+    # ---------------------------------------------------------------------------------
     def _call_service(self, full: str) -> bytes:
         client = self._service_clients[full]
         if not client.service_is_ready():
@@ -456,4 +578,5 @@ def main(args=None):
 
 if __name__ == "__main__":
     import sys
+
     sys.exit(main())

@@ -1,16 +1,19 @@
-"""ROS 2 node ``lockin``: demodulates the cantilever deflection chunks (see :mod:`afm_ros.core.lockin`).
+"""ROS 2 node ``lockin``: demodulates the cantilever deflection chunks (see
+:mod:`afm_ros.core.lockin`).
 
-Subscribes ``cantilever/deflection`` (std_msgs/Float64MultiArray, :mod:`afm_ros.formats.chunk_layout`).
-For every input chunk it publishes ``lockin/outputs`` (std_msgs/Float64MultiArray, the output
-batch layout of :mod:`afm_ros.formats.chunk_layout`: input index range, then t [s], X [m], Y [m] of every
-output sample in the chunk; the z controller's input) and acknowledges the chunk on
-``cantilever/ack``. For every output sample (``output_rate`` [Hz] of simulated time), in order, it
-also publishes ``lockin/amplitude`` (std_msgs/Float64, peak amplitude [m]), ``lockin/phase``
-(std_msgs/Float64, lag behind the reference [deg], 90 free at resonance) and ``lockin/xy``
-(geometry_msgs/Vector3Stamped: x = X [m], y = Y [m], z = 0, header.stamp = simulated time of the
-input sample the output was taken at). Stream irregularities (index gaps = lost samples,
-duplicates, restarts) are counted and reported on ``/diagnostics`` (1 Hz) and in throttled warnings.
+Subscribes ``cantilever/deflection`` (std_msgs/Float64MultiArray,
+:mod:`afm_ros.formats.chunk_layout`). For every input chunk it publishes ``lockin/outputs``
+(std_msgs/Float64MultiArray, the output batch layout of :mod:`afm_ros.formats.chunk_layout`: input
+index range, then t [s], X [m], Y [m] of every output sample in the chunk; the z controller's
+input) and acknowledges the chunk on ``cantilever/ack``. For every output sample (``output_rate``
+[Hz] of simulated time), in order, it also publishes ``lockin/amplitude`` (std_msgs/Float64, peak
+amplitude [m]), ``lockin/phase`` (std_msgs/Float64, lag behind the reference [deg], 90 free at
+resonance) and ``lockin/xy`` (geometry_msgs/Vector3Stamped: x = X [m], y = Y [m], z = 0,
+header.stamp = simulated time of the input sample the output was taken at). Stream irregularities
+(index gaps = lost samples, duplicates, restarts) are counted and reported on ``/diagnostics`` (1
+Hz) and in throttled warnings.
 """
+
 from __future__ import annotations
 
 import array
@@ -28,20 +31,27 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from afm_ros.formats import chunk_layout
-
-from afm_ros.nodes import topics
-from afm_ros.nodes.topics import sim_time_msg
+from afm_ros.core import refusals
+from afm_ros.core.angles import phase_deg, wrap_deg
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
-from afm_ros.core.tune import LOCKIN_NODE_SPECS, TUNE_SPECS, TunePlan, TuneRun, settings as tune_settings
-
+from afm_ros.core.tune import (
+    LOCKIN_NODE_SPECS,
+    TUNE_SPECS,
+    TunePlan,
+    TuneRun,
+)
+from afm_ros.core.tune import (
+    settings as tune_settings,
+)
+from afm_ros.formats import chunk_layout
+from afm_ros.nodes import topics
+from afm_ros.nodes.guard import GuardedNode
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
-from afm_ros.core import refusals
-from afm_ros.nodes.guard import GuardedNode
-from afm_ros.core.angles import phase_deg, wrap_deg
+from afm_ros.nodes.topics import sim_time_msg
 
-TUNE_START_CHUNKS = 5  # the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
+# the sweep starts this many chunks after the last input seen (the plan's way to the cantilever)
+TUNE_START_CHUNKS = 5
 
 # Input: every chunk (KEEP_ALL, with the cantilever's transient-local history for a late start).
 CHUNK_QOS = topics.CONSUMER_QOS
@@ -54,13 +64,13 @@ WARNING_PERIOD_S = 5.0
 
 
 class LockInNode(GuardedNode):
-    """Lock-in amplifier node; parameters :data:`afm_ros.core.tune.LOCKIN_NODE_SPECS` (the lock-in's
-    and the tune's; all live). Service ``lockin/tune`` (std_srvs/Trigger): the drive-frequency tune
-    (:mod:`afm_ros.core.tune`) on this lock-in's own outputs, refused while the z stage is engaged
-    (the cantilever must be free); the cantilever follows its schedule (``lockin/tune_plan``), then
-    this node applies the working point
-    (drive frequency, ``free_amplitude`` scaled for ``tune_target_amplitude``, this node's
-    ``phase_offset``) and publishes the sweep and fit on ``lockin/tune_result`` (String, JSON, latched)."""
+    """Lock-in amplifier node; parameters :data:`afm_ros.core.tune.LOCKIN_NODE_SPECS` (the
+    lock-in's and the tune's; all live). Service ``lockin/tune`` (std_srvs/Trigger): the
+    drive-frequency tune (:mod:`afm_ros.core.tune`) on this lock-in's own outputs, refused while
+    the z stage is engaged (the cantilever must be free); the cantilever follows its schedule
+    (``lockin/tune_plan``), then this node applies the working point (drive frequency,
+    ``free_amplitude`` scaled for ``tune_target_amplitude``, this node's ``phase_offset``) and
+    publishes the sweep and fit on ``lockin/tune_result`` (String, JSON, latched)."""
 
     def __init__(self, **kwargs):
         super().__init__("lockin", **kwargs)
@@ -69,19 +79,31 @@ class LockInNode(GuardedNode):
         self.tune_values = {k: v for k, v in values.items() if k in TUNE_SPECS}
         self.lockin.warm_up()  # so the first chunk does not stall the executor for the numba load
         self._lock = threading.Lock()
-        self.add_on_set_parameters_callback(make_set_callback(
-            LOCKIN_NODE_SPECS, lambda: {**self.lockin.params, **self.tune_values}, None, self._apply))
+        self.add_on_set_parameters_callback(
+            make_set_callback(
+                LOCKIN_NODE_SPECS,
+                lambda: {**self.lockin.params, **self.tune_values},
+                None,
+                self._apply,
+            )
+        )
         self._tune: TuneRun | None = None
         self._tune_restore: dict = {}
         self.tune_state = "idle"  # idle, running, done, failed
         self.tune_result = None
         self.tune_plan: TunePlan | None = None
-        self._cantilever_values: dict | None = None  # from cantilever/scan: nominal f0, Q, drive, A0
+        self._cantilever_values: dict | None = (
+            None  # from cantilever/scan: nominal f0, Q, drive, A0
+        )
         self._cantilever_params = AsyncParameterClient(self, "cantilever")
-        self.z_stage: str | None = None  # the z controller's stage state (z_controller/stage), None: not heard
+        self.z_stage: str | None = (
+            None  # the z controller's stage state (z_controller/stage), None: not heard
+        )
         self.create_subscription(String, topics.Z_STAGE, self._on_stage, topics.LATCHED_QOS)
         self.tune_applied: dict = {}  # the working point the last tune set (parameter values)
-        self.create_subscription(String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS)
+        self.create_subscription(
+            String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS
+        )
         self._pub_tune = self.create_publisher(String, "lockin/tune_result", topics.LATCHED_QOS)
         self._pub_tune_plan = self.create_publisher(String, topics.TUNE_PLAN, topics.LATCHED_QOS)
         self._input_end_time = 0.0  # simulated time at the end of the last chunk processed [s]
@@ -89,7 +111,8 @@ class LockInNode(GuardedNode):
         self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
         self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
         self.pub_xy = self.create_publisher(Vector3Stamped, "lockin/xy", OUTPUT_QOS)
-        # messages published per per-output publisher: a recorder in this process is waited for until it has them all
+        # messages published per per-output publisher: a recorder in this process is waited for
+        # until it has them all
         self.published_copies = {self.pub_amplitude: 0, self.pub_phase: 0, self.pub_xy: 0}
         self.pub_batch = self.create_publisher(Float64MultiArray, topics.LOCKIN_OUTPUTS, BATCH_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -102,9 +125,15 @@ class LockInNode(GuardedNode):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
         self.get_logger().info(
-            "ready: reference %s, harmonic %d, tau %.3g s, order %d, output %.6g Hz" % (
-                values["reference_source"], values["harmonic"], values["time_constant"],
-                values["filter_order"], values["output_rate"]))
+            "ready: reference %s, harmonic %d, tau %.3g s, order %d, output %.6g Hz"
+            % (
+                values["reference_source"],
+                values["harmonic"],
+                values["time_constant"],
+                values["filter_order"],
+                values["output_rate"],
+            )
+        )
 
     def _apply(self, changed: dict) -> None:
         tune = {k: v for k, v in changed.items() if k in TUNE_SPECS}
@@ -119,9 +148,16 @@ class LockInNode(GuardedNode):
     def _on_cantilever(self, msg: String) -> None:
         try:
             applied = json.loads(msg.data)
-            self._cantilever_values = {key: float(applied[key]) for key in (
-                "resonance_frequency_Hz", "quality_factor", "drive_frequency_Hz", "free_amplitude_m",
-                "chunk_duration_s")}
+            self._cantilever_values = {
+                key: float(applied[key])
+                for key in (
+                    "resonance_frequency_Hz",
+                    "quality_factor",
+                    "drive_frequency_Hz",
+                    "free_amplitude_m",
+                    "chunk_duration_s",
+                )
+            }
         except (ValueError, KeyError, TypeError):
             pass
 
@@ -134,40 +170,64 @@ class LockInNode(GuardedNode):
     def _start_tune(self, request, response):
         if self.z_stage in ("engaged", "approaching", "withdrawing", "spectroscopy"):
             response.success = False
-            response.message = refusals.tagged(refusals.ENGAGED, f"tune refused: the z stage is {self.z_stage}; the "
-                                               "tune needs the cantilever free: withdraw first (service "
-                                               "z_controller/withdraw)")
+            response.message = refusals.tagged(
+                refusals.ENGAGED,
+                f"tune refused: the z stage is {self.z_stage}; the "
+                "tune needs the cantilever free: withdraw first (service "
+                "z_controller/withdraw)",
+            )
             return response
         if self.tune_state == "running":
             response.success = False
-            response.message = refusals.tagged(refusals.BUSY, "tune refused: a tune is already running")
+            response.message = refusals.tagged(
+                refusals.BUSY, "tune refused: a tune is already running"
+            )
             return response
         c = self._cantilever_values
         if c is None:
             response.success = False
-            response.message = refusals.tagged(refusals.NOT_READY, "tune refused: the cantilever's drive is not known "
-                                               "yet (no message on cantilever/scan: is the cantilever running in "
-                                               "this namespace?)")
+            response.message = refusals.tagged(
+                refusals.NOT_READY,
+                "tune refused: the cantilever's drive is not known "
+                "yet (no message on cantilever/scan: is the cantilever running in "
+                "this namespace?)",
+            )
             return response
         try:
-            v = tune_settings(self.tune_values, c["resonance_frequency_Hz"], c["quality_factor"],
-                              c["drive_frequency_Hz"], 1.0 / self.lockin.params["output_rate"])
+            v = tune_settings(
+                self.tune_values,
+                c["resonance_frequency_Hz"],
+                c["quality_factor"],
+                c["drive_frequency_Hz"],
+                1.0 / self.lockin.params["output_rate"],
+            )
         except ValueError as exc:
-            response.success, response.message = False, refusals.tagged(refusals.BAD_VALUE, f"tune refused: {exc}")
+            response.success, response.message = (
+                False,
+                refusals.tagged(refusals.BAD_VALUE, f"tune refused: {exc}"),
+            )
             return response
         with self._lock:
             start = self._input_end_time + TUNE_START_CHUNKS * c["chunk_duration_s"]
-            plan = TunePlan.make(v, start, c["chunk_duration_s"], 1.0 / self.lockin.params["output_rate"])
+            plan = TunePlan.make(
+                v, start, c["chunk_duration_s"], 1.0 / self.lockin.params["output_rate"]
+            )
             self._tune = TuneRun(v, plan)
-            self._tune_restore = {"drive_frequency": c["drive_frequency_Hz"], "free_amplitude": c["free_amplitude_m"],
-                                  "phase_offset": self.lockin.params["phase_offset"]}
+            self._tune_restore = {
+                "drive_frequency": c["drive_frequency_Hz"],
+                "free_amplitude": c["free_amplitude_m"],
+                "phase_offset": self.lockin.params["phase_offset"],
+            }
             self.tune_state = "running"
             self.tune_plan = plan
         self._pub_tune_plan.publish(String(data=json.dumps(plan.as_dict())))
         response.success = True
-        response.message = (f"tuning: {v['tune_points']} drive frequencies over {v['tune_span']:g} Hz around "
-                            f"{v['tune_center']:g} Hz, {plan.point_time:.3g} s each, from t={plan.start_time:.6g} to "
-                            f"{plan.end_time:.6g} s (simulated)")
+        response.message = (
+            f"tuning: {v['tune_points']} drive frequencies over {v['tune_span']:g} Hz around "
+            f"{v['tune_center']:g} Hz, {plan.point_time:.3g} s each, from t={plan.start_time:.6g} "
+            "to "
+            f"{plan.end_time:.6g} s (simulated)"
+        )
         self.get_logger().info(response.message)
         return response
 
@@ -204,35 +264,50 @@ class LockInNode(GuardedNode):
         self.tune_state = "done"
         offset = float(wrap_deg(self._tune_restore["phase_offset"] + r.phase_offset_deg))
         amplitude = float(self._tune_restore["free_amplitude"] * r.drive_scale)
-        self.tune_applied = {"drive_frequency": float(r.drive_frequency), "free_amplitude": amplitude,
-                             "phase_offset": offset}
+        self.tune_applied = {
+            "drive_frequency": float(r.drive_frequency),
+            "free_amplitude": amplitude,
+            "phase_offset": offset,
+        }
         self._set_drive(r.drive_frequency, free_amplitude=amplitude)
         self.set_parameters([Parameter("phase_offset", value=offset)])
         self._pub_tune.publish(String(data=json.dumps(r.message())))
         self.get_logger().info(
-            f"tuned: f0 = {r.f0:.6g} +- {r.f0_error:.2g} Hz, Q = {r.q:.5g} +- {r.q_error:.2g}; drive at "
-            f"{r.drive_frequency:.6g} Hz, free_amplitude x {r.drive_scale:.4g}, phase_offset {offset:.4g} deg")
+            f"tuned: f0 = {r.f0:.6g} +- {r.f0_error:.2g} Hz, Q = {r.q:.5g} +- {r.q_error:.2g}; "
+            "drive at "
+            f"{r.drive_frequency:.6g} Hz, free_amplitude x {r.drive_scale:.4g}, phase_offset "
+            f"{offset:.4g} deg"
+        )
 
     def _report_events(self, events: list[str]) -> None:
-        """Stream events (gaps, duplicates, ...) are counted always, logged at most once per 5 s."""
+        """Stream events (gaps, duplicates, ...) are counted always, logged at most once per 5
+        s."""
         self._event_count += len(events)
         now = time.monotonic()
         if now < self._events_logged_until:
             self._events_suppressed += len(events)
             return
         stats = self.lockin.stats
-        more = f" ({self._events_suppressed} similar events not logged)" if self._events_suppressed else ""
+        more = (
+            f" ({self._events_suppressed} similar events not logged)"
+            if self._events_suppressed
+            else ""
+        )
         self.get_logger().warning(
-            f"{events[-1]}{more}; so far {stats.missing_samples} samples lost in {stats.gap_events} gaps, "
-            f"{stats.duplicate_samples} duplicates, {stats.restarts} restarts")
+            f"{events[-1]}{more}; so far {stats.missing_samples} samples lost in "
+            f"{stats.gap_events} gaps, "
+            f"{stats.duplicate_samples} duplicates, {stats.restarts} restarts"
+        )
         self._events_suppressed = len(events) - 1
         self._events_logged_until = now + WARNING_PERIOD_S
 
     def _on_chunk(self, msg: Float64MultiArray) -> None:
         try:
             if msg.layout.data_offset != chunk_layout.PREAMBLE_LENGTH:
-                raise ValueError(f"layout.data_offset={msg.layout.data_offset}, expected "
-                                 f"{chunk_layout.PREAMBLE_LENGTH} (afm_ros chunk layout)")
+                raise ValueError(
+                    f"layout.data_offset={msg.layout.data_offset}, expected "
+                    f"{chunk_layout.PREAMBLE_LENGTH} (afm_ros chunk layout)"
+                )
             header, samples = chunk_layout.unpack(msg.data)
             with self._lock:
                 out = self.lockin.process(header, samples)
@@ -240,7 +315,9 @@ class LockInNode(GuardedNode):
                 tune_step = self._feed_tune(header, out) if self._tune is not None else None
         except ValueError as exc:
             self.bad_chunks += 1
-            self.get_logger().error(f"malformed deflection chunk ignored: {exc}", throttle_duration_sec=1.0)
+            self.get_logger().error(
+                f"malformed deflection chunk ignored: {exc}", throttle_duration_sec=1.0
+            )
             return
         if events:
             self._report_events(events)
@@ -250,11 +327,23 @@ class LockInNode(GuardedNode):
             self._finish_tune(tune_step)
         batch = Float64MultiArray()
         n = len(out)
-        batch.layout.dim = [MultiArrayDimension(label=chunk_layout.OUTPUTS_LABEL, size=n, stride=3 * n)]
+        batch.layout.dim = [
+            MultiArrayDimension(label=chunk_layout.OUTPUTS_LABEL, size=n, stride=3 * n)
+        ]
         batch.layout.data_offset = chunk_layout.OUTPUTS_PREAMBLE_LENGTH
-        batch.data = array.array("d", chunk_layout.pack_outputs(chunk_layout.OutputBatch(
-            header.first_sample_index, end, header.t_start + samples.shape[0] * header.sample_interval,
-            out.t, out.x, out.y)).tobytes())
+        batch.data = array.array(
+            "d",
+            chunk_layout.pack_outputs(
+                chunk_layout.OutputBatch(
+                    header.first_sample_index,
+                    end,
+                    header.t_start + samples.shape[0] * header.sample_interval,
+                    out.t,
+                    out.x,
+                    out.y,
+                )
+            ).tobytes(),
+        )
         self.pub_batch.publish(batch)
         # the per-output copies of the batch cost ~10 us per message: published while subscribed
         want_amp = self.pub_amplitude.get_subscription_count() > 0
@@ -276,7 +365,11 @@ class LockInNode(GuardedNode):
                     xy.vector.x = x
                     xy.vector.y = y
                     self.pub_xy.publish(xy)
-            for pub, wanted in ((self.pub_amplitude, want_amp), (self.pub_phase, want_phase), (self.pub_xy, want_xy)):
+            for pub, wanted in (
+                (self.pub_amplitude, want_amp),
+                (self.pub_phase, want_phase),
+                (self.pub_xy, want_xy),
+            ):
                 if wanted:
                     self.published_copies[pub] += n
         self._ack.send(end)
@@ -284,11 +377,23 @@ class LockInNode(GuardedNode):
     def _publish_diagnostics(self) -> None:
         s = self.lockin.stats
         topics.publish_status(
-            self, self._pub_diag, "input stream",
-            f"{s.missing_samples} samples lost in {s.gap_events} gaps" if s.missing_samples else None,
-            {"chunks": s.chunks, "samples": s.samples, "gap_events": s.gap_events,
-             "missing_samples": s.missing_samples, "duplicate_samples": s.duplicate_samples,
-             "restarts": s.restarts, "malformed_chunks": self.bad_chunks, "next_index": self._ack.next_index})
+            self,
+            self._pub_diag,
+            "input stream",
+            f"{s.missing_samples} samples lost in {s.gap_events} gaps"
+            if s.missing_samples
+            else None,
+            {
+                "chunks": s.chunks,
+                "samples": s.samples,
+                "gap_events": s.gap_events,
+                "missing_samples": s.missing_samples,
+                "duplicate_samples": s.duplicate_samples,
+                "restarts": s.restarts,
+                "malformed_chunks": self.bad_chunks,
+                "next_index": self._ack.next_index,
+            },
+        )
 
     def destroy_node(self):
         self._ack.leave()  # a cantilever that keeps running must not wait for this lock-in

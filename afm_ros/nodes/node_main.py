@@ -7,11 +7,14 @@ constructor). Here SIGINT and SIGTERM only set a flag; the spin loops check it b
 callbacks, so every node finishes its callback, is destroyed and the context shut down in order
 (the recorder closes its file). A second Ctrl-C interrupts at once.
 """
+
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
+import textwrap
 import threading
 import time
 from typing import Callable
@@ -22,13 +25,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
-import faulthandler
-import textwrap
-from afm_ros.core.specs import NODE_SPECS
-from afm_ros.core.specs import node_key
-from afm_ros.core.specs import node_specs
-from afm_ros.core.specs import spec_cells
 from rclpy.utilities import remove_ros_args
+
+from afm_ros.core.specs import NODE_SPECS, node_key, node_specs, spec_cells
 
 _stop_requested = False
 _stop_futures: list = []  # completed by the first Ctrl-C / SIGTERM (see serve)
@@ -57,7 +56,8 @@ class StartupError(ValueError):
 def init(args=None) -> None:
     """``rclpy.init`` with SIGINT/SIGTERM turned into a stop request (see module docstring).
 
-    StartupError (one line) if rcl refuses the arguments, e.g. a params file it cannot read or parse.
+    StartupError (one line) if rcl refuses the arguments, e.g. a params file it cannot read or
+    parse.
     """
     global _stop_requested
     _stop_requested = False
@@ -65,7 +65,9 @@ def init(args=None) -> None:
     signal.signal(signal.SIGTERM, _on_signal)
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # rclpy's RCLError / RCLInvalidROSArgsError carry rcl's multi-line text
+    except (
+        Exception
+    ) as exc:  # rclpy's RCLError / RCLInvalidROSArgsError carry rcl's multi-line text
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise StartupError(f"invalid --ros-args: {first}") from None
 
@@ -87,15 +89,18 @@ def running(context=None) -> bool:
 
 def make_executor(kind: str = "events", context=None):
     """'events' (rclpy.experimental.EventsExecutor: serves every message with the least overhead,
-    the only one that keeps up with the 900 kS/s stream on 2 cores; the default), 'single' or 'multi'.
-    rclpy's Single/MultiThreadedExecutor take one message per subscription per wait cycle."""
+    the only one that keeps up with the 900 kS/s stream on 2 cores; the default), 'single' or
+    'multi'. rclpy's Single/MultiThreadedExecutor take one message per subscription per wait
+    cycle."""
     if kind == "single":
         return SingleThreadedExecutor(context=context)
     if kind == "multi":
         from rclpy.executors import MultiThreadedExecutor
+
         return MultiThreadedExecutor(num_threads=2, context=context)
     if kind == "events":
         from rclpy.experimental import EventsExecutor
+
         return EventsExecutor(context=context)
     raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
 
@@ -138,8 +143,8 @@ def spin_for(executor, seconds: float) -> None:
     """Serve callbacks for up to ``seconds`` of wall time.
 
     One ``spin_once`` per callback: rclpy 7.1's EventsExecutor.spin_until_future_complete would
-    serve them in one C++ loop, but it leaks ~32 bytes per call (measured: 1.6 MB per 50 000 calls),
-    which a long session cannot afford.
+    serve them in one C++ loop, but it leaks ~32 bytes per call (measured: 1.6 MB per 50 000
+    calls), which a long session cannot afford.
     """
     end = time.monotonic() + seconds
     spin_once = executor.spin_once
@@ -154,8 +159,9 @@ def spin_for(executor, seconds: float) -> None:
 TEARDOWN_DEADLINE_S = 20.0
 
 
-def teardown_within(teardown: Callable[[], None], program: str, status: int,
-                    deadline: float = TEARDOWN_DEADLINE_S) -> None:
+def teardown_within(
+    teardown: Callable[[], None], program: str, status: int, deadline: float = TEARDOWN_DEADLINE_S
+) -> None:
     """Run ``teardown`` (destroy nodes, shut the executor and rclpy down); if it has not returned
     within ``deadline`` seconds, exit the process with ``status`` anyway.
 
@@ -164,16 +170,21 @@ def teardown_within(teardown: Callable[[], None], program: str, status: int,
     is done and flushed by then, so the process must not hang on it.
     """
 
-    # a hang that holds the GIL (inside rclpy's C code) would stop the join below as well: a C watchdog
-    # (it needs no GIL) dumps every thread's stack and exits the process if even that deadline passes
+    # a hang that holds the GIL (inside rclpy's C code) would stop the join below as well: a C
+    # watchdog (it needs no GIL) dumps every thread's stack and exits the process if even that
+    # deadline passes
     faulthandler.dump_traceback_later(2 * deadline + 10.0, exit=True)
     worker = threading.Thread(target=teardown, name="teardown", daemon=True)
     worker.start()
     worker.join(deadline)
     faulthandler.cancel_dump_traceback_later()
     if worker.is_alive():
-        print(f"{program}: rclpy did not finish shutting down within {deadline:g} s; exiting anyway "
-              f"(everything was already written)", file=sys.stderr, flush=True)
+        print(
+            f"{program}: rclpy did not finish shutting down within {deadline:g} s; exiting anyway "
+            f"(everything was already written)",
+            file=sys.stderr,
+            flush=True,
+        )
         sys.stdout.flush()
         os._exit(status)
 
@@ -185,18 +196,29 @@ def help_text(program: str, node: str, doc: str | None) -> str:
     """``program --help``: what the node does (the first paragraph of its module docstring), how
     to pass parameters, and its parameter table from the specs (:mod:`afm_ros.core.specs`)."""
 
-
-    wrap = lambda text, indent="": textwrap.fill(" ".join(text.split()), 100, initial_indent=indent,
-                                                  subsequent_indent=indent)
+    wrap = lambda text, indent="": textwrap.fill(
+        " ".join(text.split()), 100, initial_indent=indent, subsequent_indent=indent
+    )
     summary = (doc or "").strip().split("\n\n")[0].replace("``", "")
-    lines = [f"usage: {program} [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NAMESPACE]]",
-             "", wrap(summary), "",
-             wrap(f"Parameters (SI units) are ROS 2 parameters, given after --ros-args: -p NAME:=VALUE (repeatable) "
-                  f"or --params-file FILE, a YAML file whose key {node_key(node)} applies in every namespace "
-                  f"(config/afm.yaml has them all). Those marked live can also be changed while the node runs "
-                  f"(afm_ctl set {node} NAME VALUE, no ROS install needed; or ros2 param set /{node} NAME VALUE); "
-                  f"a refused value keeps the old one and says why. "
-                  f"-r __ns:=/afm1 runs the node in a namespace.")]
+    lines = [
+        f"usage: {program} [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r "
+        "__ns:=/NAMESPACE]]",
+        "",
+        wrap(summary),
+        "",
+        wrap(
+            "Parameters (SI units) are ROS 2 parameters, given after --ros-args: -p NAME:=VALUE "
+            "(repeatable) "
+            f"or --params-file FILE, a YAML file whose key {node_key(node)} applies in every "
+            "namespace "
+            "(config/afm.yaml has them all). Those marked live can also be changed while the "
+            "node runs "
+            f"(afm_ctl set {node} NAME VALUE, no ROS install needed; or ros2 param set /{node} "
+            "NAME VALUE); "
+            f"a refused value keeps the old one and says why. "
+            f"-r __ns:=/afm1 runs the node in a namespace."
+        ),
+    ]
     specs = node_specs().get(node) if node in NODE_SPECS else None
     if specs:
         width = max(len(name) for name in specs)
@@ -205,8 +227,10 @@ def help_text(program: str, node: str, doc: str | None) -> str:
             default, unit, allowed, live = spec_cells(spec)
             default = repr(spec.default) if isinstance(spec.default, str) else default
             unit = "" if unit in ("-", "1") else " " + unit
-            lines.append(f"  {name:<{width}}  {default}{unit}; allowed {allowed}"
-                         f"{'; live' if live == 'yes' else '; at start only'}")
+            lines.append(
+                f"  {name:<{width}}  {default}{unit}; allowed {allowed}"
+                f"{'; live' if live == 'yes' else '; at start only'}"
+            )
             lines.append(wrap(spec.description, " " * 6))
     return "\n".join(lines)
 
@@ -227,16 +251,28 @@ def command_line(program: str, node: str, doc: str | None, args=None) -> int | N
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     if plain:
-        print(f"{program}: error: unrecognized argument{'s' if len(plain) > 1 else ''}: {' '.join(plain)} "
-              f"(parameters go after --ros-args: {program} --ros-args -p NAME:=VALUE; {program} --help "
-              f"lists them)", file=sys.stderr, flush=True)
+        print(
+            f"{program}: error: unrecognized argument{'s' if len(plain) > 1 else ''}: "
+            f"{' '.join(plain)} "
+            f"(parameters go after --ros-args: {program} --ros-args -p NAME:=VALUE; {program} "
+            "--help "
+            f"lists them)",
+            file=sys.stderr,
+            flush=True,
+        )
         return 2
     return None
 
 
-def run_node(make_node: Callable[[], Node], program: str, args=None, node: str | None = None,
-             doc: str | None = None) -> int:
-    """Init rclpy, spin the node on the EventsExecutor until Ctrl-C / SIGTERM; return the exit status.
+def run_node(
+    make_node: Callable[[], Node],
+    program: str,
+    args=None,
+    node: str | None = None,
+    doc: str | None = None,
+) -> int:
+    """Init rclpy, spin the node on the EventsExecutor until Ctrl-C / SIGTERM; return the exit
+    status.
 
     ``--help`` and unknown arguments are handled first (:func:`command_line`; ``node`` defaults to
     ``program`` without ``_node``, ``doc`` to the docstring of ``make_node``'s module). A bad start
@@ -264,6 +300,7 @@ def run_node(make_node: Callable[[], Node], program: str, args=None, node: str |
         print(f"{program}: invalid parameter: {exc}", file=sys.stderr)
         status = 1
     finally:
+
         def teardown():
             if executor is not None and node is not None:
                 executor.remove_node(node)
@@ -272,5 +309,6 @@ def run_node(make_node: Callable[[], Node], program: str, args=None, node: str |
             if executor is not None:
                 executor.shutdown(timeout_sec=1.0)
             rclpy.try_shutdown()
+
         teardown_within(teardown, program, status)
     return status

@@ -16,6 +16,7 @@ Clocks: ``log_time`` = wall-clock receive time, ``publish_time`` = the publisher
 timestamp (wall clock) from the middleware (= ``log_time`` under rclpy's EventsExecutor, which
 cannot deliver message info), both ns since the epoch (see docs/recording.md).
 """
+
 from __future__ import annotations
 
 import os
@@ -26,26 +27,36 @@ import time
 from collections import deque
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_parameter_events)
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_parameter_events,
+)
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-from afm_ros.nodes import ros_params, topics
-from afm_ros.nodes.topics import matches, split_patterns  # noqa: F401 (also used by tools)
-from afm_ros.formats.chunk_layout import cdr_chunk, cdr_clock_seconds, cdr_float64_array
 from afm_ros.core.recording import RECORDER_SPECS
-from afm_ros.formats.mcap_io import (PARAMETER_METADATA_PREFIX, BudgetReached, RecordingError,
-                                    SessionWriter, default_output_path, message_class, qos_profiles_yaml,
-                                    serialize_exact)
-from afm_ros.nodes import node_main
+from afm_ros.formats.chunk_layout import cdr_chunk, cdr_clock_seconds, cdr_float64_array
+from afm_ros.formats.mcap_io import (
+    PARAMETER_METADATA_PREFIX,
+    BudgetReached,
+    RecordingError,
+    SessionWriter,
+    default_output_path,
+    message_class,
+    qos_profiles_yaml,
+    serialize_exact,
+)
+from afm_ros.nodes import node_main, ros_params, topics
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.nodes.topics import matches, split_patterns  # noqa: F401 (also used by tools)
 
 PARAMETER_EVENTS = "/parameter_events"
 GLOBAL_TOPICS = ("/diagnostics", "/rosout")
@@ -55,16 +66,20 @@ FAST_DISCOVERY_PERIOD_S = 0.05
 DRAIN_QUIET_S = 0.25
 DRAIN_LIMIT_S = 3.0
 FAST_DISCOVERY_FOR_S = 3.0
-HOLD_WAIT_S = 3.0  # longest wait for the cantilever to confirm the recorder's hold before subscribing (wall s)
+# longest wait for the cantilever to confirm the recorder's hold before subscribing (wall s)
+HOLD_WAIT_S = 3.0
 CHUNK_TOPIC_SUFFIXES = ("/" + topics.DEFLECTION, "/" + topics.FORCE)
 DIAGNOSTICS_PERIOD_S = 1.0
 RATE_WINDOW_S = 10.0  # the write rate is measured over the last this many wall seconds
-RATE_MIN_SPAN_S = 1.0  # [s] wall: no rate before the samples span this long (the start's schemas and snapshots skew it)
+# [s] wall: no rate before the samples span this long (the start's schemas and snapshots skew it)
+RATE_MIN_SPAN_S = 1.0
 BUDGET_ADVICE = {
-    "max_size": "to record longer, raise max_size (0 = unlimited), exclude topics (the raw cantilever/* "
-                "streams take most of the bytes) or free disk space",
-    "min_free_space": "to record longer, free disk space, record to another file system (output) or lower "
-                      "min_free_space",
+    "max_size": "to record longer, raise max_size (0 = unlimited), exclude topics (the raw "
+    "cantilever/* "
+    "streams take most of the bytes) or free disk space",
+    "min_free_space": "to record longer, free disk space, record to another file system (output) "
+    "or lower "
+    "min_free_space",
 }
 
 
@@ -130,55 +145,87 @@ class RecorderNode(GuardedNode):
     def __init__(self, **kwargs):
         super().__init__("recorder", **kwargs)
         self._values = ros_params.declare(self, RECORDER_SPECS)
-        self.add_on_set_parameters_callback(ros_params.make_set_callback(
-            RECORDER_SPECS, lambda: dict(self._values), self._check_budget_change, self._apply))
+        self.add_on_set_parameters_callback(
+            ros_params.make_set_callback(
+                RECORDER_SPECS, lambda: dict(self._values), self._check_budget_change, self._apply
+            )
+        )
         v = self._values
         ns = self.get_namespace()
-        requested = os.path.abspath(v["output"]) if v["output"] else str(default_output_path(namespace=ns))
+        requested = (
+            os.path.abspath(v["output"]) if v["output"] else str(default_output_path(namespace=ns))
+        )
         self.error: RecordingError | None = None
         self._include = split_patterns(v["topics"], ns)
         self._exclude = split_patterns(v["exclude"], ns)
-        # exclusive creation: never overwrite, never collide with another recorder (a _2, _3... name)
-        self.writer = SessionWriter(requested, compression=v["compression"], chunk_size=v["chunk_size"],
-                                    unique=True, max_size=v["max_size"], min_free_space=v["min_free_space"])
+        # exclusive creation: never overwrite, never collide with another recorder (a _2, _3...
+        # name)
+        self.writer = SessionWriter(
+            requested,
+            compression=v["compression"],
+            chunk_size=v["chunk_size"],
+            unique=True,
+            max_size=v["max_size"],
+            min_free_space=v["min_free_space"],
+        )
         self.output_path = str(self.writer.path)
         if self.output_path != requested:
-            self.get_logger().warning(f"{requested} exists: recording to {self.output_path} instead")
+            self.get_logger().warning(
+                f"{requested} exists: recording to {self.output_path} instead"
+            )
         # a budget stop (max_size, min_free_space) closes the file complete and ends the recording
         self.stopped_reason = ""  # one line on why recording stopped early ('' while recording)
-        self._budget: BudgetReached | None = None  # set by the writer thread when the budget is reached
+        self._budget: BudgetReached | None = (
+            None  # set by the writer thread when the budget is reached
+        )
         self._budget_reported = False
-        self.sim_time: float | None = None  # newest simulated time [s] seen in the recorded streams
-        self._rate_samples: deque[tuple[float, float | None, int]] = deque()  # (wall s, simulated s, bytes)
+        self.sim_time: float | None = (
+            None  # newest simulated time [s] seen in the recorded streams
+        )
+        self._rate_samples: deque[tuple[float, float | None, int]] = (
+            deque()
+        )  # (wall s, simulated s, bytes)
         # Messages are handed to a writer thread (MCAP framing, compression, file writes), so the
         # executor thread only queues raw bytes; the thread acknowledges a deflection chunk once it
         # is written, so a slow disk slows the instrument down instead of growing the queue.
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._writer_lock = threading.Lock()
         self._thread_error: RecordingError | None = None
-        self._writer_thread = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
+        self._writer_thread = threading.Thread(
+            target=self._write_loop, name="recorder-writer", daemon=True
+        )
         self._own_deflection = self.resolve_topic_name(topics.DEFLECTION)
-        # flow control: acknowledge by the deflection chunks written, or, when they are not recorded
-        # (e.g. afm_instrument --image excludes the raw streams), by the lock-in batches written
-        # (each names the deflection samples it came from)
+        # flow control: acknowledge by the deflection chunks written, or, when they are not
+        # recorded (e.g. afm_instrument --image excludes the raw streams), by the lock-in batches
+        # written (each names the deflection samples it came from)
         self._own_outputs = self.resolve_topic_name(topics.LOCKIN_OUTPUTS)
-        self._ack_by_outputs = not self._wanted(self._own_deflection) and self._wanted(self._own_outputs)
+        self._ack_by_outputs = not self._wanted(self._own_deflection) and self._wanted(
+            self._own_outputs
+        )
         self._own_clock = self.resolve_topic_name("clock")
         self.streams: dict[str, StreamCheck] = {}
-        # A recorder that joins a running instrument first acknowledges sample 0: the cantilever holds
-        # (flow window) until the recorder has written the chunks of the publishers' transient-local
-        # history, so that history is not pushed out by new chunks before it reached the recorder
-        # (which left holes at the start of the recording); for a recorder that starts with the
-        # instrument (stream at 0) this is the ordinary flow window. A recorder of neither stream is
-        # no consumer.
+        # A recorder that joins a running instrument first acknowledges sample 0: the cantilever
+        # holds (flow window) until the recorder has written the chunks of the publishers'
+        # transient-local history, so that history is not pushed out by new chunks before it
+        # reached the recorder (which left holes at the start of the recording); for a recorder
+        # that starts with the instrument (stream at 0) this is the ordinary flow window. A
+        # recorder of neither stream is no consumer.
         acks = self._wanted(self._own_deflection) or self._ack_by_outputs
-        # the cantilever's /diagnostics list its consumers: the hold is in force once they list the recorder
+        # the cantilever's /diagnostics list its consumers: the hold is in force once they list the
+        # recorder
         self._hold_confirmed = not acks
-        self._hold_sub = self.create_subscription(DiagnosticArray, "/diagnostics", self._on_hold_diagnostics,
-                                                  10) if acks else None
+        self._hold_sub = (
+            self.create_subscription(
+                DiagnosticArray, "/diagnostics", self._on_hold_diagnostics, 10
+            )
+            if acks
+            else None
+        )
         self._ack = topics.Acknowledger(self, first_index=0) if acks else None
         self._acked_stream = self._own_outputs if self._ack_by_outputs else self._own_deflection
-        self._subscribe_after: float | None = None  # wall time after which the stream is subscribed unheld
+        self._subscribe_after: float | None = (
+            None  # wall time after which the stream is subscribed unheld
+        )
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._subs: dict[str, object] = {}
         self._channel: dict[str, int] = {}
@@ -201,9 +248,13 @@ class RecorderNode(GuardedNode):
             self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady),
         ]
         # the first seconds, when the instrument's topics appear, are searched every 50 ms
-        self._fast_discovery = self.create_timer(FAST_DISCOVERY_PERIOD_S, self._discover_fast, clock=self._steady)
-        self.get_logger().info(f"ready: recording to {self.output_path} ({v['compression']}, "
-                               f"flush every {v['flush_interval']:g} s)")
+        self._fast_discovery = self.create_timer(
+            FAST_DISCOVERY_PERIOD_S, self._discover_fast, clock=self._steady
+        )
+        self.get_logger().info(
+            f"ready: recording to {self.output_path} ({v['compression']}, "
+            f"flush every {v['flush_interval']:g} s)"
+        )
 
     # --- topics ---------------------------------------------------------------------------
     def _wanted(self, topic: str) -> bool:
@@ -216,20 +267,26 @@ class RecorderNode(GuardedNode):
         return not _hidden(topic) and self._in_scope(topic)
 
     def _in_scope(self, name: str) -> bool:
-        """Default scope: every topic / node in the root namespace; under a namespace (one instrument
-        of several) only its own, plus the global /diagnostics and /rosout."""
+        """Default scope: every topic / node in the root namespace; under a namespace (one
+        instrument of several) only its own, plus the global /diagnostics and /rosout."""
         ns = self.get_namespace()
         return ns == "/" or name.startswith(ns.rstrip("/") + "/") or name in GLOBAL_TOPICS
 
     def _qos_for(self, infos) -> QoSProfile:
-        """Subscription QoS compatible with every publisher (rosbag2's adaptation rule), KEEP_ALL so
-        the middleware never drops what the recorder has not written yet (the cantilever's flow
+        """Subscription QoS compatible with every publisher (rosbag2's adaptation rule), KEEP_ALL
+        so the middleware never drops what the recorder has not written yet (the cantilever's flow
         control bounds that backlog)."""
         reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
-        transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
-        return QoSProfile(history=HistoryPolicy.KEEP_ALL,
-                          reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+        transient = all(
+            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos
+        )
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_ALL,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL
+            if transient
+            else DurabilityPolicy.VOLATILE,
+        )
 
     def _first_tick(self) -> None:
         self._kick.cancel()
@@ -260,7 +317,11 @@ class RecorderNode(GuardedNode):
 
     def _on_hold_diagnostics(self, msg: DiagnosticArray) -> None:
         me = self.get_fully_qualified_name()
-        if any(kv.key == "consumers" and me in kv.value.split(",") for st in msg.status for kv in st.values):
+        if any(
+            kv.key == "consumers" and me in kv.value.split(",")
+            for st in msg.status
+            for kv in st.values
+        ):
             self._hold_confirmed = True
 
     def _held(self, present: set[str]) -> bool:
@@ -270,7 +331,9 @@ class RecorderNode(GuardedNode):
         recorder; at most HOLD_WAIT_S (a stream without a cantilever, e.g. a replay, has nobody
         to hold). Other topics are subscribed at once: those published only while subscribed
         (force, the per-output copies) start with the subscription."""
-        if self._hold_confirmed or (self._subscribe_after is not None and time.monotonic() >= self._subscribe_after):
+        if self._hold_confirmed or (
+            self._subscribe_after is not None and time.monotonic() >= self._subscribe_after
+        ):
             if self._hold_sub is not None:
                 self.destroy_subscription(self._hold_sub)
                 self._hold_sub = None
@@ -320,8 +383,9 @@ class RecorderNode(GuardedNode):
         if topic.endswith(CHUNK_TOPIC_SUFFIXES) and type_name == "std_msgs/msg/Float64MultiArray":
             self.streams[topic] = StreamCheck()
         qos = qos_profile_parameter_events if topic == PARAMETER_EVENTS else self._qos_for(infos)
-        sub = self.create_subscription(cls, topic, lambda data, t=topic: self._on_message(t, data, _NO_INFO),
-                                       qos, raw=True)
+        sub = self.create_subscription(
+            cls, topic, lambda data, t=topic: self._on_message(t, data, _NO_INFO), qos, raw=True
+        )
         self._subs[topic] = sub
         self._upgrade(topic, sub)
 
@@ -331,7 +395,9 @@ class RecorderNode(GuardedNode):
         now = time.time_ns()
         self.last_receive = time.monotonic()
         seq = self._sequence[topic] = self._sequence[topic] + 1
-        self._queue.put((topic, self._channel[topic], data, now, info.get("source_timestamp") or now, seq))
+        self._queue.put(
+            (topic, self._channel[topic], data, now, info.get("source_timestamp") or now, seq)
+        )
         self.received[topic] += 1
 
     def _write_loop(self) -> None:
@@ -350,7 +416,9 @@ class RecorderNode(GuardedNode):
                     if item is None:
                         return
                     if self._thread_error is not None or self._budget is not None:
-                        continue  # a write failed or the budget is used up: drop the rest (the node reports it)
+                        # a write failed or the budget is used up: drop the rest (the node reports
+                        # it)
+                        continue
                     try:
                         if callable(item):
                             item()
@@ -364,8 +432,10 @@ class RecorderNode(GuardedNode):
                         self._thread_error = exc
                         continue
                     except BaseException as exc:  # noqa: BLE001 - never die silently: the node reports it
-                        self._thread_error = RecordingError(f"writing {self.output_path} failed: {exc!r}; "
-                                                            "recording stopped, the file is incomplete")
+                        self._thread_error = RecordingError(
+                            f"writing {self.output_path} failed: {exc!r}; "
+                            "recording stopped, the file is incomplete"
+                        )
                         continue
                     acks = self._follow(topic, data, acks)
             if acks is not None and self._thread_error is None and self._budget is None:
@@ -377,7 +447,9 @@ class RecorderNode(GuardedNode):
         if check is not None:
             end = check.add(data)
             if end is not None:
-                self.sim_time = check.end_time if self.sim_time is None else max(self.sim_time, check.end_time)
+                self.sim_time = (
+                    check.end_time if self.sim_time is None else max(self.sim_time, check.end_time)
+                )
                 if topic == self._own_deflection:
                     return end
         elif self._ack_by_outputs and topic == self._own_outputs:
@@ -392,9 +464,11 @@ class RecorderNode(GuardedNode):
         when = f" at t={self.sim_time:.3f} s (simulated)" if self.sim_time is not None else ""
         try:
             self.writer.close()
-            self.stopped_reason = (f"recording stopped{when}: {exc}; {self.output_path} is complete up to there "
-                                   f"({self.writer.bytes_written} B, {self.writer.message_count} messages); "
-                                   f"{BUDGET_ADVICE[exc.limit]}")
+            self.stopped_reason = (
+                f"recording stopped{when}: {exc}; {self.output_path} is complete up to there "
+                f"({self.writer.bytes_written} B, {self.writer.message_count} messages); "
+                f"{BUDGET_ADVICE[exc.limit]}"
+            )
         except RecordingError as err:
             self._thread_error = err
         self._budget = exc  # last: readers of budget_reached find stopped_reason set
@@ -410,8 +484,9 @@ class RecorderNode(GuardedNode):
             node_main.spin_for(executor, 0.02)
 
     def _check_writer(self) -> bool:
-        """Move a failure or a budget stop of the writer thread into the node (error or stop reason,
-        one log line, subscriptions dropped); True once the recorder takes no more messages."""
+        """Move a failure or a budget stop of the writer thread into the node (error or stop
+        reason, one log line, subscriptions dropped); True once the recorder takes no more
+        messages."""
         if self._thread_error is not None and self.error is None:
             self._fail(self._thread_error)
         if self._budget is not None and not self._budget_reported and self.error is None:
@@ -428,7 +503,8 @@ class RecorderNode(GuardedNode):
 
     @property
     def budget_reached(self) -> bool:
-        """The recording stopped at max_size or min_free_space (the file is complete up to there)."""
+        """The recording stopped at max_size or min_free_space (the file is complete up to
+        there)."""
         return self._budget is not None
 
     @property
@@ -459,35 +535,65 @@ class RecorderNode(GuardedNode):
 
     def stream_report(self) -> dict:
         """Per chunk topic: chunks, first index, lost (gap) and repeated samples."""
-        return {t: {"chunks": c.chunks, "first_index": c.first_index, "next_index": c.next_index,
-                    "gap_events": c.gap_events, "missing_samples": c.missing_samples,
-                    "repeated_samples": c.repeated_samples, "unreadable": c.unreadable}
-                for t, c in self.streams.items()}
+        return {
+            t: {
+                "chunks": c.chunks,
+                "first_index": c.first_index,
+                "next_index": c.next_index,
+                "gap_events": c.gap_events,
+                "missing_samples": c.missing_samples,
+                "repeated_samples": c.repeated_samples,
+                "unreadable": c.unreadable,
+            }
+            for t, c in self.streams.items()
+        }
 
     def _publish_diagnostics(self) -> None:
         lost = sum(c.missing_samples for c in self.streams.values())
         failed = self.error is not None
         per_wall, per_sim = self.write_rate()
         status = DiagnosticStatus(
-            level=DiagnosticStatus.ERROR if failed else
-            (DiagnosticStatus.WARN if lost or self._budget is not None else DiagnosticStatus.OK),
-            name=f"{self.get_fully_qualified_name()}: recording", hardware_id="afm_ros",
-            message=(f"recording stopped: {self.error}" if failed else
-                     self.stopped_reason + (f"; {lost} samples lost" if lost else "") if self._budget is not None
-                     else f"{lost} samples lost" if lost else "ok"),
-            values=[KeyValue(key="file", value=self.output_path),
-                    KeyValue(key="topics", value=",".join(self.topics)),
-                    KeyValue(key="messages", value=str(self.writer.message_count)),
-                    KeyValue(key="lost_samples", value=str(lost)),
-                    KeyValue(key="bytes_written", value=str(self.writer.bytes_written)),
-                    KeyValue(key="rate_B_per_wall_s", value="" if per_wall is None else f"{per_wall:.4g}"),
-                    KeyValue(key="rate_B_per_simulated_s", value="" if per_sim is None else f"{per_sim:.4g}"),
-                    KeyValue(key="simulated_time_s", value="" if self.sim_time is None else f"{self.sim_time:.6g}"),
-                    KeyValue(key="max_size_B", value=f"{self.writer.max_size:.4g}"),
-                    KeyValue(key="min_free_space_B", value=f"{self.writer.min_free_space:.4g}"),
-                    KeyValue(key="stopped", value=self.stopped_reason)] +
-                   [KeyValue(key=f"{t}: missing_samples", value=str(c.missing_samples))
-                    for t, c in self.streams.items()])
+            level=DiagnosticStatus.ERROR
+            if failed
+            else (
+                DiagnosticStatus.WARN if lost or self._budget is not None else DiagnosticStatus.OK
+            ),
+            name=f"{self.get_fully_qualified_name()}: recording",
+            hardware_id="afm_ros",
+            message=(
+                f"recording stopped: {self.error}"
+                if failed
+                else self.stopped_reason + (f"; {lost} samples lost" if lost else "")
+                if self._budget is not None
+                else f"{lost} samples lost"
+                if lost
+                else "ok"
+            ),
+            values=[
+                KeyValue(key="file", value=self.output_path),
+                KeyValue(key="topics", value=",".join(self.topics)),
+                KeyValue(key="messages", value=str(self.writer.message_count)),
+                KeyValue(key="lost_samples", value=str(lost)),
+                KeyValue(key="bytes_written", value=str(self.writer.bytes_written)),
+                KeyValue(
+                    key="rate_B_per_wall_s", value="" if per_wall is None else f"{per_wall:.4g}"
+                ),
+                KeyValue(
+                    key="rate_B_per_simulated_s", value="" if per_sim is None else f"{per_sim:.4g}"
+                ),
+                KeyValue(
+                    key="simulated_time_s",
+                    value="" if self.sim_time is None else f"{self.sim_time:.6g}",
+                ),
+                KeyValue(key="max_size_B", value=f"{self.writer.max_size:.4g}"),
+                KeyValue(key="min_free_space_B", value=f"{self.writer.min_free_space:.4g}"),
+                KeyValue(key="stopped", value=self.stopped_reason),
+            ]
+            + [
+                KeyValue(key=f"{t}: missing_samples", value=str(c.missing_samples))
+                for t, c in self.streams.items()
+            ],
+        )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(msg)
@@ -506,18 +612,27 @@ class RecorderNode(GuardedNode):
     def _write_snapshot_locked(self, node_name: str, params: list[ParameterMsg]) -> None:
         if PARAMETER_EVENTS not in self._channel:
             from rclpy.qos import qos_profile_parameter_events as q
+
             self._channel[PARAMETER_EVENTS] = self.writer.add_channel(
-                PARAMETER_EVENTS, PARAMETER_EVENT_TYPE, qos_profiles_yaml([q]))
+                PARAMETER_EVENTS, PARAMETER_EVENT_TYPE, qos_profiles_yaml([q])
+            )
             self._sequence.setdefault(PARAMETER_EVENTS, 0)
             self.received.setdefault(PARAMETER_EVENTS, 0)
         event = ParameterEvent(node=node_name, new_parameters=params)
         event.stamp = self.get_clock().now().to_msg()
         now = time.time_ns()
         self._sequence[PARAMETER_EVENTS] += 1
-        self.writer.write(self._channel[PARAMETER_EVENTS], serialize_exact(event), now, now,
-                          self._sequence[PARAMETER_EVENTS])
-        self.writer.add_metadata(PARAMETER_METADATA_PREFIX + node_name,
-                                 {p.name: _value_text(parameter_value_to_python(p.value)) for p in params})
+        self.writer.write(
+            self._channel[PARAMETER_EVENTS],
+            serialize_exact(event),
+            now,
+            now,
+            self._sequence[PARAMETER_EVENTS],
+        )
+        self.writer.add_metadata(
+            PARAMETER_METADATA_PREFIX + node_name,
+            {p.name: _value_text(parameter_value_to_python(p.value)) for p in params},
+        )
         self._snapshotted.add(node_name)
 
     def _snapshot_own_parameters(self) -> None:
@@ -528,8 +643,13 @@ class RecorderNode(GuardedNode):
         me = self.get_fully_qualified_name()
         for name, ns in self.get_node_names_and_namespaces():
             fqn = topics.fqn(ns, name)
-            if fqn == me or fqn in self._snapshotted or fqn in self._pending or _hidden(fqn) \
-                    or not self._in_scope(fqn):
+            if (
+                fqn == me
+                or fqn in self._snapshotted
+                or fqn in self._pending
+                or _hidden(fqn)
+                or not self._in_scope(fqn)
+            ):
                 continue
             client = self._param_clients.get(fqn)
             if client is None:
@@ -565,8 +685,8 @@ class RecorderNode(GuardedNode):
             self._queue.put(self._flush_and_sample)
 
     def _flush_and_sample(self) -> None:
-        """Writer thread: close the chunk, then note (wall, simulated time, file size) for the rate:
-        after a flush the file holds every message up to that simulated time."""
+        """Writer thread: close the chunk, then note (wall, simulated time, file size) for the
+        rate: after a flush the file holds every message up to that simulated time."""
         self.writer.flush()
         self._sample_rate()
 
@@ -587,8 +707,10 @@ class RecorderNode(GuardedNode):
 
     def _check_budget_change(self, values: dict) -> None:
         if not self.active:
-            raise ValueError(f"the recording has stopped ({self.stopped_reason or self.error}); a new "
-                             "max_size or min_free_space applies to the next recording")
+            raise ValueError(
+                f"the recording has stopped ({self.stopped_reason or self.error}); a new "
+                "max_size or min_free_space applies to the next recording"
+            )
 
     def _apply(self, changed: dict) -> None:
         with self._writer_lock:
@@ -611,7 +733,9 @@ class RecorderNode(GuardedNode):
         try:
             self.writer.close()
             if self.context.ok():  # after a signal the context is gone and rosout with it
-                self.get_logger().info(f"closed {self.output_path}: {self.writer.message_count} messages")
+                self.get_logger().info(
+                    f"closed {self.output_path}: {self.writer.message_count} messages"
+                )
         except RecordingError as exc:
             self._fail(exc)
 
@@ -622,9 +746,11 @@ class RecorderNode(GuardedNode):
 
 def main(args=None):
     """SIGINT and SIGTERM end the loop below between callbacks; destroy_node() then closes the file
-    with its summary and index. Exit status 0: the file is complete (also after a budget stop, which
-    the last line reports); 1: an error (bad start value, unwritable path, failed write)."""
-    handled = node_main.command_line("recorder_node", "recorder", __doc__, args)  # --help, stray arguments
+    with its summary and index. Exit status 0: the file is complete (also after a budget stop,
+    which the last line reports); 1: an error (bad start value, unwritable path, failed write)."""
+    handled = node_main.command_line(
+        "recorder_node", "recorder", __doc__, args
+    )  # --help, stray arguments
     if handled is not None:
         return handled
     failed = node_main.exit_on_startup_error("recorder", args)
@@ -655,9 +781,12 @@ def main(args=None):
             node.destroy_node()
             if node.error is None:
                 lost = sum(c.missing_samples for c in node.streams.values())
-                print(f"recorder: closed {node.output_path} ({node.writer.message_count} messages, "
-                      f"{lost} samples lost)" + (f"; {node.stopped_reason}" if node.stopped_reason else ""),
-                      flush=True)
+                print(
+                    f"recorder: closed {node.output_path} ({node.writer.message_count} messages, "
+                    f"{lost} samples lost)"
+                    + (f"; {node.stopped_reason}" if node.stopped_reason else ""),
+                    flush=True,
+                )
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()

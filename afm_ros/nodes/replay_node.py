@@ -8,11 +8,12 @@ time of every replayed deflection chunk (from its preamble). So a lock-in or z-c
 run again on recorded deflection data.
 
 Files: a missing, empty or non-MCAP file and an unknown schema raise
-:class:`~afm_ros.formats.mcap_io.SessionFileError` naming the file and the problem. Topics come from
-the file's summary section when it has an intact one, so a damaged chunk loses only its own
+:class:`~afm_ros.formats.mcap_io.SessionFileError` naming the file and the problem. Topics come
+from the file's summary section when it has an intact one, so a damaged chunk loses only its own
 messages. A truncated or damaged file (killed recorder, flipped bits) is played as far as it is
 intact, with a warning saying what was lost; the executable then exits with status 2.
 """
+
 from __future__ import annotations
 
 import re
@@ -28,14 +29,19 @@ from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64MultiArray
 
-from afm_ros.nodes import ros_params
-from afm_ros.formats.chunk_layout import unpack
 from afm_ros.core.recording import REPLAY_SPECS
-from afm_ros.formats.mcap_io import (SessionFileError, SessionScan, check_mcap_file, message_class,
-                                    read_session, read_summary)
-from afm_ros.nodes.topics import matches, split_patterns
-from afm_ros.nodes import node_main
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.formats.mcap_io import (
+    SessionFileError,
+    SessionScan,
+    check_mcap_file,
+    message_class,
+    read_session,
+    read_summary,
+)
+from afm_ros.nodes import node_main, ros_params
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.nodes.topics import matches, split_patterns
 
 CLOCK = "/clock"
 
@@ -43,19 +49,25 @@ CLOCK = "/clock"
 def is_clock(topic: str) -> bool:
     """The simulated clock: ``/clock``, or ``/<ns>/clock`` of an instrument in a namespace."""
     return topic == CLOCK or topic.endswith(CLOCK)
+
+
 CHUNK_TYPE = "std_msgs/msg/Float64MultiArray"
 
 
 def _qos_from_metadata(text: str) -> QoSProfile:
-    """Publisher QoS from a recorded ``offered_qos_profiles`` (first profile; reliable/volatile if none)."""
+    """Publisher QoS from a recorded ``offered_qos_profiles`` (first profile; reliable/volatile if
+    none)."""
     rel = re.search(r"reliability:\s*(\w+)", text or "")
     dur = re.search(r"durability:\s*(\w+)", text or "")
     depth = re.search(r"depth:\s*(\d+)", text or "")
     best_effort = rel is not None and rel.group(1) in ("best_effort", "2")
     transient = dur is not None and dur.group(1) in ("transient_local", "1")
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(int(depth.group(1)) if depth else 10, 100),
-                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=max(int(depth.group(1)) if depth else 10, 100),
+        reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
+    )
 
 
 def _time_msg(t: float) -> TimeMsg:
@@ -90,17 +102,23 @@ class ReplayNode(GuardedNode):
         self._values = ros_params.declare(self, REPLAY_SPECS)
         v = self._values
         if not v["file"]:
-            raise SessionFileError("parameter 'file' is empty: give the .mcap session to replay "
-                                   "(--ros-args -p file:=SESSION.mcap)")
+            raise SessionFileError(
+                "parameter 'file' is empty: give the .mcap session to replay "
+                "(--ros-args -p file:=SESSION.mcap)"
+            )
         self.path = v["file"]
         scan = session_channels(self.path)
         self.complete = scan.complete
         if not scan.complete and not sum(scan.message_counts.values()):
-            raise SessionFileError(f"{scan.path} is incomplete and holds no intact message "
-                                   f"({scan.truncated_reason}): nothing to replay")
+            raise SessionFileError(
+                f"{scan.path} is incomplete and holds no intact message "
+                f"({scan.truncated_reason}): nothing to replay"
+            )
         if not scan.complete:
-            self.get_logger().warn(f"{scan.path} is incomplete ({scan.truncated_reason}); replaying the "
-                                   f"{sum(scan.message_counts.values())} intact messages")
+            self.get_logger().warn(
+                f"{scan.path} is incomplete ({scan.truncated_reason}); replaying the "
+                f"{sum(scan.message_counts.values())} intact messages"
+            )
         include = split_patterns(v["topics"], "/")
         exclude = split_patterns(v["exclude"], "/")
         if not v["publish_clock"]:
@@ -110,34 +128,54 @@ class ReplayNode(GuardedNode):
         unknown = []
         for ch in scan.channels.values():
             topic = ch.topic
-            if (include and not matches(topic, include)) or matches(topic, exclude) or topic in self._replay_pubs:
+            if (
+                (include and not matches(topic, include))
+                or matches(topic, exclude)
+                or topic in self._replay_pubs
+            ):
                 continue
             schema = scan.schemas.get(ch.schema_id)
             type_name = schema.name if schema is not None else ""
-            if ch.message_encoding != "cdr" or schema is None or schema.encoding not in ("ros2msg", "ros2idl"):
-                unknown.append(f"{topic} (schema {type_name or '?'} encoding "
-                               f"{schema.encoding if schema else '?'}, messages {ch.message_encoding})")
+            if (
+                ch.message_encoding != "cdr"
+                or schema is None
+                or schema.encoding not in ("ros2msg", "ros2idl")
+            ):
+                unknown.append(
+                    f"{topic} (schema {type_name or '?'} encoding "
+                    f"{schema.encoding if schema else '?'}, messages {ch.message_encoding})"
+                )
                 continue
             try:
                 cls = message_class(type_name)
             except ValueError:
                 unknown.append(f"{topic} (type {type_name} is not installed)")
                 continue
-            name = topic if is_clock(topic) or not v["topic_prefix"] else \
-                "/" + v["topic_prefix"].strip("/") + topic
+            name = (
+                topic
+                if is_clock(topic) or not v["topic_prefix"]
+                else "/" + v["topic_prefix"].strip("/") + topic
+            )
             self._replay_pubs[topic] = self.create_publisher(
-                cls, name, _qos_from_metadata(ch.metadata.get("offered_qos_profiles", "")))
+                cls, name, _qos_from_metadata(ch.metadata.get("offered_qos_profiles", ""))
+            )
             self._types[topic] = type_name
         if unknown:
-            raise SessionFileError(f"{scan.path}: cannot replay {', '.join(unknown)}; exclude these topics "
-                                   "(parameter 'exclude') or install their message packages")
+            raise SessionFileError(
+                f"{scan.path}: cannot replay {', '.join(unknown)}; exclude these topics "
+                "(parameter 'exclude') or install their message packages"
+            )
         self._derive_clock = v["publish_clock"] and not any(is_clock(t) for t in self._replay_pubs)
         # derived clock: relative, like the cantilever's (/clock in the root namespace)
-        self._clock_pub = self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
+        self._clock_pub = (
+            self.create_publisher(ClockMsg, "clock", 10) if self._derive_clock else None
+        )
         self.published: dict[str, int] = {t: 0 for t in self._replay_pubs}
         # messages of the replayed topics the file should hold (its summary's statistics, or what
         # the tolerant read of a file without a summary found intact)
-        self.expected: dict[str, int] = {t: scan.message_counts.get(t, 0) for t in self._replay_pubs}
+        self.expected: dict[str, int] = {
+            t: scan.message_counts.get(t, 0) for t in self._replay_pubs
+        }
         self.damage = ""  # what damage playback met (empty: none)
         self.scan: SessionScan = scan  # of the last pass through the file
         self.done = threading.Event()
@@ -146,10 +184,15 @@ class ReplayNode(GuardedNode):
         self._rate = v["rate"]
         self._rate_lock = threading.Lock()
         self._anchor = (time.monotonic(), 0.0)  # (wall, recording seconds) at the last rate change
-        self.add_on_set_parameters_callback(ros_params.make_set_callback(
-            REPLAY_SPECS, lambda: dict(self._values), None, self._apply))
-        self.get_logger().info(f"ready: replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
-                               f"at rate {self._rate:g}")
+        self.add_on_set_parameters_callback(
+            ros_params.make_set_callback(
+                REPLAY_SPECS, lambda: dict(self._values), None, self._apply
+            )
+        )
+        self.get_logger().info(
+            f"ready: replaying {scan.path}: {', '.join(sorted(self._replay_pubs)) or 'no topics'} "
+            f"at rate {self._rate:g}"
+        )
         self._thread = threading.Thread(target=self._run, name="replay", daemon=True)
         self._thread.start()
 
@@ -188,23 +231,33 @@ class ReplayNode(GuardedNode):
                 self.get_logger().warning(self.outcome())
         except Exception as exc:  # reported to main; the node stays inspectable
             self.error = exc
-            self.get_logger().error(f"replay failed: {exc}" if isinstance(exc, SessionFileError)
-                                    else f"replay of {self.path} failed: {exc}")
+            self.get_logger().error(
+                f"replay failed: {exc}"
+                if isinstance(exc, SessionFileError)
+                else f"replay of {self.path} failed: {exc}"
+            )
         finally:
             self.done.set()
 
     def outcome(self) -> str:
-        """One line: how much was replayed and, if the file is not complete, what was lost and why."""
+        """One line: how much was replayed and, if the file is not complete, what was lost and
+        why."""
         n = sum(self.published.values())
         if self.complete:
             return f"replay of {self.path} finished: {n} messages"
         if self.scan.all_read:
-            return (f"replay of {self.path} finished: {n} messages, every one in the file, but the file is not "
-                    f"complete: {self.scan.truncated_reason}")
+            return (
+                f"replay of {self.path} finished: {n} messages, every one in the file, but the "
+                "file is not "
+                f"complete: {self.scan.truncated_reason}"
+            )
         expected = sum(self.expected.values())
         of = f" of {expected}" if self.scan.summary is not None and expected != n else ""
-        return (f"replay of {self.path} finished: {n}{of} messages replayed; the file is not complete: "
-                f"{self.scan.truncated_reason}")
+        return (
+            f"replay of {self.path} finished: {n}{of} messages replayed; the file is not "
+            "complete: "
+            f"{self.scan.truncated_reason}"
+        )
 
     def _play_once(self) -> None:
         with self._rate_lock:
@@ -214,10 +267,14 @@ class ReplayNode(GuardedNode):
         damaged = 0
         replayed = 0
         for m in read_session(self.path, scan, topics=set(self._replay_pubs)):
-            if len(scan.damaged) > damaged:  # met damage on the way: say so now, and what is skipped
+            if (
+                len(scan.damaged) > damaged
+            ):  # met damage on the way: say so now, and what is skipped
                 damaged = len(scan.damaged)
                 self.damage = scan.damage_text
-                self.get_logger().warning(f"{self.path} is damaged: {scan.damage_text}; replaying on")
+                self.get_logger().warning(
+                    f"{self.path} is damaged: {scan.damage_text}; replaying on"
+                )
             if first is None:
                 first = m.log_time
             if not self._wait_until((m.log_time - first) * 1e-9):
@@ -233,8 +290,10 @@ class ReplayNode(GuardedNode):
         if scan.damaged or scan.orphan_messages:
             self.damage = scan.damage_text
         if not replayed and any(self.expected.values()):
-            raise SessionFileError(f"{self.path}: no message of the replayed topics could be read "
-                                   f"({scan.truncated_reason or 'none is intact'})")
+            raise SessionFileError(
+                f"{self.path}: no message of the replayed topics could be read "
+                f"({scan.truncated_reason or 'none is intact'})"
+            )
 
     def destroy_node(self):
         self._stop.set()
@@ -244,10 +303,12 @@ class ReplayNode(GuardedNode):
 
 
 def main(args=None):
-    """Exit status: 0 = every message of the file replayed; 1 = nothing replayed (the error names the
-    file); 2 = the file is damaged or truncated: its intact part was replayed, some messages were
-    lost (the last line says how many and where)."""
-    handled = node_main.command_line("replay_node", "replay", __doc__, args)  # --help, stray arguments
+    """Exit status: 0 = every message of the file replayed; 1 = nothing replayed (the error names
+    the file); 2 = the file is damaged or truncated: its intact part was replayed, some messages
+    were lost (the last line says how many and where)."""
+    handled = node_main.command_line(
+        "replay_node", "replay", __doc__, args
+    )  # --help, stray arguments
     if handled is not None:
         return handled
     failed = node_main.exit_on_startup_error("replay", args)

@@ -1,4 +1,5 @@
-"""Map :class:`~afm_ros.core.physics.parameters.ParamSpec` to ROS 2 parameters (descriptors, typing, validation).
+"""Map :class:`~afm_ros.core.physics.parameters.ParamSpec` to ROS 2 parameters (descriptors,
+typing, validation).
 
 Values arrive typed by whoever sent them, not by the spec: ``ros2 param set`` and ``ros2 param
 load`` parse text as YAML 1.1, where ``30e-9`` (no dot) is a *string* and ``30`` an *integer*;
@@ -37,25 +38,39 @@ Start values (``-p name:=value``, ``--params-file``, ``parameter_overrides``) go
 :func:`coerce` and ``spec.validate``; a bad one raises ValueError naming the field and the range.
 Overrides for names this node does not declare are logged as a warning worded the same way.
 """
+
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from typing import Any, Callable
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
-                                SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
 from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from afm_ros.core.physics.parameters import ParamSpec
-import difflib
 
-_TYPES = {float: ParameterType.PARAMETER_DOUBLE, int: ParameterType.PARAMETER_INTEGER,
-          bool: ParameterType.PARAMETER_BOOL, str: ParameterType.PARAMETER_STRING}
-_PARAM_TYPES = {float: Parameter.Type.DOUBLE, int: Parameter.Type.INTEGER,
-                bool: Parameter.Type.BOOL, str: Parameter.Type.STRING}
+_TYPES = {
+    float: ParameterType.PARAMETER_DOUBLE,
+    int: ParameterType.PARAMETER_INTEGER,
+    bool: ParameterType.PARAMETER_BOOL,
+    str: ParameterType.PARAMETER_STRING,
+}
+_PARAM_TYPES = {
+    float: Parameter.Type.DOUBLE,
+    int: Parameter.Type.INTEGER,
+    bool: Parameter.Type.BOOL,
+    str: Parameter.Type.STRING,
+}
 # value of a RefusedParameter (never stored: the on-set callbacks refuse it)
 _PLACEHOLDER = {float: math.nan, int: 0, bool: False, str: ""}
 
@@ -136,18 +151,28 @@ def descriptor(spec: ParamSpec, with_range: bool = True) -> ParameterDescriptor:
     description and ``additional_constraints``.
     """
     unit = f" [{spec.unit}]" if spec.unit else ""
-    text = f"{spec.description}{unit}; allowed {spec.range_text()}" + ("" if spec.live else "; read-only after start")
+    text = f"{spec.description}{unit}; allowed {spec.range_text()}" + (
+        "" if spec.live else "; read-only after start"
+    )
     if spec.low_open or spec.high_open:
         text += "; the ROS range shown is closed, the open bound itself is refused"
-    d = ParameterDescriptor(name=spec.name, type=_TYPES[spec.kind], description=text,
-                            additional_constraints=f"allowed {spec.range_text()}",
-                            read_only=not spec.live, dynamic_typing=False)
+    d = ParameterDescriptor(
+        name=spec.name,
+        type=_TYPES[spec.kind],
+        description=text,
+        additional_constraints=f"allowed {spec.range_text()}",
+        read_only=not spec.live,
+        dynamic_typing=False,
+    )
     if with_range and spec.low is not None and spec.high is not None:
         if spec.kind is float:
-            d.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high),
-                                                         step=0.0)]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high), step=0.0)
+            ]
         elif spec.kind is int:
-            d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
+            d.integer_range = [
+                IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)
+            ]
     return d
 
 
@@ -165,8 +190,11 @@ def unknown_text(name: str, node_fqn: str, names) -> str:
 
     names = list(names)
     close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)
-    hint = (f"did you mean {' or '.join(repr(n) for n in close)}?" if close
-            else f"its parameters: {', '.join(names)}")
+    hint = (
+        f"did you mean {' or '.join(repr(n) for n in close)}?"
+        if close
+        else f"its parameters: {', '.join(names)}"
+    )
     return f"unknown parameter {name!r} for node {node_fqn}; {hint}"
 
 
@@ -176,21 +204,34 @@ def _pre_set_callback(node: Node, specs: dict[str, ParamSpec]):
         for p in params:
             spec = specs.get(p.name)
             if spec is None and not node.has_parameter(p.name):
-                # rclpy would refuse it next with "Invalid access to undeclared parameter(s): [...]"
-                raise UnknownParameterError(unknown_text(p.name, node.get_fully_qualified_name(), specs))
+                # rclpy would refuse it next with "Invalid access to undeclared parameter(s):
+                # [...]"
+                raise UnknownParameterError(
+                    unknown_text(p.name, node.get_fully_qualified_name(), specs)
+                )
             if spec is None or isinstance(p, RefusedParameter):
                 out.append(p)  # not ours (e.g. use_sim_time): rclpy decides
-            elif p.type_ == Parameter.Type.NOT_SET:  # e.g. `ros2 param delete`; rclpy: "Static parameter ..."
-                out.append(RefusedParameter(
-                    p.name, spec.kind, f"{p.name} of node {node.get_fully_qualified_name()} cannot be unset (a "
-                    f"NOT_SET value, as `ros2 param delete` sends): it always has a value; allowed "
-                    f"{spec.range_text()}", None))
+            elif (
+                p.type_ == Parameter.Type.NOT_SET
+            ):  # e.g. `ros2 param delete`; rclpy: "Static parameter ..."
+                out.append(
+                    RefusedParameter(
+                        p.name,
+                        spec.kind,
+                        f"{p.name} of node {node.get_fully_qualified_name()} cannot be unset (a "
+                        "NOT_SET value, as `ros2 param delete` sends): it always has a value; "
+                        "allowed "
+                        f"{spec.range_text()}",
+                        None,
+                    )
+                )
             else:
                 try:
                     out.append(Parameter(p.name, value=coerce(spec, p.value)))
                 except ValueError as exc:
                     out.append(RefusedParameter(p.name, spec.kind, str(exc), p.value))
         return out
+
     return pre_set
 
 
@@ -205,6 +246,7 @@ def _refusal(params: list[Parameter]) -> SetParametersResult | None:
 def _fallback_on_set_callback(specs: dict[str, ParamSpec]):
     """Refuses what the pre-set callback marked, and validates by the specs, for nodes that do not
     register :func:`make_set_callback` (rclpy runs every on-set callback until one refuses)."""
+
     def on_set(params: list[Parameter]) -> SetParametersResult:
         refused = _refusal(params)
         if refused is not None:
@@ -216,12 +258,14 @@ def _fallback_on_set_callback(specs: dict[str, ParamSpec]):
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
+
     return on_set
 
 
 def _install_describe(node: Node, specs: dict[str, ParamSpec]) -> None:
     """Make ``node.describe_parameter`` (used by rclpy's describe_parameters service and by
-    ``Node.describe_parameters``) report the spec ranges; the stored descriptors stay range-free."""
+    ``Node.describe_parameters``) report the spec ranges; the stored descriptors stay
+    range-free."""
     internal = node.describe_parameter  # the class's bound method
 
     def describe_parameter(name: str) -> ParameterDescriptor:
@@ -248,14 +292,22 @@ def _overrides(node: Node) -> dict[str, Parameter]:
     return dict(getattr(node, "_parameter_overrides", {}) or {})
 
 
-def _warn_unknown(node: Node, specs: dict[str, ParamSpec], overrides: dict[str, Parameter]) -> None:
-    unknown = [name for name in overrides
-               if name not in specs and name not in _RCLPY_PARAMETERS and not name.startswith(_RCLPY_PREFIXES)
-               and not node.has_parameter(name)]
+def _warn_unknown(
+    node: Node, specs: dict[str, ParamSpec], overrides: dict[str, Parameter]
+) -> None:
+    unknown = [
+        name
+        for name in overrides
+        if name not in specs
+        and name not in _RCLPY_PARAMETERS
+        and not name.startswith(_RCLPY_PREFIXES)
+        and not node.has_parameter(name)
+    ]
     if not unknown:
         return
     try:
         from afm_ros.core.specs import node_specs
+
         others = {name: node_name for node_name, s in node_specs().items() for name in s}
     except Exception:  # the warning must never stop a node
         others = {}
@@ -263,11 +315,15 @@ def _warn_unknown(node: Node, specs: dict[str, ParamSpec], overrides: dict[str, 
     for name in unknown:
         if name in others:
             # e.g. afm_instrument offers every -p to every node: the node that declares it uses it
-            node.get_logger().debug(f"parameter '{name}' (a parameter of {others[name]}) is not a "
-                                    f"parameter of node {where}; ignored here")
+            node.get_logger().debug(
+                f"parameter '{name}' (a parameter of {others[name]}) is not a "
+                f"parameter of node {where}; ignored here"
+            )
         else:
-            node.get_logger().warning(f"{unknown_text(name, where, specs)} (from -p, --params-file or "
-                                      f"parameter_overrides: ignored)")
+            node.get_logger().warning(
+                f"{unknown_text(name, where, specs)} (from -p, --params-file or "
+                f"parameter_overrides: ignored)"
+            )
 
 
 def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
@@ -279,14 +335,18 @@ def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
     fallback refusal, ``describe_parameter`` with ranges) and warns about unknown start keys.
     """
     overrides = _overrides(node)
-    _warn_unknown(node, specs, overrides)  # first: a typo'd key explains a start value that fails below
+    _warn_unknown(
+        node, specs, overrides
+    )  # first: a typo'd key explains a start value that fails below
     values = {}
     for name, spec in specs.items():
         value = spec.default
         if name in overrides and overrides[name].type_ != Parameter.Type.NOT_SET:
             value = overrides[name].value
         value = coerce(spec, value)  # ValueError names the field and the range
-        declared = node.declare_parameter(name, value, descriptor(spec, with_range=False), ignore_override=True)
+        declared = node.declare_parameter(
+            name, value, descriptor(spec, with_range=False), ignore_override=True
+        )
         values[name] = declared.value
     node.add_pre_set_parameters_callback(_pre_set_callback(node, specs))
     node.add_on_set_parameters_callback(_fallback_on_set_callback(specs))
@@ -294,14 +354,19 @@ def declare(node: Node, specs: dict[str, ParamSpec]) -> dict:
     return values
 
 
-def make_set_callback(specs: dict[str, ParamSpec], current: Callable[[], dict],
-                      check_all: Callable[[dict], None] | None, apply: Callable[[dict], None]):
+def make_set_callback(
+    specs: dict[str, ParamSpec],
+    current: Callable[[], dict],
+    check_all: Callable[[dict], None] | None,
+    apply: Callable[[dict], None],
+):
     """Build an ``on_set_parameters`` callback.
 
     Every changed value is coerced and validated by its spec, then ``check_all`` sees the full
     merged set (cross-field checks, may raise ValueError); only if everything passes is ``apply``
     called with the changed values. A rejection returns the reason and leaves the node unchanged.
     """
+
     def callback(params: list[Parameter]) -> SetParametersResult:
         refused = _refusal(params)
         if refused is not None:
@@ -320,4 +385,5 @@ def make_set_callback(specs: dict[str, ParamSpec], current: Callable[[], dict],
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
+
     return callback

@@ -6,6 +6,7 @@ never drops a message the Python side has not taken yet) and acknowledge what th
 ``cantilever/ack``, and the cantilever keeps every consumer within ``flow_window`` chunks
 (:mod:`afm_ros.core.flow`), which also bounds the memory those queues can take.
 """
+
 from __future__ import annotations
 
 import fnmatch
@@ -21,39 +22,57 @@ from afm_ros.formats.chunk_layout import ACK_LEAVING, ACK_READY
 
 DEFLECTION = "cantilever/deflection"
 FORCE = "cantilever/tip_sample_force"
-ACK = "cantilever/_ack"  # hidden (leading underscore): plumbing, not shown by ros2 topic list nor recorded
+# hidden (leading underscore): plumbing, not shown by ros2 topic list nor recorded
+ACK = "cantilever/_ack"
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
 Z_TRACE = "z_controller/trace"
-PLL_OUTPUTS = "pll/outputs"  # FM loop outputs per lock-in batch (afm_ros.formats.chunk_layout FM batch)
+PLL_OUTPUTS = (
+    "pll/outputs"  # FM loop outputs per lock-in batch (afm_ros.formats.chunk_layout FM batch)
+)
 EXCITATION = "pll/excitation"  # the FM drive (frequency, force) per answered chunk
 SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
-SCAN_APPLIED = "cantilever/scan"  # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
-# std_msgs/String, JSON (latched): what the z stage does (engaged, approaching, withdrawing, withdrawn,
-# failed), the coarse motor's position and the approach's log
+# std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)
+SCAN_APPLIED = "cantilever/scan"
+# std_msgs/String, JSON (latched): what the z stage does (engaged, approaching, withdrawing,
+# withdrawn, failed), the coarse motor's position and the approach's log
 Z_STAGE = "z_controller/stage"
 # std_msgs/String, JSON (latched): the lock-in's drive-sweep schedule (afm_ros.core.tune.TunePlan);
 # the cantilever drives at its frequencies while it runs
 TUNE_PLAN = "lockin/tune_plan"
-# std_msgs/String, JSON: the scanner's and sample's imperfection parameters (latched; the cantilever
-# applies them at its next chunk boundary, all together)
+# std_msgs/String, JSON: the scanner's and sample's imperfection parameters (latched; the
+# cantilever applies them at its next chunk boundary, all together)
 IMPERFECTIONS = "scanner/imperfections"
-# std_msgs/Float64MultiArray: ground truth at each chunk's end while imperfections are on, the values
-# of TRUTH_FIELDS in order (the one dimension's label lists them): the piezo's hysteresis and creep
-# (true minus commanded position) and the sample's drift
+# std_msgs/Float64MultiArray: ground truth at each chunk's end while imperfections are on, the
+# values of TRUTH_FIELDS in order (the one dimension's label lists them): the piezo's hysteresis
+# and creep (true minus commanded position) and the sample's drift
 TRUTH = "truth/scanner"
 TRUTH_FIELDS = ("t_s",) + tuple(f"{key}_m" for key in TRUTH_KEYS)
 # std_msgs/Float64MultiArray (latched): the tip, [t_s, tip_radius_m, worn_taps, second_apex_x_m,
-# second_apex_y_m, second_apex_height_m] at each rebuild of the sample map for a grown apex radius or
-# a pick-up event (afm_ros.core.tip; a single tip has a zero second apex)
+# second_apex_y_m, second_apex_height_m] at each rebuild of the sample map for a grown apex radius
+# or a pick-up event (afm_ros.core.tip; a single tip has a zero second apex)
 TRUTH_TIP = "truth/tip"
-# std_msgs/Float64MultiArray (latched): the last z spectroscopy curve (afm_ros.formats.spectroscopy_layout)
+# std_msgs/Float64MultiArray (latched): the last z spectroscopy curve
+# (afm_ros.formats.spectroscopy_layout)
 SPECTROSCOPY = "z_controller/spectroscopy"
 
 # every topic an instrument publishes (relative to its namespace); a recorder must have them all
 # before a scripted session starts, or its first samples would be missing
-INSTRUMENT_TOPICS = (DEFLECTION, FORCE, "clock", "lockin/amplitude", "lockin/phase", "lockin/xy", LOCKIN_OUTPUTS,
-                     "z_controller/z_piezo", "z_controller/error", Z_COMMAND, Z_TRACE, SCAN_APPLIED)
+INSTRUMENT_TOPICS = (
+    DEFLECTION,
+    FORCE,
+    "clock",
+    "lockin/amplitude",
+    "lockin/phase",
+    "lockin/xy",
+    LOCKIN_OUTPUTS,
+    "z_controller/z_piezo",
+    "z_controller/error",
+    Z_COMMAND,
+    Z_TRACE,
+    SCAN_APPLIED,
+)
+
 
 def sim_time_msg(t: float) -> Time:
     """builtin_interfaces/Time for a simulated time t [s] (>= 0), rounded to the nanosecond."""
@@ -66,7 +85,9 @@ def split_patterns(text: str, namespace: str) -> list[str]:
     out = []
     for item in text.replace(",", " ").split():
         if not item.startswith("/"):
-            item = (namespace.rstrip("/") + "/" + item) if namespace not in ("", "/") else "/" + item
+            item = (
+                (namespace.rstrip("/") + "/" + item) if namespace not in ("", "/") else "/" + item
+            )
         out.append(item)
     return out
 
@@ -77,17 +98,32 @@ def matches(topic: str, patterns: list[str]) -> bool:
 
 
 # publishers of the data path: reliable, history of 200 messages kept for late joiners
-HISTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+HISTORY_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=200,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # consumers of the data path: take everything, including the publisher's history
-CONSUMER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CONSUMER_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # one consumer's acknowledgement: only the latest matters
 # state messages (scan plan, geometry, images): the last one is kept for late joiners
-LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-ACK_PUB_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+ACK_PUB_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 
 
 class Acknowledger:
@@ -99,10 +135,13 @@ class Acknowledger:
 
     def __init__(self, node, topic: str = ACK, first_index: int = ACK_READY):
         """``first_index``: the first acknowledgement (ACK_READY: waited for from the chunk the
-        cantilever is at; 0: the cantilever holds until the consumer has caught up from its history)."""
+        cantilever is at; 0: the cantilever holds until the consumer has caught up from its
+        history)."""
         self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
         self._msg = Int64MultiArray()
-        self._msg.layout.dim = [MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)]
+        self._msg.layout.dim = [
+            MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)
+        ]
         self._lock = threading.Lock()
         self.left = False
         self.next_index = first_index
@@ -130,19 +169,29 @@ class Acknowledger:
                 pass
 
 
-
 def fqn(namespace: str, name: str) -> str:
     """Fully qualified node name from a namespace and a node name (``/ns/name``, or ``/name``)."""
     return (namespace.rstrip("/") + "/" + name) if namespace not in ("", "/") else "/" + name
 
 
-def publish_status(node, publisher, what: str, problem: str | None, values: dict, level: int | None = None) -> None:
+def publish_status(
+    node, publisher, what: str, problem: str | None, values: dict, level: int | None = None
+) -> None:
     """One DiagnosticStatus named ``<node fqn>: <what>`` on ``/diagnostics``: OK with message "ok"
     unless ``problem`` (then WARN, or ``level``); every value as text."""
     status = DiagnosticStatus(
-        level=(level if level is not None else DiagnosticStatus.WARN if problem else DiagnosticStatus.OK),
-        name=f"{node.get_fully_qualified_name()}: {what}", hardware_id="afm_ros", message=problem or "ok",
-        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        level=(
+            level
+            if level is not None
+            else DiagnosticStatus.WARN
+            if problem
+            else DiagnosticStatus.OK
+        ),
+        name=f"{node.get_fully_qualified_name()}: {what}",
+        hardware_id="afm_ros",
+        message=problem or "ok",
+        values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+    )
     msg = DiagnosticArray(status=[status])
     msg.header.stamp = node.get_clock().now().to_msg()
     publisher.publish(msg)

@@ -22,6 +22,7 @@ crossing of the setpoint on approach is taken and the run is flagged ``nonmonoto
 amplitude ever rose on approach). The crossing is then refined by the Illinois (modified
 regula falsi) method, every trial starting from the steady state on the far side of the bracket.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,9 +42,22 @@ from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever, Drive
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.tools.figures import pyplot, write_csv
 
-CONTRAST_COLUMNS = ["setpoint_ratio", "material", "z_base_m", "amplitude_m", "phase_deg", "dissipated_energy_J",
-                    "peak_force_N", "indentation_m", "phase_difference_deg", "sin_phase_cleveland",
-                    "harmonic2_m", "regime", "nonmonotonic", "converged"]
+CONTRAST_COLUMNS = [
+    "setpoint_ratio",
+    "material",
+    "z_base_m",
+    "amplitude_m",
+    "phase_deg",
+    "dissipated_energy_J",
+    "peak_force_N",
+    "indentation_m",
+    "phase_difference_deg",
+    "sin_phase_cleveland",
+    "harmonic2_m",
+    "regime",
+    "nonmonotonic",
+    "converged",
+]
 CONTRAST_MODELS = ("dmt", "viscoelastic_dmt", "hysteresis_dmt")
 DEFAULT_SPP = 1600
 
@@ -57,7 +71,9 @@ class SetpointPoint:
     z_base: float  # [m]
     analysis: PeriodAnalysis | None
     sim: Simulation | None
-    samples: object  # Samples of the last analysed window (re-analyse with more harmonics), or None
+    samples: (
+        object  # Samples of the last analysed window (re-analyse with more harmonics), or None
+    )
     converged: bool
     found: bool
     evaluations: int
@@ -65,20 +81,37 @@ class SetpointPoint:
 
 def _steady(sim, z_base, amplitude_tol, phase_tol_deg, max_periods):
     sim.reconfigure(z_offset=z_base)
-    return steady_state(sim, amplitude_tol=amplitude_tol, phase_tol_deg=phase_tol_deg, max_periods=max_periods)
+    return steady_state(
+        sim, amplitude_tol=amplitude_tol, phase_tol_deg=phase_tol_deg, max_periods=max_periods
+    )
 
 
-def setpoint_scan(force_model, ratios, cantilever: Cantilever | None = None, drive: Drive | None = None,
-                  steps_per_period: int = DEFAULT_SPP, amplitude_tol: float = 1e-12, z_tol: float = 1e-15,
-                  max_step: float = 2e-9, min_step: float = 0.05e-9, z_min: float = -50e-9,
-                  steady_amplitude_tol: float = 1e-14, phase_tol_deg: float = 1e-5, max_periods: int = 20000,
-                  max_iterations: int = 60):
+def setpoint_scan(
+    force_model,
+    ratios,
+    cantilever: Cantilever | None = None,
+    drive: Drive | None = None,
+    steps_per_period: int = DEFAULT_SPP,
+    amplitude_tol: float = 1e-12,
+    z_tol: float = 1e-15,
+    max_step: float = 2e-9,
+    min_step: float = 0.05e-9,
+    z_min: float = -50e-9,
+    steady_amplitude_tol: float = 1e-14,
+    phase_tol_deg: float = 1e-5,
+    max_periods: int = 20000,
+    max_iterations: int = 60,
+):
     """Approach from far and find, for each ratio (processed from large to small), the z_base [m]
-    whose steady amplitude is ratio * A0 within ``amplitude_tol`` [m] (A0: the free steady amplitude).
+    whose steady amplitude is ratio * A0 within ``amplitude_tol`` [m] (A0: the free steady
+    amplitude).
 
-    Returns (points in the order of ``ratios``, nonmonotonic flag: the amplitude rose on approach)."""
+    Returns (points in the order of ``ratios``, nonmonotonic flag: the amplitude rose on
+    approach)."""
     cantilever = cantilever or Cantilever()
-    drive = drive or Drive.from_free_amplitude(cantilever, CANTILEVER_SPECS["free_amplitude"].default)
+    drive = drive or Drive.from_free_amplitude(
+        cantilever, CANTILEVER_SPECS["free_amplitude"].default
+    )
     a_free, _ = steady_amplitude_phase(cantilever, drive)
     tols = (steady_amplitude_tol, phase_tol_deg, max_periods)
     z_hi = a_free + 10e-9
@@ -90,7 +123,8 @@ def setpoint_scan(force_model, ratios, cantilever: Cantilever | None = None, dri
         target = ratio * a_free
         evaluations = 0
         lo = None
-        # 1. approach until the amplitude drops to the target (carry the state: the approach branch)
+        # 1. approach until the amplitude drops to the target (carry the state: the approach
+        # branch)
         while res_hi.analysis.amplitude > target:
             step = min(max(res_hi.analysis.amplitude - target, min_step), max_step)
             z = z_hi - step
@@ -107,7 +141,9 @@ def setpoint_scan(force_model, ratios, cantilever: Cantilever | None = None, dri
                 lo = (z, sim, res)
                 break
         if lo is None:
-            found[ratio] = SetpointPoint(ratio, target, math.nan, None, None, None, False, False, evaluations)
+            found[ratio] = SetpointPoint(
+                ratio, target, math.nan, None, None, None, False, False, evaluations
+            )
             continue
         z_lo, sim_lo, res_lo = lo
         best = (z_lo, sim_lo, res_lo)
@@ -138,19 +174,31 @@ def setpoint_scan(force_model, ratios, cantilever: Cantilever | None = None, dri
                     f_hi *= 0.5
                 side = -1
         z, sim, res = best
-        found[ratio] = SetpointPoint(ratio, target, z, res.analysis, sim, res.samples, res.converged, True, evaluations)
+        found[ratio] = SetpointPoint(
+            ratio, target, z, res.analysis, sim, res.samples, res.converged, True, evaluations
+        )
     return [found[r] for r in ratios], nonmonotonic
 
 
-def contrast_study(materials, force_model: str = "viscoelastic_dmt", ratios=(0.9, 0.8, 0.7),
-                   cantilever: Cantilever | None = None, drive: Drive | None = None,
-                   steps_per_period: int = DEFAULT_SPP, tip: Material | None = None, progress: bool = False,
-                   **scan_options):
+def contrast_study(
+    materials,
+    force_model: str = "viscoelastic_dmt",
+    ratios=(0.9, 0.8, 0.7),
+    cantilever: Cantilever | None = None,
+    drive: Drive | None = None,
+    steps_per_period: int = DEFAULT_SPP,
+    tip: Material | None = None,
+    progress: bool = False,
+    **scan_options,
+):
     """Rows (CONTRAST_COLUMNS) and {material name: [SetpointPoint per ratio]} for the materials
-    (names or :class:`Material` objects) under ``force_model`` (dmt, viscoelastic_dmt, hysteresis_dmt)."""
+    (names or :class:`Material` objects) under ``force_model`` (dmt, viscoelastic_dmt,
+    hysteresis_dmt)."""
     if force_model not in CONTRAST_MODELS:
-        raise ValueError(f"force_model={force_model!r} is not allowed here; allowed: "
-                         f"{', '.join(repr(m) for m in CONTRAST_MODELS)}")
+        raise ValueError(
+            f"force_model={force_model!r} is not allowed here; allowed: "
+            f"{', '.join(repr(m) for m in CONTRAST_MODELS)}"
+        )
     mats = [material(m) for m in materials]
     if len(mats) < 2:
         raise ValueError(f"materials={[m.name for m in mats]} needs at least two materials")
@@ -165,8 +213,9 @@ def contrast_study(materials, force_model: str = "viscoelastic_dmt", ratios=(0.9
     for m in mats:
         sample, viscosity, h_r = sample_for(m, tip=tip)
         model = make_force_model(force_model, sample, viscosity=viscosity, hamaker_retract=h_r)
-        scans[m.name], flags[m.name] = setpoint_scan(model, ratios, cantilever, drive, steps_per_period,
-                                                     **scan_options)
+        scans[m.name], flags[m.name] = setpoint_scan(
+            model, ratios, cantilever, drive, steps_per_period, **scan_options
+        )
         if progress:
             print(f"contrast: {m.name} done", file=sys.stderr)
     rows = []
@@ -176,22 +225,44 @@ def contrast_study(materials, force_model: str = "viscoelastic_dmt", ratios=(0.9
             p = scans[name][i]
             a = p.analysis
             if a is None:
-                rows.append({"setpoint_ratio": ratio, "material": name, "z_base_m": math.nan,
-                             "amplitude_m": math.nan, "phase_deg": math.nan, "dissipated_energy_J": math.nan,
-                             "peak_force_N": math.nan, "indentation_m": math.nan,
-                             "phase_difference_deg": math.nan, "sin_phase_cleveland": math.nan,
-                             "harmonic2_m": math.nan, "regime": "not_reached",
-                             "nonmonotonic": flags[name], "converged": False})
+                rows.append(
+                    {
+                        "setpoint_ratio": ratio,
+                        "material": name,
+                        "z_base_m": math.nan,
+                        "amplitude_m": math.nan,
+                        "phase_deg": math.nan,
+                        "dissipated_energy_J": math.nan,
+                        "peak_force_N": math.nan,
+                        "indentation_m": math.nan,
+                        "phase_difference_deg": math.nan,
+                        "sin_phase_cleveland": math.nan,
+                        "harmonic2_m": math.nan,
+                        "regime": "not_reached",
+                        "nonmonotonic": flags[name],
+                        "converged": False,
+                    }
+                )
                 continue
             diff = a.phase_deg - ref.analysis.phase_deg if ref.analysis is not None else math.nan
-            rows.append({"setpoint_ratio": ratio, "material": name, "z_base_m": p.z_base,
-                         "amplitude_m": a.amplitude, "phase_deg": a.phase_deg,
-                         "dissipated_energy_J": a.tip_sample_dissipation, "peak_force_N": a.max_force,
-                         "indentation_m": a.indentation, "phase_difference_deg": diff,
-                         "sin_phase_cleveland": cleveland_sin_phase(a, p.sim),
-                         "harmonic2_m": float(a.harmonics[1]),
-                         "regime": "repulsive" if a.phase_deg < 90.0 else "attractive",
-                         "nonmonotonic": flags[name], "converged": p.converged})
+            rows.append(
+                {
+                    "setpoint_ratio": ratio,
+                    "material": name,
+                    "z_base_m": p.z_base,
+                    "amplitude_m": a.amplitude,
+                    "phase_deg": a.phase_deg,
+                    "dissipated_energy_J": a.tip_sample_dissipation,
+                    "peak_force_N": a.max_force,
+                    "indentation_m": a.indentation,
+                    "phase_difference_deg": diff,
+                    "sin_phase_cleveland": cleveland_sin_phase(a, p.sim),
+                    "harmonic2_m": float(a.harmonics[1]),
+                    "regime": "repulsive" if a.phase_deg < 90.0 else "attractive",
+                    "nonmonotonic": flags[name],
+                    "converged": p.converged,
+                }
+            )
     return rows, scans
 
 
@@ -199,8 +270,12 @@ def plot_contrast(rows, path: Path, title: str = ""):
     plt = pyplot()
     names = list(dict.fromkeys(r["material"] for r in rows))
     fig, axes = plt.subplots(1, 5, figsize=(20, 4.2))
-    panels = [("phase_deg", 1.0, "phase lag [deg]"), ("dissipated_energy_J", 1e18, "E_dis per cycle [aJ]"),
-              ("peak_force_N", 1e9, "peak force [nN]"), ("indentation_m", 1e9, "indentation [nm]")]
+    panels = [
+        ("phase_deg", 1.0, "phase lag [deg]"),
+        ("dissipated_energy_J", 1e18, "E_dis per cycle [aJ]"),
+        ("peak_force_N", 1e9, "peak force [nN]"),
+        ("indentation_m", 1e9, "indentation [nm]"),
+    ]
     for ax, (col, scale, label) in zip(axes, panels):
         for name in names:
             pts = sorted((r["setpoint_ratio"], r[col]) for r in rows if r["material"] == name)
@@ -211,7 +286,9 @@ def plot_contrast(rows, path: Path, title: str = ""):
         ax.grid(alpha=0.3)
     ax = axes[4]
     for name in names[1:]:
-        pts = sorted((r["setpoint_ratio"], r["phase_difference_deg"]) for r in rows if r["material"] == name)
+        pts = sorted(
+            (r["setpoint_ratio"], r["phase_difference_deg"]) for r in rows if r["material"] == name
+        )
         x, y = np.array(pts, dtype=float).T
         ax.plot(x, y, "o-", label=f"{name} - {names[0]}")
     ax.axhline(0.0, color="k", lw=0.6)
@@ -247,7 +324,9 @@ def parse_ratios(text: str) -> list[float]:
         else:
             values = [float(p) for p in text.split(",") if p.strip()]
     except ValueError:
-        raise ValueError(f"ratios={text!r} must be a comma list or start:stop:step of numbers in (0, 1)") from None
+        raise ValueError(
+            f"ratios={text!r} must be a comma list or start:stop:step of numbers in (0, 1)"
+        ) from None
     if not values:
         raise ValueError("ratios is empty")
     for v in values:
@@ -257,17 +336,34 @@ def parse_ratios(text: str) -> list[float]:
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--materials", default="polystyrene,ldpe",
-                   help=f"comma list of two or more of {', '.join(MATERIALS)} (default polystyrene,ldpe)")
-    p.add_argument("--force-model", default="viscoelastic_dmt",
-                   help=f"one of {', '.join(CONTRAST_MODELS)} (default viscoelastic_dmt)")
-    p.add_argument("--ratios", default="0.95:0.3:0.05",
-                   help="setpoint ratios A/A0: comma list or start:stop:step (default 0.95:0.3:0.05)")
-    p.add_argument("--steps-per-period", default=str(DEFAULT_SPP),
-                   help=f"RK4 steps per drive period (default {DEFAULT_SPP})")
-    p.add_argument("--free-amplitude", default=str(CANTILEVER_SPECS["free_amplitude"].default),
-                   help="free amplitude A0 [m] (default 6e-08); seed cantilever k 10 N/m, f0 45 kHz, Q 25")
-    p.add_argument("--amplitude-tol", default="1e-12", help="setpoint amplitude tolerance [m] (default 1e-12)")
+    p.add_argument(
+        "--materials",
+        default="polystyrene,ldpe",
+        help=f"comma list of two or more of {', '.join(MATERIALS)} (default polystyrene,ldpe)",
+    )
+    p.add_argument(
+        "--force-model",
+        default="viscoelastic_dmt",
+        help=f"one of {', '.join(CONTRAST_MODELS)} (default viscoelastic_dmt)",
+    )
+    p.add_argument(
+        "--ratios",
+        default="0.95:0.3:0.05",
+        help="setpoint ratios A/A0: comma list or start:stop:step (default 0.95:0.3:0.05)",
+    )
+    p.add_argument(
+        "--steps-per-period",
+        default=str(DEFAULT_SPP),
+        help=f"RK4 steps per drive period (default {DEFAULT_SPP})",
+    )
+    p.add_argument(
+        "--free-amplitude",
+        default=str(CANTILEVER_SPECS["free_amplitude"].default),
+        help="free amplitude A0 [m] (default 6e-08); seed cantilever k 10 N/m, f0 45 kHz, Q 25",
+    )
+    p.add_argument(
+        "--amplitude-tol", default="1e-12", help="setpoint amplitude tolerance [m] (default 1e-12)"
+    )
     p.add_argument("--out", default="study_out", help="output folder (default ./study_out)")
 
 
@@ -288,18 +384,26 @@ def _number(name: str, text):
 
 
 def run(args) -> int:
-    """Run the contrast study from parsed flags; 0 on success, 2 (one line on stderr) for a bad value."""
+    """Run the contrast study from parsed flags; 0 on success, 2 (one line on stderr) for a bad
+    value."""
     try:
         names = [n.strip() for n in str(args.materials).split(",") if n.strip()]
         mats = [material(n) for n in names]
         if args.force_model not in CONTRAST_MODELS:
-            raise ValueError(f"force_model={args.force_model!r} is not allowed here; allowed: "
-                             f"{', '.join(repr(m) for m in CONTRAST_MODELS)}")
+            raise ValueError(
+                f"force_model={args.force_model!r} is not allowed here; allowed: "
+                f"{', '.join(repr(m) for m in CONTRAST_MODELS)}"
+            )
         ratios = parse_ratios(str(args.ratios))
         spp_text = args.steps_per_period
         spp = CANTILEVER_SPECS["steps_per_period"].validate(
-            int(spp_text) if str(spp_text).strip().lstrip("+-").isdigit() else _number("steps_per_period", spp_text))
-        a0 = CANTILEVER_SPECS["free_amplitude"].validate(_number("free_amplitude", args.free_amplitude))
+            int(spp_text)
+            if str(spp_text).strip().lstrip("+-").isdigit()
+            else _number("steps_per_period", spp_text)
+        )
+        a0 = CANTILEVER_SPECS["free_amplitude"].validate(
+            _number("free_amplitude", args.free_amplitude)
+        )
         tol = _number("amplitude_tol", args.amplitude_tol)
         if not (math.isfinite(tol) and tol > 0):
             raise ValueError(f"amplitude_tol={tol!r} m must be > 0")
@@ -307,14 +411,21 @@ def run(args) -> int:
         drive = Drive.from_free_amplitude(cantilever, a0)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        rows, _ = contrast_study(mats, args.force_model, ratios, cantilever, drive, spp, amplitude_tol=tol)
+        rows, _ = contrast_study(
+            mats, args.force_model, ratios, cantilever, drive, spp, amplitude_tol=tol
+        )
     except ValueError as exc:
         print(f"afm_study contrast: error: {exc}", file=sys.stderr)
         return 2
     write_csv(out / "contrast.csv", CONTRAST_COLUMNS, rows)
-    plot_contrast(rows, out / "contrast.png",
-                  f"{args.force_model}: {', '.join(m.name for m in mats)}; A0 = {a0 * 1e9:g} nm, {spp} spp")
-    missing = sorted({(r["material"], r["setpoint_ratio"]) for r in rows if r["regime"] == "not_reached"})
+    plot_contrast(
+        rows,
+        out / "contrast.png",
+        f"{args.force_model}: {', '.join(m.name for m in mats)}; A0 = {a0 * 1e9:g} nm, {spp} spp",
+    )
+    missing = sorted(
+        {(r["material"], r["setpoint_ratio"]) for r in rows if r["regime"] == "not_reached"}
+    )
     if missing:
         print(f"warning: setpoint not reached for {missing}", file=sys.stderr)
     print(f"wrote {out / 'contrast.csv'} and {out / 'contrast.png'} ({len(rows)} rows)")
@@ -322,7 +433,9 @@ def run(args) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m afm_ros.tools.contrast", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m afm_ros.tools.contrast", description=__doc__.split("\n")[0]
+    )
     _add_arguments(parser)
     return run(parser.parse_args(argv))
 

@@ -1,12 +1,13 @@
 """``afm_instrument --fm``: a frequency-modulation (non-contact) AFM session over ROS.
 
-The nodes of the tapping instrument plus the ``pll`` node (afm_ros.nodes.pll_node): the cantilever is
-driven at the PLL's frequency and the amplitude controller's force (``excitation`` 'pll'), the z
+The nodes of the tapping instrument plus the ``pll`` node (afm_ros.nodes.pll_node): the cantilever
+is driven at the PLL's frequency and the amplitude controller's force (``excitation`` 'pll'), the z
 controller regulates on the frequency shift (``feedback_signal`` 'frequency_shift'). The session
 (simulated seconds; docs/fm.md):
 
 1. start withdrawn ``approach_start_distance`` (FM default 100 nm) above the sample; the PLL locks
-   and the amplitude controller rings the cantilever up to its amplitude setpoint (``FREE_LOCK_S``);
+   and the amplitude controller rings the cantilever up to its amplitude setpoint
+   (``FREE_LOCK_S``);
 2. measure the free resonance (the PLL's frequency) and drive, and centre the PLL on that resonance
    (``center_frequency``), so df is the shift from the free resonance; Q = k A / F_free follows;
 3. approach at ``approach_speed`` (FM default 50 nm/s) until df reaches ``df_setpoint``, engage;
@@ -16,14 +17,17 @@ controller regulates on the frequency shift (``feedback_signal`` 'frequency_shif
    contrast; .gwy + PNG as in tapping;
 6. withdraw.
 
-With ``--interactive`` steps 5-6 are the user's: after the hold it runs until Ctrl-C (scan, tune and
-withdraw with ``afm_ctl``; a status line with df, amplitude and drive every 5 s) and then prints the
-summary with the statistics of the last simulated second before Ctrl-C and the frames written.
+With ``--interactive`` steps 5-6 are the user's: after the hold it runs until Ctrl-C (scan, tune
+and withdraw with ``afm_ctl``; a status line with df, amplitude and drive every 5 s) and then
+prints the summary with the statistics of the last simulated second before Ctrl-C and the frames
+written.
 
-Defaults the job sets unless given with -p: :data:`FM_CANTILEVER`, :data:`FM_Z`, :data:`FM_SCAN`, and
-the scanner's slope compensation equal to the sample's tilt (a user who compensated the tilt they
-measured: an integrating z loop on df otherwise follows the tilt's ramp with an error of v / K_I).
+Defaults the job sets unless given with -p: :data:`FM_CANTILEVER`, :data:`FM_Z`, :data:`FM_SCAN`,
+and the scanner's slope compensation equal to the sample's tilt (a user who compensated the tilt
+they measured: an integrating z loop on df otherwise follows the tilt's ramp with an error of v /
+K_I).
 """
+
 from __future__ import annotations
 
 import math
@@ -33,36 +37,64 @@ from collections import deque
 import numpy as np
 from std_msgs.msg import Float64MultiArray
 
+from afm_ros.core.fm import dissipation_from_drive
+from afm_ros.core.image_analysis import fm_material_contrast
 from afm_ros.core.session_stats import FmWindow
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
-from afm_ros.core.fm import dissipation_from_drive
-from afm_ros.core.image_analysis import fm_material_contrast
 
-FREE_LOCK_S = 0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
-# a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of phase
-# margin at its 4.6 ms loop delay, 57 deg at 1 ms chunks, where the ROS loop is not real time on 2 cores)
-FM_CANTILEVER = {"excitation": "pll", "quality_factor": 1e4, "chunk_duration": 2e-3,
-                 "sample": "ps_ldpe_microtomed", "force_model": "hysteresis_dmt"}
-FM_Z = {"feedback_signal": "frequency_shift", "approach_start_distance": 100e-9, "approach_speed": 50e-9}
+FREE_LOCK_S = (
+    0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
+)
+# a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of
+# phase margin at its 4.6 ms loop delay, 57 deg at 1 ms chunks, where the ROS loop is not real time
+# on 2 cores)
+FM_CANTILEVER = {
+    "excitation": "pll",
+    "quality_factor": 1e4,
+    "chunk_duration": 2e-3,
+    "sample": "ps_ldpe_microtomed",
+    "force_model": "hysteresis_dmt",
+}
+FM_Z = {
+    "feedback_signal": "frequency_shift",
+    "approach_start_distance": 100e-9,
+    "approach_speed": 50e-9,
+}
 # 1.5 um across an LDPE island at 1 line/s: ~3 um/s, what the z loop on df follows (docs/fm.md)
-FM_SCAN = {"pixels_per_line": 32, "lines": 16, "line_rate": 1.0, "scan_size_x": 1.5e-6, "scan_size_y": 1.5e-6,
-           "scan_center_x": 5.3e-6, "scan_center_y": 6.56e-6}
-FM_RAW_EXCLUDE = ("pll/frequency_shift", "pll/phase_error", "pll/drive")  # per-output copies of pll/outputs
+FM_SCAN = {
+    "pixels_per_line": 32,
+    "lines": 16,
+    "line_rate": 1.0,
+    "scan_size_x": 1.5e-6,
+    "scan_size_y": 1.5e-6,
+    "scan_center_x": 5.3e-6,
+    "scan_center_y": 6.56e-6,
+}
+FM_RAW_EXCLUDE = (
+    "pll/frequency_shift",
+    "pll/phase_error",
+    "pll/drive",
+)  # per-output copies of pll/outputs
 
 
 class FmMonitor(GuardedNode):
-    """Listens to ``pll/outputs`` and fills the FM windows the session asks for (no history kept)."""
+    """Listens to ``pll/outputs`` and fills the FM windows the session asks for (no history
+    kept)."""
 
     def __init__(self, **kwargs):
         super().__init__("afm_instrument_fm_monitor", **kwargs)
         self.windows: list[FmWindow] = []
         self.end_time = -math.inf  # simulated end [s] of the input chunk the newest batch answered
         self.latest = None
-        self.recent_span = 0.0  # [s] simulated: > 0 keeps the batches of that last span (interactive)
+        self.recent_span = (
+            0.0  # [s] simulated: > 0 keeps the batches of that last span (interactive)
+        )
         self.recent: deque = deque()
-        self.create_subscription(Float64MultiArray, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS)
+        self.create_subscription(
+            Float64MultiArray, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS
+        )
 
     def _on_batch(self, msg: Float64MultiArray) -> None:
         out = chunk_layout.unpack_fm_outputs(msg.data)
@@ -90,10 +122,13 @@ class FmMonitor(GuardedNode):
         out = self.latest
         if out is None or not out.t.shape[0]:
             return "t=? (no PLL output yet)"
-        return (f"t={out.t[-1]:.3f} s  df={out.df[-1]:.3f} Hz (setpoint "
-                f"{float(instrument.get('z_controller', 'df_setpoint')):g})  amplitude={out.amplitude[-1] * 1e9:.4f} nm  "
-                f"drive={out.drive[-1] * 1e12:.4g} pN  z_piezo={instrument.monitor.z * 1e9:.3f} nm"
-                + instrument.status_tail())
+        return (
+            f"t={out.t[-1]:.3f} s  df={out.df[-1]:.3f} Hz (setpoint "
+            f"{float(instrument.get('z_controller', 'df_setpoint')):g})  "
+            f"amplitude={out.amplitude[-1] * 1e9:.4f} nm  "
+            f"drive={out.drive[-1] * 1e12:.4g} pN  z_piezo={instrument.monitor.z * 1e9:.3f} nm"
+            + instrument.status_tail()
+        )
 
     def window(self, t0: float, t1: float) -> FmWindow:
         w = FmWindow(t0, t1)
@@ -106,21 +141,29 @@ def _measure(instrument, fm: FmMonitor, seconds: float) -> FmWindow:
     t0 = instrument.t_paused
     w = fm.window(t0 + seconds / 2, t0 + seconds)
     instrument.advance_to(t0 + seconds)
-    instrument.spin_until(lambda: fm.end_time >= instrument.t_paused - 1e-9, "waiting for the PLL's outputs")
+    instrument.spin_until(
+        lambda: fm.end_time >= instrument.t_paused - 1e-9, "waiting for the PLL's outputs"
+    )
     fm.windows.remove(w)
     return w
 
 
-INTERACTIVE_SPAN_S = 1.0  # [s] simulated: --interactive's summary covers the last second before Ctrl-C
+INTERACTIVE_SPAN_S = (
+    1.0  # [s] simulated: --interactive's summary covers the last second before Ctrl-C
+)
 
 
-def run_fm_job(instrument, duration: float, progress: bool = True, interactive: bool = False) -> dict:
-    """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument` built with
-    the pll and scanner nodes in this process; returns the summary's numbers (SI units). ``interactive``:
-    after the hold, run until Ctrl-C instead of scanning and withdrawing."""
+def run_fm_job(
+    instrument, duration: float, progress: bool = True, interactive: bool = False
+) -> dict:
+    """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument`
+    built with the pll and scanner nodes in this process; returns the summary's numbers (SI units).
+    ``interactive``: after the hold, run until Ctrl-C instead of scanning and withdrawing."""
 
     if instrument.attached or not {"pll", "scanner"} <= set(instrument.nodes):
-        raise RuntimeError("the FM session runs the pll and scanner nodes in this process (no --attach)")
+        raise RuntimeError(
+            "the FM session runs the pll and scanner nodes in this process (no --attach)"
+        )
     kw = {"context": instrument.context}
     if instrument.namespace:
         kw["namespace"] = instrument.namespace
@@ -142,34 +185,51 @@ def run_fm_job(instrument, duration: float, progress: bool = True, interactive: 
     centre = float(instrument.get("pll", "center_frequency"))
     f_free = centre + free.mean("df")
     if abs(free.mean("amplitude") - a_set) > 0.02 * a_set:
-        raise RuntimeError(f"the free oscillation did not reach the amplitude setpoint {a_set:g} m in {FREE_LOCK_S} s "
-                           f"(amplitude {free.mean('amplitude'):.4g} m, drive {free.mean('drive'):.4g} N): "
-                           "the drive_max or the amplitude gains may be too small")
+        raise RuntimeError(
+            f"the free oscillation did not reach the amplitude setpoint {a_set:g} m in "
+            f"{FREE_LOCK_S} s "
+            f"(amplitude {free.mean('amplitude'):.4g} m, drive {free.mean('drive'):.4g} N): "
+            "the drive_max or the amplitude gains may be too small"
+        )
     instrument.set("pll", center_frequency=f_free)
-    out["free"] = {"resonance_Hz": f_free, "pll_centre_before_Hz": centre, "drive_N": free.mean("drive"),
-                   "amplitude_m": free.mean("amplitude"), "phase_error_deg": free.mean("phase_error"),
-                   "quality_factor_measured": k * free.mean("amplitude") / free.mean("drive"),
-                   "quality_factor_set": q_set}
+    out["free"] = {
+        "resonance_Hz": f_free,
+        "pll_centre_before_Hz": centre,
+        "drive_N": free.mean("drive"),
+        "amplitude_m": free.mean("amplitude"),
+        "phase_error_deg": free.mean("phase_error"),
+        "quality_factor_measured": k * free.mean("amplitude") / free.mean("drive"),
+        "quality_factor_set": q_set,
+    }
     # 3: approach on df
     out["approach"] = instrument._approach()
     out["df_setpoint_Hz"] = float(instrument.get("z_controller", "df_setpoint"))
     # 4: hold
     hold = _measure(instrument, fm, duration)
-    out["hold"] = {name: {"mean": hold.mean(name), "std": hold.std(name)} for name in FmWindow.NAMES}
-    out["hold"]["dissipation_J"] = float(dissipation_from_drive(hold.mean("drive"), hold.mean("amplitude"), k, q_set))
+    out["hold"] = {
+        name: {"mean": hold.mean(name), "std": hold.std(name)} for name in FmWindow.NAMES
+    }
+    out["hold"]["dissipation_J"] = float(
+        dissipation_from_drive(hold.mean("drive"), hold.mean("amplitude"), k, q_set)
+    )
     out["hold"]["window_s"] = [hold.t0, hold.t1]
     scanner = instrument.nodes["scanner"]
     if interactive:
         fm.recent_span = INTERACTIVE_SPAN_S
         instrument._run_until_interrupted(status=lambda: fm.status_line(instrument))
         last = fm.recent_window()
-        out["last_second"] = {name: {"mean": last.mean(name), "std": last.std(name)} for name in FmWindow.NAMES}
-        out["last_second"]["dissipation_J"] = float(dissipation_from_drive(
-            last.mean("drive"), last.mean("amplitude"), k, q_set))
+        out["last_second"] = {
+            name: {"mean": last.mean(name), "std": last.std(name)} for name in FmWindow.NAMES
+        }
+        out["last_second"]["dissipation_J"] = float(
+            dissipation_from_drive(last.mean("drive"), last.mean("amplitude"), k, q_set)
+        )
         out["last_second"]["window_s"] = [last.t0, last.t1]
         scanner.wait_for_writers(30.0)  # a frame that just finished is still being written
-        out["image"] = {"files": [str(p) for p in scanner.frames_written],
-                        "flags": {f.name: f.message for f in scanner.flags}}
+        out["image"] = {
+            "files": [str(p) for p in scanner.frames_written],
+            "flags": {f.name: f.message for f in scanner.flags},
+        }
         out["interrupted"] = ""  # Ctrl-C is how an interactive session ends
         out["simulated_s"] = fm.end_time
         out["wall_s"] = time.monotonic() - wall0
@@ -181,20 +241,34 @@ def run_fm_job(instrument, duration: float, progress: bool = True, interactive: 
     plan = instrument.start_single_scan()
     artefacts = cantilever.simulation.artefacts.copy()
     interrupted, wall_scan = instrument.scan_through(plan, progress, wall_scan)
-    frame = scanner.accumulator.frames_done[0] if scanner.frames_done >= 1 else scanner.partial_frame
-    image = {"pixels": plan.pixels, "lines": plan.lines, "line_rate_Hz": plan.line_rate, "size_m": plan.size_x,
-             "scan_start_s": plan.start_time, "frame_time_s": plan.frame_time, "scan_wall_s": wall_scan,
-             "files": [str(p) for p in scanner.frames_written], "flags": {f.name: f.message for f in scanner.flags}}
+    frame = (
+        scanner.accumulator.frames_done[0] if scanner.frames_done >= 1 else scanner.partial_frame
+    )
+    image = {
+        "pixels": plan.pixels,
+        "lines": plan.lines,
+        "line_rate_Hz": plan.line_rate,
+        "size_m": plan.size_x,
+        "scan_start_s": plan.start_time,
+        "frame_time_s": plan.frame_time,
+        "scan_wall_s": wall_scan,
+        "files": [str(p) for p in scanner.frames_written],
+        "flags": {f.name: f.message for f in scanner.flags},
+    }
     sample = cantilever.engine.samples.get(cantilever.engine.values["sample"])
     if frame is not None and sample is not None:
         image["sample"] = cantilever.engine.values["sample"]
         image["materials"] = list(sample.materials)
         image["by_material"] = fm_material_contrast(frame, sample, artefacts)
     if frame is not None:
-        image["frame"] = {ch: {"median": float(np.nanmedian(frame.images["trace"][ch])),
-                               "p5": float(np.nanpercentile(frame.images["trace"][ch], 5)),
-                               "p95": float(np.nanpercentile(frame.images["trace"][ch], 95))}
-                          for ch in ("frequency_shift", "drive", "dissipation", "amplitude")}
+        image["frame"] = {
+            ch: {
+                "median": float(np.nanmedian(frame.images["trace"][ch])),
+                "p5": float(np.nanpercentile(frame.images["trace"][ch], 5)),
+                "p95": float(np.nanpercentile(frame.images["trace"][ch], 95)),
+            }
+            for ch in ("frequency_shift", "drive", "dissipation", "amplitude")
+        }
     out["image"] = image
     if not interrupted:
         out["withdraw"] = instrument._withdraw()
@@ -209,47 +283,77 @@ def run_fm_job(instrument, duration: float, progress: bool = True, interactive: 
 def summary_text(s: dict) -> str:
     """The FM session's summary, one fact per line, SI units with readable prefixes."""
     free, hold, ap, img = s["free"], s["hold"], s["approach"], s["image"]
-    lines = ["FM-AFM session (PLL + amplitude controller, z loop on the frequency shift):",
-             f"  free (withdrawn): resonance {free['resonance_Hz']:.4f} Hz (PLL centred there; it was "
-             f"{free['pll_centre_before_Hz']:g} Hz), amplitude {free['amplitude_m'] * 1e9:.4f} nm with drive "
-             f"{free['drive_N']:.4g} N: Q = k A / F = {free['quality_factor_measured']:.5g} "
-             f"(set {free['quality_factor_set']:.5g})",
-             f"  approach: from {ap['start_distance_m'] * 1e9:.4g} nm, engaged at t={ap['engaged_s']:.3f} s "
-             f"(df reached {s['df_setpoint_Hz']:g} Hz), z piezo {ap['engaged_z_m'] * 1e9:.4g} nm, "
-             f"{ap['motor_steps']} motor steps",
-             f"  hold ({hold['window_s'][0]:.3f}-{hold['window_s'][1]:.3f} s): df {hold['df']['mean']:.3f} "
-             f"+- {hold['df']['std']:.3f} Hz (setpoint {s['df_setpoint_Hz']:g}), amplitude "
-             f"{hold['amplitude']['mean'] * 1e9:.4f} +- {hold['amplitude']['std'] * 1e12:.2f} pm, drive "
-             f"{hold['drive']['mean']:.4g} N ({hold['drive']['mean'] / free['drive_N']:.3g} x free): "
-             f"dissipation {hold['dissipation_J']:.3g} J per cycle"]
+    lines = [
+        "FM-AFM session (PLL + amplitude controller, z loop on the frequency shift):",
+        f"  free (withdrawn): resonance {free['resonance_Hz']:.4f} Hz (PLL centred there; it was "
+        f"{free['pll_centre_before_Hz']:g} Hz), amplitude {free['amplitude_m'] * 1e9:.4f} nm with "
+        "drive "
+        f"{free['drive_N']:.4g} N: Q = k A / F = {free['quality_factor_measured']:.5g} "
+        f"(set {free['quality_factor_set']:.5g})",
+        f"  approach: from {ap['start_distance_m'] * 1e9:.4g} nm, engaged at "
+        f"t={ap['engaged_s']:.3f} s "
+        f"(df reached {s['df_setpoint_Hz']:g} Hz), z piezo {ap['engaged_z_m'] * 1e9:.4g} nm, "
+        f"{ap['motor_steps']} motor steps",
+        f"  hold ({hold['window_s'][0]:.3f}-{hold['window_s'][1]:.3f} s): df "
+        f"{hold['df']['mean']:.3f} "
+        f"+- {hold['df']['std']:.3f} Hz (setpoint {s['df_setpoint_Hz']:g}), amplitude "
+        f"{hold['amplitude']['mean'] * 1e9:.4f} +- {hold['amplitude']['std'] * 1e12:.2f} pm, "
+        "drive "
+        f"{hold['drive']['mean']:.4g} N ({hold['drive']['mean'] / free['drive_N']:.3g} x free): "
+        f"dissipation {hold['dissipation_J']:.3g} J per cycle",
+    ]
     if "last_second" in s:
         last = s["last_second"]
-        lines.append(f"  last second before Ctrl-C ({last['window_s'][0]:.3f}-{last['window_s'][1]:.3f} s): df "
-                     f"{last['df']['mean']:.3f} +- {last['df']['std']:.3f} Hz, amplitude "
-                     f"{last['amplitude']['mean'] * 1e9:.4f} +- {last['amplitude']['std'] * 1e12:.2f} pm, drive "
-                     f"{last['drive']['mean']:.4g} N: dissipation {last['dissipation_J']:.3g} J per cycle")
+        lines.append(
+            f"  last second before Ctrl-C ({last['window_s'][0]:.3f}-{last['window_s'][1]:.3f} "
+            "s): df "
+            f"{last['df']['mean']:.3f} +- {last['df']['std']:.3f} Hz, amplitude "
+            f"{last['amplitude']['mean'] * 1e9:.4f} +- {last['amplitude']['std'] * 1e12:.2f} pm, "
+            "drive "
+            f"{last['drive']['mean']:.4g} N: dissipation {last['dissipation_J']:.3g} J per cycle"
+        )
     if "pixels" in img:
-        lines.append(f"  frame: {img['pixels']} x {img['lines']} pixels over {img['size_m'] * 1e6:.3g} um at "
-                     f"{img['line_rate_Hz']:g} lines/s, {img['scan_wall_s']:.1f} s wall for {img['frame_time_s']:.3g} s "
-                     f"simulated")
+        lines.append(
+            f"  frame: {img['pixels']} x {img['lines']} pixels over {img['size_m'] * 1e6:.3g} um "
+            "at "
+            f"{img['line_rate_Hz']:g} lines/s, {img['scan_wall_s']:.1f} s wall for "
+            f"{img['frame_time_s']:.3g} s "
+            f"simulated"
+        )
     if "frame" in img:
-        for ch, unit, scale in (("frequency_shift", "Hz", 1.0), ("drive", "pN", 1e12), ("dissipation", "aJ", 1e18)):
+        for ch, unit, scale in (
+            ("frequency_shift", "Hz", 1.0),
+            ("drive", "pN", 1e12),
+            ("dissipation", "aJ", 1e18),
+        ):
             v = img["frame"][ch]
-            lines.append(f"    {ch}: median {v['median'] * scale:.4g} {unit} (5-95 %: {v['p5'] * scale:.4g} .. "
-                         f"{v['p95'] * scale:.4g})")
+            lines.append(
+                f"    {ch}: median {v['median'] * scale:.4g} {unit} (5-95 %: "
+                f"{v['p5'] * scale:.4g} .. "
+                f"{v['p95'] * scale:.4g})"
+            )
     if "by_material" in img:
         names = img["materials"]
-        lines.append(f"  by material (trace, pixels >= 60 nm from an edge, the map's ground truth), "
-                     f"{names[1]} - {names[0]}:")
-        for ch, unit, scale in (("height", "nm", 1e9), ("frequency_shift", "Hz", 1.0), ("drive", "pN", 1e12),
-                                ("dissipation", "aJ", 1e18)):
+        lines.append(
+            f"  by material (trace, pixels >= 60 nm from an edge, the map's ground truth), "
+            f"{names[1]} - {names[0]}:"
+        )
+        for ch, unit, scale in (
+            ("height", "nm", 1e9),
+            ("frequency_shift", "Hz", 1.0),
+            ("drive", "pN", 1e12),
+            ("dissipation", "aJ", 1e18),
+        ):
             entry = img["by_material"].get(ch, {}).get("trace")
             if not entry or "contrast" not in entry:
                 continue
             med = entry["medians"]
             rel = entry["contrast"] / abs(med[names[0]]) * 100 if med.get(names[0]) else math.nan
-            lines.append(f"    {ch}: {names[0]} {med[names[0]] * scale:.4g}, {names[1]} {med[names[1]] * scale:.4g} "
-                         f"{unit}: contrast {entry['contrast'] * scale:+.3g} {unit} ({rel:+.2g} %)")
+            lines.append(
+                f"    {ch}: {names[0]} {med[names[0]] * scale:.4g}, {names[1]} "
+                f"{med[names[1]] * scale:.4g} "
+                f"{unit}: contrast {entry['contrast'] * scale:+.3g} {unit} ({rel:+.2g} %)"
+            )
     for name, message in img.get("flags", {}).items():
         lines.append(f"  flag {name}: {message}")
     for f in img["files"]:
@@ -260,7 +364,13 @@ def summary_text(s: dict) -> str:
         lines.append(f"  interrupted {s['interrupted']}")
     rec = s.get("recording")
     if rec:
-        lines.append(f"  session: {rec['file']} ({rec['bytes'] / 1e6:.3g} MB, "
-                     + ("complete" if rec["complete"] else f"INCOMPLETE: {rec['error'] or rec['stopped']}") + ")")
-    lines.append(f"  {s['simulated_s']:.3f} s simulated in {s['wall_s']:.1f} s wall ({s['real_time_factor']:.2f} x real time)")
+        lines.append(
+            f"  session: {rec['file']} ({rec['bytes'] / 1e6:.3g} MB, "
+            + ("complete" if rec["complete"] else f"INCOMPLETE: {rec['error'] or rec['stopped']}")
+            + ")"
+        )
+    lines.append(
+        f"  {s['simulated_s']:.3f} s simulated in {s['wall_s']:.1f} s wall "
+        f"({s['real_time_factor']:.2f} x real time)"
+    )
     return "\n".join(lines)

@@ -1,4 +1,5 @@
-"""What ``afm_instrument`` tells its user: the summary of a job, its progress and what recording costs.
+"""What ``afm_instrument`` tells its user: the summary of a job, its progress and what recording
+costs.
 
 :class:`Summary` is the job's result (SI units, simulated seconds; ``text()`` the printed summary,
 ``asdict`` the ``--json`` line); :class:`JobState` what the job knows so far, so an interrupted job
@@ -6,6 +7,7 @@ is summarised too; :class:`ScanProgress` the image job's progress line; the reco
 (:func:`expected_recording_bytes`) are measured constants, checked against the recorder's budget
 before a bounded job starts.
 """
+
 from __future__ import annotations
 
 import math
@@ -15,9 +17,9 @@ from dataclasses import asdict, dataclass, field
 from afm_ros.core.session_stats import RollingStats, WindowStats
 
 MAX_SUMMARY_CHANGES = 10  # changes printed in the summary text (the newest; the JSON has all kept)
-# measured recording sizes (zstd, default noise): the raw streams 28.6 MB for 2.03 s simulated; the batches,
-# parameters and diagnostics 1.64 MB for 16 s (--interactive); the images of a 64 x 64 frame 2.4 MB of the
-# 10.5 MB published (10 channels x the whole frame after every line)
+# measured recording sizes (zstd, default noise): the raw streams 28.6 MB for 2.03 s simulated; the
+# batches, parameters and diagnostics 1.64 MB for 16 s (--interactive); the images of a 64 x 64
+# frame 2.4 MB of the 10.5 MB published (10 channels x the whole frame after every line)
 RAW_BYTES_PER_S = 14.1e6
 BATCH_BYTES_PER_S = 0.10e6
 IMAGE_BYTES_PER_PIXEL_LINE = 10.0  # x pixels x lines^2 per frame
@@ -47,11 +49,17 @@ class Summary:
     real_time_factor: float = 0.0
     image: dict = field(default_factory=dict)  # --image: the frame's numbers and files
     engage_setpoint_m: float = math.nan  # the setpoint the feedback was enabled at
-    setpoint_changes: list = field(default_factory=list)  # live changes: time_s, old_m, new_m, settling_time_s, band_m
-    parameter_changes: list = field(default_factory=list)  # changes by others: time_s (approx.), node, name, value
+    setpoint_changes: list = field(
+        default_factory=list
+    )  # live changes: time_s, old_m, new_m, settling_time_s, band_m
+    parameter_changes: list = field(
+        default_factory=list
+    )  # changes by others: time_s (approx.), node, name, value
     interrupted: str = ""  # what Ctrl-C / SIGTERM interrupted ('' = the job ran to its end)
     run_folder: str = ""
-    workflow: dict = field(default_factory=dict)  # tune, approach, withdraw (the image job's workflow)
+    workflow: dict = field(
+        default_factory=dict
+    )  # tune, approach, withdraw (the image job's workflow)
     motor_m: float = 0.0  # coarse motor position [m] (0: no approach)
 
     def deterministic_part(self) -> dict:
@@ -70,8 +78,11 @@ class Summary:
         def settled(t):
             return "not settled" if t is None else f"{t * 1e3:.3f} ms (simulated)"
 
-        ratio = (f"{100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free"
-                 if self.free_amplitude_m > 0 else "free amplitude not measured")
+        ratio = (
+            f"{100 * self.setpoint_m / self.free_amplitude_m:.1f} % of free"
+            if self.free_amplitude_m > 0
+            else "free amplitude not measured"
+        )
         title = "afm_instrument summary"
         if self.interrupted:
             title += f" -- INTERRUPTED {self.interrupted}"
@@ -80,11 +91,16 @@ class Summary:
             lines.append(f"  run folder           {self.run_folder}")
         tune = self.workflow.get("tune")
         if tune:
-            lines.append(f"  tune                 f0 {tune['f0_Hz']:.2f} +- {tune['f0_error_Hz']:.2g} Hz, Q {tune['Q']:.3f} "
-                         f"+- {tune['Q_error']:.2g} ({tune['points']} points, t={tune['start_s']:.3f}-"
-                         f"{tune['end_s']:.3f} s)")
-            lines.append(f"  drive                {tune['drive_frequency_Hz']:.2f} Hz (the peak), drive x "
-                         f"{tune['drive_scale']:.5f}, phase offset {tune['phase_offset_deg']:.3f} deg")
+            lines.append(
+                f"  tune                 f0 {tune['f0_Hz']:.2f} +- {tune['f0_error_Hz']:.2g} Hz, "
+                f"Q {tune['Q']:.3f} "
+                f"+- {tune['Q_error']:.2g} ({tune['points']} points, t={tune['start_s']:.3f}-"
+                f"{tune['end_s']:.3f} s)"
+            )
+            lines.append(
+                f"  drive                {tune['drive_frequency_Hz']:.2f} Hz (the peak), drive x "
+                f"{tune['drive_scale']:.5f}, phase offset {tune['phase_offset_deg']:.3f} deg"
+            )
         lines += [
             f"  free amplitude       {self.free_amplitude_m * nm:9.3f} nm",
             f"  free phase           {self.free_phase_deg:9.3f} deg (lag behind drive)",
@@ -93,9 +109,12 @@ class Summary:
         ]
         app = self.workflow.get("approach")
         if app:
-            lines.append(f"  approach             from {app['start_distance_m'] * 1e6:.2f} um: engaged at t={app['engaged_s']:.3f} s "
-                         f"after {app['duration_s']:.3f} s (simulated; {app['wall_s']:.1f} s wall), "
-                         f"{app['cycles']} cycle(s), {app['motor_steps']} motor steps")
+            lines.append(
+                f"  approach             from {app['start_distance_m'] * 1e6:.2f} um: engaged at "
+                f"t={app['engaged_s']:.3f} s "
+                f"after {app['duration_s']:.3f} s (simulated; {app['wall_s']:.1f} s wall), "
+                f"{app['cycles']} cycle(s), {app['motor_steps']} motor steps"
+            )
         if not math.isfinite(self.engage_time_s):
             lines.append("  (interrupted before the feedback was enabled: no contact numbers)")
         else:
@@ -104,79 +123,142 @@ class Summary:
                 f"(std {self.amplitude_std_m * nm:.3f} nm over {self.hold_window})",
                 f"  phase in contact     {self.contact_phase_deg:9.3f} deg",
                 f"  z piezo              {self.z_piezo_m * nm:9.3f} nm ("
-                + (f"z_base + motor + z_piezo = {(self.z_base_m + self.motor_m + self.z_piezo_m) * nm:.3f} nm)"
-                   if self.motor_m else f"z_base + z_piezo = {(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)"),
-                f"  settling time        {settled(self.settling_time_s)}, band +-{self.settling_band_m * nm:.3f} nm "
+                + (
+                    "z_base + motor + z_piezo = "
+                    f"{(self.z_base_m + self.motor_m + self.z_piezo_m) * nm:.3f} nm)"
+                    if self.motor_m
+                    else f"z_base + z_piezo = {(self.z_base_m + self.z_piezo_m) * nm:.3f} nm)"
+                ),
+                f"  settling time        {settled(self.settling_time_s)}, band "
+                f"+-{self.settling_band_m * nm:.3f} nm "
                 f"around the {'engage ' if self.setpoint_changes else ''}setpoint"
                 + (f" {self.engage_setpoint_m * nm:.3f} nm" if self.setpoint_changes else ""),
             ]
         for c in self.setpoint_changes[-MAX_SUMMARY_CHANGES:]:
-            lines.append(f"  setpoint change      t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> {c['new_m'] * nm:.3f} nm, "
-                         f"settling {settled(c['settling_time_s'])}"
-                         + (" (by the end)" if c['settling_time_s'] is None else "")
-                         + f", band +-{c['band_m'] * nm:.3f} nm")
+            lines.append(
+                f"  setpoint change      t={c['time_s']:.4f} s: {c['old_m'] * nm:.3f} -> "
+                f"{c['new_m'] * nm:.3f} nm, "
+                f"settling {settled(c['settling_time_s'])}"
+                + (" (by the end)" if c["settling_time_s"] is None else "")
+                + f", band +-{c['band_m'] * nm:.3f} nm"
+            )
         if len(self.setpoint_changes) > MAX_SUMMARY_CHANGES:
-            lines.append(f"  ... and {len(self.setpoint_changes) - MAX_SUMMARY_CHANGES} earlier setpoint changes")
-        others = [c for c in self.parameter_changes if (c["node"], c["name"]) != ("z_controller", "setpoint")]
-        for c in others[-MAX_SUMMARY_CHANGES:]:  # (setpoint changes: above, placed exactly from the data)
-            lines.append(f"  parameter change     t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = {c['value']!r}")
+            lines.append(
+                f"  ... and {len(self.setpoint_changes) - MAX_SUMMARY_CHANGES} earlier setpoint "
+                "changes"
+            )
+        others = [
+            c
+            for c in self.parameter_changes
+            if (c["node"], c["name"]) != ("z_controller", "setpoint")
+        ]
+        for c in others[
+            -MAX_SUMMARY_CHANGES:
+        ]:  # (setpoint changes: above, placed exactly from the data)
+            lines.append(
+                f"  parameter change     t~{c['time_s']:.3f} s: {c['node']}.{c['name']} = "
+                f"{c['value']!r}"
+            )
         if len(others) > MAX_SUMMARY_CHANGES:
-            lines.append(f"  ... and {len(others) - MAX_SUMMARY_CHANGES} earlier parameter changes")
+            lines.append(
+                f"  ... and {len(others) - MAX_SUMMARY_CHANGES} earlier parameter changes"
+            )
         lines += [
-            f"  feedback latency     {self.feedback_latency_chunks} chunk(s), lockstep (deterministic)",
+            f"  feedback latency     {self.feedback_latency_chunks} chunk(s), lockstep "
+            "(deterministic)",
             f"  lost samples         {self.lost_samples} (lock-in outputs: {self.lockin_outputs}, "
             f"non-finite: {self.non_finite_outputs})",
         ]
         if self.recording:
             r = self.recording
-            state = ("complete" if r.get("complete") else "STOPPED at its budget" if r.get("stopped") else "INCOMPLETE")
+            state = (
+                "complete"
+                if r.get("complete")
+                else "STOPPED at its budget"
+                if r.get("stopped")
+                else "INCOMPLETE"
+            )
             size = f"{megabytes(r['bytes'])}, " if r.get("bytes") else ""
-            lines.append(f"  recording            {state}: {r.get('file')} ({size}{r.get('lost_samples', 0)} samples lost"
-                         + (f"; {r['error']}" if r.get("error") else "") + ")")
+            lines.append(
+                f"  recording            {state}: {r.get('file')} "
+                f"({size}{r.get('lost_samples', 0)} samples lost"
+                + (f"; {r['error']}" if r.get("error") else "")
+                + ")"
+            )
             if r.get("stopped"):
                 lines.append(f"                       {r['stopped']}")
         if self.image:
             from afm_ros.tools.frame_report import frame_lines
+
             im = self.image
-            partial = (f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines" if im.get("partial") else "")
-            lines.append(f"  image                {im['pixels']} x {im['lines']} pixels of {im['sample']} at "
-                         f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from t={im['scan_start_s']:.3f} s, "
-                         f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}")
+            partial = (
+                f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines"
+                if im.get("partial")
+                else ""
+            )
+            lines.append(
+                f"  image                {im['pixels']} x {im['lines']} pixels of {im['sample']} "
+                "at "
+                f"{im['line_rate_Hz']:g} lines/s ({im['frame_time_s']:g} s from "
+                f"t={im['scan_start_s']:.3f} s, "
+                f"real-time factor {im['scan_real_time_factor']:.2f} while scanning){partial}"
+            )
             if "flags" in im:
                 if im["flags"]:
                     for name, message in im["flags"].items():
                         lines.append(f"  flag                 {name}: {message}")
                 else:
-                    lines.append("  flags                none raised (feedback, z range, drift, tip: docs/imperfections.md)")
+                    lines.append(
+                        "  flags                none raised (feedback, z range, drift, tip: "
+                        "docs/imperfections.md)"
+                    )
             tr = im.get("truth")
             if tr and (tr["imperfections"] or tr["tip_radius_end_m"] != tr["tip_radius_start_m"]):
                 v = [x * 6e10 for x in tr["drift_m_per_s"]]
                 events = tr["tip_events"]
                 comp = tr.get("slope_compensation", [0.0, 0.0])
-                lines.append(f"  truth                drift ({v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}) nm/min, tilt "
-                             f"{tr['tilt'][0]:.4g} x {tr['tilt'][1]:.4g} y"
-                             + (f" (slope compensation {comp[0]:.4g} x {comp[1]:.4g} y)" if any(comp) else "")
-                             + f", hysteresis loop {tr['hysteresis_width_m'] * nm:.1f} nm wide")
-                lines.append(f"                       tip radius {tr['tip_radius_start_m'] * nm:.2f} -> "
-                             f"{tr['tip_radius_end_m'] * nm:.2f} nm over the frame, "
-                             + (f"{len(events)} pick-up(s), the last at t={events[-1]['time_s']:.3f} s"
-                                if events else "no pick-up"))
+                lines.append(
+                    f"  truth                drift ({v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}) nm/min, "
+                    "tilt "
+                    f"{tr['tilt'][0]:.4g} x {tr['tilt'][1]:.4g} y"
+                    + (
+                        f" (slope compensation {comp[0]:.4g} x {comp[1]:.4g} y)"
+                        if any(comp)
+                        else ""
+                    )
+                    + f", hysteresis loop {tr['hysteresis_width_m'] * nm:.1f} nm wide"
+                )
+                lines.append(
+                    f"                       tip radius {tr['tip_radius_start_m'] * nm:.2f} -> "
+                    f"{tr['tip_radius_end_m'] * nm:.2f} nm over the frame, "
+                    + (
+                        f"{len(events)} pick-up(s), the last at t={events[-1]['time_s']:.3f} s"
+                        if events
+                        else "no pick-up"
+                    )
+                )
             if "report" in im:
                 lines += frame_lines(im["report"])
             for f in im.get("files", [])[:1]:
                 lines.append(f"  frame file           {f} (+ PNG previews beside it)")
         wd = self.workflow.get("withdraw")
         if wd:
-            lines.append(f"  withdrawn            at t={wd['withdrawn_s']:.3f} s: piezo retracted, motor backed off "
-                         f"{wd['distance_m'] * 1e6:.2f} um")
-        lines.append(f"  simulated / wall     {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
-                     f"(real-time factor {self.real_time_factor:.2f})")
+            lines.append(
+                f"  withdrawn            at t={wd['withdrawn_s']:.3f} s: piezo retracted, motor "
+                "backed off "
+                f"{wd['distance_m'] * 1e6:.2f} um"
+            )
+        lines.append(
+            f"  simulated / wall     {self.simulated_time_s:.3f} s / {self.wall_time_s:.2f} s "
+            f"(real-time factor {self.real_time_factor:.2f})"
+        )
         return "\n".join(lines)
 
 
 @dataclass
 class JobState:
-    """What the job knows so far (simulated s, m, deg); the summary is built from it, also after Ctrl-C."""
+    """What the job knows so far (simulated s, m, deg); the summary is built from it, also after
+    Ctrl-C."""
 
     wall0: float
     duration: float = math.nan
@@ -188,7 +270,10 @@ class JobState:
     free: WindowStats | None = None
     recent: RollingStats | None = None  # the last second, whatever the phase
     hold: object = None  # WindowStats (scripted hold) or RollingStats (interactive)
-    hold_since: tuple = (math.nan, "")  # the hold statistics restarted then [s], and why (a setpoint change)
+    hold_since: tuple = (
+        math.nan,
+        "",
+    )  # the hold statistics restarted then [s], and why (a setpoint change)
     setpoint: float = math.nan  # engage setpoint [m]
     band_fraction: float = 0.01
     latency: int = 0
@@ -197,7 +282,8 @@ class JobState:
 
 
 class ScanProgress:
-    """The image job's progress line: at every tenth of the frame and at least every 15 s of wall time."""
+    """The image job's progress line: at every tenth of the frame and at least every 15 s of wall
+    time."""
 
     def __init__(self, plan, scanner, monitor, every_wall_s: float = 15.0):
         self.plan, self.scanner, self.monitor, self.every = plan, scanner, monitor, every_wall_s
@@ -216,15 +302,21 @@ class ScanProgress:
             wall = now - self.wall0
             rate = sim / wall if wall > 0 else 0.0
             left = max(self.plan.frame_time - sim, 0.0) / rate if rate > 0 else math.inf
-            print(f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), {sim:.1f} of "
-                  f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left", flush=True)
+            print(
+                f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), "
+                f"{sim:.1f} of "
+                f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left",
+                flush=True,
+            )
 
 
-def expected_recording_bytes(simulated_s: float, raw: bool, frame: tuple[int, int] | None = None) -> float:
-    """About how many bytes [B] a session of ``simulated_s`` simulated seconds records (zstd, default
-    noise), with the raw streams or not, and the images of a ``(pixels, lines)`` frame: every line
-    publishes all ten images whole, 40 x pixels x lines^2 bytes over a frame, about a quarter of it
-    left after compression (measured, see the constants)."""
+def expected_recording_bytes(
+    simulated_s: float, raw: bool, frame: tuple[int, int] | None = None
+) -> float:
+    """About how many bytes [B] a session of ``simulated_s`` simulated seconds records (zstd,
+    default noise), with the raw streams or not, and the images of a ``(pixels, lines)`` frame:
+    every line publishes all ten images whole, 40 x pixels x lines^2 bytes over a frame, about a
+    quarter of it left after compression (measured, see the constants)."""
     images = IMAGE_BYTES_PER_PIXEL_LINE * frame[0] * frame[1] ** 2 if frame is not None else 0.0
     return simulated_s * (BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)) + images
 
@@ -234,14 +326,23 @@ def megabytes(n: float) -> str:
 
 
 def recording_line(recorder, raw: bool) -> str:
-    """The start lines of the recording: the file; what is recorded, what it costs and its budget."""
+    """The start lines of the recording: the file; what is recorded, what it costs and its
+    budget."""
     rate = BATCH_BYTES_PER_S + (RAW_BYTES_PER_S if raw else 0.0)
-    what = (f"every stream, the raw 900 kS/s deflection and force included: ~{megabytes(rate)} per simulated second"
-            if raw else
-            f"the loop's batches (every lock-in output, z and error), images, parameters, diagnostics: "
-            f"~{megabytes(rate)} per simulated second + the images; raw streams off (--record-raw: "
-            f"+{megabytes(RAW_BYTES_PER_S)}/s)")
+    what = (
+        f"every stream, the raw 900 kS/s deflection and force included: ~{megabytes(rate)} per "
+        "simulated second"
+        if raw
+        else "the loop's batches (every lock-in output, z and error), images, parameters, "
+        "diagnostics: "
+        f"~{megabytes(rate)} per simulated second + the images; raw streams off (--record-raw: "
+        f"+{megabytes(RAW_BYTES_PER_S)}/s)"
+    )
     budget = recorder.get_parameter("max_size").value
-    limit = (f"; stops cleanly at max_size {megabytes(budget)} (~{budget / rate / 3600:.3g} h simulated)"
-             if budget > 0 else "; no size limit (max_size 0)")
+    limit = (
+        f"; stops cleanly at max_size {megabytes(budget)} (~{budget / rate / 3600:.3g} h "
+        "simulated)"
+        if budget > 0
+        else "; no size limit (max_size 0)"
+    )
     return f"recording to {recorder.output_path}\n  {what}{limit}"

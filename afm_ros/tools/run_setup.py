@@ -11,6 +11,7 @@ node in the root namespace (its rule names the node without a namespace and rcl 
 working directory by default, never one that exists (two instruments started in the same second
 get ``..._2``), so a run leaves one folder, not a dozen files in the working directory.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -19,8 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from afm_ros.formats import user_files
-from afm_ros.formats.params_file import ParamsFileError
-from afm_ros.formats.params_file import parameters_for
+from afm_ros.formats.params_file import ParamsFileError, parameters_for
 
 RUNS_DIR = "afm_runs"
 _MISSING = object()
@@ -84,13 +84,18 @@ class RosArgs:
             try:
                 values.update(parameters_for(path, f"{self.namespace}/{node}"))
             except ParamsFileError:
-                continue  # no entry for the node; a file rcl cannot read it reports itself, before the job
+                # no entry for the node; a file rcl cannot read it reports itself, before the job
+                continue
         return values
 
     def value(self, node: str, name: str, default=None):
-        """The value the user gave ``node``'s parameter ``name`` (by -p, with or without the node, or a
-        params file; -p wins over the files as in rcl), else ``default``."""
-        for source in (self.params.get(node, {}), self.params.get("", {}), self._file_values(node)):
+        """The value the user gave ``node``'s parameter ``name`` (by -p, with or without the node,
+        or a params file; -p wins over the files as in rcl), else ``default``."""
+        for source in (
+            self.params.get(node, {}),
+            self.params.get("", {}),
+            self._file_values(node),
+        ):
             if name in source:
                 return source[name]
         return default
@@ -100,13 +105,16 @@ class RosArgs:
         return self.value(node, name, _MISSING) is not _MISSING
 
     def node_rules(self, node: str) -> dict:
-        """The ``-p node:name:=value`` values rcl does not apply to ``node`` because of the namespace."""
+        """The ``-p node:name:=value`` values rcl does not apply to ``node`` because of the
+        namespace."""
         return dict(self.params.get(node, {})) if self.namespace else {}
 
 
-def make_run_folder(out: str | os.PathLike | None, namespace: str = "",
-                    now: _dt.datetime | None = None) -> Path:
-    """The run's folder: ``out`` as given (created if missing), or a new ``afm_runs/<date>_<time>[_<ns>]``.
+def make_run_folder(
+    out: str | os.PathLike | None, namespace: str = "", now: _dt.datetime | None = None
+) -> Path:
+    """The run's folder: ``out`` as given (created if missing), or a new
+    ``afm_runs/<date>_<time>[_<ns>]``.
 
     OSError (with the path) if it cannot be created."""
     if out is not None:

@@ -1,5 +1,6 @@
-"""The z spectroscopy figure (``afm_report``'s ``spectroscopy.png``): amplitude and phase vs z gap on
-the approach and retract legs, and the mean tip-sample force vs the applied z gap per chunk."""
+"""The z spectroscopy figure (``afm_report``'s ``spectroscopy.png``): amplitude and phase vs z gap
+on the approach and retract legs, and the mean tip-sample force vs the applied z gap per chunk."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,12 +20,27 @@ def plot_spectroscopy(curve, path: Path, title: str) -> Path:
         ax1.plot(curve.z_gap[m] * 1e9, curve.amplitude[m] * 1e9, "-", color=color, lw=1, label=leg)
         ax2.plot(curve.z_gap[m] * 1e9, curve.phase[m], "-", color=color, lw=1)
         c = curve.chunk_branch(leg)
-        ax3.plot(curve.chunk_z_gap[c] * 1e9, curve.chunk_force[c] * 1e9, ".", ms=3, color=color,
-                 label=f"<F_ts> {leg}")
-        ax3.plot(curve.chunk_z_gap[c] * 1e9, curve.spring_constant * curve.chunk_deflection[c] * 1e9, "-", lw=0.8,
-                 color=color, alpha=0.6, label=f"k <deflection> {leg}")
+        ax3.plot(
+            curve.chunk_z_gap[c] * 1e9,
+            curve.chunk_force[c] * 1e9,
+            ".",
+            ms=3,
+            color=color,
+            label=f"<F_ts> {leg}",
+        )
+        ax3.plot(
+            curve.chunk_z_gap[c] * 1e9,
+            curve.spring_constant * curve.chunk_deflection[c] * 1e9,
+            "-",
+            lw=0.8,
+            color=color,
+            alpha=0.6,
+            label=f"k <deflection> {leg}",
+        )
     ax1.axhline(curve.setpoint * 1e9, color="k", ls=":", lw=1, label="setpoint")
-    ax1.axvline((curve.z_offset + curve.z_held) * 1e9, color="0.5", ls="--", lw=1, label="held (engaged)")
+    ax1.axvline(
+        (curve.z_offset + curve.z_held) * 1e9, color="0.5", ls="--", lw=1, label="held (engaged)"
+    )
     ax1.set_ylabel("amplitude [nm]")
     ax1.legend(fontsize=8)
     ax2.set_ylabel("phase lag [deg]")

@@ -1,4 +1,5 @@
 """Steady-state analysis over whole drive periods: amplitude, phase, harmonics, forces, energy."""
+
 from __future__ import annotations
 
 import math
@@ -6,8 +7,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from afm_ros.core.physics.simulation import Samples, Simulation
 from afm_ros.core.angles import wrap_deg
+from afm_ros.core.physics.simulation import Samples, Simulation
 
 
 @dataclass
@@ -15,7 +16,9 @@ class PeriodAnalysis:
     """Observables averaged over an integer number of drive periods (SI units)."""
 
     amplitude: float  # first-harmonic amplitude [m]
-    phase_deg: float  # lag of the tip behind the drive [deg]; 90 for a free cantilever at resonance
+    phase_deg: (
+        float  # lag of the tip behind the drive [deg]; 90 for a free cantilever at resonance
+    )
     harmonics: np.ndarray  # amplitudes of harmonics 1..N [m]
     mean_deflection: float  # [m]
     mean_force: float  # [N]
@@ -41,8 +44,13 @@ class PeriodAnalysis:
         return row
 
 
-def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
-            contact_distance: float | None = None, measured_z: np.ndarray | None = None) -> PeriodAnalysis:
+def analyze(
+    samples: Samples,
+    sim: Simulation,
+    n_harmonics: int = 8,
+    contact_distance: float | None = None,
+    measured_z: np.ndarray | None = None,
+) -> PeriodAnalysis:
     """Analyse per-step samples covering an integer number of drive periods.
 
     ``measured_z`` [m] (deflection plus detector noise) replaces the true deflection in the
@@ -59,7 +67,9 @@ def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
     theta = samples.drive_phase
     z, v, f = samples.z, samples.v, samples.force
     seen = z if measured_z is None else measured_z
-    spectrum = np.array([np.sum(seen * np.exp(-1j * h * theta)) for h in range(1, n_harmonics + 1)]) * (2.0 / n)
+    spectrum = np.array(
+        [np.sum(seen * np.exp(-1j * h * theta)) for h in range(1, n_harmonics + 1)]
+    ) * (2.0 / n)
     a1 = spectrum[0]
     # z ~ A cos(theta - phi) = Re(A e^{-i phi} e^{i theta}) -> conj coefficient gives A e^{i phi}
     amplitude = abs(a1)
@@ -77,19 +87,32 @@ def analyze(samples: Samples, sim: Simulation, n_harmonics: int = 8,
         phase_deg=math.degrees(phase),
         harmonics=np.abs(spectrum),
         mean_deflection=float(seen.mean()),
-        # the impulse integrated with the stages where the kernel gives it (rk4_event), else the samples' mean
-        mean_force=float(np.sum(samples.work[3]) / (n * dt) if samples.work is not None else f.mean()),
+        # the impulse integrated with the stages where the kernel gives it (rk4_event), else the
+        # samples' mean
+        mean_force=float(
+            np.sum(samples.work[3]) / (n * dt) if samples.work is not None else f.mean()
+        ),
         max_force=float(f.max()),
         min_force=float(f.min()),
         min_gap=min_gap,
         indentation=max(0.0, a0 - min_gap),
-        # integrated with the stages where the kernel gives them (rk4_event), else the samples' rectangle rule
-        drive_work=float(np.sum(samples.work[1]) / periods if samples.work is not None
-                         else np.sum(drive * v) * dt / periods),
-        damping_loss=float(np.sum(samples.work[2]) / periods if samples.work is not None
-                           else np.sum(c * v * v) * dt / periods),
-        tip_sample_dissipation=float(np.sum(samples.work[0]) / periods if samples.work is not None
-                                     else -np.sum(f * v) * dt / periods),
+        # integrated with the stages where the kernel gives them (rk4_event), else the samples'
+        # rectangle rule
+        drive_work=float(
+            np.sum(samples.work[1]) / periods
+            if samples.work is not None
+            else np.sum(drive * v) * dt / periods
+        ),
+        damping_loss=float(
+            np.sum(samples.work[2]) / periods
+            if samples.work is not None
+            else np.sum(c * v * v) * dt / periods
+        ),
+        tip_sample_dissipation=float(
+            np.sum(samples.work[0]) / periods
+            if samples.work is not None
+            else -np.sum(f * v) * dt / periods
+        ),
         virial=float(np.mean(f * z)),
         periods=periods,
     )
@@ -103,9 +126,14 @@ class SteadyStateResult:
     converged: bool
 
 
-def steady_state(sim: Simulation, window_periods: int | None = None, amplitude_tol: float = 1e-14,
-                 phase_tol_deg: float = 1e-5, max_periods: int = 20000,
-                 n_harmonics: int = 8) -> SteadyStateResult:
+def steady_state(
+    sim: Simulation,
+    window_periods: int | None = None,
+    amplitude_tol: float = 1e-14,
+    phase_tol_deg: float = 1e-5,
+    max_periods: int = 20000,
+    n_harmonics: int = 8,
+) -> SteadyStateResult:
     """Advance ``sim`` window by window until amplitude and phase change less than the tolerances
     (amplitude_tol [m], phase_tol_deg [deg]) between successive windows; analyse the last one.
 
@@ -130,12 +158,18 @@ def steady_state(sim: Simulation, window_periods: int | None = None, amplitude_t
 
 
 def cleveland_sin_phase(analysis: PeriodAnalysis, sim: Simulation) -> float:
-    """sin(phi) predicted by the energy balance with all harmonics (Cleveland et al. 1998, exact form).
+    """sin(phi) predicted by the energy balance with all harmonics (Cleveland et al. 1998, exact
+    form).
 
     Drive work pi F0 A1 sin(phi) = damping loss pi k w / (Q w0) sum n^2 A_n^2 + E_ts.
     """
     c, d = sim.cantilever, sim.drive
     n = np.arange(1, analysis.harmonics.shape[0] + 1)
-    damping = math.pi * c.spring_constant * d.omega / (c.quality_factor * c.omega0) \
+    damping = (
+        math.pi
+        * c.spring_constant
+        * d.omega
+        / (c.quality_factor * c.omega0)
         * float(np.sum((n * analysis.harmonics) ** 2))
+    )
     return (damping + analysis.tip_sample_dissipation) / (math.pi * d.force * analysis.amplitude)

@@ -2,6 +2,7 @@
 
 m z'' + (m w0 / Q) z' + k z = F0 cos(w t + psi),  Q > 1/2 (underdamped).
 """
+
 from __future__ import annotations
 
 import math
@@ -12,7 +13,8 @@ from afm_ros.core.physics.parameters import Cantilever, Drive
 
 
 def steady_amplitude_phase(cantilever: Cantilever, drive: Drive) -> tuple[float, float]:
-    """Steady-state amplitude A [m] and phase lag phi [rad, in (0, pi)] of z = A cos(w t + psi - phi)."""
+    """Steady-state amplitude A [m] and phase lag phi [rad, in (0, pi)] of z = A cos(w t + psi -
+    phi)."""
     w0, w = cantilever.omega0, drive.omega
     q = cantilever.quality_factor
     amplitude = (drive.force / cantilever.mass) / math.hypot(w0 * w0 - w * w, w * w0 / q)
@@ -21,7 +23,8 @@ def steady_amplitude_phase(cantilever: Cantilever, drive: Drive) -> tuple[float,
 
 
 def free_solution(cantilever: Cantilever, drive: Drive, t, z0: float = 0.0, v0: float = 0.0):
-    """Exact z(t) [m] and v(t) [m/s] from z(0)=z0, v(0)=v0: steady state plus decaying transient."""
+    """Exact z(t) [m] and v(t) [m/s] from z(0)=z0, v(0)=v0: steady state plus decaying
+    transient."""
     t = np.asarray(t, dtype=float)
     amplitude, phi = steady_amplitude_phase(cantilever, drive)
     w, psi = drive.omega, drive.phase
@@ -35,6 +38,7 @@ def free_solution(cantilever: Cantilever, drive: Drive, t, z0: float = 0.0, v0: 
     decay = np.exp(-gamma * t)
     cos_d, sin_d = np.cos(wd * t), np.sin(wd * t)
     z = amplitude * np.cos(w * t + psi - phi) + decay * (c1 * cos_d + c2 * sin_d)
-    v = (-amplitude * w * np.sin(w * t + psi - phi)
-         + decay * ((-gamma * c1 + wd * c2) * cos_d + (-gamma * c2 - wd * c1) * sin_d))
+    v = -amplitude * w * np.sin(w * t + psi - phi) + decay * (
+        (-gamma * c1 + wd * c2) * cos_d + (-gamma * c2 - wd * c1) * sin_d
+    )
     return z, v

@@ -10,10 +10,11 @@ Sign convention: positive force pushes the tip *away* from the sample (+z); the 
 ``dd/dt = v`` (``z_offset`` is constant within a chunk): negative while the tip approaches.
 
 Models: ``none``; ``dmt`` (conservative, the seed notebook's); ``viscoelastic_dmt`` (DMT plus a
-Kelvin-Voigt viscous term in contact, the repulsive contact part clipped at zero); ``hysteresis_dmt``
-(DMT whose Hamaker constant is H on approach and H_retract on retraction). The dissipative ones
-reduce to ``dmt`` bit for bit with viscosity 0 or H_retract = H.
+Kelvin-Voigt viscous term in contact, the repulsive contact part clipped at zero);
+``hysteresis_dmt`` (DMT whose Hamaker constant is H on approach and H_retract on retraction). The
+dissipative ones reduce to ``dmt`` bit for bit with viscosity 0 or H_retract = H.
 """
+
 from __future__ import annotations
 
 import math
@@ -106,8 +107,16 @@ class DMTForce:
     def packed(self) -> np.ndarray:
         s = self.sample
         a0, h, r = s.intermolecular_distance, s.hamaker_constant, s.tip_radius
-        return np.array([a0, h * r / 6.0, 4.0 / 3.0 * s.effective_modulus * math.sqrt(r),
-                         h * r / (6.0 * a0 * a0), 0.0, 0.0])
+        return np.array(
+            [
+                a0,
+                h * r / 6.0,
+                4.0 / 3.0 * s.effective_modulus * math.sqrt(r),
+                h * r / (6.0 * a0 * a0),
+                0.0,
+                0.0,
+            ]
+        )
 
     @property
     def adhesion_force(self) -> float:
@@ -115,10 +124,13 @@ class DMTForce:
         return self.packed()[3]
 
     def force(self, gap, rate=0.0):
-        """Force [N] at gap(s) [m] and gap rate(s) [m/s] (the rate matters only for the dissipative models)."""
+        """Force [N] at gap(s) [m] and gap rate(s) [m/s] (the rate matters only for the dissipative
+        models)."""
         gaps = np.atleast_1d(np.asarray(gap, dtype=float))
         rates = np.broadcast_to(np.asarray(rate, dtype=float), gaps.shape)
-        out = force_array(self.model_id, self.packed(), np.ascontiguousarray(gaps), np.ascontiguousarray(rates))
+        out = force_array(
+            self.model_id, self.packed(), np.ascontiguousarray(gaps), np.ascontiguousarray(rates)
+        )
         return out if np.ndim(gap) else float(out[0])
 
     def potential(self, gap):
@@ -128,7 +140,7 @@ class DMTForce:
         delta = np.clip(a0 - d, 0.0, None)
         u_far = -hr6 / np.maximum(d, a0)
         # below a0: U(a0) - integral of F from a0 down to d
-        u_near = -hr6 / a0 - fad * delta + 0.4 * c * delta ** 2.5
+        u_near = -hr6 / a0 - fad * delta + 0.4 * c * delta**2.5
         return np.where(d > a0, u_far, u_near)
 
 
@@ -141,7 +153,8 @@ class ViscoelasticDMTForce(DMTForce):
     with d(delta)/dt = -dd/dt. The viscous force opposes the indentation rate (repulsive while the
     tip indents, attractive while it leaves); the repulsive contact part (Hertz + viscous) is
     clipped at zero so a fast retraction cannot glue the tip to the surface (Solares and
-    Lopez-Guerra, Beilstein J. Nanotechnol. 5 (2014), doi:10.3762/bjnano.5.224). ``viscosity`` eta [Pa s].
+    Lopez-Guerra, Beilstein J. Nanotechnol. 5 (2014), doi:10.3762/bjnano.5.224). ``viscosity`` eta
+    [Pa s].
     """
 
     model_id = MODEL_VISCOELASTIC_DMT
@@ -159,7 +172,9 @@ class ViscoelasticDMTForce(DMTForce):
         return p
 
     def potential(self, gap):
-        raise ValueError("a dissipative force has no potential; DMTForce.potential gives its conservative part")
+        raise ValueError(
+            "a dissipative force has no potential; DMTForce.potential gives its conservative part"
+        )
 
 
 class HysteresisDMTForce(DMTForce):
@@ -176,7 +191,9 @@ class HysteresisDMTForce(DMTForce):
         super().__init__(sample)
         h_r = self.sample.hamaker_constant if hamaker_retract is None else float(hamaker_retract)
         if not (math.isfinite(h_r) and h_r >= 0.0):
-            raise ValueError(f"hamaker_constant_retract={hamaker_retract!r} J must be finite and >= 0")
+            raise ValueError(
+                f"hamaker_constant_retract={hamaker_retract!r} J must be finite and >= 0"
+            )
         self.hamaker_retract = h_r
 
     def packed(self) -> np.ndarray:
@@ -187,14 +204,20 @@ class HysteresisDMTForce(DMTForce):
         return p
 
     def potential(self, gap):
-        raise ValueError("a dissipative force has no potential; DMTForce.potential gives its conservative part")
+        raise ValueError(
+            "a dissipative force has no potential; DMTForce.potential gives its conservative part"
+        )
 
 
 FORCE_MODELS = ("none", "dmt", "viscoelastic_dmt", "hysteresis_dmt")
 
 
-def make_force_model(name: str, sample: DMTSample | None = None, viscosity: float = 0.0,
-                     hamaker_retract: float | None = None):
+def make_force_model(
+    name: str,
+    sample: DMTSample | None = None,
+    viscosity: float = 0.0,
+    hamaker_retract: float | None = None,
+):
     if name == "none":
         return NoForce()
     if name == "dmt":
@@ -203,4 +226,6 @@ def make_force_model(name: str, sample: DMTSample | None = None, viscosity: floa
         return ViscoelasticDMTForce(sample, viscosity)
     if name == "hysteresis_dmt":
         return HysteresisDMTForce(sample, hamaker_retract)
-    raise ValueError(f"force_model={name!r} is not known; allowed: {', '.join(repr(m) for m in FORCE_MODELS)}")
+    raise ValueError(
+        f"force_model={name!r} is not known; allowed: {', '.join(repr(m) for m in FORCE_MODELS)}"
+    )

@@ -10,6 +10,7 @@ notebook's Verlet scheme. The step counter ``n`` is an int kept beside it.
 Samples of (z, v, Fts) are written for every step index n with ``n % decimation == 0``,
 taken at the state *before* that step is made.
 """
+
 from __future__ import annotations
 
 import math
@@ -17,13 +18,32 @@ import math
 import numpy as np
 from numba import njit
 
-from afm_ros.core.physics.forces import tip_sample_force
+from afm_ros.core.artefacts import (
+    ART_ON,
+    ART_TILT_X,
+    ART_TILT_Y,
+    ART_W_FAST,
+    ART_X0,
+    ART_Y0,
+    SLOW_BLOCK,
+    hysteresis_offsets,
+    slow_terms,
+)
 from afm_ros.core.physics.events import event_step_full, plain_step_stands
+from afm_ros.core.physics.forces import tip_sample_force
 from afm_ros.core.physics.noise import thermal_force
-from afm_ros.core.artefacts import (ART_ON, ART_TILT_X, ART_TILT_Y, ART_W_FAST, ART_X0, ART_Y0, SLOW_BLOCK,
-                                    hysteresis_offsets, slow_terms)
-from afm_ros.core.scanner import (PLAN_ACTIVE, PLAN_CONTINUOUS, PLAN_LINE_RATE, PLAN_LINES, PLAN_ROTATED, PLAN_SIZE_X,
-                                   PLAN_START, PLAN_X_LEFT, rotate_position, scan_position)
+from afm_ros.core.scanner import (
+    PLAN_ACTIVE,
+    PLAN_CONTINUOUS,
+    PLAN_LINE_RATE,
+    PLAN_LINES,
+    PLAN_ROTATED,
+    PLAN_SIZE_X,
+    PLAN_START,
+    PLAN_X_LEFT,
+    rotate_position,
+    scan_position,
+)
 
 EULER = 0
 VERLET_NOTEBOOK = 1
@@ -31,14 +51,21 @@ RK4 = 2
 RK4_FROZEN_FORCE = 3
 RK4_EVENT = 4  # afm_ros.core.physics.events: RK4 split at the force law's switches
 
-METHODS = {"euler": EULER, "verlet": VERLET_NOTEBOOK, "rk4": RK4, "rk4_frozen": RK4_FROZEN_FORCE,
-           "rk4_event": RK4_EVENT}
+METHODS = {
+    "euler": EULER,
+    "verlet": VERLET_NOTEBOOK,
+    "rk4": RK4,
+    "rk4_frozen": RK4_FROZEN_FORCE,
+    "rk4_event": RK4_EVENT,
+}
 
 
 def drive_table(force_amplitude: float, phase: float, steps_per_period: int) -> np.ndarray:
     """F0 cos(phase + pi j / spp) for j = 0..2 spp (half-step resolution, last = first)."""
     j = np.arange(2 * steps_per_period + 1)
-    table = force_amplitude * np.cos(phase + np.pi * (j % (2 * steps_per_period)) / steps_per_period)
+    table = force_amplitude * np.cos(
+        phase + np.pi * (j % (2 * steps_per_period)) / steps_per_period
+    )
     return table
 
 
@@ -50,20 +77,43 @@ def samples_in_range(n0: int, nsteps: int, decimation: int) -> int:
 
 
 @njit(cache=True, inline="always")
-def _rk4_step(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model, fp, z_offset, h, hh, dt, dth, sixth,
-              dt_sixth):
+def _rk4_step(
+    z,
+    v,
+    f1,
+    fth,
+    drive0,
+    drive_half,
+    drive1,
+    k,
+    c,
+    inv_m,
+    model,
+    fp,
+    z_offset,
+    h,
+    hh,
+    dt,
+    dth,
+    sixth,
+    dt_sixth,
+):
     """One classic RK4 step with the force at every stage; ``f1`` is the force at the step's start
     and ``fth`` the thermal force held over the stages. The position stages are written in terms of
-    the accelerations (z3 = z + h v2 = z + h v + h^2 a1, z4 = z + dt v + dt h a2, z_new = z + dt v +
-    dt^2/6 (a1 + a2 + a3)): algebraically identical, but one multiply-add shorter on the force ->
+    the accelerations (z3 = z + h v2 = z + h v + h^2 a1, z4 = z + dt v + dt h a2, z_new = z + dt v
+    + dt^2/6 (a1 + a2 + a3)): algebraically identical, but one multiply-add shorter on the force ->
     position -> force dependency chain (~7% faster)."""
     a1 = (-k * z - c * v + drive0 + f1 + fth) * inv_m
     z2 = z + h * v
     v2 = v + h * a1
-    a2 = (-k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2, v2) + fth) * inv_m
+    a2 = (
+        -k * z2 - c * v2 + drive_half + tip_sample_force(model, fp, z_offset + z2, v2) + fth
+    ) * inv_m
     z3 = z2 + hh * a1
     v3 = v + h * a2
-    a3 = (-k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3, v3) + fth) * inv_m
+    a3 = (
+        -k * z3 - c * v3 + drive_half + tip_sample_force(model, fp, z_offset + z3, v3) + fth
+    ) * inv_m
     z_dt = z + dt * v
     z4 = z_dt + dth * a2
     v4 = v + dt * a3
@@ -72,8 +122,27 @@ def _rk4_step(z, v, f1, fth, drive0, drive_half, drive1, k, c, inv_m, model, fp,
 
 
 @njit(cache=True, nogil=True)
-def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
-             decimation, out_z, out_v, out_f, noise_sigma, noise_seed, noise_n0):
+def _advance(
+    method,
+    y,
+    n0,
+    nsteps,
+    dt,
+    inv_m,
+    k,
+    c,
+    table,
+    model,
+    fp,
+    z_offset,
+    decimation,
+    out_z,
+    out_v,
+    out_f,
+    noise_sigma,
+    noise_seed,
+    noise_n0,
+):
     z = y[0]
     v = y[1]
     z_prev = y[2]
@@ -88,10 +157,12 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     dt_sixth = dt * sixth
     spare = 0.0  # the second number of the last Box-Muller pair (for the next, odd, step)
     for i in range(nsteps):
-        # thermal force: drawn once per step (number noise_n0 + i of the seed's thermal stream, a pure
-        # function of the absolute step index) and held through the stages; added last, so 0.0
+        # thermal force: drawn once per step (number noise_n0 + i of the seed's thermal stream, a
+        # pure function of the absolute step index) and held through the stages; added last, so 0.0
         # leaves the deterministic sums bit-identical
-        fth = -0.0  # x + (-0.0) == x for every x: the compiler drops the add when the noise is off (-8 %)
+        fth = (
+            -0.0
+        )  # x + (-0.0) == x for every x: the compiler drops the add when the noise is off (-8 %)
         if noise_sigma > 0.0:
             fth, spare = thermal_force(noise_sigma, noise_seed, noise_n0 + i, i == 0, spare)
         f1 = tip_sample_force(model, fp, z_offset + z, v)
@@ -104,8 +175,27 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
         until_record -= 1
         drive0 = table[j]
         if method == RK4:
-            z, v = _rk4_step(z, v, f1, fth, drive0, table[j + 1], table[j + 2], k, c, inv_m, model, fp, z_offset,
-                             h, hh, dt, dth, sixth, dt_sixth)
+            z, v = _rk4_step(
+                z,
+                v,
+                f1,
+                fth,
+                drive0,
+                table[j + 1],
+                table[j + 2],
+                k,
+                c,
+                inv_m,
+                model,
+                fp,
+                z_offset,
+                h,
+                hh,
+                dt,
+                dth,
+                sixth,
+                dt_sixth,
+            )
         elif method == RK4_FROZEN_FORCE:
             # the seed notebook's scheme: Fts held at the step's start value in all four stages
             drive_half = table[j + 1]
@@ -127,8 +217,8 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
             z = z + dt * v
             v = v + dt * a
         else:
-            # notebook Verlet: z_{n+1} = 2 z_n - z_{n-1} + a_n dt^2, v_{n+1} = (z_{n+1} - z_{n-1}) / 2dt,
-            # with an Euler first step; a_n uses the lagged velocity estimate.
+            # notebook Verlet: z_{n+1} = 2 z_n - z_{n-1} + a_n dt^2, v_{n+1} = (z_{n+1} - z_{n-1})
+            # / 2dt, with an Euler first step; a_n uses the lagged velocity estimate.
             a = (-k * z - c * v + drive0 + f1 + fth) * inv_m
             if n0 + i == 0:
                 z_new = z + dt * v
@@ -147,10 +237,27 @@ def _advance(method, y, n0, nsteps, dt, inv_m, k, c, table, model, fp, z_offset,
     return written
 
 
-def advance(method: int, y: np.ndarray, n0: int, nsteps: int, dt: float, mass: float,
-            spring_constant: float, damping: float, table: np.ndarray, model: int, fp: np.ndarray,
-            z_offset: float, decimation: int, out_z: np.ndarray, out_v: np.ndarray,
-            out_f: np.ndarray, noise_sigma: float = 0.0, noise_seed: int = 0, noise_n0: int = 0) -> int:
+def advance(
+    method: int,
+    y: np.ndarray,
+    n0: int,
+    nsteps: int,
+    dt: float,
+    mass: float,
+    spring_constant: float,
+    damping: float,
+    table: np.ndarray,
+    model: int,
+    fp: np.ndarray,
+    z_offset: float,
+    decimation: int,
+    out_z: np.ndarray,
+    out_v: np.ndarray,
+    out_f: np.ndarray,
+    noise_sigma: float = 0.0,
+    noise_seed: int = 0,
+    noise_n0: int = 0,
+) -> int:
     """Advance ``y`` in place by ``nsteps`` steps from step index ``n0``; return samples written.
 
     ``out_*`` must hold at least :func:`samples_in_range` (n0, nsteps, decimation) values.
@@ -160,9 +267,27 @@ def advance(method: int, y: np.ndarray, n0: int, nsteps: int, dt: float, mass: f
     # Plain int/float arguments, whatever the caller passed (numpy scalars, an int z_offset ...):
     # the kernel then has exactly one compiled (and cached) specialisation to load at start-up.
     # The conversions are exact, so results do not change.
-    return _advance(int(method), y, int(n0), int(nsteps), float(dt), 1.0 / float(mass), float(spring_constant),
-                    float(damping), table, int(model), fp, float(z_offset), int(decimation), out_z, out_v, out_f,
-                    float(noise_sigma), int(noise_seed), int(noise_n0))
+    return _advance(
+        int(method),
+        y,
+        int(n0),
+        int(nsteps),
+        float(dt),
+        1.0 / float(mass),
+        float(spring_constant),
+        float(damping),
+        table,
+        int(model),
+        fp,
+        float(z_offset),
+        int(decimation),
+        out_z,
+        out_v,
+        out_f,
+        float(noise_sigma),
+        int(noise_seed),
+        int(noise_n0),
+    )
 
 
 def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
@@ -171,18 +296,46 @@ def phase_at_step(phase: float, n: int, steps_per_period: int) -> float:
 
 
 @njit(cache=True, nogil=True)
-def advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset, decimation,
-                     out_z, out_v, out_f, out_h, noise_sigma, noise_seed, noise_n0,
-                     heights, materials, size_x, size_y, plan, segment_start, art,
-                     event, beta, spp, stats):
-    """RK4 (``event`` 0) or ``rk4_event`` (``event`` 1, :func:`afm_ros.core.physics.events.event_step`, with
-    ``beta`` and the steps per period; split steps and extra
-    sub-steps added to ``stats``) over a sample map: at every step the tip's lateral position (``scan_position`` of the
-    step's simulated time) gives the tip-dilated surface height ``h`` (bilinear between the map's
-    pixel centres, periodic) and the material of the map pixel under the apex; the gap is
-    ``z_offset - h + z`` and the force parameters are the material's row of ``fps``. Both are held
-    through the step's RK4 stages (the tip moves < 1 pm laterally per step at any supported scan
-    speed). ``out_h`` gets ``h`` at each sample.
+def advance_surface(
+    y,
+    n0,
+    nsteps,
+    dt,
+    inv_m,
+    k,
+    c,
+    table,
+    model,
+    fps,
+    z_offset,
+    decimation,
+    out_z,
+    out_v,
+    out_f,
+    out_h,
+    noise_sigma,
+    noise_seed,
+    noise_n0,
+    heights,
+    materials,
+    size_x,
+    size_y,
+    plan,
+    segment_start,
+    art,
+    event,
+    beta,
+    spp,
+    stats,
+):
+    """RK4 (``event`` 0) or ``rk4_event`` (``event`` 1,
+    :func:`afm_ros.core.physics.events.event_step`, with ``beta`` and the steps per period; split
+    steps and extra sub-steps added to ``stats``) over a sample map: at every step the tip's
+    lateral position (``scan_position`` of the step's simulated time) gives the tip-dilated surface
+    height ``h`` (bilinear between the map's pixel centres, periodic) and the material of the map
+    pixel under the apex; the gap is ``z_offset - h + z`` and the force parameters are the
+    material's row of ``fps``. Both are held through the step's RK4 stages (the tip moves < 1 pm
+    laterally per step at any supported scan speed). ``out_h`` gets ``h`` at each sample.
 
     Imperfections (``art``, :mod:`afm_ros.core.artefacts`; skipped when ``art[ART_ON]`` is 0): the
     piezo's hysteresis and creep and the sample's drift move the point under the apex, the drift
@@ -216,7 +369,12 @@ def advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset,
     mat = -1
     # the current line of the plan (scan_position's formula, with the per-line part cached)
     scanning = plan[PLAN_ACTIVE] != 0.0
-    start, rate, x_left, size_fast = plan[PLAN_START], plan[PLAN_LINE_RATE], plan[PLAN_X_LEFT], plan[PLAN_SIZE_X]
+    start, rate, x_left, size_fast = (
+        plan[PLAN_START],
+        plan[PLAN_LINE_RATE],
+        plan[PLAN_X_LEFT],
+        plan[PLAN_SIZE_X],
+    )
     line_lo = math.inf  # floor of the line count of the cached line
     line_y = 0.0
     line_parked = True
@@ -308,8 +466,8 @@ def advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset,
             m = m10 if fu < 0.5 else m11
         if m != mat:
             mat = m
-            # a tuple, not the row: an array passed on to the event kernel's non-inlined parts would be
-            # reference counted on every step
+            # a tuple, not the row: an array passed on to the event kernel's non-inlined parts
+            # would be reference counted on every step
             fp = (fps[mat, 0], fps[mat, 1], fps[mat, 2], fps[mat, 3], fps[mat, 4], fps[mat, 5])
         offset = z_offset - surface
         f1 = tip_sample_force(model, fp, offset + z, v)
@@ -321,16 +479,68 @@ def advance_surface(y, n0, nsteps, dt, inv_m, k, c, table, model, fps, z_offset,
             written += 1
             until_record = decimation
         until_record -= 1
-        z1, v1 = _rk4_step(z, v, f1, fth, table[j], table[j + 1], table[j + 2], k, c, inv_m, model, fp, offset,
-                           h, hh, dt, dth, sixth, dt_sixth)
+        z1, v1 = _rk4_step(
+            z,
+            v,
+            f1,
+            fth,
+            table[j],
+            table[j + 1],
+            table[j + 2],
+            k,
+            c,
+            inv_m,
+            model,
+            fp,
+            offset,
+            h,
+            hh,
+            dt,
+            dth,
+            sixth,
+            dt_sixth,
+        )
         if event != 0:
-            # rk4_event: the plain step stands far from the surface; else the full path (not inlined, so
-            # this loop stays as tight as plain rk4's)
-            if not plain_step_stands(model, fp, offset, z, v, z1, v1, (-k * z - c * v + table[j] + f1 + fth) * inv_m,
-                                     dt, beta, k, inv_m):
-                z1, v1, _, _, _, _, split, more = event_step_full(z, v, f1, fth, table[j], table[j + 1],
-                                                                  table[j + 2], k, c, inv_m, model, fp, offset, dt,
-                                                                  spp, beta, z1, v1, 0.0, 0.0, 0.0, 0.0)
+            # rk4_event: the plain step stands far from the surface; else the full path (not
+            # inlined, so this loop stays as tight as plain rk4's)
+            if not plain_step_stands(
+                model,
+                fp,
+                offset,
+                z,
+                v,
+                z1,
+                v1,
+                (-k * z - c * v + table[j] + f1 + fth) * inv_m,
+                dt,
+                beta,
+                k,
+                inv_m,
+            ):
+                z1, v1, _, _, _, _, split, more = event_step_full(
+                    z,
+                    v,
+                    f1,
+                    fth,
+                    table[j],
+                    table[j + 1],
+                    table[j + 2],
+                    k,
+                    c,
+                    inv_m,
+                    model,
+                    fp,
+                    offset,
+                    dt,
+                    spp,
+                    beta,
+                    z1,
+                    v1,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                )
                 splits += split
                 extra += more
         z = z1

@@ -12,6 +12,7 @@ counter, Gaussian by Marsaglia's polar method (two numbers per transform).
 - Detector noise: white noise of one-sided density ``D`` [m/sqrt(Hz)] added to the *measured*
   deflection samples only, standard deviation ``D sqrt(fs / 2)`` at the output rate ``fs``.
 """
+
 from __future__ import annotations
 
 import math
@@ -42,9 +43,9 @@ def _splitmix(x):
 
 @njit(cache=True, inline="always")
 def normal_pair(seed: int, stream: int, pair: int):
-    """The two standard normal numbers 2 pair and 2 pair + 1 of ``stream`` for ``seed``: Marsaglia's
-    polar method on two 32-bit uniforms per 64-bit hash (no sine or cosine; a rejected point, 21 %
-    of them, hashes again, so the result is still a pure function of the counter)."""
+    """The two standard normal numbers 2 pair and 2 pair + 1 of ``stream`` for ``seed``:
+    Marsaglia's polar method on two 32-bit uniforms per 64-bit hash (no sine or cosine; a rejected
+    point, 21 % of them, hashes again, so the result is still a pure function of the counter)."""
     h = _splitmix(_splitmix(np.uint64(seed) ^ (np.uint64(stream) * _STREAM)) ^ np.uint64(pair))
     while True:
         u = float(h >> np.uint64(32)) * _INV_2_31 - 1.0  # [-1, 1)
@@ -78,7 +79,9 @@ def thermal_force_sigma(temperature: float, damping: float, dt: float) -> float:
     return math.sqrt(2.0 * BOLTZMANN * temperature * damping / dt)
 
 
-def detector_noise(seed: int, first_index: int, count: int, density: float, sample_interval: float) -> np.ndarray:
+def detector_noise(
+    seed: int, first_index: int, count: int, density: float, sample_interval: float
+) -> np.ndarray:
     """Detector noise [m] of the output samples ``first_index ...`` (density [m/sqrt(Hz)])."""
     if density == 0.0 or count == 0:
         return np.zeros(count)

@@ -6,33 +6,40 @@ laws written again here from their formulas (:mod:`afm_ros.core.physics.forces` 
 nothing of the project's kernels is used. Slow (Python right-hand side); for tests and the
 integrator study (``benchmarks.bench_event``).
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
 from scipy.integrate import solve_ivp
-from afm_ros.core.physics.forces import DMTForce
-from afm_ros.core.physics.forces import HysteresisDMTForce
-from afm_ros.core.physics.forces import ViscoelasticDMTForce
+
+from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.parameters import DMTSample
 
-HARD_TAPPING_Z_BASE = 20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
+HARD_TAPPING_Z_BASE = (
+    20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
+)
 
 
 def hard_tapping_models() -> dict:
-    """The force models of the integrator checks (issue 19) on the seed sample: dmt, viscoelastic_dmt
-    (20 Pa s) and hysteresis_dmt (H_retract = 1.5 H), by name."""
+    """The force models of the integrator checks (issue 19) on the seed sample: dmt,
+    viscoelastic_dmt (20 Pa s) and hysteresis_dmt (H_retract = 1.5 H), by name."""
 
     sample = DMTSample()
-    return {"dmt": DMTForce(sample), "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),
-            "hysteresis_dmt": HysteresisDMTForce(sample, hamaker_retract=1.5 * sample.hamaker_constant)}
+    return {
+        "dmt": DMTForce(sample),
+        "viscoelastic_dmt": ViscoelasticDMTForce(sample, viscosity=20.0),
+        "hysteresis_dmt": HysteresisDMTForce(
+            sample, hamaker_retract=1.5 * sample.hamaker_constant
+        ),
+    }
 
 
 def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=None, rtol=1e-13):
-    """z [m] at ``t_eval`` [s] (times from 0, the drive's phase at 0) from (z, v) = ``y0`` at t = 0 over a
-    flat sample at ``z_base`` [m]; with ``work_from`` [s] also the energy the tip-sample force took from
-    then to ``t_end`` [J] (-int F v dt, integrated as a third state)."""
+    """z [m] at ``t_eval`` [s] (times from 0, the drive's phase at 0) from (z, v) = ``y0`` at t = 0
+    over a flat sample at ``z_base`` [m]; with ``work_from`` [s] also the energy the tip-sample
+    force took from then to ``t_end`` [J] (-int F v dt, integrated as a third state)."""
     p, kind = model.packed(), model.name
     a0, m, k, c = p[0], cantilever.mass, cantilever.spring_constant, cantilever.damping
     w = 2.0 * math.pi * drive.frequency
@@ -44,15 +51,20 @@ def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=Non
             if kind == "none":
                 fts = 0.0
             elif not contact:
-                fts = -(p[4] if kind == "hysteresis_dmt" and retract else p[1]) / gap ** 2
+                fts = -(p[4] if kind == "hysteresis_dmt" and retract else p[1]) / gap**2
             else:
                 delta = max(a0 - gap, 0.0)
-                hertz = p[2] * delta ** 1.5
+                hertz = p[2] * delta**1.5
                 if kind == "viscoelastic_dmt":
                     fts = -p[3] + (0.0 if clipped else hertz - p[4] * math.sqrt(delta) * v)
                 else:
                     fts = -(p[5] if kind == "hysteresis_dmt" and retract else p[3]) + hertz
-            return [v, (-k * z - c * v + drive.force * math.cos(w * t + drive.phase) + fts) / m, -fts * v]
+            return [
+                v,
+                (-k * z - c * v + drive.force * math.cos(w * t + drive.phase) + fts) / m,
+                -fts * v,
+            ]
+
         return f
 
     events = [lambda t, y: z_base + y[0] - a0]
@@ -64,15 +76,26 @@ def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=Non
         e.terminal = True
     t, y = 0.0, np.array([y0[0], y0[1], 0.0], dtype=float)
     gap = z_base + y[0]
-    state = [gap <= a0, bool(kind == "viscoelastic_dmt" and gap <= a0 and p[2] * (a0 - gap) - p[4] * y[1] <= 0),
-             bool(kind == "hysteresis_dmt" and y[1] >= 0)]
+    state = [
+        gap <= a0,
+        bool(kind == "viscoelastic_dmt" and gap <= a0 and p[2] * (a0 - gap) - p[4] * y[1] <= 0),
+        bool(kind == "hysteresis_dmt" and y[1] >= 0),
+    ]
     t_eval = np.asarray(t_eval, dtype=float)
     out = {}
     work = {}
     marks = [] if work_from is None else [work_from]
     while t < t_end:
-        sol = solve_ivp(rhs(*state), (t, t_end), y, method="DOP853", rtol=rtol, atol=1e-24, events=events,
-                        dense_output=True)
+        sol = solve_ivp(
+            rhs(*state),
+            (t, t_end),
+            y,
+            method="DOP853",
+            rtol=rtol,
+            atol=1e-24,
+            events=events,
+            dense_output=True,
+        )
         for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
             out[te] = sol.sol(te)[0]
         for tm in marks:
@@ -91,8 +114,15 @@ def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=Non
             state[2] = bool(a > 0)
         # just past the switch with the new law (no event detection over 1e-7 of a period)
         step = 1e-7 / drive.frequency
-        sol = solve_ivp(rhs(*state), (t, min(t + step, t_end)), y, method="DOP853", rtol=rtol, atol=1e-24,
-                        dense_output=True)
+        sol = solve_ivp(
+            rhs(*state),
+            (t, min(t + step, t_end)),
+            y,
+            method="DOP853",
+            rtol=rtol,
+            atol=1e-24,
+            dense_output=True,
+        )
         for te in t_eval[(t_eval >= sol.t[0]) & (t_eval <= sol.t[-1])]:
             out[te] = sol.sol(te)[0]
         t, y = sol.t[-1], sol.y[:, -1]

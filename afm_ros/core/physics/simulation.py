@@ -1,4 +1,5 @@
 """A tapping cantilever that advances in chunks: parameters + force model + integrator + state."""
+
 from __future__ import annotations
 
 import math
@@ -6,18 +7,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afm_ros.core.physics.forces import DMTForce, NoForce
-from afm_ros.core.artefacts import ART_LENGTH, off as artefacts_off
-from afm_ros.core.physics.integrators import (METHODS, advance_surface, advance, drive_table, phase_at_step,
-                                              samples_in_range)
-from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
-from afm_ros.core.physics.noise import thermal_force_sigma
-from afm_ros.core.physics.parameters import CANTILEVER_SPECS, Cantilever, DMTSample, Drive, check_steps_per_resonance
-from afm_ros.core.physics.forces import make_force_model
-from afm_ros.core.physics.materials import sample_for
-from afm_ros.core.samples import dilate
+from afm_ros.core.artefacts import ART_LENGTH
+from afm_ros.core.artefacts import off as artefacts_off
 from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION
-
+from afm_ros.core.physics.forces import DMTForce, NoForce, make_force_model
+from afm_ros.core.physics.integrators import (
+    METHODS,
+    advance,
+    advance_surface,
+    drive_table,
+    phase_at_step,
+    samples_in_range,
+)
+from afm_ros.core.physics.materials import sample_for
+from afm_ros.core.physics.noise import thermal_force_sigma
+from afm_ros.core.physics.parameters import (
+    CANTILEVER_SPECS,
+    Cantilever,
+    DMTSample,
+    Drive,
+    check_steps_per_resonance,
+)
+from afm_ros.core.samples import dilate
+from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
 
 MAP_METHODS = ("rk4", "rk4_event")  # the integrators of the sample-map kernel
 
@@ -39,10 +51,12 @@ class Samples:
     z: np.ndarray  # deflection [m]
     v: np.ndarray  # velocity [m/s]
     force: np.ndarray  # tip-sample force [N]
-    surface: np.ndarray | None = None  # tip-dilated sample height under the tip [m] (sample maps only)
-    # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event on a flat
-    # sample with decimation 1 only; else None): rows taken by the tip-sample force, given by the drive, lost to
-    # damping, and the tip-sample force's impulse int F dt [N s]
+    surface: np.ndarray | None = (
+        None  # tip-dilated sample height under the tip [m] (sample maps only)
+    )
+    # energies over each sample's step [J], integrated with the RK4 stages (method rk4_event on a
+    # flat sample with decimation 1 only; else None): rows taken by the tip-sample force, given by
+    # the drive, lost to damping, and the tip-sample force's impulse int F dt [N s]
     work: np.ndarray | None = None
 
     @property
@@ -58,7 +72,9 @@ class Samples:
     @property
     def drive_phase(self) -> np.ndarray:
         """Drive phase [rad] at each sample."""
-        return self.drive_phase0 + 2.0 * math.pi * self.drive_frequency * (self.t - self.segment_start)
+        return self.drive_phase0 + 2.0 * math.pi * self.drive_frequency * (
+            self.t - self.segment_start
+        )
 
 
 class Simulation:
@@ -70,12 +86,19 @@ class Simulation:
     give bit-identical results.
     """
 
-    def __init__(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
-                 force_model=None, z_offset: float = 40e-9,
-                 steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
-                 method: str = CANTILEVER_SPECS["integrator"].default, z0: float = 0.0, v0: float = 0.0,
-                 t0: float = 0.0,
-                 check_resolution: bool = True):
+    def __init__(
+        self,
+        cantilever: Cantilever | None = None,
+        drive: Drive | None = None,
+        force_model=None,
+        z_offset: float = 40e-9,
+        steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
+        method: str = CANTILEVER_SPECS["integrator"].default,
+        z0: float = 0.0,
+        v0: float = 0.0,
+        t0: float = 0.0,
+        check_resolution: bool = True,
+    ):
         if method not in METHODS:
             raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
         self.cantilever = cantilever or Cantilever()
@@ -94,11 +117,13 @@ class Simulation:
         self.noise_index = 0  # absolute step count since the start: the thermal stream's counter
         self.segment_start = float(t0)
         self.segment_phase = self.drive.phase
-        self.surface = None  # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
+        self.surface = (
+            None  # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
+        )
         self.plan = parked_plan(0.0, 0.0)  # packed scan plan (afm_ros.core.scanner)
         self.artefacts = artefacts_off()  # packed imperfections (afm_ros.core.artefacts)
-        # rk4_event: near the surface a step is cut so that the tip moves at most this fraction of the
-        # force's length scale per sub-step (0: no cutting; afm_ros.core.physics.events)
+        # rk4_event: near the surface a step is cut so that the tip moves at most this fraction of
+        # the force's length scale per sub-step (0: no cutting; afm_ros.core.physics.events)
         self.event_beta = NEAR_SURFACE_FRACTION
         self._rebuild()
 
@@ -115,7 +140,9 @@ class Simulation:
         self._table = drive_table(self.drive.force, self.segment_phase, self.steps_per_period)
         self._fp = np.ascontiguousarray(self.force_model.packed(), dtype=np.float64)
         self._method_id = METHODS[self.method]
-        self.event_stats = np.zeros(2)  # rk4_event: steps split at a switch of the force law, sub-steps taken
+        self.event_stats = np.zeros(
+            2
+        )  # rk4_event: steps split at a switch of the force law, sub-steps taken
 
     # --- state ---------------------------------------------------------------------------
     @property
@@ -137,9 +164,15 @@ class Simulation:
         return phase_at_step(self.segment_phase, self.n, self.steps_per_period)
 
     # --- parameter changes (take effect for the next chunk) -------------------------------
-    def reconfigure(self, cantilever: Cantilever | None = None, drive: Drive | None = None,
-                    force_model=None, steps_per_period: int | None = None,
-                    z_offset: float | None = None, method: str | None = None):
+    def reconfigure(
+        self,
+        cantilever: Cantilever | None = None,
+        drive: Drive | None = None,
+        force_model=None,
+        steps_per_period: int | None = None,
+        z_offset: float | None = None,
+        method: str | None = None,
+    ):
         """Change parameters; the state (z, v, drive phase) carries over without a jump."""
         if method is not None and method not in METHODS:
             raise ValueError(f"method={method!r} is not known; allowed: {', '.join(METHODS)}")
@@ -149,8 +182,11 @@ class Simulation:
         drive = drive or self.drive
         spp = self.steps_per_period if steps_per_period is None else steps_per_period
         spp = self._validated_spp(spp, drive, cantilever)
-        new_segment = (drive.frequency != self.drive.frequency or spp != self.steps_per_period
-                       or drive.phase != self.drive.phase)
+        new_segment = (
+            drive.frequency != self.drive.frequency
+            or spp != self.steps_per_period
+            or drive.phase != self.drive.phase
+        )
         if new_segment:
             phase = self.drive_phase if drive.phase == self.drive.phase else drive.phase
             self.segment_start = self.t
@@ -171,12 +207,13 @@ class Simulation:
         """Thermal force of the cantilever's own damping at ``temperature`` [K] (0: off), from the
         counter-based stream of ``seed`` (the same seed gives the same run, chunked or not)."""
         thermal_force_sigma(temperature, self.cantilever.damping, self.dt)  # validates
-        if isinstance(seed, bool) or int(seed) != seed or not 0 <= int(seed) < 2 ** 63:
+        if isinstance(seed, bool) or int(seed) != seed or not 0 <= int(seed) < 2**63:
             raise ValueError(f"noise_seed={seed!r} must be an integer in [0, 2^63)")
         self.temperature, self.noise_seed = float(temperature), int(seed)
 
     def set_surface(self, surface: "SurfaceMap | None") -> None:
-        """Integrate over a sample map (None: the flat sample of ``force_model``); rk4 or rk4_event."""
+        """Integrate over a sample map (None: the flat sample of ``force_model``); rk4 or
+        rk4_event."""
         if surface is not None:
             self._check_map_method(self.method)
         self.surface = surface
@@ -184,10 +221,14 @@ class Simulation:
     @staticmethod
     def _check_map_method(method: str) -> None:
         if method not in MAP_METHODS:
-            raise ValueError(f"method={method!r}: a sample map needs method {' or '.join(map(repr, MAP_METHODS))}")
+            raise ValueError(
+                f"method={method!r}: a sample map needs method "
+                f"{' or '.join(map(repr, MAP_METHODS))}"
+            )
 
     def set_scan(self, plan: np.ndarray) -> None:
-        """The tip's lateral path: a packed plan (``ScanPlan.packed()`` or ``parked_plan(x, y)``)."""
+        """The tip's lateral path: a packed plan (``ScanPlan.packed()`` or ``parked_plan(x,
+        y)``)."""
         plan = np.ascontiguousarray(plan, dtype=np.float64)
         if plan.shape != (PLAN_LENGTH,) or not np.all(np.isfinite(plan)):
             raise ValueError(f"scan plan must be {PLAN_LENGTH} finite numbers")
@@ -202,7 +243,8 @@ class Simulation:
 
     # --- integration ---------------------------------------------------------------------
     def advance(self, nsteps: int, decimation: int = 1, record: bool = True) -> Samples:
-        """Integrate ``nsteps`` steps; return the samples at step indices divisible by ``decimation``."""
+        """Integrate ``nsteps`` steps; return the samples at step indices divisible by
+        ``decimation``."""
         nsteps = int(nsteps)
         if nsteps < 0:
             raise ValueError(f"nsteps={nsteps} must be >= 0")
@@ -214,47 +256,131 @@ class Simulation:
         out_z, out_v, out_f = np.empty(count), np.empty(count), np.empty(count)
         n0 = self.n
         c = self.cantilever
-        sigma = thermal_force_sigma(self.temperature, c.damping, self.dt) if self.temperature > 0.0 else 0.0
+        sigma = (
+            thermal_force_sigma(self.temperature, c.damping, self.dt)
+            if self.temperature > 0.0
+            else 0.0
+        )
         out_h = None
         out_w = None
         if self.surface is None and self.method == "rk4_event":
             from afm_ros.core.physics.events import advance_event
+
             out_w = np.empty((4, count if decimation == 1 else 0))
-            advance_event(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass), float(c.spring_constant),
-                          float(c.damping), self._table, int(self.force_model.model_id), self._fp,
-                          float(self.z_offset), int(decimation), out_z, out_v, out_f, float(sigma),
-                          int(self.noise_seed), int(self.noise_index), int(self.steps_per_period), self.event_stats,
-                          float(self.event_beta), out_w)
+            advance_event(
+                self.y,
+                int(n0),
+                int(nsteps),
+                float(self.dt),
+                1.0 / float(c.mass),
+                float(c.spring_constant),
+                float(c.damping),
+                self._table,
+                int(self.force_model.model_id),
+                self._fp,
+                float(self.z_offset),
+                int(decimation),
+                out_z,
+                out_v,
+                out_f,
+                float(sigma),
+                int(self.noise_seed),
+                int(self.noise_index),
+                int(self.steps_per_period),
+                self.event_stats,
+                float(self.event_beta),
+                out_w,
+            )
             if decimation != 1:
                 out_w = None
         elif self.surface is None:
-            advance(self._method_id, self.y, n0, nsteps, self.dt, c.mass, c.spring_constant, c.damping,
-                    self._table, self.force_model.model_id, self._fp, self.z_offset, decimation,
-                    out_z, out_v, out_f, sigma, self.noise_seed, self.noise_index)
+            advance(
+                self._method_id,
+                self.y,
+                n0,
+                nsteps,
+                self.dt,
+                c.mass,
+                c.spring_constant,
+                c.damping,
+                self._table,
+                self.force_model.model_id,
+                self._fp,
+                self.z_offset,
+                decimation,
+                out_z,
+                out_v,
+                out_f,
+                sigma,
+                self.noise_seed,
+                self.noise_index,
+            )
         else:
             m = self.surface
             out_h = np.empty(count)
             event = self.method == "rk4_event"
-            advance_surface(self.y, int(n0), int(nsteps), float(self.dt), 1.0 / float(c.mass),
-                             float(c.spring_constant), float(c.damping), self._table, int(m.model_id),
-                             m.force_params, float(self.z_offset), int(decimation), out_z, out_v, out_f, out_h,
-                             float(sigma), int(self.noise_seed), int(self.noise_index), m.heights, m.materials,
-                             float(m.size_x), float(m.size_y), self.plan, float(self.segment_start), self.artefacts,
-                             int(event), float(self.event_beta), int(self.steps_per_period), self.event_stats)
+            advance_surface(
+                self.y,
+                int(n0),
+                int(nsteps),
+                float(self.dt),
+                1.0 / float(c.mass),
+                float(c.spring_constant),
+                float(c.damping),
+                self._table,
+                int(m.model_id),
+                m.force_params,
+                float(self.z_offset),
+                int(decimation),
+                out_z,
+                out_v,
+                out_f,
+                out_h,
+                float(sigma),
+                int(self.noise_seed),
+                int(self.noise_index),
+                m.heights,
+                m.materials,
+                float(m.size_x),
+                float(m.size_y),
+                self.plan,
+                float(self.segment_start),
+                self.artefacts,
+                int(event),
+                float(self.event_beta),
+                int(self.steps_per_period),
+                self.event_stats,
+            )
         self.n += nsteps
         self.noise_index += nsteps
         first = -(-n0 // decimation) * decimation
-        return Samples(first, decimation, self.dt, self.segment_start, self.segment_phase,
-                       self.drive.frequency, self.z_offset, out_z, out_v, out_f, out_h, out_w)
+        return Samples(
+            first,
+            decimation,
+            self.dt,
+            self.segment_start,
+            self.segment_phase,
+            self.drive.frequency,
+            self.z_offset,
+            out_z,
+            out_v,
+            out_f,
+            out_h,
+            out_w,
+        )
 
     def advance_periods(self, periods: int, decimation: int = 1) -> Samples:
         return self.advance(periods * self.steps_per_period, decimation)
 
 
-def seed_simulation(z_base: float = 40e-9,
-                    steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
-                    method: str = CANTILEVER_SPECS["integrator"].default, sample=None, free: bool = False,
-                    **kwargs) -> Simulation:
+def seed_simulation(
+    z_base: float = 40e-9,
+    steps_per_period: int = CANTILEVER_SPECS["steps_per_period"].default,
+    method: str = CANTILEVER_SPECS["integrator"].default,
+    sample=None,
+    free: bool = False,
+    **kwargs,
+) -> Simulation:
     """The seed notebook's cantilever (k=10 N/m, f0=45 kHz, Q=25, A0=60 nm) over its DMT sample."""
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)
@@ -276,8 +402,14 @@ class SurfaceMap:
     names: tuple
 
 
-def surface_map(sample, force_model: str = "dmt", tip: DMTSample | None = None, dilate_tip: bool = True,
-                overrides: dict | None = None, second_apex: tuple | None = None) -> SurfaceMap:
+def surface_map(
+    sample,
+    force_model: str = "dmt",
+    tip: DMTSample | None = None,
+    dilate_tip: bool = True,
+    overrides: dict | None = None,
+    second_apex: tuple | None = None,
+) -> SurfaceMap:
     """SurfaceMap of a :class:`afm_ros.core.samples.Sample` for force model ``force_model``.
 
     Each material's force constants come from the materials table (``sample_for``) with the tip
@@ -289,18 +421,30 @@ def surface_map(sample, force_model: str = "dmt", tip: DMTSample | None = None, 
     """
 
     tip = tip or DMTSample()
-    tip_fields = {"tip_radius": tip.tip_radius, "intermolecular_distance": tip.intermolecular_distance,
-                  "tip_youngs_modulus": tip.tip_youngs_modulus, "tip_poisson_ratio": tip.tip_poisson_ratio}
+    tip_fields = {
+        "tip_radius": tip.tip_radius,
+        "intermolecular_distance": tip.intermolecular_distance,
+        "tip_youngs_modulus": tip.tip_youngs_modulus,
+        "tip_poisson_ratio": tip.tip_poisson_ratio,
+    }
     rows = []
     for name in sample.materials:
-        dmt, viscosity, h_retract = sample_for(name, **{**tip_fields, **(overrides or {}).get(name, {})})
+        dmt, viscosity, h_retract = sample_for(
+            name, **{**tip_fields, **(overrides or {}).get(name, {})}
+        )
         model = make_force_model(force_model, dmt, viscosity=viscosity, hamaker_retract=h_retract)
         rows.append(np.asarray(model.packed(), dtype=np.float64))
     surface = dilate(sample, tip.tip_radius) if dilate_tip else sample
     if second_apex is not None:  # (offset_x, offset_y, height) [m] of a double tip's second apex
         from afm_ros.core.samples.surface import double_tip
+
         surface = double_tip(surface, *second_apex)
-    return SurfaceMap(np.ascontiguousarray(surface.height, dtype=np.float64),
-                      np.ascontiguousarray(surface.material_index, dtype=np.uint8),
-                      float(sample.size_x), float(sample.size_y), np.ascontiguousarray(np.array(rows)),
-                      int(model.model_id), tuple(sample.materials))
+    return SurfaceMap(
+        np.ascontiguousarray(surface.height, dtype=np.float64),
+        np.ascontiguousarray(surface.material_index, dtype=np.uint8),
+        float(sample.size_x),
+        float(sample.size_y),
+        np.ascontiguousarray(np.array(rows)),
+        int(model.model_id),
+        tuple(sample.materials),
+    )

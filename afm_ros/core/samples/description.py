@@ -9,16 +9,17 @@
 
 Missing parameters take the generator's defaults; :func:`describe` gives the complete dict.
 """
+
 from __future__ import annotations
 
 import copy
 import os
+import sys
 
 from afm_ros.core.physics.parameters import DMT_SPECS, parse_number
-from afm_ros.formats import user_files
 from afm_ros.core.samples.generators import GENERATORS, MAP_EXTENSIONS, PAIRS, SPECS, from_file
 from afm_ros.core.samples.surface import Sample, dilate
-import sys
+from afm_ros.formats import user_files
 
 TOP_LEVEL = ("generator", "tip_radius")
 
@@ -34,16 +35,22 @@ def sample_from_description(description: dict, base_dir: str | None = None) -> S
     """The sample of ``description`` (see the module doc); a relative ``from_file`` path is taken
     relative to ``base_dir`` (default the working directory)."""
     if not isinstance(description, dict):
-        raise ValueError(f"a sample description must be a mapping, got {type(description).__name__}")
+        raise ValueError(
+            f"a sample description must be a mapping, got {type(description).__name__}"
+        )
     generator = description.get("generator")
     if generator not in GENERATORS:
-        raise ValueError(f"generator={generator!r} is not known; allowed: "
-                         f"{', '.join(repr(g) for g in GENERATORS)}")
+        raise ValueError(
+            f"generator={generator!r} is not known; allowed: "
+            f"{', '.join(repr(g) for g in GENERATORS)}"
+        )
     specs = SPECS[generator]
     unknown = [k for k in description if k not in specs and k not in TOP_LEVEL]
     if unknown:
-        raise ValueError(f"unknown key(s) {', '.join(repr(k) for k in unknown)} for generator {generator!r}; "
-                         f"allowed: {', '.join(repr(k) for k in (*TOP_LEVEL, *specs))}")
+        raise ValueError(
+            f"unknown key(s) {', '.join(repr(k) for k in unknown)} for generator {generator!r}; "
+            f"allowed: {', '.join(repr(k) for k in (*TOP_LEVEL, *specs))}"
+        )
     kwargs = {}
     for name, value in description.items():
         if name in TOP_LEVEL:
@@ -58,8 +65,9 @@ def sample_from_description(description: dict, base_dir: str | None = None) -> S
         kwargs["path"] = os.path.join(base_dir, os.path.expanduser(kwargs["path"]))
     sample = GENERATORS[generator](**kwargs)
     if description.get("tip_radius") is not None:
-        radius = DMT_SPECS["tip_radius"].validate(_numbers_from_text(DMT_SPECS["tip_radius"],
-                                                                     description["tip_radius"]))
+        radius = DMT_SPECS["tip_radius"].validate(
+            _numbers_from_text(DMT_SPECS["tip_radius"], description["tip_radius"])
+        )
         sample = dilate(sample, radius)
     return sample
 
@@ -80,10 +88,13 @@ def load_sample_file(path) -> Sample:
 
 
 def describe(sample: Sample) -> dict:
-    """The description that rebuilds ``sample`` (generator, every parameter, tip_radius if dilated)."""
+    """The description that rebuilds ``sample`` (generator, every parameter, tip_radius if
+    dilated)."""
     if not sample.description:
-        raise ValueError("the sample has no description (it was not made by a generator); "
-                         "build it with a generator or sample_from_description")
+        raise ValueError(
+            "the sample has no description (it was not made by a generator); "
+            "build it with a generator or sample_from_description"
+        )
     return copy.deepcopy(sample.description)
 
 
@@ -115,7 +126,9 @@ def resolve_sample(spec: str) -> Sample | None:
     they come through a description file). Every sample parameter and ``--sample`` flag goes
     through here. Errors name the sample and the allowed names."""
     if not isinstance(spec, str):
-        raise ValueError(f"sample={spec!r} must be a string: '', 'flat', a built-in name or a file")
+        raise ValueError(
+            f"sample={spec!r} must be a string: '', 'flat', a built-in name or a file"
+        )
     if spec in ("", "flat"):
         return None
     named = builtin_samples()
@@ -128,6 +141,9 @@ def resolve_sample(spec: str) -> Sample | None:
         if ext in MAP_EXTENSIONS:
             return from_file(spec)
         return load_sample_file(spec)
-    raise ValueError(f"sample={spec!r} is not known; allowed: 'flat', "
-                     + ", ".join(repr(n) for n in named) + " or a sample description file (.yaml, .json) or a "
-                     ".gwy height map")
+    raise ValueError(
+        f"sample={spec!r} is not known; allowed: 'flat', "
+        + ", ".join(repr(n) for n in named)
+        + " or a sample description file (.yaml, .json) or a "
+        ".gwy height map"
+    )

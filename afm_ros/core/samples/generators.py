@@ -6,6 +6,7 @@ validated parameter set (``generator`` plus every parameter, defaults filled in)
 [size_x, size_y] [m] and ``pixels`` [cols, rows] (one number: both). Maps are periodic
 (the generators make the pattern continue across the edges; see docs/samples.md).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -17,73 +18,164 @@ from dataclasses import replace
 
 import numpy as np
 from numba import njit
+from PIL import Image
 
 from afm_ros.core.physics.materials import MATERIALS
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.samples.surface import Sample
-from PIL import Image
 
 _MATERIAL_NAMES = tuple(MATERIALS)
 
 
-def _spec(name, unit, description, low=None, high=None, low_open=False, high_open=False, kind=float,
-          choices=()):
+def _spec(
+    name,
+    unit,
+    description,
+    low=None,
+    high=None,
+    low_open=False,
+    high_open=False,
+    kind=float,
+    choices=(),
+):
     # the default is filled in from the generator's signature (one place for each value)
-    return ParamSpec(name, None, unit, description, low, high, low_open, high_open, kind, True, choices)
+    return ParamSpec(
+        name, None, unit, description, low, high, low_open, high_open, kind, True, choices
+    )
 
 
 def _material_spec(name, description):
     return _spec(name, "", description, kind=str, choices=_MATERIAL_NAMES)
 
 
-_SIZE = _spec("size", "m", "[size_x, size_y] of the map (one number: square)", 0.0, 1e-3, low_open=True)
+_SIZE = _spec(
+    "size", "m", "[size_x, size_y] of the map (one number: square)", 0.0, 1e-3, low_open=True
+)
 _PIXELS = _spec("pixels", "1", "[cols, rows] of the map (one number: both)", 4, 4096, kind=int)
-_SEED = _spec("seed", "1", "random seed (same seed, same sample)", 0, 2 ** 62, kind=int)
-_ORIENTATION = _spec("orientation", "", "axis along which the height changes (the edges run across it)",
-                     kind=str, choices=("x", "y"))
+_SEED = _spec("seed", "1", "random seed (same seed, same sample)", 0, 2**62, kind=int)
+_ORIENTATION = _spec(
+    "orientation",
+    "",
+    "axis along which the height changes (the edges run across it)",
+    kind=str,
+    choices=("x", "y"),
+)
 
 SPECS: dict[str, dict[str, ParamSpec]] = {
-    "grating": {s.name: s for s in (
-        _spec("step_height", "m", "height of the lines above the trenches", 0.0, 1e-5),
-        _spec("pitch", "m", "period of the grating (a whole number of periods must fit the size)",
-              0.0, 1e-3, low_open=True),
-        _spec("duty", "1", "fraction of a period covered by the line", 0.0, 1.0, True, True),
-        _SIZE, _PIXELS, _ORIENTATION,
-        _material_spec("line_material", "material of the lines (top)"),
-        _material_spec("trench_material", "material of the trenches (bottom)"))},
-    "blend": {s.name: s for s in (
-        _material_spec("matrix", "material of the matrix (continuous phase, at height 0)"),
-        _material_spec("islands", "material of the round islands"),
-        _spec("island_fraction", "1", "area fraction covered by islands", 0.0, 0.5, low_open=True),
-        _spec("island_radius", "m", "island radius", 0.0, 1e-3, low_open=True),
-        _spec("height_difference", "m", "island height above the matrix (negative: below)", -1e-5, 1e-5),
-        _SIZE, _PIXELS, _SEED)},
-    "terraces": {s.name: s for s in (
-        _spec("step_height", "m", "height of one step", -1e-5, 1e-5),
-        _spec("terrace_width", "m", "width of one terrace", 0.0, 1e-3, low_open=True),
-        _spec("steps", "1", "steps up (then as many down) in one period", 1, 1000, kind=int),
-        _spec("size_across", "m", "size of the map along the terrace edges", 0.0, 1e-3, low_open=True),
-        _PIXELS, _ORIENTATION,
-        _material_spec("material", "material of the whole sample"))},
-    "rough": {s.name: s for s in (
-        _spec("rms", "m", "root-mean-square roughness (exact on the map)", 0.0, 1e-5),
-        _spec("correlation_length", "m", "Gaussian autocorrelation length T: C(r) = rms^2 exp(-r^2/T^2)",
-              0.0, 1e-3, low_open=True),
-        _SIZE, _PIXELS, _SEED,
-        _material_spec("material", "material of the whole sample"))},
-    "from_file": {s.name: s for s in (
-        _spec("path", "", "file: .gwy, .npy or grayscale .png", kind=str),
-        _spec("size", "m", "[size_x, size_y] (.gwy: default the file's real size)", 0.0, 1e-3, low_open=True),
-        _spec("z_scale", "", ".png: height of full scale [m] (required); .npy/.gwy: factor applied to the "
-                             "stored heights [1] (default 1)", 0.0, 1e3, low_open=True),
-        _spec("channel", "", ".gwy: title of the channel (default the first)", kind=str),
-        _material_spec("material", "material of the whole sample"),
-        _spec("sha256", "", "expected SHA-256 of the file (checked when given)", kind=str))},
+    "grating": {
+        s.name: s
+        for s in (
+            _spec("step_height", "m", "height of the lines above the trenches", 0.0, 1e-5),
+            _spec(
+                "pitch",
+                "m",
+                "period of the grating (a whole number of periods must fit the size)",
+                0.0,
+                1e-3,
+                low_open=True,
+            ),
+            _spec("duty", "1", "fraction of a period covered by the line", 0.0, 1.0, True, True),
+            _SIZE,
+            _PIXELS,
+            _ORIENTATION,
+            _material_spec("line_material", "material of the lines (top)"),
+            _material_spec("trench_material", "material of the trenches (bottom)"),
+        )
+    },
+    "blend": {
+        s.name: s
+        for s in (
+            _material_spec("matrix", "material of the matrix (continuous phase, at height 0)"),
+            _material_spec("islands", "material of the round islands"),
+            _spec(
+                "island_fraction", "1", "area fraction covered by islands", 0.0, 0.5, low_open=True
+            ),
+            _spec("island_radius", "m", "island radius", 0.0, 1e-3, low_open=True),
+            _spec(
+                "height_difference",
+                "m",
+                "island height above the matrix (negative: below)",
+                -1e-5,
+                1e-5,
+            ),
+            _SIZE,
+            _PIXELS,
+            _SEED,
+        )
+    },
+    "terraces": {
+        s.name: s
+        for s in (
+            _spec("step_height", "m", "height of one step", -1e-5, 1e-5),
+            _spec("terrace_width", "m", "width of one terrace", 0.0, 1e-3, low_open=True),
+            _spec("steps", "1", "steps up (then as many down) in one period", 1, 1000, kind=int),
+            _spec(
+                "size_across",
+                "m",
+                "size of the map along the terrace edges",
+                0.0,
+                1e-3,
+                low_open=True,
+            ),
+            _PIXELS,
+            _ORIENTATION,
+            _material_spec("material", "material of the whole sample"),
+        )
+    },
+    "rough": {
+        s.name: s
+        for s in (
+            _spec("rms", "m", "root-mean-square roughness (exact on the map)", 0.0, 1e-5),
+            _spec(
+                "correlation_length",
+                "m",
+                "Gaussian autocorrelation length T: C(r) = rms^2 exp(-r^2/T^2)",
+                0.0,
+                1e-3,
+                low_open=True,
+            ),
+            _SIZE,
+            _PIXELS,
+            _SEED,
+            _material_spec("material", "material of the whole sample"),
+        )
+    },
+    "from_file": {
+        s.name: s
+        for s in (
+            _spec("path", "", "file: .gwy, .npy or grayscale .png", kind=str),
+            _spec(
+                "size",
+                "m",
+                "[size_x, size_y] (.gwy: default the file's real size)",
+                0.0,
+                1e-3,
+                low_open=True,
+            ),
+            _spec(
+                "z_scale",
+                "",
+                ".png: height of full scale [m] (required); .npy/.gwy: factor applied to the "
+                "stored heights [1] (default 1)",
+                0.0,
+                1e3,
+                low_open=True,
+            ),
+            _spec("channel", "", ".gwy: title of the channel (default the first)", kind=str),
+            _material_spec("material", "material of the whole sample"),
+            _spec("sha256", "", "expected SHA-256 of the file (checked when given)", kind=str),
+        )
+    },
 }
 # parameters given as one value or an [x, y] pair
 PAIRS = {"size", "pixels"}
 # parameters that may be None (meaning: see their description)
-OPTIONAL = {("from_file", "size"), ("from_file", "z_scale"), ("from_file", "channel"), ("from_file", "sha256")}
+OPTIONAL = {
+    ("from_file", "size"),
+    ("from_file", "z_scale"),
+    ("from_file", "channel"),
+    ("from_file", "sha256"),
+}
 
 
 def _sha256_text(value) -> str:
@@ -93,15 +185,20 @@ def _sha256_text(value) -> str:
     if isinstance(value, int) and not isinstance(value, bool) and len(str(value)) == 64:
         value = str(value)
     if not isinstance(value, str):
-        raise ValueError(f"sha256={value!r} must be text of 64 hex digits; YAML reads an all-digit value as a "
-                         f"number: quote it (sha256: '0123...')")
+        raise ValueError(
+            f"sha256={value!r} must be text of 64 hex digits; YAML reads an all-digit value as a "
+            f"number: quote it (sha256: '0123...')"
+        )
     if not re.fullmatch(r"[0-9a-fA-F]{64}", value):
-        raise ValueError(f"sha256={value!r} is not 64 hex digits (a SHA-256 digest, e.g. from sha256sum)")
+        raise ValueError(
+            f"sha256={value!r} is not 64 hex digits (a SHA-256 digest, e.g. from sha256sum)"
+        )
     return value.lower()
 
 
 def check(generator: str, name: str, value):
-    """``value`` of parameter ``name`` of ``generator``, validated and normalised (pairs as tuples)."""
+    """``value`` of parameter ``name`` of ``generator``, validated and normalised (pairs as
+    tuples)."""
     spec = SPECS[generator][name]
     if value is None and (generator, name) in OPTIONAL:
         return None
@@ -111,7 +208,9 @@ def check(generator: str, name: str, value):
         if isinstance(value, (list, tuple, np.ndarray)):
             if len(value) != 2:
                 raise ValueError(f"{name}={value!r} must be one number or a pair [x, y]")
-            return tuple(replace(spec, name=f"{name}[{k}]").validate(v) for k, v in enumerate(value))
+            return tuple(
+                replace(spec, name=f"{name}[{k}]").validate(v) for k, v in enumerate(value)
+            )
         v = spec.validate(value)
         return (v, v)
     if isinstance(value, np.generic):
@@ -129,8 +228,10 @@ def _description(generator: str, values: dict) -> dict:
 
 def _count_along(name: str, length: float, pixel: float, what: str, minimum: float = 2.0) -> None:
     if length < minimum * pixel * (1 - 1e-9):
-        raise ValueError(f"{name}: {what} of {length:.4g} m spans fewer than {minimum:g} pixels of "
-                         f"{pixel:.4g} m; allowed: >= {minimum * pixel:.4g} m (or use more pixels)")
+        raise ValueError(
+            f"{name}: {what} of {length:.4g} m spans fewer than {minimum:g} pixels of "
+            f"{pixel:.4g} m; allowed: >= {minimum * pixel:.4g} m (or use more pixels)"
+        )
 
 
 def _materials_map(names: list[str], mask: np.ndarray | None, shape) -> tuple[tuple, np.ndarray]:
@@ -145,9 +246,16 @@ def _checked(generator: str, values: dict) -> dict:
 
 
 # --- grating ---------------------------------------------------------------------------------
-def grating(step_height: float = 20e-9, pitch: float = 3e-6, duty: float = 0.5,
-            size=(12e-6, 12e-6), pixels=512, orientation: str = "x",
-            line_material: str = "silicon_oxide", trench_material: str = "silicon") -> Sample:
+def grating(
+    step_height: float = 20e-9,
+    pitch: float = 3e-6,
+    duty: float = 0.5,
+    size=(12e-6, 12e-6),
+    pixels=512,
+    orientation: str = "x",
+    line_material: str = "silicon_oxide",
+    trench_material: str = "silicon",
+) -> Sample:
     """Square-step grating like the TGZ calibration series (SiO2 lines on Si).
 
     Lines of ``step_height`` [m] (trenches at 0) with period ``pitch`` [m]; a line covers
@@ -155,30 +263,49 @@ def grating(step_height: float = 20e-9, pitch: float = 3e-6, duty: float = 0.5,
     lines run along y). A pixel belongs to a line if its centre does. The size along the
     orientation must hold a whole number of periods (the map is periodic).
     """
-    p = _checked("grating", dict(step_height=step_height, pitch=pitch, duty=duty, size=size, pixels=pixels,
-                                 orientation=orientation, line_material=line_material,
-                                 trench_material=trench_material))
+    p = _checked(
+        "grating",
+        dict(
+            step_height=step_height,
+            pitch=pitch,
+            duty=duty,
+            size=size,
+            pixels=pixels,
+            orientation=orientation,
+            line_material=line_material,
+            trench_material=trench_material,
+        ),
+    )
     (sx, sy), (cols, rows) = p["size"], p["pixels"]
     along, n_pix = (sx, cols) if p["orientation"] == "x" else (sy, rows)
     periods = along / p["pitch"]
     if abs(periods - round(periods)) > 1e-9 * periods or round(periods) < 1:
         suggestion = along / max(1, round(periods))
-        raise ValueError(f"pitch={p['pitch']!r} m must fit a whole number of times into the size along "
-                         f"{p['orientation']} ({along!r} m) for a periodic sample; e.g. pitch={suggestion:.6g} m")
+        raise ValueError(
+            f"pitch={p['pitch']!r} m must fit a whole number of times into the size along "
+            f"{p['orientation']} ({along!r} m) for a periodic sample; e.g. pitch={suggestion:.6g} "
+            "m"
+        )
     px = along / n_pix
     _count_along("duty", p["duty"] * p["pitch"], px, "the line")
     _count_along("duty", (1 - p["duty"]) * p["pitch"], px, "the trench")
     centres = (np.arange(n_pix) + 0.5) * px
     line = np.mod(centres / p["pitch"], 1.0) < p["duty"]
-    mask = np.broadcast_to(line[None, :] if p["orientation"] == "x" else line[:, None], (rows, cols))
+    mask = np.broadcast_to(
+        line[None, :] if p["orientation"] == "x" else line[:, None], (rows, cols)
+    )
     height = np.where(mask, p["step_height"], 0.0)
-    materials, index = _materials_map([p["trench_material"], p["line_material"]], mask, (rows, cols))
+    materials, index = _materials_map(
+        [p["trench_material"], p["line_material"]], mask, (rows, cols)
+    )
     return Sample(height, index, materials, sx, sy, _description("grating", p))
 
 
 # --- blend -----------------------------------------------------------------------------------
 @njit(cache=True)
-def _place_islands(order, cols, island_di, island_dj, keep_out_di, keep_out_dj, count, mask, forbidden):
+def _place_islands(
+    order, cols, island_di, island_dj, keep_out_di, keep_out_dj, count, mask, forbidden
+):
     """Walk the pixels in the random ``order``; put an island centre on each one not forbidden,
     paint its disk into ``mask`` and forbid centres within the keep-out disk, until ``count``
     islands stand. Returns the number placed (fewer: the map is jammed)."""
@@ -207,9 +334,16 @@ def _disk(radius: float, px: float, py: float):
     return di[inside].astype(np.int64), dj[inside].astype(np.int64)
 
 
-def blend(matrix: str = "polystyrene", islands: str = "ldpe", island_fraction: float = 0.3,
-          island_radius: float = 0.5e-6, height_difference: float = 10e-9, size=(10e-6, 10e-6),
-          pixels=512, seed: int = 0) -> Sample:
+def blend(
+    matrix: str = "polystyrene",
+    islands: str = "ldpe",
+    island_fraction: float = 0.3,
+    island_radius: float = 0.5e-6,
+    height_difference: float = 10e-9,
+    size=(10e-6, 10e-6),
+    pixels=512,
+    seed: int = 0,
+) -> Sample:
     """Round islands of ``islands`` in a ``matrix`` at height 0 (a polymer blend film).
 
     Islands: disks of radius ``island_radius`` [m] (all pixels whose centre is within it),
@@ -218,29 +352,48 @@ def blend(matrix: str = "polystyrene", islands: str = "ldpe", island_fraction: f
     is the one whose pixel fraction is closest to ``island_fraction``: off by at most half an
     island's pixel count over the map's.
     """
-    p = _checked("blend", dict(matrix=matrix, islands=islands, island_fraction=island_fraction,
-                               island_radius=island_radius, height_difference=height_difference,
-                               size=size, pixels=pixels, seed=seed))
+    p = _checked(
+        "blend",
+        dict(
+            matrix=matrix,
+            islands=islands,
+            island_fraction=island_fraction,
+            island_radius=island_radius,
+            height_difference=height_difference,
+            size=size,
+            pixels=pixels,
+            seed=seed,
+        ),
+    )
     (sx, sy), (cols, rows) = p["size"], p["pixels"]
     px, py = sx / cols, sy / rows
     r = p["island_radius"]
     _count_along("island_radius", r, max(px, py), "the island radius")
     if r > min(sx, sy) / 4:
-        raise ValueError(f"island_radius={r!r} m is out of range; allowed up to a quarter of the smaller "
-                         f"side, {min(sx, sy) / 4:.4g} m")
+        raise ValueError(
+            f"island_radius={r!r} m is out of range; allowed up to a quarter of the smaller "
+            f"side, {min(sx, sy) / 4:.4g} m"
+        )
     island_di, island_dj = _disk(r, px, py)
-    gap = math.hypot(px, py)  # centres more than 2 r + one pixel diagonal apart: islands never touch
+    gap = math.hypot(
+        px, py
+    )  # centres more than 2 r + one pixel diagonal apart: islands never touch
     keep_di, keep_dj = _disk(2 * r + gap, px, py)
     per_island = island_di.size
     count = int(round(p["island_fraction"] * rows * cols / per_island))
     mask = np.zeros((rows, cols), np.uint8)
     forbidden = np.zeros((rows, cols), np.uint8)
     order = np.random.default_rng(p["seed"]).permutation(rows * cols)
-    placed = _place_islands(order, cols, island_di, island_dj, keep_di, keep_dj, count, mask, forbidden)
+    placed = _place_islands(
+        order, cols, island_di, island_dj, keep_di, keep_dj, count, mask, forbidden
+    )
     if placed < count:
-        raise ValueError(f"island_fraction={p['island_fraction']!r} is too high for island_radius={r!r} m: "
-                         f"the map is full of non-touching islands at {placed * per_island / (rows * cols):.3f}; "
-                         f"lower island_fraction or island_radius")
+        raise ValueError(
+            f"island_fraction={p['island_fraction']!r} is too high for island_radius={r!r} m: "
+            "the map is full of non-touching islands at "
+            f"{placed * per_island / (rows * cols):.3f}; "
+            f"lower island_fraction or island_radius"
+        )
     island = mask.astype(bool)
     height = np.where(island, p["height_difference"], 0.0)
     materials, index = _materials_map([p["matrix"], p["islands"]], island, (rows, cols))
@@ -248,22 +401,39 @@ def blend(matrix: str = "polystyrene", islands: str = "ldpe", island_fraction: f
 
 
 # --- terraces --------------------------------------------------------------------------------
-def terraces(step_height: float = 2e-9, terrace_width: float = 1e-6, steps: int = 5,
-             size_across: float = 10e-6, pixels=512, orientation: str = "x",
-             material: str = "silicon") -> Sample:
+def terraces(
+    step_height: float = 2e-9,
+    terrace_width: float = 1e-6,
+    steps: int = 5,
+    size_across: float = 10e-6,
+    pixels=512,
+    orientation: str = "x",
+    material: str = "silicon",
+) -> Sample:
     """A staircase of ``steps`` steps up, then as many down, of ``step_height`` [m] each.
 
     Terrace k (k = 0 .. 2 steps - 1, each ``terrace_width`` [m] wide along ``orientation``) is at
     height min(k, 2 steps - k) * step_height, so the period is 2 steps terrace_width (the size
     along the orientation) and every edge, the periodic wrap included, is a single step.
     """
-    p = _checked("terraces", dict(step_height=step_height, terrace_width=terrace_width, steps=steps,
-                                  size_across=size_across, pixels=pixels, orientation=orientation,
-                                  material=material))
+    p = _checked(
+        "terraces",
+        dict(
+            step_height=step_height,
+            terrace_width=terrace_width,
+            steps=steps,
+            size_across=size_across,
+            pixels=pixels,
+            orientation=orientation,
+            material=material,
+        ),
+    )
     along = 2 * p["steps"] * p["terrace_width"]
     if along > 1e-3:
-        raise ValueError(f"steps={p['steps']} x terrace_width={p['terrace_width']!r} m gives a period of "
-                         f"{along:.4g} m; allowed: 2 steps terrace_width <= 0.001 m")
+        raise ValueError(
+            f"steps={p['steps']} x terrace_width={p['terrace_width']!r} m gives a period of "
+            f"{along:.4g} m; allowed: 2 steps terrace_width <= 0.001 m"
+        )
     cols, rows = p["pixels"]
     n_pix = cols if p["orientation"] == "x" else rows
     _count_along("terrace_width", p["terrace_width"], along / n_pix, "a terrace")
@@ -274,27 +444,50 @@ def terraces(step_height: float = 2e-9, terrace_width: float = 1e-6, steps: int 
         height, sx, sy = np.broadcast_to(level[None, :], (rows, cols)), along, p["size_across"]
     else:
         height, sx, sy = np.broadcast_to(level[:, None], (rows, cols)), p["size_across"], along
-    return Sample(height, np.zeros((rows, cols), np.uint8), (p["material"],), sx, sy,
-                  _description("terraces", p))
+    return Sample(
+        height,
+        np.zeros((rows, cols), np.uint8),
+        (p["material"],),
+        sx,
+        sy,
+        _description("terraces", p),
+    )
 
 
 # --- rough -----------------------------------------------------------------------------------
-def rough(rms: float = 1e-9, correlation_length: float = 50e-9, size=(2e-6, 2e-6), pixels=512,
-          seed: int = 0, material: str = "silicon") -> Sample:
+def rough(
+    rms: float = 1e-9,
+    correlation_length: float = 50e-9,
+    size=(2e-6, 2e-6),
+    pixels=512,
+    seed: int = 0,
+    material: str = "silicon",
+) -> Sample:
     """Gaussian random surface with Gaussian autocorrelation rms^2 exp(-r^2 / T^2).
 
     White noise (``seed``) filtered by exp(-k^2 T^2 / 8) in Fourier space (periodic by
     construction), then shifted to mean 0 and scaled to exactly ``rms`` [m] on the map.
     T = ``correlation_length`` [m] must span >= 2 pixels and <= 1/8 of the smaller side.
     """
-    p = _checked("rough", dict(rms=rms, correlation_length=correlation_length, size=size, pixels=pixels,
-                               seed=seed, material=material))
+    p = _checked(
+        "rough",
+        dict(
+            rms=rms,
+            correlation_length=correlation_length,
+            size=size,
+            pixels=pixels,
+            seed=seed,
+            material=material,
+        ),
+    )
     (sx, sy), (cols, rows) = p["size"], p["pixels"]
     t = p["correlation_length"]
     _count_along("correlation_length", t, max(sx / cols, sy / rows), "the correlation length")
     if t > min(sx, sy) / 8:
-        raise ValueError(f"correlation_length={t!r} m is out of range; allowed up to 1/8 of the smaller side, "
-                         f"{min(sx, sy) / 8:.4g} m (fewer patches would not show the statistics)")
+        raise ValueError(
+            f"correlation_length={t!r} m is out of range; allowed up to 1/8 of the smaller side, "
+            f"{min(sx, sy) / 8:.4g} m (fewer patches would not show the statistics)"
+        )
     white = np.random.default_rng(p["seed"]).standard_normal((rows, cols))
     kx = 2 * np.pi * np.fft.rfftfreq(cols, sx / cols)
     ky = 2 * np.pi * np.fft.fftfreq(rows, sy / rows)
@@ -303,7 +496,9 @@ def rough(rms: float = 1e-9, correlation_length: float = 50e-9, size=(2e-6, 2e-6
     z -= z.mean()
     std = z.std()
     z = z * (p["rms"] / std) if std > 0 else z
-    return Sample(z, np.zeros((rows, cols), np.uint8), (p["material"],), sx, sy, _description("rough", p))
+    return Sample(
+        z, np.zeros((rows, cols), np.uint8), (p["material"],), sx, sy, _description("rough", p)
+    )
 
 
 # --- from_file -------------------------------------------------------------------------------
@@ -313,7 +508,7 @@ MAP_EXTENSIONS = (".gwy", ".npy", ".png")
 # and tip-dilating a map happen where the sample is chosen (the cantilever checks a new `sample`
 # in its parameter callback), so the bound keeps that answer to a few seconds (docs/samples.md).
 MAX_MAP_PIXELS = 4096 * 4096
-MAX_MAP_FILE_BYTES = 256 * 2 ** 20
+MAX_MAP_FILE_BYTES = 256 * 2**20
 
 
 def _map_shape(path: str, ext: str) -> tuple[int, int] | None:
@@ -341,13 +536,17 @@ def check_map_file(path: str) -> None:
     except OSError as e:
         raise OSError(e.errno, f"cannot read sample file {path}: {e.strerror}") from e
     if size > MAX_MAP_FILE_BYTES:
-        raise ValueError(f"{path}: the file has {size / 2 ** 20:.1f} MiB; allowed at most "
-                         f"{MAX_MAP_FILE_BYTES / 2 ** 20:g} MiB for a sample map (at most 4096 x 4096 pixels; "
-                         f"crop or resample it, or keep only its height channel)")
+        raise ValueError(
+            f"{path}: the file has {size / 2**20:.1f} MiB; allowed at most "
+            f"{MAX_MAP_FILE_BYTES / 2**20:g} MiB for a sample map (at most 4096 x 4096 pixels; "
+            f"crop or resample it, or keep only its height channel)"
+        )
     shape = _map_shape(path, os.path.splitext(path)[1].lower())
     if shape is not None and shape[0] * shape[1] > MAX_MAP_PIXELS:
-        raise ValueError(f"{path}: the map has {shape[1]} x {shape[0]} pixels; allowed at most "
-                         f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)")
+        raise ValueError(
+            f"{path}: the map has {shape[1]} x {shape[0]} pixels; allowed at most "
+            f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)"
+        )
 
 
 def _sha256(path: str) -> str:
@@ -370,8 +569,10 @@ def _png_depth(path: str) -> tuple[int, int]:
 def _read_png(path: str) -> tuple[np.ndarray, int]:
     depth, colour = _png_depth(path)
     if colour != 0 or depth not in (8, 16):
-        raise ValueError(f"{path}: PNG of bit depth {depth}, colour type {colour}; allowed: 8- or 16-bit "
-                         f"grayscale without alpha (colour type 0)")
+        raise ValueError(
+            f"{path}: PNG of bit depth {depth}, colour type {colour}; allowed: 8- or 16-bit "
+            f"grayscale without alpha (colour type 0)"
+        )
     try:
         with Image.open(path) as img:
             values = np.array(img, dtype=np.float64)
@@ -380,8 +581,14 @@ def _read_png(path: str) -> tuple[np.ndarray, int]:
     return values, depth
 
 
-def from_file(path: str, size=None, z_scale: float | None = None, channel: str | None = None,
-              material: str = "silicon", sha256: str | None = None) -> Sample:
+def from_file(
+    path: str,
+    size=None,
+    z_scale: float | None = None,
+    channel: str | None = None,
+    material: str = "silicon",
+    sha256: str | None = None,
+) -> Sample:
     """A measured or drawn height map: ``.gwy``, ``.npy`` or grayscale ``.png`` (one material).
 
     .gwy: channel ``channel`` (default the first; its z unit must be "m"), size from the file
@@ -390,30 +597,47 @@ def from_file(path: str, size=None, z_scale: float | None = None, channel: str |
     height = value / full scale * ``z_scale`` [m]; ``size`` and ``z_scale`` required. Row 0 is
     the image's top row (y = 0). ``sha256``: if given, the file must have this hash.
     """
-    p = _checked("from_file", dict(path=path if not isinstance(path, os.PathLike) else os.fspath(path),
-                                   size=size, z_scale=z_scale, channel=channel, material=material,
-                                   sha256=sha256))
+    p = _checked(
+        "from_file",
+        dict(
+            path=path if not isinstance(path, os.PathLike) else os.fspath(path),
+            size=size,
+            z_scale=z_scale,
+            channel=channel,
+            material=material,
+            sha256=sha256,
+        ),
+    )
     path = os.path.abspath(p["path"])
     ext = os.path.splitext(path)[1].lower()
     if ext not in MAP_EXTENSIONS:
-        raise ValueError(f"path={path!r} has the extension {ext!r}; allowed: '.gwy', '.npy', '.png'")
+        raise ValueError(
+            f"path={path!r} has the extension {ext!r}; allowed: '.gwy', '.npy', '.png'"
+        )
     check_map_file(path)
     try:
         digest = _sha256(path)
     except OSError as e:
         raise OSError(e.errno, f"cannot read sample file {path}: {e.strerror}") from e
     if p["sha256"] is not None and p["sha256"] != digest:
-        raise ValueError(f"{path}: SHA-256 is {digest}, the description expects sha256={p['sha256']!r}")
+        raise ValueError(
+            f"{path}: SHA-256 is {digest}, the description expects sha256={p['sha256']!r}"
+        )
     if ext == ".gwy":
         from afm_ros.formats.gwy import read_gwy
+
         image = read_gwy(path)
         title = next(iter(image.channels)) if p["channel"] is None else p["channel"]
         if title not in image.channels:
-            raise ValueError(f"{path}: channel={title!r} is not in the file; allowed: "
-                             f"{', '.join(repr(t) for t in image.channels)}")
+            raise ValueError(
+                f"{path}: channel={title!r} is not in the file; allowed: "
+                f"{', '.join(repr(t) for t in image.channels)}"
+            )
         values, unit = image.channels[title]
         if unit != "m":
-            raise ValueError(f"{path}: channel {title!r} has z unit {unit!r}; a height map needs 'm'")
+            raise ValueError(
+                f"{path}: channel {title!r} has z unit {unit!r}; a height map needs 'm'"
+            )
         if image.xy_unit not in ("m", ""):
             raise ValueError(f"{path}: lateral unit {image.xy_unit!r}; a height map needs 'm'")
         p["channel"] = title
@@ -427,36 +651,62 @@ def from_file(path: str, size=None, z_scale: float | None = None, channel: str |
         try:
             values = np.load(path, allow_pickle=False)
         except Exception as e:
-            raise ValueError(f"{path}: not a readable .npy array ({type(e).__name__}: {e})") from None
+            raise ValueError(
+                f"{path}: not a readable .npy array ({type(e).__name__}: {e})"
+            ) from None
         real = np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
         if values.ndim != 2 or not real:
-            raise ValueError(f"{path}: needs a 2D array of real numbers, got {values.dtype} of shape {values.shape}")
+            raise ValueError(
+                f"{path}: needs a 2D array of real numbers, got {values.dtype} of shape "
+                f"{values.shape}"
+            )
         scale = 1.0 if p["z_scale"] is None else p["z_scale"]
     else:
         values, depth = _read_png(path)
         if p["z_scale"] is None:
-            raise ValueError(f"{path}: z_scale (height of full scale [m]) is required for a PNG; "
-                             f"allowed range {SPECS['from_file']['z_scale'].range_text()}")
-        scale = p["z_scale"] / (2 ** depth - 1)
+            raise ValueError(
+                f"{path}: z_scale (height of full scale [m]) is required for a PNG; "
+                f"allowed range {SPECS['from_file']['z_scale'].range_text()}"
+            )
+        scale = p["z_scale"] / (2**depth - 1)
     if ext != ".gwy":
         if p["size"] is None:
-            raise ValueError(f"{path}: size [size_x, size_y] [m] is required for a {ext} file; "
-                             f"allowed range {SPECS['from_file']['size'].range_text()}")
+            raise ValueError(
+                f"{path}: size [size_x, size_y] [m] is required for a {ext} file; "
+                f"allowed range {SPECS['from_file']['size'].range_text()}"
+            )
         if p["channel"] is not None:
-            raise ValueError(f"channel={p['channel']!r} applies to .gwy files only; {path} is {ext}")
+            raise ValueError(
+                f"channel={p['channel']!r} applies to .gwy files only; {path} is {ext}"
+            )
     if np.size(values) > MAX_MAP_PIXELS:
-        raise ValueError(f"{path}: the map has {np.shape(values)[-1]} x {np.shape(values)[0]} pixels; allowed at most "
-                         f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)")
+        raise ValueError(
+            f"{path}: the map has {np.shape(values)[-1]} x {np.shape(values)[0]} pixels; allowed "
+            "at most "
+            f"{MAX_MAP_PIXELS} pixels (4096 x 4096; resample it)"
+        )
     height = np.asarray(values, dtype=np.float64) * scale
     if not np.all(np.isfinite(height)):
         raise ValueError(f"{path}: the height map has non-finite values")
     p["path"], p["sha256"] = path, digest
     sx, sy = p["size"]
-    return Sample(height, np.zeros(height.shape, np.uint8), (p["material"],), sx, sy,
-                  _description("from_file", p))
+    return Sample(
+        height,
+        np.zeros(height.shape, np.uint8),
+        (p["material"],),
+        sx,
+        sy,
+        _description("from_file", p),
+    )
 
 
-GENERATORS = {"grating": grating, "blend": blend, "terraces": terraces, "rough": rough, "from_file": from_file}
+GENERATORS = {
+    "grating": grating,
+    "blend": blend,
+    "terraces": terraces,
+    "rough": rough,
+    "from_file": from_file,
+}
 
 
 def _fill_defaults() -> None:
@@ -465,7 +715,9 @@ def _fill_defaults() -> None:
         assert list(signature.parameters) == list(SPECS[name]), name
         for param, spec in SPECS[name].items():
             default = signature.parameters[param].default
-            SPECS[name][param] = replace(spec, default=None if default is inspect.Parameter.empty else default)
+            SPECS[name][param] = replace(
+                spec, default=None if default is inspect.Parameter.empty else default
+            )
 
 
 _fill_defaults()

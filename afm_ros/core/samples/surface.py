@@ -7,6 +7,7 @@ x in [j px, (j+1) px), y in [i py, (i+1) py) and its value belongs to its centre
 ((j + 0.5) px, (i + 0.5) py). Outside [0, size_x) x [0, size_y) the sample repeats
 periodically: every position is taken modulo the size.
 """
+
 from __future__ import annotations
 
 import copy
@@ -19,7 +20,8 @@ from numba import njit
 from afm_ros.core.physics.materials import MATERIALS, material
 from afm_ros.core.physics.parameters import DMT_SPECS
 
-# the square around the disk of offsets a tip dilation visits is kept below this many pixels (memory, time)
+# the square around the disk of offsets a tip dilation visits is kept below this many pixels
+# (memory, time)
 MAX_DILATION_OFFSETS = 1_000_000
 
 
@@ -37,28 +39,41 @@ class Sample:
     def __post_init__(self):
         h = np.array(self.height, dtype=np.float64, order="C")  # a copy: the caller keeps theirs
         if h.ndim != 2 or h.shape[0] < 1 or h.shape[1] < 1:
-            raise ValueError(f"height must be a non-empty 2D array [rows, cols], got shape {np.shape(self.height)}")
+            raise ValueError(
+                "height must be a non-empty 2D array [rows, cols], got shape "
+                f"{np.shape(self.height)}"
+            )
         if not np.all(np.isfinite(h)):
             raise ValueError("height has non-finite values")
         m = np.asarray(self.material_index)
         if m.shape != h.shape:
-            raise ValueError(f"material_index has shape {m.shape}; it must have height's shape {h.shape}")
+            raise ValueError(
+                f"material_index has shape {m.shape}; it must have height's shape {h.shape}"
+            )
         if m.size and (not np.issubdtype(m.dtype, np.integer) or m.min() < 0 or m.max() > 255):
             raise ValueError("material_index must hold integers in [0, 255]")
         m = np.array(m, dtype=np.uint8, order="C")
         names = (self.materials,) if isinstance(self.materials, str) else tuple(self.materials)
         if not names:
-            raise ValueError("materials must name at least one material; allowed: "
-                             + ", ".join(repr(n) for n in MATERIALS))
+            raise ValueError(
+                "materials must name at least one material; allowed: "
+                + ", ".join(repr(n) for n in MATERIALS)
+            )
         for n in names:
             material(n)  # ValueError naming material and the allowed names
         if int(m.max()) >= len(names):
-            raise ValueError(f"material_index holds {int(m.max())} but materials has only {len(names)} "
-                             f"entries {names}")
+            raise ValueError(
+                f"material_index holds {int(m.max())} but materials has only {len(names)} "
+                f"entries {names}"
+            )
         for name in ("size_x", "size_y"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
-                    or not math.isfinite(v) or v <= 0:
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float, np.integer, np.floating))
+                or not math.isfinite(v)
+                or v <= 0
+            ):
                 raise ValueError(f"{name}={v!r} m must be a finite number > 0")
             object.__setattr__(self, name, float(v))
         object.__setattr__(self, "height", h)
@@ -83,7 +98,9 @@ class Sample:
 
     def surface(self, x: float, y: float) -> tuple[float, str]:
         """(height [m], material name) at (x, y) [m]: :func:`surface_at` for Python callers."""
-        z, k = surface_at(self.height, self.material_index, self.size_x, self.size_y, float(x), float(y))
+        z, k = surface_at(
+            self.height, self.material_index, self.size_x, self.size_y, float(x), float(y)
+        )
         return z, self.materials[k]
 
 
@@ -115,15 +132,17 @@ def surface_at(height, material_index, size_x, size_y, x, y):
     i1 = i0 + 1
     if i1 == rows:
         i1 = 0
-    z = ((1.0 - fv) * ((1.0 - fu) * height[i0, j0] + fu * height[i0, j1])
-         + fv * ((1.0 - fu) * height[i1, j0] + fu * height[i1, j1]))
+    z = (1.0 - fv) * ((1.0 - fu) * height[i0, j0] + fu * height[i0, j1]) + fv * (
+        (1.0 - fu) * height[i1, j0] + fu * height[i1, j1]
+    )
     jm = int(math.floor(xr / size_x * cols)) % cols
     im = int(math.floor(yr / size_y * rows)) % rows
     return z, int(material_index[im, jm])
 
 
 def _disk_offsets(radius: float, pixel_x: float, pixel_y: float):
-    """Offsets (di, dj) with (dj px)^2 + (di py)^2 <= R^2, nearest first, and their cap drop [m]."""
+    """Offsets (di, dj) with (dj px)^2 + (di py)^2 <= R^2, nearest first, and their cap drop
+    [m]."""
     ni, nj = int(radius // pixel_y), int(radius // pixel_x)
     di, dj = np.meshgrid(np.arange(-ni, ni + 1), np.arange(-nj, nj + 1), indexing="ij")
     r2 = (dj * pixel_x) ** 2 + (di * pixel_y) ** 2
@@ -181,10 +200,14 @@ def dilate(sample: Sample, tip_radius: float) -> Sample:
     count = (2 * int(radius // px) + 1) * (2 * int(radius // py) + 1)
     if count > MAX_DILATION_OFFSETS:
         limit = (math.sqrt(MAX_DILATION_OFFSETS) - 1) / 2 * min(px, py)
-        raise ValueError(f"tip_radius={radius!r} m spans {count} pixels of {px:.3g} x {py:.3g} m; allowed "
-                         f"up to about {limit:.3g} m at this pixel size (use fewer, larger pixels)")
+        raise ValueError(
+            f"tip_radius={radius!r} m spans {count} pixels of {px:.3g} x {py:.3g} m; allowed "
+            f"up to about {limit:.3g} m at this pixel size (use fewer, larger pixels)"
+        )
     di, dj, drop = _disk_offsets(radius, px, py)
-    di %= sample.shape[0]  # the kernel wraps with one subtraction, so offsets are taken modulo the map
+    di %= sample.shape[
+        0
+    ]  # the kernel wraps with one subtraction, so offsets are taken modulo the map
     dj %= sample.shape[1]
     out_h = np.empty_like(sample.height)
     out_m = np.empty_like(sample.material_index)
@@ -192,20 +215,30 @@ def dilate(sample: Sample, tip_radius: float) -> Sample:
     description = dict(sample.description)
     if description:
         if "tip_radius" in description:
-            raise ValueError(f"the sample is already dilated (tip_radius={description['tip_radius']!r} m)")
+            raise ValueError(
+                f"the sample is already dilated (tip_radius={description['tip_radius']!r} m)"
+            )
         description["tip_radius"] = radius
     return Sample(out_h, out_m, sample.materials, sample.size_x, sample.size_y, description)
 
 
 def double_tip(dilated: Sample, offset_x: float, offset_y: float, height: float) -> Sample:
-    """The surface a double tip follows: its main apex's surface ``dilated`` (already dilated by the
-    apex sphere) and a second apex ``offset_x``, ``offset_y`` [m] away from it (rounded to whole map
-    pixels) and ``height`` [m] >= 0 higher up, dilated by the same sphere: the tip rests on whichever
-    apex meets the sample first, max(D(x), D(x + offset) - height); the material is that apex's. A
-    feature at X then also images at X - offset, ``height`` lower (the "ghost" of a double tip)."""
-    if not (math.isfinite(offset_x) and math.isfinite(offset_y) and math.isfinite(height) and height >= 0):
-        raise ValueError(f"double tip offset ({offset_x!r}, {offset_y!r}) m and height {height!r} m must be "
-                         "finite, the height >= 0")
+    """The surface a double tip follows: its main apex's surface ``dilated`` (already dilated by
+    the apex sphere) and a second apex ``offset_x``, ``offset_y`` [m] away from it (rounded to
+    whole map pixels) and ``height`` [m] >= 0 higher up, dilated by the same sphere: the tip rests
+    on whichever apex meets the sample first, max(D(x), D(x + offset) - height); the material is
+    that apex's. A feature at X then also images at X - offset, ``height`` lower (the "ghost" of a
+    double tip)."""
+    if not (
+        math.isfinite(offset_x)
+        and math.isfinite(offset_y)
+        and math.isfinite(height)
+        and height >= 0
+    ):
+        raise ValueError(
+            f"double tip offset ({offset_x!r}, {offset_y!r}) m and height {height!r} m must be "
+            "finite, the height >= 0"
+        )
     dj = int(round(offset_x / dilated.pixel_x))
     di = int(round(offset_y / dilated.pixel_y))
     second = np.roll(dilated.height, (-di, -dj), axis=(0, 1)) - height
@@ -213,7 +246,16 @@ def double_tip(dilated: Sample, offset_x: float, offset_y: float, height: float)
     use = second > dilated.height
     description = dict(dilated.description)
     if description:
-        description["double_tip"] = {"offset_x": dj * dilated.pixel_x, "offset_y": di * dilated.pixel_y,
-                                     "height": height}
-    return Sample(np.where(use, second, dilated.height), np.where(use, second_m, dilated.material_index),
-                  dilated.materials, dilated.size_x, dilated.size_y, description)
+        description["double_tip"] = {
+            "offset_x": dj * dilated.pixel_x,
+            "offset_y": di * dilated.pixel_y,
+            "height": height,
+        }
+    return Sample(
+        np.where(use, second, dilated.height),
+        np.where(use, second_m, dilated.material_index),
+        dilated.materials,
+        dilated.size_x,
+        dilated.size_y,
+        description,
+    )

@@ -18,15 +18,15 @@
   of each topic in display units, heights plane-levelled, colour range 2-98 % of the pixels (FM
   frames: the FM channels, df, drive, dissipation, ...);
 - ``fm.png`` (FM-AFM sessions, ``pll/outputs`` recorded): df, drive, amplitude and phase error of
-  every PLL output vs simulated time, and an FM section in report.md: mean and std per window (free,
-  engaged before the scan, the scan) and the dissipation per cycle from the drive
+  every PLL output vs simulated time, and an FM section in report.md: mean and std per window
+  (free, engaged before the scan, the scan) and the dissipation per cycle from the drive
   (:mod:`afm_ros.tools.report.fm`). With the z loop on df (``feedback_signal`` 'frequency_shift')
   there is no amplitude setpoint: the setpoint tracking is left out and the error is plotted in Hz;
-- ``report.md``: file status, ERROR statuses recorded on /diagnostics (a blow-up with the parameters
-  in force) at the top, topics, stream completeness, the setpoint-tracking numbers (free amplitude,
-  settling after engaging, every setpoint change with its own settling time, the state at the end),
-  the force-distance extremes (over all pairs), the images, what was skipped and why, every node's
-  parameters at start and every change.
+- ``report.md``: file status, ERROR statuses recorded on /diagnostics (a blow-up with the
+  parameters in force) at the top, topics, stream completeness, the setpoint-tracking numbers (free
+  amplitude, settling after engaging, every setpoint change with its own settling time, the state
+  at the end), the force-distance extremes (over all pairs), the images, what was skipped and why,
+  every node's parameters at start and every change.
 
 Setpoint history: the setpoint in force at every lock-in output is amplitude + error (the z trace's
 error = setpoint - amplitude at the same output times), so a change is placed at the exact simulated
@@ -61,9 +61,10 @@ Works on truncated and damaged files (reads the intact part, says so) and on fil
 topics (figures and numbers whose inputs are missing are skipped with a note). A file from another
 tool (a role's topic with another message type, a message that does not deserialise, a chunk or
 batch not in the afm_ros layout) stops with :class:`ReportError`, one line naming the topic and the
-problem. Images, the scan geometry and /diagnostics are never fatal: a malformed one is skipped with
-a one-line reason (report.md and stderr) and the rest is reported.
+problem. Images, the scan geometry and /diagnostics are never fatal: a malformed one is skipped
+with a one-line reason (report.md and stderr) and the rest is reported.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -87,7 +88,12 @@ from afm_ros.tools.report.collect import (
     setpoint_tracking,
     tracking_numbers,
 )
-from afm_ros.tools.report.figures import write_figures, write_image_figure, write_spectroscopy_figure, write_tune_figure
+from afm_ros.tools.report.figures import (
+    write_figures,
+    write_image_figure,
+    write_spectroscopy_figure,
+    write_tune_figure,
+)
 from afm_ros.tools.report.markdown import diagnostic_errors, write_markdown
 from afm_ros.tools.report.plan import make_plan, pick_topics, series_from_batches
 from afm_ros.tools.report.session import ReportError, SessionData, nth, shown_images
@@ -102,12 +108,28 @@ from afm_ros.tools.report.survey import (
     survey_session,
 )
 
-__all__ = ["MAX_SCATTER_POINTS", "PEAK_RSS_BOUND_MB", "SETTLING_BAND", "TABLE_CAP", "Report", "ReportError",
-           "SessionData", "TimeMapTable", "force_distance", "last_images", "load_session", "main", "make_report",
-           "spectroscopy_numbers", "tracking_numbers"]
+__all__ = [
+    "MAX_SCATTER_POINTS",
+    "PEAK_RSS_BOUND_MB",
+    "SETTLING_BAND",
+    "TABLE_CAP",
+    "Report",
+    "ReportError",
+    "SessionData",
+    "TimeMapTable",
+    "force_distance",
+    "last_images",
+    "load_session",
+    "main",
+    "make_report",
+    "spectroscopy_numbers",
+    "tracking_numbers",
+]
 
 
-PEAK_RSS_BOUND_MB = 300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
+PEAK_RSS_BOUND_MB = (
+    300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
+)
 
 
 def load_session(path) -> SessionData:
@@ -118,11 +140,17 @@ def load_session(path) -> SessionData:
     pick_topics(survey.scan, survey.wrong, survey.counts, data)
     data.deflection = survey.chunks.get(data.topics.get("deflection"))
     data.force = survey.chunks.get(data.topics.get("force"))
-    data.series = {role: survey.series[data.topics[role]] for role in ("amplitude", "phase", "xy", "z_piezo",
-                                                                        "error", "clock")
-                   if role in data.topics and data.topics[role] in survey.series}
+    data.series = {
+        role: survey.series[data.topics[role]]
+        for role in ("amplitude", "phase", "xy", "z_piezo", "error", "clock")
+        if role in data.topics and data.topics[role] in survey.series
+    }
     series_from_batches(data, survey)
-    data.diagnostics, data.images, data.skipped = survey.diagnostics, survey.images, dict(survey.skipped)
+    data.diagnostics, data.images, data.skipped = (
+        survey.diagnostics,
+        survey.images,
+        dict(survey.skipped),
+    )
     check_geometry(survey, data)
     check_tune(survey, data)
     check_spectroscopy(survey, data)
@@ -130,38 +158,63 @@ def load_session(path) -> SessionData:
     if FM_ROLE in data.topics:
         data.fm = fm.prepare(data, survey.batches.get(data.topics[FM_ROLE]), survey.stage)
     collector = Collector(data, plan)
-    roles = ["deflection", "force", *(r for r in BATCH_ROLES if r in data.batches),
-             *(r for r in ("xy", *SCALAR_ROLES) if r in data.series and data.series[r].batch is None),
-             *([FM_ROLE] if data.fm is not None else [])]
+    roles = [
+        "deflection",
+        "force",
+        *(r for r in BATCH_ROLES if r in data.batches),
+        *(r for r in ("xy", *SCALAR_ROLES) if r in data.series and data.series[r].batch is None),
+        *([FM_ROLE] if data.fm is not None else []),
+    ]
     collector.run(path, roles, survey.counts)
     data.passes = 2
-    if plan.setpoint is None and not data.fm_feedback and collector.median.seen and "amplitude" in data.series:
+    if (
+        plan.setpoint is None
+        and not data.fm_feedback
+        and collector.median.seen
+        and "amplitude" in data.series
+    ):
         # no setpoint parameter recorded: the setpoint is rebuilt from the error, and the tracking
         # numbers that compare with it need the amplitude once more
         plan.setpoint = float(np.median(collector.median.arrays()[0]))
-        plan.segments = [(plan.engage if plan.engage is not None else -math.inf, plan.setpoint, "engage")]
+        plan.segments = [
+            (plan.engage if plan.engage is not None else -math.inf, plan.setpoint, "engage")
+        ]
         again = Collector(data, plan, tracking_only=True)
-        again.run(path, ["outputs"] if data.series["amplitude"].batch is not None else ["xy", "amplitude"],
-                  survey.counts)
+        again.run(
+            path,
+            ["outputs"] if data.series["amplitude"].batch is not None else ["xy", "amplitude"],
+            survey.counts,
+        )
         data.passes = 3
-        collector.tail, collector.after_n, collector.settling, collector.ta0 = \
-            again.tail, again.after_n, again.settling, again.ta0
+        collector.tail, collector.after_n, collector.settling, collector.ta0 = (
+            again.tail,
+            again.after_n,
+            again.settling,
+            again.ta0,
+        )
         collector.seg_first, collector.tail_lo = again.seg_first, again.tail_lo
-    if data.fm_feedback:  # no amplitude setpoint: the FM section reports the loop; engage and scan for the figures
+    if (
+        data.fm_feedback
+    ):  # no amplitude setpoint: the FM section reports the loop; engage and scan for the figures
         data.tracking = fm.markers(data.fm) if data.fm is not None else {}
     else:
         data.tracking = setpoint_tracking(data, plan, collector)
     if not plan.exact_bounds and "free_amplitude_m" in data.tracking:
         amp = data.series["amplitude"]
         stride = (amp.batch.times if amp.batch is not None else amp.times).stride
-        data.notes.append(f"The free-amplitude window starts within {stride} amplitude samples of its "
-                          f"definition (the amplitude's sample times are kept for every {nth(stride)} sample).")
+        data.notes.append(
+            f"The free-amplitude window starts within {stride} amplitude samples of its "
+            f"definition (the amplitude's sample times are kept for every {nth(stride)} sample)."
+        )
     for it in data.images.values():
         if not it.last_good:
-            data.skipped[it.topic] = f"none of its {it.count} messages is a {IMAGE_ENCODING} image ({it.problem})"
+            data.skipped[it.topic] = (
+                f"none of its {it.count} messages is a {IMAGE_ENCODING} image ({it.problem})"
+            )
         elif it.problem:
-            data.skipped[it.topic + f" (message {it.count})"] = (f"{it.problem}; the image of message "
-                                                                 f"{it.last_good} is shown")
+            data.skipped[it.topic + f" (message {it.count})"] = (
+                f"{it.problem}; the image of message {it.last_good} is shown"
+            )
     return data
 
 
@@ -175,7 +228,8 @@ def last_images(path) -> tuple[dict, dict | None]:
 
 @dataclass
 class Report:
-    """What :func:`make_report` wrote: report.md, the figures, the numbers (SI units) and the data."""
+    """What :func:`make_report` wrote: report.md, the figures, the numbers (SI units) and the
+    data."""
 
     markdown: Path
     figures: list
@@ -212,9 +266,15 @@ def make_report(session, out_dir=None) -> Report:
         if role in SCALAR_ROLES:
             numbers[f"{role}_non_finite"] = s.non_finite
     if data.fd is not None:
-        numbers.update(force_distance_pairs=data.fd.pairs, force_distance_kept=int(data.fd.gap.size))
+        numbers.update(
+            force_distance_pairs=data.fd.pairs, force_distance_kept=int(data.fd.gap.size)
+        )
         if data.fd.pairs > data.fd.non_finite:
-            numbers.update(min_gap_m=data.fd.min_gap, max_force_n=data.fd.max_force, min_force_n=data.fd.min_force)
+            numbers.update(
+                min_gap_m=data.fd.min_gap,
+                max_force_n=data.fd.max_force,
+                min_force_n=data.fd.min_force,
+            )
     for role, b in data.batches.items():
         numbers[f"{role}_outputs"] = b.outputs
         if role == "outputs":
@@ -234,26 +294,44 @@ def make_report(session, out_dir=None) -> Report:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="afm_report", description="Figures and a Markdown summary of a "
-                                     "recorded AFM session (.mcap; truncated files are read up to the damage).")
+    parser = argparse.ArgumentParser(
+        prog="afm_report",
+        description="Figures and a Markdown summary of a "
+        "recorded AFM session (.mcap; truncated files are read up to the damage).",
+    )
     parser.add_argument("session", help="the .mcap file")
-    parser.add_argument("--out", help="output directory (default: <session>_report next to the file)")
-    parser.add_argument("--json", action="store_true", help="also print the report's numbers as one JSON line")
+    parser.add_argument(
+        "--out", help="output directory (default: <session>_report next to the file)"
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="also print the report's numbers as one JSON line"
+    )
     args = parser.parse_args(argv)
     try:
         report = make_report(args.session, args.out)
     except (ReportError, SessionFileError) as exc:
-        print(f"afm_report: error: {args.session}: {exc}" if isinstance(exc, ReportError)
-              else f"afm_report: error: {exc}", file=sys.stderr)
+        print(
+            f"afm_report: error: {args.session}: {exc}"
+            if isinstance(exc, ReportError)
+            else f"afm_report: error: {exc}",
+            file=sys.stderr,
+        )
         return 1
     except OSError as exc:
         print(f"afm_report: error: {exc}", file=sys.stderr)
         return 1
     if not report.data.scan.complete:
-        print(f"afm_report: warning: {report.data.path} is incomplete ({report.data.scan.truncated_reason}); "
-              "reported the intact part", file=sys.stderr)
+        print(
+            f"afm_report: warning: {report.data.path} is incomplete "
+            f"({report.data.scan.truncated_reason}); "
+            "reported the intact part",
+            file=sys.stderr,
+        )
     for e in report.numbers["errors"]:
-        print(f"afm_report: warning: the session reported an ERROR: {e['name']}: {e['message']}", file=sys.stderr)
+        print(
+            f"afm_report: warning: the session reported an ERROR: {e['name']}: {e['message']}",
+            file=sys.stderr,
+        )
     for topic, why in sorted(report.data.skipped.items()):
         print(f"afm_report: note: skipped {topic}: {why}", file=sys.stderr)
     print(f"wrote {report.markdown} and {len(report.figures)} figures")

@@ -1,4 +1,6 @@
-"""Bounded accumulators of the report: time tables, min/max envelopes, settling and window means."""
+"""Bounded accumulators of the report: time tables, min/max envelopes, settling and window
+means."""
+
 from __future__ import annotations
 
 import math
@@ -9,7 +11,9 @@ import numpy as np
 from afm_ros.formats.chunk_layout import ChunkHeader
 
 ENVELOPE_BINS = 2000  # bins of a whole-session min/max envelope
-TABLE_CAP = 1 << 18  # rows of a time table (clock, chunk receive times, series times) or median sample
+TABLE_CAP = (
+    1 << 18
+)  # rows of a time table (clock, chunk receive times, series times) or median sample
 
 
 class StrideTable:
@@ -31,7 +35,7 @@ class StrideTable:
         if self.seen % self.stride == 0:
             if self.n == self.cap:
                 for c in self.cols:
-                    c[: self.n // 2] = c[0:self.n:2]
+                    c[: self.n // 2] = c[0 : self.n : 2]
                 self.n //= 2
                 self.stride *= 2
             if self.seen % self.stride == 0:
@@ -54,10 +58,10 @@ class TimeMapTable:
     """(log_time ns, simulated time s) points for the time mapping, at most ``cap`` of them.
 
     Every point is kept until the table is full; then the table becomes a simplified polyline
-    (swinging-door): a point is dropped only if the straight line between its kept neighbours passes
-    within ``tol`` [s] of it, so pauses and rate changes (corners) stay; when full again, ``tol``
-    doubles and the kept points are simplified once more. Interpolating the table differs from
-    interpolating every point by at most ``error_bound`` (the sum of the tolerances, < 2 tol).
+    (swinging-door): a point is dropped only if the straight line between its kept neighbours
+    passes within ``tol`` [s] of it, so pauses and rate changes (corners) stay; when full again,
+    ``tol`` doubles and the kept points are simplified once more. Interpolating the table differs
+    from interpolating every point by at most ``error_bound`` (the sum of the tolerances, < 2 tol).
     """
 
     TOL0 = 1e-6  # [s] first tolerance once the table is full
@@ -71,7 +75,10 @@ class TimeMapTable:
         self.tol = 0.0
         self.error_bound = 0.0
         self._pending = None  # last point seen but not kept (tol > 0)
-        self._lo, self._hi = -math.inf, math.inf  # slopes from the last kept point that cover the dropped ones
+        self._lo, self._hi = (
+            -math.inf,
+            math.inf,
+        )  # slopes from the last kept point that cover the dropped ones
 
     def _keep(self, x, y) -> None:
         if self.n == self.x.shape[0]:
@@ -95,7 +102,9 @@ class TimeMapTable:
         if dx > 0:
             lo = max(self._lo, (y - self.tol - ay) / dx)
             hi = min(self._hi, (y + self.tol - ay) / dx)
-            if lo <= hi:  # one line from the last kept point covers every dropped point and this one
+            if (
+                lo <= hi
+            ):  # one line from the last kept point covers every dropped point and this one
                 self._lo, self._hi, self._pending = lo, hi, (x, y)
                 return
         if self._pending is not None:  # the previous point becomes a corner; start again from it
@@ -109,13 +118,17 @@ class TimeMapTable:
     def _shrink(self) -> None:
         x, y = self.arrays()
         tol = self.tol
-        while True:  # simplify the kept points with a doubled tolerance until half the table is free
+        while (
+            True
+        ):  # simplify the kept points with a doubled tolerance until half the table is free
             tol = max(2.0 * tol, self.TOL0)
             self.tol, self.n, self._pending, self._lo, self._hi = tol, 0, None, -math.inf, math.inf
             for xi, yi in zip(x.tolist(), y.tolist()):
                 self._add(xi, yi)
             if self.n + 1 <= self.cap // 2:
-                self.error_bound += tol  # the kept points were within the old bound, now within tol of them
+                self.error_bound += (
+                    tol  # the kept points were within the old bound, now within tol of them
+                )
                 return
             if tol > 1.0:  # not a time map (e.g. unsorted receive times): every second point
                 x, y = self.arrays()
@@ -126,8 +139,8 @@ class TimeMapTable:
                 return
 
     def _corner(self) -> tuple[int, float]:
-        """The pending point moved (by <= tol) onto a line from the last kept point that passes within
-        tol of every point dropped since."""
+        """The pending point moved (by <= tol) onto a line from the last kept point that passes
+        within tol of every point dropped since."""
         ax, ay = int(self.x[self.n - 1]), float(self.y[self.n - 1])
         px, py = self._pending
         slope = min(max((py - ay) / (px - ax), self._lo), self._hi)
@@ -144,7 +157,9 @@ class TimeMapTable:
 class Envelope:
     """A trace for a figure: every sample while short, else min/max in fixed time bins."""
 
-    def __init__(self, t_lo: float, t_hi: float, bins: int = ENVELOPE_BINS, raw_cap: int = 2 * ENVELOPE_BINS):
+    def __init__(
+        self, t_lo: float, t_hi: float, bins: int = ENVELOPE_BINS, raw_cap: int = 2 * ENVELOPE_BINS
+    ):
         self.t_lo, self.bins, self.raw_cap = t_lo, bins, raw_cap
         self.width = (t_hi - t_lo) / bins if t_hi > t_lo else 1.0
         self.raw: list | None = []
@@ -183,8 +198,15 @@ class Envelope:
             np.fmin.at(self.lo, b, v)
             np.fmax.at(self.hi, b, v)
 
-    def add_chunk(self, header: ChunkHeader, v: np.ndarray, t_start: float, t_end: float, mn: float,
-                  mx: float) -> None:
+    def add_chunk(
+        self,
+        header: ChunkHeader,
+        v: np.ndarray,
+        t_start: float,
+        t_end: float,
+        mn: float,
+        mx: float,
+    ) -> None:
         """A sample chunk (times t_start + i dt) with its min and max already known."""
         if self.raw is None:
             b0 = min(max(int((t_start - self.t_lo) / self.width), 0), self.bins - 1)
@@ -206,7 +228,9 @@ class Envelope:
             ax.plot(t, v * scale, lw=0.9)
         else:
             tb, lo, hi = self.bands()
-            ax.fill_between(tb, lo * scale, hi * scale, color="C0", alpha=0.8, lw=0.3, edgecolor="C0")
+            ax.fill_between(
+                tb, lo * scale, hi * scale, color="C0", alpha=0.8, lw=0.3, edgecolor="C0"
+            )
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         if not self.raw:
@@ -220,8 +244,8 @@ class Envelope:
 
 
 class SettlingTracker:
-    """Settling time in O(1): time from the first sample after engaging to the sample after the last
-    one outside the band (0 if never outside, None if outside at the end)."""
+    """Settling time in O(1): time from the first sample after engaging to the sample after the
+    last one outside the band (0 if never outside, None if outside at the end)."""
 
     def __init__(self, setpoint: float, band: float):
         self.setpoint, self.band = setpoint, band

@@ -1,5 +1,7 @@
 """Strict CDR parsing of the few message types the report reads (no rclpy): Float64,
-Vector3Stamped, the afm_ros sample batches (lock-in outputs, z trace, PLL outputs) and 32FC1 images."""
+Vector3Stamped, the afm_ros sample batches (lock-in outputs, z trace, PLL outputs) and 32FC1
+images."""
+
 from __future__ import annotations
 
 import math
@@ -10,8 +12,13 @@ import numpy as np
 from afm_ros.formats import chunk_layout
 from afm_ros.formats.chunk_layout import ChunkLayoutError, cdr_byte_order, cdr_float64_array
 
-LAYOUT_NAMES = {"deflection": "sample chunk", "force": "sample chunk", "outputs": "lock-in output batch",
-                "z_trace": "z controller trace", "fm_outputs": "PLL output batch"}
+LAYOUT_NAMES = {
+    "deflection": "sample chunk",
+    "force": "sample chunk",
+    "outputs": "lock-in output batch",
+    "z_trace": "z controller trace",
+    "fm_outputs": "PLL output batch",
+}
 IMAGE_ENCODING = "32FC1"
 
 
@@ -38,52 +45,74 @@ def cdr_vector3_stamped(data) -> tuple[float, float, float]:
 
 
 def cdr_layout_batch(data, preamble_length: int, what: str, unpack):
-    """A serialized batch of the afm_ros layout (``unpack``: a chunk_layout unpacker; the result has
-    ``t`` and ``input_end_time``). ValueError if not a Float64MultiArray, ChunkLayoutError if not in
-    the layout (data_offset, lengths, finite increasing output times)."""
+    """A serialized batch of the afm_ros layout (``unpack``: a chunk_layout unpacker; the result
+    has ``t`` and ``input_end_time``). ValueError if not a Float64MultiArray, ChunkLayoutError if
+    not in the layout (data_offset, lengths, finite increasing output times)."""
     offset, arr = cdr_float64_array(data)
     if offset != preamble_length:
-        raise ChunkLayoutError(f"layout.data_offset {offset} (the afm_ros {what} has {preamble_length})")
+        raise ChunkLayoutError(
+            f"layout.data_offset {offset} (the afm_ros {what} has {preamble_length})"
+        )
     try:
         b = unpack(arr)
     except (ValueError, OverflowError) as exc:  # a wrong length, a NaN index
         raise ChunkLayoutError(str(exc)) from None
     times = b.t.tolist()  # a few outputs per batch: cheaper in Python than in numpy
-    if not (math.isfinite(b.input_end_time) and all(map(math.isfinite, times))
-            and all(map(float.__lt__, times, times[1:]))):
+    if not (
+        math.isfinite(b.input_end_time)
+        and all(map(math.isfinite, times))
+        and all(map(float.__lt__, times, times[1:]))
+    ):
         raise ChunkLayoutError("output times not finite and increasing")
     return b
 
 
-def cdr_batch(role: str, data) -> tuple[int | None, int, float, np.ndarray, np.ndarray, np.ndarray]:
+def cdr_batch(
+    role: str, data
+) -> tuple[int | None, int, float, np.ndarray, np.ndarray, np.ndarray]:
     """A serialized lockin/outputs (``role`` "outputs") or z_controller/trace ("z_trace") batch:
-    (input_first_index or None, input_end_index, input_end_time [s], t [s], X or z [m], Y or error [m]).
-    ValueError if not a Float64MultiArray, ChunkLayoutError if not in the afm_ros layout."""
+    (input_first_index or None, input_end_index, input_end_time [s], t [s], X or z [m], Y or error
+    [m]). ValueError if not a Float64MultiArray, ChunkLayoutError if not in the afm_ros layout."""
     if role == "outputs":
-        b = cdr_layout_batch(data, chunk_layout.OUTPUTS_PREAMBLE_LENGTH, LAYOUT_NAMES[role], chunk_layout.unpack_outputs)
+        b = cdr_layout_batch(
+            data,
+            chunk_layout.OUTPUTS_PREAMBLE_LENGTH,
+            LAYOUT_NAMES[role],
+            chunk_layout.unpack_outputs,
+        )
         return b.input_first_index, b.input_end_index, b.input_end_time, b.t, b.x, b.y
-    b = cdr_layout_batch(data, chunk_layout.Z_TRACE_PREAMBLE_LENGTH, LAYOUT_NAMES[role], chunk_layout.unpack_z_trace)
+    b = cdr_layout_batch(
+        data, chunk_layout.Z_TRACE_PREAMBLE_LENGTH, LAYOUT_NAMES[role], chunk_layout.unpack_z_trace
+    )
     return None, b.input_end_index, b.input_end_time, b.t, b.z, b.error
 
 
 def amplitude_phase(x, y) -> tuple[np.ndarray, np.ndarray]:
-    """Lock-in amplitude [m] and phase [deg] of outputs (X, Y), computed as the lock-in publishes them on
-    lockin/amplitude and lockin/phase and the z controller uses them (math.hypot, atan2(-Y, X)): bit for bit."""
+    """Lock-in amplitude [m] and phase [deg] of outputs (X, Y), computed as the lock-in publishes
+    them on lockin/amplitude and lockin/phase and the z controller uses them (math.hypot, atan2(-Y,
+    X)): bit for bit."""
     xs, ys = x.tolist(), y.tolist()
-    return (np.fromiter(map(math.hypot, xs, ys), float, len(xs)),
-            np.fromiter((math.degrees(math.atan2(-v, u)) for u, v in zip(xs, ys)), float, len(xs)))
+    return (
+        np.fromiter(map(math.hypot, xs, ys), float, len(xs)),
+        np.fromiter((math.degrees(math.atan2(-v, u)) for u, v in zip(xs, ys)), float, len(xs)),
+    )
 
 
 def cdr_fm_batch(data) -> chunk_layout.FMBatch:
-    """A serialized ``pll/outputs`` batch; ValueError if not a Float64MultiArray, ChunkLayoutError if
-    not in the afm_ros layout (data_offset, lengths, finite increasing output times)."""
-    return cdr_layout_batch(data, chunk_layout.OUTPUTS_PREAMBLE_LENGTH, LAYOUT_NAMES["fm_outputs"],
-                            chunk_layout.unpack_fm_outputs)
+    """A serialized ``pll/outputs`` batch; ValueError if not a Float64MultiArray, ChunkLayoutError
+    if not in the afm_ros layout (data_offset, lengths, finite increasing output times)."""
+    return cdr_layout_batch(
+        data,
+        chunk_layout.OUTPUTS_PREAMBLE_LENGTH,
+        LAYOUT_NAMES["fm_outputs"],
+        chunk_layout.unpack_fm_outputs,
+    )
 
 
 def cdr_image(data) -> tuple[int, int, bool, int, int]:
-    """(height, width, big-endian, step, offset of the pixel data) of a serialized sensor_msgs/Image
-    with encoding 32FC1 whose data hold height rows of step bytes; ValueError saying what is wrong."""
+    """(height, width, big-endian, step, offset of the pixel data) of a serialized
+    sensor_msgs/Image with encoding 32FC1 whose data hold height rows of step bytes; ValueError
+    saying what is wrong."""
     mv = memoryview(data)
     order = cdr_byte_order(mv)
     pos = 4
@@ -103,7 +132,7 @@ def cdr_image(data) -> tuple[int, int, bool, int, int]:
         if n == 0 or pos + n > len(mv):
             raise ValueError("a string runs past the end of the message")
         pos += n
-        return bytes(mv[pos - n:pos - 1]).decode("utf-8", "replace")
+        return bytes(mv[pos - n : pos - 1]).decode("utf-8", "replace")
 
     u32(), u32()  # stamp
     text()  # frame_id
@@ -122,14 +151,21 @@ def cdr_image(data) -> tuple[int, int, bool, int, int]:
     if step < 4 * width:
         raise ValueError(f"row step {step} B is shorter than {width} float32 pixels")
     if size < step * (height - 1) + 4 * width or pos + size > len(mv):
-        raise ValueError(f"{width} x {height} pixels with a row step of {step} B need {step * height} B, "
-                         f"the message holds {min(size, len(mv) - pos)}")
+        raise ValueError(
+            f"{width} x {height} pixels with a row step of {step} B need {step * height} B, "
+            f"the message holds {min(size, len(mv) - pos)}"
+        )
     return height, width, big, step, pos
 
 
 def decode_image(data) -> np.ndarray:
     """The float32 pixels [rows, columns] of a message :func:`cdr_image` accepts (a copy)."""
     height, width, big, step, pos = cdr_image(data)
-    rows = np.ndarray((height, width), dtype=(">f4" if big else "<f4"), buffer=memoryview(data), offset=pos,
-                      strides=(step, 4))
+    rows = np.ndarray(
+        (height, width),
+        dtype=(">f4" if big else "<f4"),
+        buffer=memoryview(data),
+        offset=pos,
+        strides=(step, 4),
+    )
     return rows.astype(np.float32)

@@ -1,5 +1,6 @@
 """Pass 2: the chunks one at a time and the series in batches into the bounded accumulators
 (:class:`Collector`), and the setpoint-tracking numbers from them."""
+
 from __future__ import annotations
 
 import math
@@ -11,7 +12,13 @@ import numpy as np
 from afm_ros.formats.chunk_layout import cdr_chunk
 from afm_ros.formats.mcap_io import SessionScan, read_session
 from afm_ros.tools.report.accumulators import Envelope, SettlingTracker, StrideTable, WindowMean
-from afm_ros.tools.report.cdr import amplitude_phase, cdr_batch, cdr_float64, cdr_vector3_stamped, decode_image
+from afm_ros.tools.report.cdr import (
+    amplitude_phase,
+    cdr_batch,
+    cdr_float64,
+    cdr_vector3_stamped,
+    decode_image,
+)
 from afm_ros.tools.report.plan import Plan
 from afm_ros.tools.report.session import (
     STAMP_LAG_CAP,
@@ -29,22 +36,34 @@ SETTLING_BAND = 0.02  # |amplitude - setpoint| <= 2 % of the setpoint counts as 
 MAX_SCATTER_POINTS = 200_000
 ZOOM_PERIODS = 5
 SERIES_RAW_POINTS = 20_000  # a series this short is plotted sample by sample
-ZOOM_CAP = 1 << 20  # samples kept for the zoomed view (only a restart of the time axis can fill it)
-PENDING_CAP = 1 << 20  # samples waiting for their partner (deflection<->force, amplitude<->xy, error)
+ZOOM_CAP = (
+    1 << 20
+)  # samples kept for the zoomed view (only a restart of the time axis can fill it)
+PENDING_CAP = (
+    1 << 20
+)  # samples waiting for their partner (deflection<->force, amplitude<->xy, error)
 SERIES_BATCH = 4096  # series messages handled together
-DISPLAY_MAX_PIXELS = 1024  # an image is reduced to at most this many pixels per side for the figure
+DISPLAY_MAX_PIXELS = (
+    1024  # an image is reduced to at most this many pixels per side for the figure
+)
 
 
 def _keep_image(it: ImageTopic, data) -> None:
-    """Pass 2: decode the chosen image of ``it``, keep its statistics (over every pixel) and the image
-    itself reduced to at most DISPLAY_MAX_PIXELS per side (every k-th row and column)."""
+    """Pass 2: decode the chosen image of ``it``, keep its statistics (over every pixel) and the
+    image itself reduced to at most DISPLAY_MAX_PIXELS per side (every k-th row and column)."""
     arr = decode_image(data)
     finite = np.isfinite(arr)
     values = arr[finite]
-    it.stats = {"lines_acquired": int(finite.all(axis=1).sum()), "rows": arr.shape[0], "columns": arr.shape[1],
-                "finite": int(values.size)}
+    it.stats = {
+        "lines_acquired": int(finite.all(axis=1).sum()),
+        "rows": arr.shape[0],
+        "columns": arr.shape[1],
+        "finite": int(values.size),
+    }
     if values.size:
-        it.stats.update(min=float(values.min()), median=float(np.median(values)), max=float(values.max()))
+        it.stats.update(
+            min=float(values.min()), median=float(np.median(values)), max=float(values.max())
+        )
     step = -(-max(arr.shape) // DISPLAY_MAX_PIXELS)
     it.stats["display_step"] = step
     it.array = arr[::step, ::step].copy() if step > 1 else arr
@@ -70,16 +89,27 @@ class Collector:
         self.seg_first: list = [None] * len(plan.segments)  # first amplitude time in each segment
         self.contact = {"phase": WindowMean(), "z_piezo": WindowMean()}
         self.median = StrideTable((np.float64,))
-        self.pending: dict[str, list] = {r: [] for r in SCALAR_ROLES}  # (log_time, value) not yet handled
-        self.batched: dict[str, list] = {r: [] for r in SCALAR_ROLES}  # (t, values) from batches not yet handled
-        self.stamps: dict[str, deque] = {r: deque() for r in (("amplitude",) if tracking_only else
-                                                              ("amplitude", "phase"))
-                                         if r in data.series and data.series[r].stamped
-                                         and data.series[r].batch is None}
-        self.amp_hist = (np.empty(0), np.empty(0))  # recent amplitude (t, a) for the error interpolation
-        self.err_wait: list = []  # (t, value) of error samples in the window, waiting for amplitude
+        self.pending: dict[str, list] = {
+            r: [] for r in SCALAR_ROLES
+        }  # (log_time, value) not yet handled
+        self.batched: dict[str, list] = {
+            r: [] for r in SCALAR_ROLES
+        }  # (t, values) from batches not yet handled
+        self.stamps: dict[str, deque] = {
+            r: deque()
+            for r in (("amplitude",) if tracking_only else ("amplitude", "phase"))
+            if r in data.series and data.series[r].stamped and data.series[r].batch is None
+        }
+        self.amp_hist = (
+            np.empty(0),
+            np.empty(0),
+        )  # recent amplitude (t, a) for the error interpolation
+        # (t, value) of error samples in the window, waiting for amplitude
+        self.err_wait: list = []
         self.err_wait_n = 0
-        self.fd = ForceDistance() if (data.deflection is not None and data.force is not None) else None
+        self.fd = (
+            ForceDistance() if (data.deflection is not None and data.force is not None) else None
+        )
         self.pend_d: OrderedDict = OrderedDict()
         self.pend_f: OrderedDict = OrderedDict()
         self.pend_samples = 0
@@ -100,7 +130,10 @@ class Collector:
                     elif s.stamped:
                         lo, hi = data.series["xy"].stamp_min, data.series["xy"].stamp_max
                     else:
-                        lo, hi = float(plan.map(s.min_log)), float(plan.map(s.max_log))  # the mapping is monotonic
+                        lo, hi = (
+                            float(plan.map(s.min_log)),
+                            float(plan.map(s.max_log)),
+                        )  # the mapping is monotonic
                     s.envelope = Envelope(lo, hi, raw_cap=SERIES_RAW_POINTS)
 
     # chunks
@@ -130,10 +163,12 @@ class Collector:
             self._pair(role, header.first_sample_index, (header.z_offset, v, finite, mn, mx))
 
     def _pair(self, role, key, item):
-        """Pair a chunk with the other stream's chunk of the same first sample index (the cantilever
-        publishes both per step); a chunk waits for its partner, at most PENDING_CAP samples wait.
-        ``item`` = (z_offset, samples, all finite, min, max)."""
-        mine, theirs = (self.pend_d, self.pend_f) if role == "deflection" else (self.pend_f, self.pend_d)
+        """Pair a chunk with the other stream's chunk of the same first sample index (the
+        cantilever publishes both per step); a chunk waits for its partner, at most PENDING_CAP
+        samples wait. ``item`` = (z_offset, samples, all finite, min, max)."""
+        mine, theirs = (
+            (self.pend_d, self.pend_f) if role == "deflection" else (self.pend_f, self.pend_d)
+        )
         other = theirs.pop(key, None)
         if other is None:
             mine[key] = item
@@ -144,8 +179,9 @@ class Collector:
                 self.fd.unpaired_chunks += 1
             return
         self.pend_samples -= other[1].shape[0]
-        (zoff, dv, d_ok, d_min, _), (_, fv, f_ok, f_min, f_max) = (item, other) if role == "deflection" \
-            else (other, item)
+        (zoff, dv, d_ok, d_min, _), (_, fv, f_ok, f_min, f_max) = (
+            (item, other) if role == "deflection" else (other, item)
+        )
         fd = self.fd
         n = min(dv.shape[0], fv.shape[0])
         fd.pairs += n
@@ -164,13 +200,19 @@ class Collector:
             fd.min_gap = min(fd.min_gap, float(gap[ok].min()))
             fd.max_force = max(fd.max_force, float(force[ok].max()))
             fd.min_force = min(fd.min_force, float(force[ok].min()))
-        room = (MAX_SCATTER_POINTS if self._kept is None else self._kept[0].shape[0]) - self._kept_n
+        room = (
+            MAX_SCATTER_POINTS if self._kept is None else self._kept[0].shape[0]
+        ) - self._kept_n
         if room <= 0:
             return
-        span, base, m = self.data.deflection.index_span, self.data.deflection.min_index, MAX_SCATTER_POINTS
+        span, base, m = (
+            self.data.deflection.index_span,
+            self.data.deflection.min_index,
+            MAX_SCATTER_POINTS,
+        )
         if span > m:
-            # M of the N samples of the index range, evenly spaced: sample k is kept when floor(k M / N)
-            # steps between k and k + 1, i.e. k = ceil(j N / M) - 1 for j = 1 .. M
+            # M of the N samples of the index range, evenly spaced: sample k is kept when floor(k M
+            # / N) steps between k and k + 1, i.e. k = ceil(j N / M) - 1 for j = 1 .. M
             k0 = key - base
             j = np.arange((k0 * m) // span + 1, ((k0 + n) * m) // span + 1, dtype=np.int64)
             sel = (j * span + m - 1) // m - 1 - k0
@@ -179,7 +221,9 @@ class Collector:
             local = np.arange(n)
         local = local[:room]
         if local.shape[0]:
-            if self._kept is None:  # preallocated: a list of small arrays per chunk would cost ~300 B each
+            if (
+                self._kept is None
+            ):  # preallocated: a list of small arrays per chunk would cost ~300 B each
                 size = min(MAX_SCATTER_POINTS, span)
                 self._kept = (np.empty(size), np.empty(size), np.empty(size, dtype=np.int64))
             a, b = self._kept_n, self._kept_n + local.shape[0]
@@ -230,16 +274,22 @@ class Collector:
     def flush(self, role: str, final: bool = False) -> None:
         pend = self.pending[role]
         if role in self.stamps and max(len(pend), len(self.stamps[role])) > STAMP_LAG_CAP:
-            del self.stamps[role]  # values and their xy stamps far apart in the file: receive times from here
-            self.data.notes.append(f"From message {self.data.series[role].count - len(pend)} on, {role} is placed "
-                                   "by its receive time (its lockin/xy stamps are too far away in the file).")
+            del self.stamps[
+                role
+            ]  # values and their xy stamps far apart in the file: receive times from here
+            self.data.notes.append(
+                f"From message {self.data.series[role].count - len(pend)} on, {role} is placed "
+                "by its receive time (its lockin/xy stamps are too far away in the file)."
+            )
         if role in self.stamps:
             q = self.stamps[role]
             n = min(len(pend), len(q))
             if n == 0 and not final:
                 return
             t = np.array([q.popleft() for _ in range(n)])
-            if final and len(pend) > n:  # fewer stamps than values left (cannot happen: equal counts)
+            if (
+                final and len(pend) > n
+            ):  # fewer stamps than values left (cannot happen: equal counts)
                 t = np.concatenate([t, self.plan.map([lt for lt, _ in pend[n:]])])
                 n = len(pend)
             vals = np.array([v for _, v in pend[:n]])
@@ -269,7 +319,9 @@ class Collector:
             lo = self.tail_lo if self.tail_lo is not None else self.plan.tail_lo_est
             self.contact[role].add(v[ok & (t >= lo)])
         elif role == "error" and not self.tracking_only:
-            if self.plan.error_lo is None or s.batch is not None:  # batches: the setpoint is known exactly
+            if (
+                self.plan.error_lo is None or s.batch is not None
+            ):  # batches: the setpoint is known exactly
                 return
             sel = ok & (t >= self.plan.error_lo)
             if sel.any():
@@ -297,7 +349,9 @@ class Collector:
             last = after & (seg == len(self.settling) - 1)
         else:
             last = after
-        if self.ta0 is None and last.any():  # first sample of the last segment: the final state's window
+        if (
+            self.ta0 is None and last.any()
+        ):  # first sample of the last segment: the final state's window
             self.ta0 = float(t[last][0])
             if plan.tail_last is not None:
                 self.tail_lo = plan.tail_last - 0.2 * (plan.tail_last - self.ta0)
@@ -317,8 +371,11 @@ class Collector:
         ht, ha = self.amp_hist
         t = np.concatenate([w[0] for w in self.err_wait])
         v = np.concatenate([w[1] for w in self.err_wait])
-        done = np.ones(t.shape[0], dtype=bool) if final else (t <= ht[-1] if ht.shape[0] else
-                                                               np.zeros(t.shape[0], dtype=bool))
+        done = (
+            np.ones(t.shape[0], dtype=bool)
+            if final
+            else (t <= ht[-1] if ht.shape[0] else np.zeros(t.shape[0], dtype=bool))
+        )
         if ht.shape[0] and done.any():
             est = np.interp(t[done], ht, ha) + v[done]
             for x in est[np.isfinite(est)]:
@@ -344,7 +401,10 @@ class Collector:
             if s is not None and s.topic in self.zoom:
                 _, buf, _ = self.zoom[s.topic]
                 if buf:
-                    s.zoom = (np.concatenate([b[0] for b in buf]), np.concatenate([b[1] for b in buf]))
+                    s.zoom = (
+                        np.concatenate([b[0] for b in buf]),
+                        np.concatenate([b[1] for b in buf]),
+                    )
         if self.fd is not None:
             self.fd.unpaired_chunks += len(self.pend_d) + len(self.pend_f)
             if self._kept is not None:
@@ -353,10 +413,15 @@ class Collector:
 
     def run(self, path, roles, limits: dict) -> None:
         """Read the chosen topics of ``path``, at most ``limits[topic]`` messages each (what pass 1
-        saw: a file that grows meanwhile, e.g. one still being recorded, is reported as surveyed)."""
+        saw: a file that grows meanwhile, e.g. one still being recorded, is reported as
+        surveyed)."""
         self._kept, self._kept_n = None, 0
         topics = {self.data.topics[r]: r for r in roles if r in self.data.topics}
-        images = {} if self.tracking_only else {t: it for t, it in self.data.images.items() if it.last_good}
+        images = (
+            {}
+            if self.tracking_only
+            else {t: it for t, it in self.data.images.items() if it.last_good}
+        )
         streams = {"deflection": self.data.deflection, "force": self.data.force}
         counts = dict.fromkeys([*topics, *images], 0)
         for m in read_session(path, SessionScan(Path(path)), set(counts)):
@@ -389,8 +454,9 @@ class Collector:
 
 def setpoint_tracking(data: SessionData, plan: Plan, c: Collector) -> dict:
     """The setpoint-tracking numbers from the pass-2 accumulators: the settling after engaging and
-    after every later setpoint change (each into +-SETTLING_BAND of its own setpoint), and the final
-    state over the last 20 % of the last segment (after engaging, or after the last change)."""
+    after every later setpoint change (each into +-SETTLING_BAND of its own setpoint), and the
+    final state over the last 20 % of the last segment (after engaging, or after the last
+    change)."""
     out: dict = {}
     amp = data.series.get("amplitude")
     if amp is None or amp.count == 0:
@@ -403,8 +469,10 @@ def setpoint_tracking(data: SessionData, plan: Plan, c: Collector) -> dict:
         est = float(np.median(c.median.arrays()[0]))
         out["setpoint_from_error_m"] = est
         if c.median.stride > 1:
-            data.notes.append(f"The setpoint from the error is the median of every {nth(c.median.stride)} "
-                              "error sample of the window.")
+            data.notes.append(
+                f"The setpoint from the error is the median of every {nth(c.median.stride)} "
+                "error sample of the window."
+            )
     if plan.engage is not None:
         if c.before_n >= 2 and c.free.n:
             out["free_amplitude_m"] = c.free.mean()
@@ -419,13 +487,20 @@ def setpoint_tracking(data: SessionData, plan: Plan, c: Collector) -> dict:
     if data.setpoints:
         changes = []
         for change in data.setpoints:
-            entry = {"time_s": change["time_s"], "old_m": change["old_m"], "new_m": change["new_m"],
-                     "engaged": change["engaged"], "exact_time": change["exact_time"]}
+            entry = {
+                "time_s": change["time_s"],
+                "old_m": change["old_m"],
+                "new_m": change["new_m"],
+                "engaged": change["engaged"],
+                "exact_time": change["exact_time"],
+            }
             if change["engaged"] and change_segments:
                 k = change_segments.pop(0)
                 entry["settling_time_s"] = settled(k)
                 entry["outputs_after"] = c.seg_first[k] is not None
-                entry["during_scan"] = plan.scan_start is not None and plan.segments[k][0] >= plan.scan_start
+                entry["during_scan"] = (
+                    plan.scan_start is not None and plan.segments[k][0] >= plan.scan_start
+                )
             changes.append(entry)
         out["setpoint_changes"] = changes
     if plan.scan_start is not None:
@@ -437,7 +512,9 @@ def setpoint_tracking(data: SessionData, plan: Plan, c: Collector) -> dict:
         out["settling_band_m"] = SETTLING_BAND * abs(plan.segments[0][1])
         scanning = plan.scan_start is not None and plan.segments[-1][0] >= plan.scan_start
         # while scanning the amplitude follows the topography: no "settled" state at the end
-        out["settled_at_end"] = None if scanning else (c.seg_first[-1] is not None and not c.settling[-1].last_outside)
+        out["settled_at_end"] = (
+            None if scanning else (c.seg_first[-1] is not None and not c.settling[-1].last_outside)
+        )
         out["final_window_s"] = [c.tail_lo, plan.tail_last]
         for role, key in (("phase", "contact_phase_deg"), ("z_piezo", "contact_z_piezo_m")):
             if role in data.series and c.contact[role].n:
@@ -446,14 +523,15 @@ def setpoint_tracking(data: SessionData, plan: Plan, c: Collector) -> dict:
 
 
 def tracking_numbers(data: SessionData) -> dict:
-    """Setpoint tracking: free amplitude, setpoint, reached amplitude, settling time, contact phase."""
+    """Setpoint tracking: free amplitude, setpoint, reached amplitude, settling time, contact
+    phase."""
     return dict(data.tracking)
 
 
 def force_distance(data: SessionData):
     """(gap [m], force [N], sample index) of the pairs kept for the figure (at most
-    MAX_SCATTER_POINTS, evenly spaced in the sample index; every pair while there are fewer), or None.
-    The extremes over all pairs are in ``data.fd``."""
+    MAX_SCATTER_POINTS, evenly spaced in the sample index; every pair while there are fewer), or
+    None. The extremes over all pairs are in ``data.fd``."""
     if data.fd is None or data.fd.gap.size == 0:
         return None
     return data.fd.gap, data.fd.force, data.fd.index

@@ -1,5 +1,6 @@
 """What the report knows of a session: its streams, series, setpoint, diagnostics, images and
 the error it stops with."""
+
 from __future__ import annotations
 
 import math
@@ -13,10 +14,16 @@ from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.formats.mcap_io import SessionScan
 from afm_ros.tools.report.accumulators import Envelope, StrideTable, TimeMapTable
 
-STAMP_LAG_CAP = 1 << 16  # lock-in outputs waiting for their lockin/xy stamp (or stamps for their value)
-SETPOINT_REL_TOL = 1e-9  # amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
+STAMP_LAG_CAP = (
+    1 << 16
+)  # lock-in outputs waiting for their lockin/xy stamp (or stamps for their value)
+SETPOINT_REL_TOL = (
+    1e-9  # amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
+)
 SETPOINT_ABS_TOL = 1e-18  # [m]
-CHANGES_CAP = 10_000  # setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
+CHANGES_CAP = (
+    10_000  # setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
+)
 DIAGNOSTIC_ERRORS_CAP = 100  # distinct (status name, message) ERROR entries kept
 
 
@@ -32,7 +39,9 @@ def nth(k: int) -> str:
 def bad_message(topic: str, type_name: str, k: int, exc: Exception) -> ReportError:
     """The ReportError of message ``k`` of ``topic`` that does not parse as ``type_name``."""
     why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return ReportError(f"topic {topic}: message {k} does not deserialise as {type_name} ({why[:200]})")
+    return ReportError(
+        f"topic {topic}: message {k} does not deserialise as {type_name} ({why[:200]})"
+    )
 
 
 @dataclass
@@ -92,14 +101,16 @@ class ChunkStream:
 
 @dataclass
 class BatchStream:
-    """What the report knows about lockin/outputs or z_controller/trace (one message per input chunk,
-    every output with its exact simulated time), without its values."""
+    """What the report knows about lockin/outputs or z_controller/trace (one message per input
+    chunk, every output with its exact simulated time), without its values."""
 
     topic: str
     role: str
     messages: int = 0
     outputs: int = 0
-    lost: int = 0  # input samples without outputs: gaps between the batches' input ranges (outputs only)
+    lost: int = (
+        0  # input samples without outputs: gaps between the batches' input ranges (outputs only)
+    )
     gaps: int = 0
     repeats: int = 0  # batches that end at or before the previous one
     t_first: float = float("nan")  # [s] simulated, first output in file order
@@ -110,7 +121,9 @@ class BatchStream:
     receive: TimeMapTable | None = None  # (log_time ns, input end time s)
     _prev_end: int | None = None
 
-    def survey(self, first: int | None, end: int, end_time: float, t: np.ndarray, log_time: int) -> None:
+    def survey(
+        self, first: int | None, end: int, end_time: float, t: np.ndarray, log_time: int
+    ) -> None:
         self.messages += 1
         self.receive.add(log_time, end_time)
         if self._prev_end is not None:
@@ -134,11 +147,11 @@ class BatchStream:
 
 
 class SetpointFromData:
-    """The setpoint in force at every lock-in output, rebuilt as amplitude + error: z_controller/trace
-    holds error = setpoint - amplitude for the outputs of the lock-in batch with the same input end
-    index, at the same times. Gives every setpoint change at the exact simulated time of the first
-    output computed with the new value. Pending batches wait for their partner (both topics are in
-    order, so a batch older than a matched one never gets one)."""
+    """The setpoint in force at every lock-in output, rebuilt as amplitude + error:
+    z_controller/trace holds error = setpoint - amplitude for the outputs of the lock-in batch with
+    the same input end index, at the same times. Gives every setpoint change at the exact simulated
+    time of the first output computed with the new value. Pending batches wait for their partner
+    (both topics are in order, so a batch older than a matched one never gets one)."""
 
     def __init__(self):
         self.pending = {"outputs": OrderedDict(), "z_trace": OrderedDict()}
@@ -160,7 +173,9 @@ class SetpointFromData:
                 self.pending[role].popitem(last=False)
                 self.unpaired += 1
             return
-        for side in self.pending.values():  # older batches of either topic have no partner any more
+        for (
+            side
+        ) in self.pending.values():  # older batches of either topic have no partner any more
             while side and next(iter(side)) < end:
                 side.popitem(last=False)
                 self.unpaired += 1
@@ -177,7 +192,10 @@ class SetpointFromData:
                 continue
             if self.value is None:
                 self.value, self.first = sp, (ti, sp)
-            elif abs(sp - self.value) > SETPOINT_REL_TOL * abs(self.value) + SETPOINT_ABS_TOL and not self.too_many:
+            elif (
+                abs(sp - self.value) > SETPOINT_REL_TOL * abs(self.value) + SETPOINT_ABS_TOL
+                and not self.too_many
+            ):
                 if len(self.changes) >= CHANGES_CAP:
                     self.too_many = True
                 else:
@@ -195,7 +213,9 @@ class DiagnosticErrors:
     """ERROR-level statuses on /diagnostics: one entry per (status name, message), at most
     DIAGNOSTIC_ERRORS_CAP of them (the rest counted)."""
 
-    entries: dict = field(default_factory=dict)  # (name, message) -> {first/last log time, count, values}
+    entries: dict = field(
+        default_factory=dict
+    )  # (name, message) -> {first/last log time, count, values}
     dropped: int = 0
     unreadable: int = 0  # messages that did not deserialise
 
@@ -205,15 +225,19 @@ class DiagnosticErrors:
             if len(self.entries) >= DIAGNOSTIC_ERRORS_CAP:
                 self.dropped += 1
                 return
-            e = self.entries[(name, message)] = {"first_log": log_time, "count": 0, "values": values}
+            e = self.entries[(name, message)] = {
+                "first_log": log_time,
+                "count": 0,
+                "values": values,
+            }
         e["count"] += 1
         e["last_log"] = log_time
 
 
 @dataclass
 class ImageTopic:
-    """One scanner/image/<channel>/<direction> topic: the number of its last well-formed 32FC1 image
-    (pass 1 reads the message header only) and why the others were not."""
+    """One scanner/image/<channel>/<direction> topic: the number of its last well-formed 32FC1
+    image (pass 1 reads the message header only) and why the others were not."""
 
     topic: str
     channel: str
@@ -222,13 +246,16 @@ class ImageTopic:
     last_good: int = 0  # 1-based message number, 0: none
     shape: tuple = ()
     problem: str = ""  # the latest message's problem, if it had one
-    array: np.ndarray | None = None  # pass 2: the image (reduced to DISPLAY_MAX_PIXELS per side for display)
+    array: np.ndarray | None = (
+        None  # pass 2: the image (reduced to DISPLAY_MAX_PIXELS per side for display)
+    )
     stats: dict = field(default_factory=dict)
 
 
 @dataclass
 class Series:
-    """One scalar series (amplitude, phase, z piezo, error, xy or clock) as surveyed and plotted."""
+    """One scalar series (amplitude, phase, z piezo, error, xy or clock) as surveyed and
+    plotted."""
 
     topic: str
     role: str
@@ -237,13 +264,19 @@ class Series:
     last_log: int | None = None
     min_log: int | None = None
     max_log: int | None = None
-    times: StrideTable | TimeMapTable | None = None  # log_time (and xy stamp / clock value) of the messages
+    times: StrideTable | TimeMapTable | None = (
+        None  # log_time (and xy stamp / clock value) of the messages
+    )
     stamp_first: float = float("nan")  # xy only: header stamps [s]
     stamp_last: float = float("nan")
     stamp_min: float = float("inf")
     stamp_max: float = float("-inf")
-    stamped: bool = False  # times are xy header stamps (amplitude/phase published with xy) or batch times
-    batch: BatchStream | None = None  # the values come from this batch topic (exact simulated times)
+    stamped: bool = (
+        False  # times are xy header stamps (amplitude/phase published with xy) or batch times
+    )
+    batch: BatchStream | None = (
+        None  # the values come from this batch topic (exact simulated times)
+    )
     t_first: float = float("nan")  # [s] on the report's time axis
     t_last: float = float("nan")
     non_finite: int = 0
@@ -280,43 +313,58 @@ class SessionData:
     path: Path
     scan: SessionScan
     topics: dict = field(default_factory=dict)  # role -> recorded topic
-    ignored: list = field(default_factory=list)  # (topic, type, expected type) matched by name only
+    ignored: list = field(
+        default_factory=list
+    )  # (topic, type, expected type) matched by name only
     deflection: ChunkStream | None = None
     force: ChunkStream | None = None
     series: dict = field(default_factory=dict)  # role -> Series
     initial_parameters: dict = field(default_factory=dict)  # node -> {name: value}
     changes: list = field(default_factory=list)  # (log_time ns, node, name, value)
-    change_times: list = field(default_factory=list)  # time of each change on the report's axis [s]
+    change_times: list = field(
+        default_factory=list
+    )  # time of each change on the report's axis [s]
     time_axis: str = "simulated time [s]"
     fd: ForceDistance | None = None
     tracking: dict = field(default_factory=dict)  # the setpoint-tracking numbers
     notes: list = field(default_factory=list)  # sentences on skipped samples / approximations
     passes: int = 0
     batches: dict = field(default_factory=dict)  # "outputs" / "z_trace" -> BatchStream
-    unused: list = field(default_factory=list)  # per-output copies recorded beside the batches, not read
+    unused: list = field(
+        default_factory=list
+    )  # per-output copies recorded beside the batches, not read
     setpoint_data: SetpointFromData | None = None  # setpoint rebuilt from outputs + trace
     setpoints: list = field(default_factory=list)  # the setpoint history, see plan.make_plan
     setpoint_source: str = ""
     diagnostics: DiagnosticErrors | None = None
     plan: object = None  # the Plan (time map, windows)
-    images: dict = field(default_factory=dict)  # topic -> ImageTopic (the last well-formed image of each)
+    images: dict = field(
+        default_factory=dict
+    )  # topic -> ImageTopic (the last well-formed image of each)
     geometry: dict | None = None  # the last scanner/geometry, checked
     tune: dict | None = None  # the last lockin/tune_result, checked
-    spectroscopy: object = None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
+    spectroscopy: object = (
+        None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
+    )
     skipped: dict = field(default_factory=dict)  # topic -> why it was left out (one line each)
     fm: object = None  # fm.FmData when pll/outputs is recorded
-    fm_feedback: bool = False  # the z loop regulates the frequency shift (no amplitude setpoint tracking)
+    fm_feedback: bool = (
+        False  # the z loop regulates the frequency shift (no amplitude setpoint tracking)
+    )
 
 
 def number_text(g: dict, key: str, scale: float = 1.0, fmt: str = ".4g") -> str:
     """``g[key] * scale`` formatted with ``fmt``, or "?" if it is not a number."""
     v = g.get(key)
-    return format(v * scale, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) else "?"
+    return (
+        format(v * scale, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) else "?"
+    )
 
 
 def image_unit(data: SessionData, channel: str) -> str:
     """The SI unit of an image channel (from scanner/geometry, else the imaging core's)."""
     from afm_ros.core.imaging import UNITS
+
     unit = (data.geometry or {}).get("channels", {}).get(channel)
     return unit if isinstance(unit, str) else UNITS.get(channel, "")
 
@@ -327,8 +375,18 @@ def shown_images(data: SessionData) -> list[ImageTopic]:
     if not shown:
         return shown  # (and no import of the imaging core: numba costs ~50 MB)
     from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS
+
     fm = any(it.channel in FM_CHANNELS and it.channel not in CHANNELS for it in shown)
-    order = {c: i for i, c in enumerate(dict.fromkeys((*FM_CHANNELS, *CHANNELS) if fm else CHANNELS))}
+    order = {
+        c: i for i, c in enumerate(dict.fromkeys((*FM_CHANNELS, *CHANNELS) if fm else CHANNELS))
+    }
     rank = {d: i for i, d in enumerate(DIRECTIONS)}
-    return sorted(shown, key=lambda it: (order.get(it.channel, len(order)), it.channel, rank.get(it.direction, 9),
-                                         it.direction))
+    return sorted(
+        shown,
+        key=lambda it: (
+            order.get(it.channel, len(order)),
+            it.channel,
+            rank.get(it.direction, 9),
+            it.direction,
+        ),
+    )

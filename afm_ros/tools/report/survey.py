@@ -1,5 +1,6 @@
 """Pass 1: one read of the file for the chunk preambles, batches and small messages (no sample
 array), and the checks of the last geometry, tune and spectroscopy messages."""
+
 from __future__ import annotations
 
 import json
@@ -49,8 +50,10 @@ ROLES = {
     "z_piezo": "z_controller/z_piezo",
     "error": "z_controller/error",
     "outputs": "lockin/outputs",  # the batches: every lock-in output (t, X, Y) of one input chunk
-    "z_trace": "z_controller/trace",  # every z controller output (t, z piezo, error) of one lock-in batch
-    "fm_outputs": "pll/outputs",  # FM-AFM: every PLL output (t, df, drive, phase error, amplitude) of one batch
+    # every z controller output (t, z piezo, error) of one lock-in batch
+    "z_trace": "z_controller/trace",
+    # FM-AFM: every PLL output (t, df, drive, phase error, amplitude) of one batch
+    "fm_outputs": "pll/outputs",
     "clock": "clock",  # /clock, or /<ns>/clock of an instrument in a namespace
     "parameter_events": "/parameter_events",
 }
@@ -70,7 +73,10 @@ EXPECTED_TYPES = {
 }
 CHUNK_ROLES = ("deflection", "force")
 SCALAR_ROLES = ("amplitude", "phase", "z_piezo", "error")
-BATCH_ROLES = {"outputs": ("amplitude", "phase"), "z_trace": ("z_piezo", "error")}  # batch -> series it holds
+BATCH_ROLES = {
+    "outputs": ("amplitude", "phase"),
+    "z_trace": ("z_piezo", "error"),
+}  # batch -> series it holds
 FM_ROLE = "fm_outputs"  # pll/outputs: read by fm.py
 IMAGE_TOPIC = "/scanner/image/"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -78,7 +84,14 @@ GEOMETRY_TOPIC = "/scanner/geometry"
 TUNE_TOPIC = "/lockin/tune_result"
 SPECTROSCOPY_TOPIC = "/z_controller/spectroscopy"
 STAGE_TOPIC = "/z_controller/stage"
-EXTRA_ROLES = ("image", "geometry", "tune", "spectroscopy", "diagnostics", "stage")  # read when present and well-formed, skipped with a note if not
+EXTRA_ROLES = (
+    "image",
+    "geometry",
+    "tune",
+    "spectroscopy",
+    "diagnostics",
+    "stage",
+)  # read when present and well-formed, skipped with a note if not
 
 
 def role_of(topic: str) -> str | None:
@@ -106,12 +119,17 @@ def _extra_role(topic: str, type_name: str) -> str | None:
 
 
 def stage_times(raw, stage: dict) -> None:
-    """Keep the approach start and engage time [s] of a ``z_controller/stage`` message (std_msgs/String,
-    JSON) in ``stage``; a message that is not such JSON is ignored (never fatal)."""
+    """Keep the approach start and engage time [s] of a ``z_controller/stage`` message
+    (std_msgs/String, JSON) in ``stage``; a message that is not such JSON is ignored (never
+    fatal)."""
     try:
         order = cdr_byte_order(raw)
         n = struct.unpack_from(order + "I", raw, 4)[0]
-        g = json.loads(bytes(raw[8:8 + n - 1]).decode("utf-8")) if 0 < n and 8 + n <= len(raw) else None
+        g = (
+            json.loads(bytes(raw[8 : 8 + n - 1]).decode("utf-8"))
+            if 0 < n and 8 + n <= len(raw)
+            else None
+        )
     except (ValueError, struct.error):
         return
     if not isinstance(g, dict):
@@ -123,7 +141,8 @@ def stage_times(raw, stage: dict) -> None:
 
 
 def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
-    """Images, scan geometry and diagnostics: never fatal; what cannot be read is skipped with a reason."""
+    """Images, scan geometry and diagnostics: never fatal; what cannot be read is skipped with a
+    reason."""
     if m.topic in survey.skipped:
         return
     if role == "image":
@@ -142,7 +161,9 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
         it.last_good, it.shape, it.problem = k, (height, width), ""
     elif role in ("geometry", "tune"):
         if m.type_name != "std_msgs/msg/String":
-            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
+            survey.skipped[m.topic] = (
+                f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
+            )
             return
         setattr(survey, role, (m.topic, k, bytes(m.data)))
     elif role == "stage":  # only its times are read (the FM windows); anything else is ignored
@@ -150,15 +171,20 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
             stage_times(m.data, survey.stage)
     elif role == "spectroscopy":
         if m.type_name != "std_msgs/msg/Float64MultiArray":
-            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not std_msgs/msg/Float64MultiArray"
+            survey.skipped[m.topic] = (
+                f"type {m.type_name or '(no schema)'}, not std_msgs/msg/Float64MultiArray"
+            )
             return
         survey.spectroscopy = (m.topic, k, bytes(m.data))
     else:
         if m.type_name != "diagnostic_msgs/msg/DiagnosticArray":
-            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
+            survey.skipped[m.topic] = (
+                f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
+            )
             return
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
         from rclpy.serialization import deserialize_message
+
         try:
             msg = deserialize_message(m.data, DiagnosticArray)
         except Exception:  # noqa: BLE001 - a damaged status message: counted, never fatal
@@ -166,8 +192,12 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
             return
         for status in msg.status:
             if status.level == DiagnosticStatus.ERROR:
-                survey.diagnostics.add(m.log_time, status.name, status.message,
-                                       {kv.key: kv.value for kv in status.values})
+                survey.diagnostics.add(
+                    m.log_time,
+                    status.name,
+                    status.message,
+                    {kv.key: kv.value for kv in status.values},
+                )
 
 
 @dataclass
@@ -184,15 +214,20 @@ class Survey:
     setpoints: dict = field(default_factory=dict)  # namespace prefix -> SetpointFromData
     diagnostics: DiagnosticErrors = field(default_factory=DiagnosticErrors)
     images: dict = field(default_factory=dict)  # topic -> ImageTopic
-    geometry: tuple | None = None  # (topic, message number, CDR bytes) of the last scanner/geometry
+    geometry: tuple | None = (
+        None  # (topic, message number, CDR bytes) of the last scanner/geometry
+    )
     tune: tuple | None = None  # the same for the last lockin/tune_result
     spectroscopy: tuple | None = None  # the same for the last z_controller/spectroscopy
-    stage: dict = field(default_factory=dict)  # the last approach start and engage time [s] on z_controller/stage
+    stage: dict = field(
+        default_factory=dict
+    )  # the last approach start and engage time [s] on z_controller/stage
     skipped: dict = field(default_factory=dict)  # topic -> why it is left out (one line)
 
 
 def _image_topic(topic: str, type_name: str, survey: Survey) -> ImageTopic | None:
-    """The ImageTopic of a scanner/image/<channel>/<direction> topic, or None (and why, in ``skipped``)."""
+    """The ImageTopic of a scanner/image/<channel>/<direction> topic, or None (and why, in
+    ``skipped``)."""
     parts = topic.split(IMAGE_TOPIC, 1)[1].split("/")
     if len(parts) != 2 or not all(parts):
         survey.skipped[topic] = "not scanner/image/<channel>/<direction>"
@@ -238,31 +273,46 @@ def survey_session(path) -> Survey:
                 s = survey.batches.get(m.topic)
                 if s is None:
                     s = survey.batches[m.topic] = BatchStream(
-                        m.topic, role, receive=TimeMapTable(),
-                        times=StrideTable((np.float64,)) if role == "outputs" else None)
+                        m.topic,
+                        role,
+                        receive=TimeMapTable(),
+                        times=StrideTable((np.float64,)) if role == "outputs" else None,
+                    )
                 s.survey(first, end, end_time, t, m.log_time)
-                prefix = m.topic[: -len(ROLES[role])]  # the instrument's namespace: pair its own topics
+                prefix = m.topic[
+                    : -len(ROLES[role])
+                ]  # the instrument's namespace: pair its own topics
                 pairing = survey.setpoints.get(prefix)
                 if pairing is None:
                     pairing = survey.setpoints[prefix] = SetpointFromData()
-                pairing.add(role, end, t.tolist(), amplitude_phase(u, v)[0].tolist() if role == "outputs"
-                            else v.tolist())
+                pairing.add(
+                    role,
+                    end,
+                    t.tolist(),
+                    amplitude_phase(u, v)[0].tolist() if role == "outputs" else v.tolist(),
+                )
             elif role == FM_ROLE:
                 b = cdr_fm_batch(m.data)
                 s = survey.batches.get(m.topic)
                 if s is None:
-                    s = survey.batches[m.topic] = BatchStream(m.topic, role, receive=TimeMapTable())
+                    s = survey.batches[m.topic] = BatchStream(
+                        m.topic, role, receive=TimeMapTable()
+                    )
                 s.survey(b.input_first_index, b.input_end_index, b.input_end_time, b.t, m.log_time)
             elif role == "parameter_events":
                 from rcl_interfaces.msg import ParameterEvent
                 from rclpy.serialization import deserialize_message
+
                 survey.events.append((m.log_time, deserialize_message(m.data, ParameterEvent)))
             else:
                 s = survey.series.get(m.topic)
                 if s is None:
                     # sample times are needed for the time map (clock) and the amplitude's windows
-                    times = {"clock": TimeMapTable, "xy": lambda: StrideTable((np.int64, np.float64)),
-                             "amplitude": lambda: StrideTable((np.int64,))}.get(role, lambda: None)()
+                    times = {
+                        "clock": TimeMapTable,
+                        "xy": lambda: StrideTable((np.int64, np.float64)),
+                        "amplitude": lambda: StrideTable((np.int64,)),
+                    }.get(role, lambda: None)()
                     s = survey.series[m.topic] = Series(m.topic, role, times=times)
                 if role == "xy":
                     stamp = cdr_vector3_stamped(m.data)[0]
@@ -280,8 +330,10 @@ def survey_session(path) -> Survey:
             raise
         except Exception as exc:  # noqa: BLE001 - any parser error: the file is not what the role needs
             if isinstance(exc, ChunkLayoutError):
-                raise ReportError(f"topic {m.topic}: message {k} is not a {LAYOUT_NAMES[role]} in the afm_ros "
-                                  f"layout ({exc})") from None
+                raise ReportError(
+                    f"topic {m.topic}: message {k} is not a {LAYOUT_NAMES[role]} in the afm_ros "
+                    f"layout ({exc})"
+                ) from None
             raise bad_message(m.topic, m.type_name, k, exc) from None
     for pairing in survey.setpoints.values():
         pairing.finish()
@@ -297,7 +349,7 @@ def _json_object(found: tuple, data: SessionData) -> dict | None:
         n = struct.unpack_from(order + "I", raw, 4)[0]
         if n == 0 or 8 + n > len(raw):
             raise ValueError("the string runs past the end of the message")
-        g = json.loads(raw[8:8 + n - 1].decode("utf-8"))
+        g = json.loads(raw[8 : 8 + n - 1].decode("utf-8"))
     except (ValueError, struct.error) as exc:
         data.skipped[topic] = f"message {k} is not a JSON text ({str(exc)[:120]})"
         return None
@@ -316,17 +368,37 @@ def check_tune(survey: Survey, data: SessionData) -> None:
     if g is None:
         return
     try:
-        arrays = {key: np.asarray(g[key], dtype=float) for key in ("frequency_Hz", "amplitude_m", "phase_deg")}
-        numbers = {key: float(g[key]) for key in ("f0_Hz", "f0_error_Hz", "Q", "Q_error", "drive_frequency_Hz",
-                                                  "drive_scale", "phase_offset_deg", "static_amplitude_m",
-                                                  "phase0_deg")}
+        arrays = {
+            key: np.asarray(g[key], dtype=float)
+            for key in ("frequency_Hz", "amplitude_m", "phase_deg")
+        }
+        numbers = {
+            key: float(g[key])
+            for key in (
+                "f0_Hz",
+                "f0_error_Hz",
+                "Q",
+                "Q_error",
+                "drive_frequency_Hz",
+                "drive_scale",
+                "phase_offset_deg",
+                "static_amplitude_m",
+                "phase0_deg",
+            )
+        }
     except (KeyError, TypeError, ValueError) as exc:
         data.skipped[topic] = f"message {k}: a field is missing or not a number ({str(exc)[:80]})"
         return
     sizes = {a.shape for a in arrays.values()}
-    if len(sizes) != 1 or next(iter(sizes))[0] < 2 or any(a.ndim != 1 for a in arrays.values()) or \
-            not all(math.isfinite(v) for key, v in numbers.items() if not key.endswith("_error")):
-        data.skipped[topic] = f"message {k}: the sweep's lists differ in length or the fit is not finite"
+    if (
+        len(sizes) != 1
+        or next(iter(sizes))[0] < 2
+        or any(a.ndim != 1 for a in arrays.values())
+        or not all(math.isfinite(v) for key, v in numbers.items() if not key.endswith("_error"))
+    ):
+        data.skipped[topic] = (
+            f"message {k}: the sweep's lists differ in length or the fit is not finite"
+        )
         return
     data.tune = {**numbers, **arrays}
 
@@ -336,6 +408,7 @@ def check_spectroscopy(survey: Survey, data: SessionData) -> None:
     if survey.spectroscopy is None:
         return
     from afm_ros.formats.spectroscopy_layout import unpack_curve
+
     topic, k, raw = survey.spectroscopy
     try:
         curve = unpack_curve(cdr_float64_array(raw)[1])
@@ -352,37 +425,61 @@ def spectroscopy_numbers(curve) -> dict:
     """The report's numbers of a curve: its set-up, the amplitude and phase at the legs' ends, the
     mean force's extremes and the lag the ramp rate implies (core/spectroscopy.expected_lag)."""
     from afm_ros.core.spectroscopy import expected_lag
-    lo, hi = expected_lag(curve.chunk_duration, curve.feedback_latency, curve.quality_factor,
-                          curve.resonance_frequency)
+
+    lo, hi = expected_lag(
+        curve.chunk_duration,
+        curve.feedback_latency,
+        curve.quality_factor,
+        curve.resonance_frequency,
+    )
     a, r = curve.branch("approach"), curve.branch("retract")
     force = curve.chunk_force[np.isfinite(curve.chunk_force)]
-    return {"x_m": curve.x, "y_m": curve.y, "t_start_s": curve.t_start, "t_end_s": curve.t_end,
-            "rate_m_per_s": curve.rate, "retract_m": curve.retract, "distance_m": curve.distance,
-            "z_gap_held_m": curve.z_offset + curve.z_held, "z_gap_lowest_m": float(curve.z_gap[a].min()),
-            "outputs": int(curve.t.size), "chunks": int(curve.chunk_t_start.size),
-            "missing_chunks": curve.missing_chunks,
-            "amplitude_top_m": float(curve.amplitude[a][0]), "amplitude_bottom_m": float(curve.amplitude[a][-1]),
-            "phase_top_deg": float(curve.phase[a][0]), "phase_bottom_deg": float(curve.phase[a][-1]),
-            "amplitude_retract_top_m": float(curve.amplitude[r][-1]),
-            "max_mean_force_N": float(force.max()) if force.size else math.nan,
-            "min_mean_force_N": float(force.min()) if force.size else math.nan,
-            "lag_z_m": [curve.rate * lo, curve.rate * hi]}
+    return {
+        "x_m": curve.x,
+        "y_m": curve.y,
+        "t_start_s": curve.t_start,
+        "t_end_s": curve.t_end,
+        "rate_m_per_s": curve.rate,
+        "retract_m": curve.retract,
+        "distance_m": curve.distance,
+        "z_gap_held_m": curve.z_offset + curve.z_held,
+        "z_gap_lowest_m": float(curve.z_gap[a].min()),
+        "outputs": int(curve.t.size),
+        "chunks": int(curve.chunk_t_start.size),
+        "missing_chunks": curve.missing_chunks,
+        "amplitude_top_m": float(curve.amplitude[a][0]),
+        "amplitude_bottom_m": float(curve.amplitude[a][-1]),
+        "phase_top_deg": float(curve.phase[a][0]),
+        "phase_bottom_deg": float(curve.phase[a][-1]),
+        "amplitude_retract_top_m": float(curve.amplitude[r][-1]),
+        "max_mean_force_N": float(force.max()) if force.size else math.nan,
+        "min_mean_force_N": float(force.min()) if force.size else math.nan,
+        "lag_z_m": [curve.rate * lo, curve.rate * hi],
+    }
 
 
 def check_geometry(survey: Survey, data: SessionData) -> None:
-    """The last scanner/geometry, if it is a JSON object whose extent fields are numbers (else a note)."""
+    """The last scanner/geometry, if it is a JSON object whose extent fields are numbers (else a
+    note)."""
     if survey.geometry is None:
         return
     topic, k, _ = survey.geometry
     g = _json_object(survey.geometry, data)
     if g is None:
         return
-    bad = [key for key in ("x_offset_m", "y_offset_m", "size_x_m", "size_y_m")
-           if isinstance(g.get(key), bool) or not isinstance(g.get(key), (int, float))
-           or not math.isfinite(g[key]) or (key.startswith("size") and g[key] <= 0)]
+    bad = [
+        key
+        for key in ("x_offset_m", "y_offset_m", "size_x_m", "size_y_m")
+        if isinstance(g.get(key), bool)
+        or not isinstance(g.get(key), (int, float))
+        or not math.isfinite(g[key])
+        or (key.startswith("size") and g[key] <= 0)
+    ]
     if bad:
-        data.skipped[topic] = (f"message {k}: {', '.join(bad)} missing or not a finite number (sizes > 0); "
-                               "images drawn in pixels")
+        data.skipped[topic] = (
+            f"message {k}: {', '.join(bad)} missing or not a finite number (sizes > 0); "
+            "images drawn in pixels"
+        )
         return
     if not isinstance(g.get("channels"), dict):
         g["channels"] = {}
