@@ -45,7 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_ros.core.physics import CANTILEVER_SPECS, seed_simulation
+from afm_ros.core.physics import CANTILEVER_SPECS, Cantilever, Drive, Simulation, seed_simulation
+from afm_ros.core.physics.forces import make_force_model
+from afm_ros.core.physics.parameters import DMTSample
+from afm_ros.core.physics.reference import hard_tapping_models
 
 Z_BASE = 40e-9
 SPP = 200
@@ -175,8 +178,6 @@ def _event_times(steps: int) -> dict:
     model and regime, from the same state (the lever's steady motion: 150 periods from rest first),
     timed alternately, best of 3; ratio numba / C and whether both end in the same state bit for
     bit."""
-    from afm_ros.core.physics import Cantilever, Drive, Simulation
-    from afm_ros.core.physics.reference import hard_tapping_models
 
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)
@@ -373,9 +374,6 @@ def _startup_time() -> tuple[float, float]:
 def _model_times(steps: int, fn) -> dict:
     """ns per RK4 step for every force model and with the thermal force on, all timed alternately
     (best of 3) beside the C baseline of plain DMT; goals of issue 9 as ratios."""
-    from afm_ros.core.physics import Cantilever, Drive, Simulation
-    from afm_ros.core.physics.forces import make_force_model
-    from afm_ros.core.physics.parameters import DMTSample
 
     cantilever = Cantilever()
     drive = Drive.from_free_amplitude(cantilever, 60e-9)

@@ -19,6 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from afm_ros.core.dataset import make_frame, validate
+from afm_ros.formats import dataset_store
+from afm_ros.tools.dataset import make_dataset
+
 SPEC = {
     "seed": 1,
     "pixels": 64,
@@ -40,9 +44,6 @@ SPEC = {
 
 
 def main(argv=None) -> int:
-    from afm_ros.core.dataset import make_frame, validate
-    from afm_ros.formats import dataset_store
-    from afm_ros.tools.dataset import make_dataset
 
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.bench_dataset", description=__doc__.splitlines()[0]

@@ -25,13 +25,20 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
 import sys
 import time
 
 import numpy as np
 
+from afm_ros.core.physics.analysis import steady_state
+from afm_ros.core.physics.forces import ViscoelasticDMTForce, make_force_model
+from afm_ros.core.physics.materials import sample_for
+from afm_ros.core.physics.parameters import Cantilever, DMTSample, Drive
 from afm_ros.core.physics.reference import HARD_TAPPING_Z_BASE as Z_HARD
-from afm_ros.core.physics.reference import hard_tapping_models
+from afm_ros.core.physics.reference import hard_tapping_models, reference
+from afm_ros.core.physics.simulation import Simulation
+from afm_ros.tools.study import sweep
 
 SWEEP_Z = [z * 1e-9 for z in range(80, 4, -5)]
 # (label, force model, material) of the sweeps: the standard sweep (dmt on the seed sample) and
@@ -59,8 +66,6 @@ CANDIDATES = [
 
 
 def _sim(model, z_base, method, spp, beta, y0=None):
-    from afm_ros.core.physics.parameters import Cantilever, Drive
-    from afm_ros.core.physics.simulation import Simulation
 
     c = Cantilever()
     s = Simulation(
@@ -80,7 +85,6 @@ def _sim(model, z_base, method, spp, beta, y0=None):
 
 def trajectory_errors(configs, periods=6, fine=1760):  # fine: the start's steady state
     """{model: [{method, spp, beta, error_m, substeps_per_period}]} against DOP853."""
-    from afm_ros.core.physics.reference import reference
 
     out = {}
     for name, model in hard_tapping_models().items():
@@ -125,7 +129,6 @@ def convergence_order(spps=(40, 80, 160, 320), beta_spp=32.0, z_base=Z_HARD):
     error against DOP853 (floored at 5e-16 m, the reference's own accuracy), and of the
     steady-state amplitude and phase at ``z_base`` against rk4_event at 16 times the finest step
     count."""
-    from afm_ros.core.physics.analysis import steady_state
 
     configs = [("rk4_event", s, beta_spp / s) for s in spps] + [("rk4", s, 0.0) for s in spps]
     errs = trajectory_errors(configs)
@@ -164,9 +167,6 @@ def convergence_order(spps=(40, 80, 160, 320), beta_spp=32.0, z_base=Z_HARD):
 
 def sweep_errors(candidates, sweeps=SWEEPS):
     """{sweep label: {candidate: worst errors}} against REFERENCE."""
-    from afm_ros.core.physics.forces import make_force_model
-    from afm_ros.core.physics.materials import sample_for
-    from afm_ros.tools.study import sweep
 
     out = {}
     for label, model_name, material in sweeps:
@@ -233,13 +233,15 @@ from afm_ros.tools import scan as sc
 method, spp, beta, lines = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
 events.NEAR_SURFACE_FRACTION = beta
 p = argparse.ArgumentParser(); sc._add_arguments(p)
-ns = p.parse_args(["--pixels-per-line", "128", "--lines", str(lines), "--line-rate", "1", "--scan-size-x", "5e-6",
+ns = p.parse_args(["--pixels-per-line", "128", "--lines", str(lines), "--line-rate", "1",
+                   "--scan-size-x", "5e-6",
                    "--scan-size-y", repr(5e-6 * lines / 128), "--quiet", "--no-previews"])
 cfg = sc.config_from_args(ns)
 cfg.cantilever_extra.update(integrator=method, steps_per_period=spp)
 r = sc.run_scan(cfg)
 print(json.dumps({"real_time_factor": lines / r.wall_scan,
-                  "extra_substeps_per_step": float(r.instrument.sim.event_stats[1]) / max(1, r.instrument.sim.noise_index)}))
+                  "extra_substeps_per_step": float(r.instrument.sim.event_stats[1])
+                                             / max(1, r.instrument.sim.noise_index)}))
 """
 
 
@@ -247,10 +249,6 @@ def speed(candidates, lines=4, repeats=2):
     """ns per output step of the flat kernel (far: z_base 2 um; near: light tapping at z_base 50
     nm, the viscoelastic seed sample) and the scan's real-time factor, candidates interleaved, best
     of ``repeats``."""
-    import subprocess
-
-    from afm_ros.core.physics.forces import ViscoelasticDMTForce
-    from afm_ros.core.physics.parameters import DMTSample
 
     model = ViscoelasticDMTForce(DMTSample(), viscosity=20.0)
     best: dict = {}

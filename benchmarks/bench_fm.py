@@ -28,12 +28,17 @@ import time
 
 import numpy as np
 
+from afm_ros.core.cantilever_engine import measure
+from afm_ros.core.controller import ZController
+from afm_ros.core.fm import OscillationController
+from afm_ros.core.lockin import LockIn
+from afm_ros.core.spectroscopy import phase_deg
+from afm_ros.core.wired import WiredInstrument
+
 
 def record_chunks(n: int, chunk: float = 1e-3):
     """``n`` chunks (header, measured deflection) of a self-oscillating cantilever at Q 1e4, 5 nm,
     10 nm above a DMT sample (the FM operating point): the input both loops see."""
-    from afm_ros.core.cantilever_engine import measure
-    from afm_ros.core.wired import WiredInstrument
 
     w = WiredInstrument(
         cantilever=dict(
@@ -63,10 +68,6 @@ def record_chunks(n: int, chunk: float = 1e-3):
 
 def time_blocks(chunks, repeats: int) -> dict:
     """Median seconds per chunk of each block set (module docstring)."""
-    from afm_ros.core.controller import ZController
-    from afm_ros.core.fm import OscillationController
-    from afm_ros.core.lockin import LockIn
-    from afm_ros.core.spectroscopy import phase_deg
 
     results = {
         "tapping_lockin_and_z": [],
@@ -150,13 +151,15 @@ from afm_ros.nodes.pll_node import PllNode
 from afm_ros.nodes.node_main import make_executor
 mode, chunk, seconds = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
 rclpy.init()
-params = {"quality_factor": 1e4, "chunk_duration": chunk, "z_base": 10e-9, "real_time_factor": 0.0, "run_until": 0.0,
+params = {"quality_factor": 1e4, "chunk_duration": chunk, "z_base": 10e-9,
+          "real_time_factor": 0.0, "run_until": 0.0,
           "feedback_sync": "lockstep"}
 z = {"enabled": False}
 if mode == "fm":
     params["excitation"] = "pll"
     z["feedback_signal"] = "frequency_shift"
-nodes = [CantileverNode(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]), LockInNode(),
+nodes = [CantileverNode(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]),
+         LockInNode(),
          ZControllerNode(parameter_overrides=[Parameter(k, value=v) for k, v in z.items()])]
 if mode == "fm":
     nodes.append(PllNode())
@@ -174,7 +177,8 @@ c.set_parameters([Parameter("run_until", value=t0 + seconds)])
 while not (c.paused and c.sim_time >= t0 + seconds - 1e-9):
     ex.spin_once(timeout_sec=0.01)
 wall = time.monotonic() - w0
-print(json.dumps({"real_time_factor": (c.sim_time - t0) / wall, "cpu_s_per_sim_s": (time.process_time() - cpu0) / (c.sim_time - t0)}))
+print(json.dumps({"real_time_factor": (c.sim_time - t0) / wall,
+                  "cpu_s_per_sim_s": (time.process_time() - cpu0) / (c.sim_time - t0)}))
 """
 
 

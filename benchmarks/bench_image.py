@@ -21,17 +21,18 @@ import subprocess
 import sys
 import tempfile
 
+import rclpy
+
+from afm_ros.tools.afm_instrument import RAW_EXCLUDE
+from afm_ros.tools.instrument_job import start_instrument
 from benchmarks import child_env
 
 
 def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float) -> dict:
-    import rclpy
-
-    from afm_ros.tools.afm_instrument import RAW_EXCLUDE, Instrument
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
     rclpy.init()
-    inst = Instrument(
+    inst = start_instrument(
         record=record,
         scanner=True,
         cantilever_overrides={

@@ -30,6 +30,8 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 _MEASURE = r"""
 import json, sys, time
@@ -44,7 +46,8 @@ sim = Simulation(s.cantilever, s.drive, s.force_model, s.z_base, s.steps_per_per
 sim.set_thermal(values["temperature"], values["noise_seed"])
 sample = resolve_sample("ps_ldpe_blend")
 sim.set_surface(surface_map(sample, "viscoelastic_dmt"))
-plan = ScanPlan.from_values(dict(scan_size_x=5e-6, scan_size_y=5e-6, scan_center_x=5e-6, scan_center_y=5e-6,
+plan = ScanPlan.from_values(dict(scan_size_x=5e-6, scan_size_y=5e-6,
+                                 scan_center_x=5e-6, scan_center_y=5e-6,
                                  pixels_per_line=128, lines=128, line_rate=1.0))
 sim.set_scan(plan.packed())
 if variant == "on":
@@ -99,8 +102,6 @@ ZEROED = [
 
 def _run_job(variant: str, paced: bool) -> float:
     """The main job's real-time factor while scanning (simulated / wall over the frame)."""
-    import tempfile
-    from pathlib import Path
 
     args = [
         "--image",

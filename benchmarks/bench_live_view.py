@@ -29,6 +29,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import rclpy
+
+from afm_ros.nodes import node_main
+from afm_ros.tools.instrument_job import start_instrument
 from benchmarks import REPO_ROOT, child_env
 
 CONFIGS = ("no live_view", "no viewer", "reading viewer", "stalled viewer")
@@ -78,17 +82,13 @@ def _self_cpu() -> float:
 
 
 def one_run(config: str, rtf: float, hold: float, record: bool = False) -> dict:
-    import rclpy
-
-    from afm_ros.nodes import node_main
-    from afm_ros.tools.afm_instrument import Instrument
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
     rclpy.init(args=["--ros-args", "-p", "port:=0"], context=ctx)
     inst = viewer = None
     try:
-        inst = Instrument(
+        inst = start_instrument(
             context=ctx, namespace="/bench_live", record=record, live_view=config != "no live_view"
         )
         inst.set("cantilever", real_time_factor=rtf)

@@ -35,6 +35,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import rclpy
+
+from afm_ros.nodes.node_main import spin_for
+from afm_ros.tools.instrument_job import start_instrument
+
 LAYOUTS = ("one", "one+recorder", "three", "three+recorder")
 
 
@@ -56,9 +61,6 @@ def _executable(name: str) -> str:
 
 
 def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: float = 0.0) -> dict:
-    import rclpy
-
-    from afm_ros.tools.afm_instrument import Instrument
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
@@ -67,7 +69,7 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
     os.chdir(tmp)
     inst = None
     try:
-        inst = Instrument(context=ctx, namespace="/bench_one", record=record)
+        inst = start_instrument(context=ctx, namespace="/bench_one", record=record)
         inst.set("cantilever", real_time_factor=rtf, feedback_latency=latency)
         cpu0 = _self_cpu()
         summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
@@ -93,9 +95,6 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
 def run_processes(
     tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0
 ) -> dict:
-    import rclpy
-
-    from afm_ros.tools.afm_instrument import Instrument
 
     ns = f"/bench_three_{os.getpid()}"
     env = {
@@ -135,7 +134,7 @@ def run_processes(
     rclpy.init(context=ctx)
     inst = None
     try:
-        inst = Instrument(context=ctx, namespace=ns, attach=True)
+        inst = start_instrument(context=ctx, namespace=ns, attach=True)
         if record:  # the job waits for the recorder too, so the recording starts at t = 0
             inst.wait_for_recorder(f"{ns}/recorder")
         cpu0 = {k: _cpu_of(p.pid) for k, p in procs.items()}
@@ -146,8 +145,6 @@ def run_processes(
         sim, wall = inst.hold_sim_wall
         recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording") if record else {}
         if record:  # the recorder's last diagnostics after the hold (published once per second)
-            from afm_ros.nodes.node_main import spin_for
-
             spin_for(inst.executor, 2.5)
             recorder = inst.monitor.diagnostic_values(f"{ns}/recorder", "recording")
         diag = inst.monitor.diagnostic_values(f"{ns}/cantilever", "simulation")

@@ -20,13 +20,28 @@ import argparse
 import json
 import os
 import resource
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64MultiArray
 
+from afm_ros.formats.chunk_layout import unpack
+from afm_ros.formats.mcap_io import decode, read_session
+from afm_ros.nodes.cantilever_node import CantileverNode
+from afm_ros.nodes.lockin_node import LockInNode
 from afm_ros.nodes.node_main import spin_for
+from afm_ros.nodes.recorder_node import RecorderNode
+from afm_ros.nodes.replay_node import ReplayNode
+from afm_ros.nodes.z_controller_node import ZControllerNode
 
 
 def _cpu() -> float:
@@ -35,9 +50,6 @@ def _cpu() -> float:
 
 
 def _start_recorder_process(record: Path, compression: str, ns: str):
-    import signal
-    import subprocess
-    import sys
 
     exe = Path(sys.executable).parent / "recorder_node"
     proc = subprocess.Popen(
@@ -69,10 +81,7 @@ EXECUTOR = "events"
 
 def _make_executor(ctx):
     if EXECUTOR == "events":
-        from rclpy.experimental import EventsExecutor
-
         return EventsExecutor(context=ctx)
-    from rclpy.executors import SingleThreadedExecutor
 
     return SingleThreadedExecutor(context=ctx)
 
@@ -85,13 +94,6 @@ def _run_loop(
     compression: str = "zstd",
     separate_process: bool = False,
 ):
-    import rclpy
-    from rclpy.parameter import Parameter
-
-    from afm_ros.nodes.cantilever_node import CantileverNode
-    from afm_ros.nodes.lockin_node import LockInNode
-    from afm_ros.nodes.recorder_node import RecorderNode
-    from afm_ros.nodes.z_controller_node import ZControllerNode
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -172,8 +174,6 @@ def _run_loop(
 
 
 def _file_stats(path: Path, published: int) -> dict:
-    from afm_ros.formats.chunk_layout import unpack
-    from afm_ros.formats.mcap_io import decode, read_session
 
     idx, t = [], []
     for m in read_session(path):
@@ -200,13 +200,6 @@ def _file_stats(path: Path, published: int) -> dict:
 
 
 def _replay_throughput(path: Path) -> dict:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
-    from std_msgs.msg import Float64MultiArray
-
-    from afm_ros.formats.mcap_io import read_session
-    from afm_ros.nodes.replay_node import ReplayNode
 
     t0 = time.monotonic()
     n = nbytes = 0

@@ -37,8 +37,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rcl_interfaces.msg import Parameter, ParameterEvent, ParameterType, ParameterValue
 
+from afm_ros.core.physics.forces import DMTForce
 from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH
+from afm_ros.formats.mcap_io import SessionWriter, serialize_exact
 
 WALL_START_NS = 1_700_000_000 * 10**9  # log_time of simulated t = 0 (real-time pacing)
 NS = "/syn"
@@ -80,9 +83,6 @@ def _vector3_stamped(sec: int, nanosec: int, x: float, y: float) -> bytes:
 
 
 def _parameter_event(node: str, new: dict | None = None, changed: dict | None = None) -> bytes:
-    from rcl_interfaces.msg import Parameter, ParameterEvent, ParameterType, ParameterValue
-
-    from afm_ros.formats.mcap_io import serialize_exact
 
     def msg(name, value):
         if isinstance(value, bool):
@@ -147,8 +147,6 @@ def write_synthetic_session(
 
     Returns the expected report numbers (``expected``) and the construction constants.
     """
-    from afm_ros.core.physics.forces import DMTForce
-    from afm_ros.formats.mcap_io import SessionWriter
 
     n = int(round(sample_rate * chunk_s))
     if n % samples_per_period:

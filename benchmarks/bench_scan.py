@@ -38,7 +38,8 @@ BIG = dict(pixels=512, lines=512, line_rate=100.0, output_rate=125e3, size=5e-6)
 
 _BASELINE = r"""
 import json, resource, sys, time
-import afm_ros.tools.study, afm_ros.tools.scan  # what the scan process has imported when its scan ends
+# what the scan process has imported when its scan ends
+import afm_ros.tools.study, afm_ros.tools.scan
 from afm_ros.core.wired import WiredInstrument
 seconds, rate = float(sys.argv[1]), float(sys.argv[2])
 w = WiredInstrument(cantilever={"temperature": 0.0, "detector_noise_density": 0.0,
@@ -51,7 +52,8 @@ run_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 import afm_ros.tools.contrast, afm_ros.formats.frames, afm_ros.formats.gwy, gwyfile
 import matplotlib; matplotlib.use("Agg"); import matplotlib.pyplot
 print(json.dumps({"peak_rss_bytes": run_rss, "peak_rss_with_writer_imports_bytes":
-                  resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, "simulated_s": w.t, "wall_s": wall}))
+                  resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                  "simulated_s": w.t, "wall_s": wall}))
 """
 
 

@@ -49,6 +49,7 @@ in /dev/shm).
 from __future__ import annotations
 
 import argparse
+import array
 import json
 import math
 import os
@@ -62,6 +63,16 @@ import sys
 import tempfile
 import threading
 import time
+
+import numba
+import numpy as np
+import rclpy
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+
+from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
 
 # before rclpy is imported: discovery on this host only, in a domain of our own
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -178,8 +189,6 @@ class _Child:
 
 class StartupBench:
     def __init__(self, tmp: str, timeout: float):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
 
         self.tmp = tmp
         self.timeout = timeout
@@ -192,7 +201,6 @@ class StartupBench:
         self._deflection_chunk = self._make_chunk()
 
     def close(self):
-        import rclpy
 
         self.executor.remove_node(self.node)
         self.node.destroy_node()
@@ -201,7 +209,6 @@ class StartupBench:
 
     @staticmethod
     def _make_chunk():
-        import numpy as np
 
         fs, f, n = (
             900e3,
@@ -212,7 +219,6 @@ class StartupBench:
 
     @staticmethod
     def _qos(durability):
-        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
         return QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
@@ -222,18 +228,11 @@ class StartupBench:
         )
 
     def _msg_type(self, topic: str):
-        from std_msgs.msg import Float64, Float64MultiArray
 
         return Float64MultiArray if topic == "cantilever/deflection" else Float64
 
     def _feeder(self, ns: str, topic: str):
         """Publish synthetic deflection chunks every 2 ms (wall) from now on."""
-        import array
-
-        from rclpy.qos import DurabilityPolicy
-        from std_msgs.msg import Float64MultiArray, MultiArrayDimension
-
-        from afm_ros.formats.chunk_layout import PREAMBLE_LENGTH, SAMPLES_LABEL, ChunkHeader, pack
 
         # transient local + reliable is compatible with any reliable subscription
         pub = self.node.create_publisher(
@@ -262,8 +261,6 @@ class StartupBench:
         self.run_counter += 1
         ns = f"/bench_startup_{os.getpid()}_{self.run_counter}"
         arrivals: list = []
-        from rclpy.event_handler import SubscriptionEventCallbacks
-        from rclpy.qos import DurabilityPolicy
 
         # A volatile and a transient-local subscription: whichever the node's publisher is
         # compatible with receives (a transient-local one also gets what was published before the
@@ -436,8 +433,6 @@ def run(
         if any(x is not None for x in lines):
             out["ready_line_s"] = _stats(lines)
         return out
-
-    import numba
 
     return {
         "benchmark": "spawn -> first message received by a subscriber in the benchmark process "

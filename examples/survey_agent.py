@@ -1,7 +1,7 @@
 """An autonomous-experiment agent on the virtual AFM: survey, find islands, zoom, measure.
 
     .venv/bin/python examples/survey_agent.py              # in-process (no ROS), about a minute
-    .venv/bin/python examples/survey_agent.py --ros /afm1  # against running nodes (ros2 run ... -r __ns:=/afm1)
+    .venv/bin/python examples/survey_agent.py --ros /afm1  # against nodes run with -r __ns:=/afm1
 
 The agent tunes and approaches, surveys 8 x 8 um of the PS/LDPE blend, levels the survey's height
 image and gives its slope to the scanner's slope compensation (as an operator does after a first
@@ -19,6 +19,8 @@ import json
 import sys
 
 import numpy as np
+
+from afm_ros.client import Microscope
 
 SURVEY = dict(center=(5e-6, 5e-6), size=(8e-6, 8e-6), pixels=64, lines=64, line_rate=2.0)
 SLOPE_SCAN = dict(
@@ -192,7 +194,6 @@ def main(argv=None) -> int:
         "--json", action="store_true", help="also print the numbers as one JSON line"
     )
     args = parser.parse_args(argv)
-    from afm_ros.client import Microscope
 
     afm = Microscope.connect(args.ros, timeout=30.0) if args.ros else Microscope.local()
     with afm:

@@ -87,8 +87,8 @@ def instrument_nodes(
     clients and subprocesses see them); by role."""
     import rclpy
 
+    from afm_ros.client.nodes_backend import build_nodes
     from afm_ros.nodes.node_main import make_executor
-    from afm_ros.tools.afm_instrument import build_nodes
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("ROS_DOMAIN_ID", domain_id)

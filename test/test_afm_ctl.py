@@ -224,7 +224,7 @@ def test_dump_then_load_round_trips_every_writable_parameter(
         dumped = tmp_path / "cantilever.yaml"
         r = ctl(ctl_env, "dump", "cantilever", "-o", str(dumped), ns=ros_namespace)
         assert r.returncode == 0, r.stderr
-        before = {p.name: p.value for p in cant._parameters.values()}
+        before = {p.name: p.value for p in cant.get_parameters_by_prefix("").values()}
         content = yaml.safe_load(dumped.read_text())
         assert list(content) == [f"{ros_namespace}/cantilever"]
         assert (
@@ -244,7 +244,7 @@ def test_dump_then_load_round_trips_every_writable_parameter(
                 enable_rosout=False,
                 automatically_declare_parameters_from_overrides=True,
             )
-            read = {p.name: p.value for p in reader._parameters.values()}
+            read = {p.name: p.value for p in reader.get_parameters_by_prefix("").values()}
             reader.destroy_node()
         finally:
             rclpy.try_shutdown(context=ctx)
@@ -269,7 +269,7 @@ def test_dump_then_load_round_trips_every_writable_parameter(
         )
         r = ctl(ctl_env, "load", "cantilever", str(dumped), ns=ros_namespace)
         assert r.returncode == 0, r.stderr
-        assert {p.name: p.value for p in cant._parameters.values()} == before
+        assert {p.name: p.value for p in cant.get_parameters_by_prefix("").values()} == before
         assert (
             "3 changed" in r.stdout.splitlines()[0] and "z_base: 3.5e-08 -> 3e-08" in r.stdout
         ), r.stdout

@@ -17,12 +17,12 @@ from afm_ros.core.physics import (
     steady_amplitude_phase,
     steady_state,
 )
-from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.tools.instrument_job import start_instrument
 
 
 @pytest.fixture
 def instrument(ros_context, ros_namespace):
-    inst = Instrument(
+    inst = start_instrument(
         context=ros_context,
         namespace=ros_namespace,
         executor="events",

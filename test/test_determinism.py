@@ -32,7 +32,7 @@ from std_msgs.msg import Float64
 
 from afm_ros.formats.mcap_io import read_session
 from afm_ros.tools import report
-from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.tools.instrument_job import start_instrument
 
 HOLD = 0.3  # simulated seconds after engaging
 FREE = 0.03
@@ -53,7 +53,7 @@ def recorded_z_piezo(path: Path) -> np.ndarray:
     return np.array(values)
 
 
-def session(inst: Instrument, summary) -> dict:
+def session(inst, summary) -> dict:
     mon = inst.monitor
     return {
         "summary": summary.deterministic_part(),
@@ -74,7 +74,7 @@ def run_in_process(tmp: Path, ns: str, executor: str, rtf: float) -> dict:
     os.chdir(tmp)  # the instrument's recorder writes into the working directory
     inst = None
     try:
-        inst = Instrument(
+        inst = start_instrument(
             context=ctx, namespace=ns, executor=executor, record=True, keep_history=True
         )
         inst.set("cantilever", real_time_factor=rtf)
@@ -184,7 +184,7 @@ def test_same_session_as_four_separate_processes(reference, tmp_path):
     rclpy.init(context=ctx)
     inst = None
     try:
-        inst = Instrument(context=ctx, namespace=ns, attach=True, keep_history=True)
+        inst = start_instrument(context=ctx, namespace=ns, attach=True, keep_history=True)
         inst.wait_for_recorder(f"{ns}/recorder")  # the recording starts at t = 0
         summary = inst.run_job(HOLD, FREE, None)
         c = session(inst, summary)

@@ -4,7 +4,6 @@ too fast for the gains, drift between frames (test_imperfections.py), a trace/re
 jumps; and a clean slow scan that raises none."""
 
 import numpy as np
-import pytest
 
 from afm_ros.core.flags import flags_metadata, frame_flags
 from afm_ros.core.samples import grating

@@ -88,7 +88,7 @@ def dmt_curves():
 
 
 def test_conservative_frequency_shift_follows_first_order_theory(dmt_curves):
-    """df against Giessibl's first-order integral (fm_theory.frequency_shift, checked there against closed
+    """df against Giessibl's first-order integral (fm_theory.frequency_shift, checked vs closed
     forms) at the orbit's closest gap. The first-order theory's own error is O(F / (k A)): bound
     |df / df_1 - 1| <= |F_min| / (k A) + 1e-4 (measured: 0.27 .. 0.4 of that)."""
     rows, _ = dmt_curves[3e4]

@@ -148,7 +148,10 @@ def test_large_amplitude_limit():
         )
         assert abs(gamma / expect - 1.0) <= 0.75 * d / amplitude + 1e-9
     f_0, decay = 1e-10, 0.1e-9
-    force = lambda g: -f_0 * np.exp(-np.asarray(g) / decay)
+
+    def force(g):
+        return -f_0 * np.exp(-np.asarray(g) / decay)
+
     expect = gamma_inf(lambda g: float(force(g)), d)
     for amplitude in (3e-9, 30e-9, 300e-9):
         x = amplitude / decay

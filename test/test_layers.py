@@ -221,3 +221,39 @@ def test_the_in_process_client_and_the_cores_load_no_rclpy(code):
         cwd=ROOT,
     )
     assert result.returncode == 0 and result.stdout.strip() == "False", result.stderr
+
+
+def test_no_nodes_private_member_is_used_outside_its_file():
+    """A node's private attributes and methods (a leading underscore) are its own: tools, the
+    client, benchmarks, examples and tests use its public surface."""
+    private = set()
+    for path in (ROOT / "afm_ros" / "nodes").glob("*.py"):
+        for cls in (
+            n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.ClassDef)
+        ):
+            for node in ast.walk(cls):
+                if (
+                    isinstance(node, ast.FunctionDef)
+                    and node.name.startswith("_")
+                    and not node.name.startswith("__")
+                ):
+                    private.add(node.name)
+                if (
+                    isinstance(node, ast.Attribute)
+                    and isinstance(node.value, ast.Name)
+                    and node.value.id == "self"
+                    and node.attr.startswith("_")
+                    and not node.attr.startswith("__")
+                ):
+                    private.add(node.attr)
+    wrong = []
+    for folder in ("afm_ros/tools", "afm_ros/client", "benchmarks", "examples", "test"):
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if (
+                    isinstance(node, ast.Attribute)
+                    and node.attr in private
+                    and not (isinstance(node.value, ast.Name) and node.value.id == "self")
+                ):
+                    wrong.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    assert not wrong, "\n".join(wrong)

@@ -197,7 +197,7 @@ def _spinning(context, nodes):
 def instrument():
     import rclpy
 
-    from afm_ros.tools.afm_instrument import build_nodes
+    from afm_ros.client.nodes_backend import build_nodes
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     context = rclpy.Context()
@@ -221,8 +221,8 @@ def instrument():
     live = nodes["live_view"]
     with _spinning(context, [*nodes.values(), probe.node]):
         # every parameter node discovered and read, the data flowing
-        assert _wait(lambda: len(live._params) == 4 and len(probe.chunks) >= 1, 20.0), (
-            list(live._params),
+        assert _wait(lambda: len(live.known_parameters) == 4 and len(probe.chunks) >= 1, 20.0), (
+            list(live.known_parameters),
         )
         yield SimpleNamespace(
             context=context,
@@ -484,11 +484,13 @@ class _Viewer:
                 self.events.append(json.loads(line))
 
     def wait_for(self, kind: str, timeout: float = 30.0, **match) -> dict:
-        found = lambda: [
-            e
-            for e in self.events
-            if e["event"] == kind and all(e.get(k) == v for k, v in match.items())
-        ]
+        def found():
+            return [
+                e
+                for e in self.events
+                if e["event"] == kind and all(e.get(k) == v for k, v in match.items())
+            ]
+
         assert (
             _wait(
                 lambda: found() or self.process.poll() is not None and not self.thread.is_alive(),
@@ -632,7 +634,7 @@ def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(
         viewer.wait()
         live.set_parameters([Parameter("deflection_decimation", value=DECIMATION)])
     # the viewer is gone: its ROS subscriptions are removed
-    assert _wait(lambda: not live.serving and not live._subs, 10.0)
+    assert _wait(lambda: not live.serving and not live.subscriptions, 10.0)
 
 
 def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglove_client):
@@ -734,10 +736,14 @@ def test_a_parameter_node_that_leaves_is_forgotten_and_reloaded_when_it_returns(
                 automatically_declare_parameters_from_overrides=True,
             )
             executor.add_node(scanner)
-            assert spin_until(lambda: live._get_parameters([fqn + ".lines"])), list(live._params)
+            assert spin_until(lambda: live.viewer_parameters([fqn + ".lines"])), list(
+                live.known_parameters
+            )
             executor.remove_node(scanner)
             scanner.destroy_node()
-            assert spin_until(lambda: fqn not in live._params and fqn not in live._param_clients)
+            assert spin_until(
+                lambda: fqn not in live.known_parameters and fqn not in live.parameter_clients
+            )
             assert (
                 len(list(live.clients)) == clients_alone
             )  # its parameter service clients are gone too
@@ -855,7 +861,7 @@ def fm_instrument():
     in test_fm_ros: the PLL locks, the z loop regulates df."""
     import rclpy
 
-    from afm_ros.tools.afm_instrument import build_nodes
+    from afm_ros.client.nodes_backend import build_nodes
     from afm_ros.tools.fm_session import FM_CANTILEVER
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
@@ -890,9 +896,9 @@ def fm_instrument():
     live = nodes["live_view"]
     with _spinning(context, [*nodes.values(), probe.node]):
         # cantilever, lockin, z_controller, pll and scanner read; the PLL's outputs flowing
-        assert _wait(lambda: len(live._params) == 5 and all(probe.values.values()), 30.0), (
-            list(live._params),
-        )
+        assert _wait(
+            lambda: len(live.known_parameters) == 5 and all(probe.values.values()), 30.0
+        ), (list(live.known_parameters),)
         yield SimpleNamespace(
             context=context,
             namespace=namespace,
@@ -930,8 +936,8 @@ def test_fm_outputs_are_served_from_the_pll_batches_bit_for_bit(fm_instrument, f
             "parametersSubscribed"
         )  # every topic has delivered `count` messages; still subscribed
         assert _wait(lambda: set(topics) <= live.serving)
-        assert ("derived", f"{ns}/pll/outputs") in live._subs
-        assert not any(key[0] == "direct" and key[1] in topics for key in live._subs)
+        assert ("derived", f"{ns}/pll/outputs") in live.subscriptions
+        assert not any(key[0] == "direct" and key[1] in topics for key in live.subscriptions)
         pll.set_parameters([Parameter("frequency_range", value=400.0)])
         viewer.wait_for("done")
     finally:
@@ -1005,7 +1011,7 @@ def test_fm_layout_names_only_topics_of_the_running_fm_instrument(fm_instrument,
     ns, live = fm_instrument.namespace, fm_instrument.live
     started = foxglove_client({"url": fm_instrument.url, "services": [f"{ns}/scanner/scan_frame"]})
     assert _one(started, "service", name=f"{ns}/scanner/scan_frame")["value"]["success"]
-    assert _wait(lambda: {ns + t for t in images} <= set(live._channels), 30.0)
+    assert _wait(lambda: {ns + t for t in images} <= set(live.channels), 30.0)
     events = foxglove_client(
         {
             "url": fm_instrument.url,

@@ -48,7 +48,7 @@ def insert_dict(dictionary, key, value):
 
     split = key.split(PARAMETER_SEPARATOR_STRING, 1)
     if len(split) > 1:
-        if not split[0] in dictionary:
+        if split[0] not in dictionary:
             dictionary[split[0]] = {}
         insert_dict(dictionary[split[0]], split[1], value)
     else:
@@ -71,7 +71,7 @@ class Ros2Param:
         self.node = node
         self._clients = {}
 
-    def _client(self, node_name):
+    def client(self, node_name):
         from rclpy.parameter_client import AsyncParameterClient
 
         if node_name not in self._clients:
@@ -82,7 +82,7 @@ class Ros2Param:
             self._clients[node_name] = client
         return self._clients[node_name]
 
-    def _wait(self, future):
+    def wait(self, future):
         self.executor.spin_until_future_complete(future, timeout_sec=TIMEOUT)
         assert future.done(), "no answer from the parameter service within the timeout"
         return future.result()
@@ -91,29 +91,29 @@ class Ros2Param:
         from rclpy.parameter import get_parameter_value
 
         msg = ParameterMsg(name=name, value=get_parameter_value(string_value=text))
-        results = self._wait(self._client(node_name).set_parameters([msg])).results
+        results = self.wait(self.client(node_name).set_parameters([msg])).results
         assert len(results) == 1
         return results[0]
 
     def delete(self, node_name, name):
         # ros2cli, branch jazzy (0.32.2), ros2param/api/__init__.py: call_delete_parameters uses
         # AsyncParameterClient.delete_parameters (a NOT_SET value through set_parameters)
-        results = self._wait(self._client(node_name).delete_parameters([name])).results
+        results = self.wait(self.client(node_name).delete_parameters([name])).results
         assert len(results) == 1
         return results[0]
 
     def get(self, node_name, name):
-        value = self._wait(self._client(node_name).get_parameters([name])).values[0]
+        value = self.wait(self.client(node_name).get_parameters([name])).values[0]
         return value.type, get_value(parameter_value=value)
 
     def describe(self, node_name, names):
-        return self._wait(self._client(node_name).describe_parameters(list(names))).descriptors
+        return self.wait(self.client(node_name).describe_parameters(list(names))).descriptors
 
     def dump(self, node_name):
         # ros2cli, branch jazzy (0.32.2), ros2param/ros2param/verb/dump.py: DumpVerb.main
-        client = self._client(node_name)
-        parameter_names = sorted(self._wait(client.list_parameters()).result.names)
-        response = self._wait(client.get_parameters(parameter_names))
+        client = self.client(node_name)
+        parameter_names = sorted(self.wait(client.list_parameters()).result.names)
+        response = self.wait(client.get_parameters(parameter_names))
         parameter_values = [get_value(parameter_value=i) for i in response.values]
         yaml_output = {node_name: {"ros__parameters": {}}}
         for param_name, pval in zip(parameter_names, parameter_values):
@@ -123,9 +123,9 @@ class Ros2Param:
     def load(self, node_name, path):
         from rclpy.parameter import parameter_dict_from_yaml_file
 
-        future = self._client(node_name).load_parameter_file(str(path), True)
+        future = self.client(node_name).load_parameter_file(str(path), True)
         parameters = list(parameter_dict_from_yaml_file(str(path), True).values())
-        results = self._wait(future).results
+        results = self.wait(future).results
         assert len(results) == len(parameters), "Not all parameters set"
         return [(p.name, r) for p, r in zip(parameters, results)]
 
@@ -306,8 +306,8 @@ def test_an_unknown_name_is_refused_naming_it_the_node_and_the_close_matches(
     # not)
     from rclpy.parameter import Parameter
 
-    atomic = cli._wait(
-        cli._client(node).set_parameters_atomically([Parameter(name, value=4e-8)])
+    atomic = cli.wait(
+        cli.client(node).set_parameters_atomically([Parameter(name, value=4e-8)])
     ).result
     assert not atomic.successful and atomic.reason == reason
     assert not nodes[node].has_parameter(name)

@@ -61,7 +61,7 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("name,label,value", CASES, ids=[f"{n}-{l}" for n, l, _ in CASES])
+@pytest.mark.parametrize("name,label,value", CASES, ids=[f"{n}-{label}" for n, label, _ in CASES])
 def test_bad_value_rejected_with_field_and_range(name, label, value):
     spec = ALL_PHYSICS_SPECS[name]
     with pytest.raises(ValueError) as info:

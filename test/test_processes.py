@@ -23,7 +23,7 @@ from std_msgs.msg import Float64
 
 from afm_ros.formats.chunk_layout import cdr_chunk_index
 from afm_ros.formats.mcap_io import read_session
-from afm_ros.tools.afm_instrument import Instrument
+from afm_ros.tools.instrument_job import start_instrument
 
 BIN = Path(sys.executable).parent
 
@@ -90,7 +90,7 @@ def test_four_processes_regulate_for_8_simulated_seconds_without_losing_a_sample
     rclpy.init(context=ctx)
     inst = None
     try:
-        inst = Instrument(context=ctx, namespace=ns, attach=True)
+        inst = start_instrument(context=ctx, namespace=ns, attach=True)
         inst.wait_for_recorder(f"{ns}/recorder")
         summary = inst.run_job(
             duration=8.0, free_time=0.03, setpoint_ratio=None

@@ -137,8 +137,11 @@ def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_term
             out[".venv/bin/afm_ctl approach --wait"],
         ), out[".venv/bin/afm_ctl approach --wait"]
         assert "z stage withdrawn" in out[".venv/bin/afm_ctl withdraw --wait"]
-        tuned = re.search(r"tuned: f0 = ([\d.]+) \+- ([\d.e-]+) Hz", out[".venv/bin/afm_ctl tune --wait"])
-        assert tuned and abs(float(tuned[1]) - 45e3) < 5 * float(tuned[2]) + 0.01, out  # the lever's 45 kHz
+        tuned = re.search(
+            r"tuned: f0 = ([\d.]+) \+- ([\d.e-]+) Hz", out[".venv/bin/afm_ctl tune --wait"]
+        )
+        # the lever's 45 kHz
+        assert tuned and abs(float(tuned[1]) - 45e3) < 5 * float(tuned[2]) + 0.01, out
         status = out[".venv/bin/afm_ctl status"]
         assert re.search(r"/scanner +OK +scan: idle, 1 frame\(s\) done, 1 written", status), status
         assert list(tmp_path.glob("afm_runs/*/afm_frame_*.gwy"))  # the frame, in the run folder

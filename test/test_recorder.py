@@ -94,7 +94,9 @@ def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespac
     # stop the source first (its last booked chunk is still published), let the recorder write
     # everything, then close (what SIGINT does)
     ros_executor.remove_node(cantilever)
-    cantilever_params = {name: p.value for name, p in cantilever._parameters.items()}
+    cantilever_params = {
+        name: p.value for name, p in cantilever.get_parameters_by_prefix("").items()
+    }
     cantilever.destroy_node()
     published = cantilever.samples_published
     spin_until(ros_executor, lambda: recorder.streams[defl].next_index == published)

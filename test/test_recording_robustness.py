@@ -547,7 +547,7 @@ def test_max_size_closes_a_complete_file_and_the_loop_goes_on(
     # the loop goes on without the recorder: the lock-in keeps taking chunks (2 s simulated more)
     spin_until(
         ros_executor,
-        lambda: lockin._ack.next_index > stopped_at + 1000 * SAMPLES_PER_CHUNK,
+        lambda: lockin.acknowledged_index > stopped_at + 1000 * SAMPLES_PER_CHUNK,
         timeout=120,
         what="the lock-in going on after the stop",
     )

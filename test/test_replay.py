@@ -318,7 +318,7 @@ def test_rate_is_live_and_bad_values_are_rejected(loop_session, ros_context, ros
     good = client.set_parameters([Parameter("rate", value=3.0)])
     spin(ros_executor, until=good.done, timeout=5)
     assert good.result().results[0].successful
-    assert replay.get_parameter("rate").value == 3.0 and replay._rate == 3.0
+    assert replay.get_parameter("rate").value == 3.0 and replay.rate == 3.0
 
 
 def test_loop_replays_again(loop_session, ros_context, ros_executor):

@@ -187,14 +187,13 @@ def test_report_agrees_with_the_instruments_own_summary(ros_context, ros_namespa
     report computed from the file must agree with the summary the instrument computed live."""
     from rclpy.parameter import Parameter as P
 
-    from afm_ros.tools.afm_instrument import Instrument
+    from afm_ros.tools.instrument_job import start_instrument
 
     path = tmp_path / "job.mcap"
-    import inspect
 
-    # if afm_instrument records by default, switch that off: this test adds its own recorder
-    no_record = {"record": False} if "record" in inspect.signature(Instrument).parameters else {}
-    instrument = Instrument(
+    # afm_instrument records by default: switched off, this test adds its own recorder
+    no_record = {"record": False}
+    instrument = start_instrument(
         context=ros_context, namespace=ros_namespace, executor="events", **no_record
     )
     recorder = RecorderNode(

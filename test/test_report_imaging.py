@@ -21,9 +21,11 @@ import numpy as np
 import pytest
 from conftest import EXACT_PHYSICS
 
+from afm_ros.client.nodes_backend import BlowUpError
 from afm_ros.nodes import node_main
 from afm_ros.tools import report
-from afm_ros.tools.afm_instrument import RAW_EXCLUDE, BlowUpError, Instrument
+from afm_ros.tools.afm_instrument import RAW_EXCLUDE
+from afm_ros.tools.instrument_job import start_instrument
 
 FAST = {
     **EXACT_PHYSICS,
@@ -36,7 +38,7 @@ def test_imaging_session_report_draws_the_time_traces_from_the_batches(
     ros_context, ros_namespace, tmp_path
 ):
     path = tmp_path / "image.mcap"
-    instrument = Instrument(
+    instrument = start_instrument(
         context=ros_context,
         namespace=ros_namespace,
         record=True,
@@ -96,7 +98,7 @@ def test_setpoint_change_listed_with_its_own_settling(ros_context, ros_namespace
     """Engage at 80 % (the job sets the setpoint before enabling), hold, then set 40 nm while the
     cantilever is paused at a chunk boundary, and run 0.25 s more."""
     path = tmp_path / "change.mcap"
-    instrument = Instrument(
+    instrument = start_instrument(
         context=ros_context,
         namespace=ros_namespace,
         record=True,
@@ -157,7 +159,7 @@ BLOW_UP = {
 
 def test_blow_up_in_the_session_is_reported_at_the_top(ros_context, ros_namespace, tmp_path):
     path = tmp_path / "blowup.mcap"
-    instrument = Instrument(
+    instrument = start_instrument(
         context=ros_context,
         namespace=ros_namespace,
         record=True,

@@ -272,7 +272,7 @@ def stopped(tmp_path_factory):
         spin_until(ex, lambda: {f"{ns}/lockin", f"{ns}/scanner"} <= set(cantilever.consumers))
         spin_until(ex, lambda: scanner.lockin_output_rate is not None)
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
-        spin_until(ex, lambda: cantilever.paused and scanner._lockin_end[1] >= ENGAGE - 1e-9)
+        spin_until(ex, lambda: cantilever.paused and scanner.lockin_end[1] >= ENGAGE - 1e-9)
         assert scanner._start(Trigger.Response(), single=True).success
         spin_until(ex, lambda: scanner.state == "scanning")
         line_time = 1.0 / SCAN["line_rate"]
@@ -304,7 +304,7 @@ def stopped(tmp_path_factory):
             for ch in CHANNELS:
                 frame.images[d][ch][:] = 1.0
         frame.lines_done = SCAN["lines"]
-        scanner._write_frame(frame, dict(scanner._values)).join(60)
+        scanner.write_frame(frame).join(60)
         spin_until(
             ex,
             lambda: (
@@ -317,7 +317,7 @@ def stopped(tmp_path_factory):
         result["failed"] = diagnostics[-1]
         out.unlink()
         os.rename(str(out) + "_moved", out)
-        scanner._write_frame(frame, dict(scanner._values)).join(60)
+        scanner.write_frame(frame).join(60)
         spin_until(ex, lambda: diagnostics[-1].message == "ok", 30)
         result["recovered"] = diagnostics[-1]
         yield result

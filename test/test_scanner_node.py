@@ -126,7 +126,7 @@ def scanned(tmp_path_factory):
             ex, lambda: cantilever.imperfections_received
         )  # latched; before the first chunk
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
-        spin_until(ex, lambda: cantilever.paused and scanner._lockin_end[1] >= ENGAGE - 1e-9)
+        spin_until(ex, lambda: cantilever.paused and scanner.lockin_end[1] >= ENGAGE - 1e-9)
         first = scanner._start(Trigger.Response(), single=True)
         second = scanner._start(Trigger.Response(), single=True)
         spin_until(ex, lambda: scanner.state == "scanning")

@@ -47,10 +47,11 @@ SPP = 80  # the default steps per period
 
 
 def rk4_steady_state(cantilever: Cantilever, drive: Drive, spp: int):
-    """The exact periodic solution of the RK4 recursion for m z'' + c z' + k z = F0 cos(w t + psi) with the
-    drive at the step's start, middle and end (as the integrator's half-step table): y_n = Re(Y e^{i w t_n}),
-    Y = (e^{i w h} - M)^-1 c with M the homogeneous step and c the step of a unit complex drive from y = 0.
-    Returns (Y at the drive's phase psi: the state (z, v) at a period boundary is Y.real, the first harmonic
+    """The exact periodic solution of the RK4 recursion for m z'' + c z' + k z = F0 cos(w t + psi)
+    with the drive at the step's start, middle and end (as the integrator's half-step table): y_n =
+    Re(Y e^{i w t_n}), Y = (e^{i w h} - M)^-1 c with M the homogeneous step and c the step of a
+    unit complex drive from y = 0. Returns (Y at the drive's phase psi: the state (z, v) at a
+    period boundary is Y.real, the first harmonic
     |Y_z| with lag -arg Y_z) and the period map's multipliers R(h lambda)^spp."""
     h = 1.0 / (drive.frequency * spp)
     theta = 2.0 * math.pi / spp
@@ -139,12 +140,13 @@ def test_free_orbit_is_the_exact_rk4_steady_state_found_in_a_few_periods(q, detu
 @pytest.mark.parametrize("q", [1e4, 1e5])
 @pytest.mark.parametrize("detuning", [1.0, 0.999])
 def test_free_floquet_multipliers(q, detuning):
-    """The damped oscillator's monodromy over one drive period T = 1/f has eigenvalues exp(lambda T),
+    """The damped oscillator's monodromy over a drive period T = 1/f has eigenvalues exp(lambda T),
     lambda = -zeta w0 +- i w0 sqrt(1 - zeta^2), zeta = 1 / 2Q: |mu| = exp(-pi f0 / (Q f)), arg mu =
-    +-2 pi (f0 / f) sqrt(1 - zeta^2) (mod 2 pi). RK4 adds its damping theta^6 / 144 per step (1.3e-7 per
-    period at 80 steps) and its phase lag theta^5 / 120 per step (2.0e-6 rad per period): allowed 2e-7 in
+    +-2 pi (f0 / f) sqrt(1 - zeta^2) (mod 2 pi). RK4 adds its damping theta^6 / 144 per step
+    (1.3e-7 per period at 80 steps) and its phase lag theta^5 / 120 per step (2.0e-6 rad per
+    period): allowed 2e-7 in
     |mu| and 2.2e-6 rad in arg mu against the ODE's values. Against RK4's own R(h lambda)^spp the
-    forward-difference Jacobian (steps of 1e-7 of the orbit, exact for a linear map up to rounding: 80
+    forward-difference Jacobian (steps of 1e-7 of the orbit, exact for a linear map to rounding: 80
     steps of ~1e-16 relative each, ~1e-15 of the orbit, over 1e-7: ~1e-8) must agree to 5e-8."""
     c = Cantilever(quality_factor=q)
     d = Drive.from_free_amplitude(c, 10e-9, 45e3 * detuning)
@@ -206,18 +208,20 @@ def test_tapping_orbit_equals_the_waiting_methods_steady_state(q, z_base):
 def test_tapping_orbit_at_q_1e4_is_periodic_and_balances_its_energy(z_base):
     """Q = 1e4, 200 steps per period (theta = 2 pi / 200), from rest.
 
-    Periodic: the simulation is left one period after the returned state; one more period must come back
+    Periodic: the simulation is left a period after the returned state; one more period must return
     to it (two applications of the map) within the reported correction (the residual |P(x) - x| is
     |J - I| ~ 3e-3 times the correction here, so far inside).
-    Energy: over a period of a periodic orbit the mechanical energy returns, so drive work = damping loss +
+    Energy: the mechanical energy returns over a period of the orbit: drive work = damping loss +
     tip-sample dissipation + what the integrator itself dissipates. RK4's own loss relative to the
-    physical damping is Q theta^5 / 72 (module docstring: 1/Q grows by theta^5 / 72), i.e. 4.2e-6 of
-    the drive work here: the imbalance must be that, within 5 % (higher orders, the tapping's shifted
+    physical damping is Q theta^5 / 72 (module docstring: 1/Q grows by theta^5 / 72), so 4.2e-6 of
+    the drive work here: the imbalance must be that, to 5 % (higher orders, the tapping's shifted
     frequency); and the DMT force is conservative: E_ts below 1e-7 of the drive work.
-    Cleveland: drive work = pi F0 A1 sin(phi) exactly (only the first harmonic takes work from a harmonic
-    drive), so sin(phi) - cleveland_sin_phase = imbalance x sin(phi), to 1e-8 (harmonics above the 8th).
-    Liouville: det(dP/dx) = exp(-c T / m) = exp(-2 pi f0 / (Q f)) for a force independent of the velocity:
-    allowed 1e-6 relative (the forward-difference Jacobian's truncation, ~2e-7, and RK4's det error)."""
+    Cleveland: drive work = pi F0 A1 sin(phi) exactly (only the first harmonic takes work from a
+    harmonic drive), so sin(phi) - cleveland_sin_phase = imbalance x sin(phi), to 1e-8 (harmonics
+    above the 8th).
+    Liouville: det(dP/dx) = exp(-c T / m) = exp(-2 pi f0 / (Q f)) for a force independent of the
+    velocity: allowed 1e-6 relative (the forward-difference Jacobian's truncation, ~2e-7, and RK4's
+    det error)."""
     spp = 200
     sim = tapping(1e4, z_base, spp)
     orbit = periodic_orbit(sim)

@@ -323,7 +323,7 @@ def test_spectroscopy_over_ros_equals_the_wired_curve_bit_for_bit_and_is_reporte
         assert not again.result().success and "already running" in again.result().message
         # the cantilever publishes the force only to subscribers: released once the node's matched
         spin_until(
-            lambda: cantilever._pub_force.get_subscription_count() > 0,
+            lambda: cantilever.force_subscribers > 0,
             30,
             "the force subscription",
         )

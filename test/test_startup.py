@@ -89,14 +89,17 @@ lockin.LockIn().warm_up()
 print(json.dumps({
     "package": afm_ros.__file__, "chosen": numba_cache.chosen, "reason": numba_cache.reason,
     "env": os.environ.get("NUMBA_CACHE_DIR"), "configured_before_numba": before_numba,
-    "hits": sum(sum(d.stats.cache_hits.values()) for d in (events.advance_event, lockin._demodulate)),
-    "misses": sum(sum(d.stats.cache_misses.values()) for d in (events.advance_event, lockin._demodulate)),
+    "hits": sum(sum(d.stats.cache_hits.values())
+                for d in (events.advance_event, lockin._demodulate)),
+    "misses": sum(sum(d.stats.cache_misses.values())
+                  for d in (events.advance_event, lockin._demodulate)),
 }))
 """
 
 PROBE = r"""
 import os, sys
-import numpy, numba  # the user must be able to read the environment (a checkout under a 0700 dir is not)
+# the user must be able to read the environment (a checkout under a 0700 dir is not)
+import numpy, numba
 ro, home = sys.argv[1], sys.argv[2]
 try:
     open(os.path.join(ro, "probe"), "w").close()

@@ -48,7 +48,6 @@ def line_widths(frame, direction: str) -> np.ndarray:
     """Width [m] of every whole line of the grating in each image row: the distance between its
     rising and falling edge, each located as the position of the ideal step with the same area."""
     plan = frame.plan
-    x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
     out = []
     for row in frame.images[direction]["height"][1:].astype(float):  # row 0 settles after the park
         low, high = np.percentile(row, 5), np.percentile(row, 95)

@@ -143,7 +143,7 @@ def test_tune_over_ros_matches_the_wired_tune_and_applies_the_working_point(
         ros_executor.add_node(n)
     try:
         spin_until(
-            lambda: lockin._cantilever_values is not None and lockin.z_stage == "withdrawn",
+            lambda: lockin.cantilever_values is not None and lockin.z_stage == "withdrawn",
             what="the cantilever's drive and the withdrawn stage",
         )
         # the cantilever waited at t = 0 until the z stage was placed far away (as afm_instrument

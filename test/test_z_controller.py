@@ -25,7 +25,7 @@ from afm_ros.nodes.z_controller_node import Z_QOS, ZControllerNode
 
 A_FREE = 60e-9  # [m]
 SETPOINT = Z_CONTROLLER_SPECS["setpoint"].default
-P, I = Z_CONTROLLER_SPECS["p_gain"].default, Z_CONTROLLER_SPECS["i_gain"].default
+P, I_GAIN = Z_CONTROLLER_SPECS["p_gain"].default, Z_CONTROLLER_SPECS["i_gain"].default
 
 
 def plant(z, z_base=70e-9, slope=1.0):
@@ -54,7 +54,7 @@ def test_step_response_settles_at_setpoint_with_pi_dynamics():
     assert abs(a[-1] - SETPOINT) < 1e-6 * SETPOINT and abs(z[-1] - z_star) < 1e-6 * SETPOINT
     # In the linear (contact) regime u = z - z* obeys, from z = I + p e, I += i e dt, e = -u(prev):
     # u_k = (1 - p - i dt) u_{k-1} + p u_{k-2}; its dominant root is the decay per sample.
-    r = max(np.roots([1.0, -(1.0 - P - I * dt), -P]).real)
+    r = max(np.roots([1.0, -(1.0 - P - I_GAIN * dt), -P]).real)
     u = np.abs(z - z_star)
     contact = np.nonzero(a < A_FREE)[0][0] + 20  # after the first contact transient
     k = contact + np.arange(100)
@@ -65,7 +65,7 @@ def test_step_response_settles_at_setpoint_with_pi_dynamics():
 def test_behaviour_follows_simulated_time_not_sample_count():
     """The same loop sampled at 2 kHz and 10 kHz follows the continuous-time law in sim time:
     (1 + p slope) du/dt = -i slope u, i.e. u(t) = u(t0) exp(-(t - t0) i / (1 + p))."""
-    tau = (1.0 + P) / I
+    tau = (1.0 + P) / I_GAIN
     results = {}
     for dt in (0.5e-3, 0.1e-3):
         ctrl = ZController(z_initial=-15e-9)  # start in contact (A = 55 nm)
@@ -125,7 +125,7 @@ def test_bumpless_enable_and_gain_change():
     # afterwards each step is the integral step plus the change of the proportional term
     steps = np.abs(np.diff(np.concatenate([[z_hold], z3])))
     e = SETPOINT - a3
-    assert np.all(steps[1:] <= I * np.abs(e[1:]) * dt + P * np.abs(np.diff(e)) + 1e-18)
+    assert np.all(steps[1:] <= I_GAIN * np.abs(e[1:]) * dt + P * np.abs(np.diff(e)) + 1e-18)
     assert z3[-1] < z_hold - 5e-9  # and it does follow the sample
     # live p_gain change with a non-zero error: the output continues from where it was
     ctrl.configure(setpoint=45e-9)
@@ -136,7 +136,7 @@ def test_bumpless_enable_and_gain_change():
     z_after = ctrl.update(plant(ctrl.z, z_base=77e-9), t3[-1] + 2 * dt)
     assert (
         abs(z_after - z_before)
-        <= I * abs(ctrl.error) * dt + 2.0 * abs(ctrl.error - e_before) + 1e-18
+        <= I_GAIN * abs(ctrl.error) * dt + 2.0 * abs(ctrl.error - e_before) + 1e-18
     )
 
 
@@ -289,7 +289,7 @@ def test_node_direction_error_sign_and_sim_time(ros_context, ros_executor, ros_n
     )  # error = setpoint - amplitude
     assert np.all(np.diff(z) < 0) and z[-1] < 0.0  # amplitude too large -> approach (z decreases)
     # constant error: each step is i_gain * error * (simulated dt), not wall time
-    assert np.allclose(np.diff(z), I * (SETPOINT - high) * 1e-3, rtol=1e-9, atol=0)
+    assert np.allclose(np.diff(z), I_GAIN * (SETPOINT - high) * 1e-3, rtol=1e-9, atol=0)
     n = len(harness.z)
     feed(ros_executor, harness, [low] * 20, 20 * step, step)
     z2 = np.array(harness.z[n:])
@@ -358,7 +358,7 @@ def test_node_answers_every_chunk_in_order(ros_context, ros_executor, ros_namesp
     assert len(harness.error) == 200
     answered = [c.answered_end_index for c in harness.commands[1:]]
     assert answered == [Harness.CHUNK * (k + 1) for k in range(200)]
-    expected = z0 + I * (SETPOINT - 55e-9) * 0.199
+    expected = z0 + I_GAIN * (SETPOINT - 55e-9) * 0.199
     assert harness.z[-1] == pytest.approx(expected, rel=1e-9, abs=0)
     assert harness.commands[-1].z == harness.z[-1]
     assert node.lost_samples == 0 and node.stale_batches == 0
@@ -373,5 +373,5 @@ def test_non_finite_samples_and_time_going_back():
     # the simulation restarts at t = 0: no step for the jump, then integration resumes
     assert ctrl.update(55e-9, 0.0) == z and ctrl.non_monotonic_samples == 1
     assert ctrl.update(55e-9, 0.001) == pytest.approx(
-        z + I * (SETPOINT - 55e-9) * 0.001, rel=1e-9, abs=0
+        z + I_GAIN * (SETPOINT - 55e-9) * 0.001, rel=1e-9, abs=0
     )

@@ -34,7 +34,7 @@ _ROS_LINK_NAMES = ("Change", "LoadResult", "Outputs", "ParameterInfo", "RosLink"
 
 def __getattr__(name: str):
     if name in _ROS_LINK_NAMES:
-        from afm_ros.client import ros_link
+        from afm_ros.client import ros_link  # noqa: PLC0415 - rclpy only when the ROS link is asked for
 
         return getattr(ros_link, name)
     raise AttributeError(f"module 'afm_ros.client' has no attribute {name!r}")

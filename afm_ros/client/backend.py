@@ -39,6 +39,9 @@ class Backend(Protocol):
 
     def advance(self, seconds: float) -> None: ...
 
+    def wait_until(self, t: float) -> float:
+        """Run to the first chunk boundary at or after the simulated time ``t`` [s]; that time."""
+
     def tune(self) -> TuneResult: ...
 
     def approach(self) -> ApproachResult: ...

@@ -19,8 +19,8 @@ import numpy as np
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, Frame
 from afm_ros.core.scanner import ScanPlan
-from afm_ros.core.spectroscopy import DIRECTIONS as LEGS
 from afm_ros.formats.frames import write_frame
+from afm_ros.formats.spectroscopy_layout import DIRECTIONS as LEGS
 
 
 def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):

@@ -16,6 +16,7 @@ from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 from afm_ros.core.spectroscopy import validate as spectroscopy_validate
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
+from afm_ros.core.tip import validate as tip_validate
 from afm_ros.core.tune import TUNE_SPECS, sweep_wired
 from afm_ros.core.wired import WiredInstrument
 
@@ -171,8 +172,6 @@ class LocalBackend:
                         f"after the start; give the others to Microscope.local(cantilever={{...}})"
                     )
                 if set(values) & set(TIP_SPECS):
-                    from afm_ros.core.tip import validate as tip_validate
-
                     w.wear.values = tip_validate(
                         {**w.wear.values, **{k: v for k, v in values.items() if k in TIP_SPECS}}
                     )
@@ -219,6 +218,10 @@ class LocalBackend:
 
     def advance(self, seconds: float) -> None:
         self.w.run_until(self.w.t + seconds)
+
+    def wait_until(self, t: float) -> float:
+        self.w.run_until(t)
+        return self.w.t
 
     def tune(self) -> dict:
 

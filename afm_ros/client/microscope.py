@@ -31,6 +31,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 from afm_ros.client.backend import Backend
 from afm_ros.client.errors import BadArgument, LongWork
+from afm_ros.client.frames import save_frame
 from afm_ros.client.local_backend import LocalBackend
 from afm_ros.client.results import (
     ApproachResult,
@@ -169,6 +170,23 @@ class Microscope:
                 tip or {},
             )
         )
+
+    @classmethod
+    def in_process(cls, **options) -> "Microscope":
+        """The instrument's nodes (cantilever, lock-in, z controller, and as asked the PLL,
+        scanner, live view and recorder) run in this process on one executor, the simulation
+        stepped with the cantilever's run_until pause (what ``afm_instrument`` runs; rclpy must be
+        initialised). ``options`` are :class:`afm_ros.client.nodes_backend.NodesBackend`'s;
+        :attr:`session` is that backend (its monitor's statistics, the recording, the frame behind
+        a scan)."""
+        from afm_ros.client.nodes_backend import NodesBackend  # noqa: PLC0415 - rclpy only for this backend
+
+        return cls(NodesBackend(**options))
+
+    @property
+    def session(self):
+        """The in-process nodes' backend of :meth:`in_process` (None for the other backends)."""
+        return self._backend if hasattr(self._backend, "monitor") else None
 
     # --- life cycle
     # ---------------------------------------------------------------------------------
@@ -349,8 +367,6 @@ class Microscope:
             )
         frame = self._run("scan", progress)
         if save is not None:
-            from afm_ros.client.frames import save_frame
-
             frame.attrs["file"] = str(save_frame(frame, save)[0])
         return frame
 
@@ -399,6 +415,13 @@ class Microscope:
         if x is not None:
             self.move_tip(x, y)
         return self._run("spectroscopy", values)
+
+    def wait_until(self, t: float) -> float:
+        """Let simulated time pass up to ``t`` [s] (the first chunk boundary at or after it, where
+        the instrument pauses); returns the time reached [s]."""
+        t = _number("t", t, unit="s")
+        self._announce(f"wait_until({t:g})", max(0.0, t - self.state()["t_s"]))
+        return self._run("wait_until", t)
 
     def wait(self, seconds: float) -> None:
         """Let ``seconds`` [s] of simulated time pass with the instrument as it is."""

@@ -257,6 +257,10 @@ class RosBackend:
         and pause; without, wait until it passed."""
         self.advance_to(self.now() + seconds)
 
+    def wait_until(self, t: float) -> float:
+        self.advance_to(t)
+        return self.now()
+
     def advance_to(self, t: float) -> None:
         wall, start = time.monotonic(), self.now()
         try:

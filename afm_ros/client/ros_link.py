@@ -42,7 +42,6 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from afm_ros.client.errors import (
-    ClientError,
     Interrupted,
     NoAnswer,
     NodeNotFound,

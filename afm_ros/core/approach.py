@@ -245,7 +245,10 @@ class AutoApproach:
                 travelled = self.motor_start - self.motor
                 if travelled >= v["motor_travel"] - 1e-15:
                     self.state = "failed"
-                    self.reason = f"no surface within the motor's travel motor_travel={v['motor_travel']:g} m"
+                    self.reason = (
+                        "no surface within the motor's travel "
+                        f"motor_travel={v['motor_travel']:g} m"
+                    )
                     return self.z
                 steps = max(1, int(v["approach_cycle_fraction"] * self.range / v["motor_step"]))
                 steps = min(

@@ -60,7 +60,6 @@ from afm_ros.core.plan_layout import (
     PLAN_SIN,
     PLAN_SIZE_X,
     PLAN_START,
-    TRUTH_KEYS,
 )  # noqa: F401 (TRUTH_KEYS: re-exported)
 
 if TYPE_CHECKING:

@@ -21,7 +21,6 @@ import numpy as np
 
 from afm_ros.core.artefacts import (
     ART_ON,
-    TRUTH_KEYS,
     Imperfections,
     validate,
 )
@@ -43,6 +42,7 @@ from afm_ros.core.physics.parameters import (
     Drive,
 )
 from afm_ros.core.physics.simulation import Samples, Simulation, SurfaceMap, surface_map
+from afm_ros.core.plan_layout import TRUTH_KEYS
 from afm_ros.core.samples import describe, resolve_sample
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.tip import TIP_SPECS, TipWear
@@ -697,7 +697,10 @@ class CantileverEngine:
             kind = "feedback"
         elif not self.window.ready(self.starts):
             behind = self.window.blocking(self.starts)
-            reason = f"waiting for consumers more than {self.window.window} chunks behind: {', '.join(behind)}"
+            reason = (
+                f"waiting for consumers more than {self.window.window} chunks behind: "
+                f"{', '.join(behind)}"
+            )
             kind = "consumers"
         else:
             if self.waiting_since is not None:

@@ -35,7 +35,7 @@ from afm_ros.core.imaging import CHANNELS, DIRECTIONS
 from afm_ros.core.offline_scan import IMAGING_MODELS, TOOL_SPECS, ScanConfig, run_scan
 from afm_ros.core.physics.parameters import parse_number
 from afm_ros.core.samples import dilate, sample_from_description
-from afm_ros.core.samples.generators import GENERATORS, PAIRS, SPECS
+from afm_ros.core.samples.generators import GENERATORS, SPECS
 from afm_ros.core.samples.generators import check as check_sample
 from afm_ros.core.scanner import SCAN_SPECS, ScanPlan, check_scan
 from afm_ros.formats import user_files

@@ -89,6 +89,11 @@ class FeedbackGate:
     def newest_answer(self) -> int | None:
         return self._commands[-1][0] if self._commands else None
 
+    @property
+    def newest_value(self) -> float | None:
+        """The z [m] of the newest command held (None before one)."""
+        return self._commands[-1][1] if self._commands else None
+
     def receive(self, cmd: ZCommand) -> None:
         if cmd.answered_end_index < 0:
             if self.locked:

@@ -301,6 +301,12 @@ class LockIn:
         self._next_k = -math.inf
 
     # --- parameters ------------------------------------------------------------------------
+    @property
+    def reference_anchor(self) -> tuple | None:
+        """(index, time [s], phase, cycles per sample, drive frequency [Hz]) where the reference
+        was last anchored (None before the first chunk)."""
+        return self._anchor
+
     def configure(self, **changes) -> None:
         """Validate and apply parameter changes (all or none)."""
         for name in changes:

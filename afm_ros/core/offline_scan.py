@@ -227,7 +227,10 @@ class Interruption:
             wall_left = (end - w.t) / speed if speed > 0 else math.inf
             if wall_left <= FINISH_LINE_WALL_S:
                 self.stop_after = line
-                note = f"finishing line {line}/{plan.lines} (about {wall_left:.1f} s; Ctrl-C again stops now)"
+                note = (
+                    f"finishing line {line}/{plan.lines} (about {wall_left:.1f} s; "
+                    "Ctrl-C again stops now)"
+                )
             else:
                 self.stop_after = w.images.frame.lines_done
                 note = (

@@ -34,8 +34,6 @@ import numpy as np
 from afm_ros.core.angles import phase_deg  # noqa: F401 - re-exported
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
 from afm_ros.formats.spectroscopy_layout import (
-    CHUNK_COLUMNS,
-    DIRECTIONS,
     OUTPUT_COLUMNS,  # noqa: F401 - re-exported
     SpectroscopyCurve,
 )

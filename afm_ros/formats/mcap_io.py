@@ -212,7 +212,8 @@ def qos_profiles_yaml(profiles: list) -> str:
             f"  deadline:\n{_duration_yaml(q.deadline.nanoseconds, '  ')}"
             f"  lifespan:\n{_duration_yaml(q.lifespan.nanoseconds, '  ')}"
             f"  liveliness: {name(q.liveliness)}\n"
-            f"  liveliness_lease_duration:\n{_duration_yaml(q.liveliness_lease_duration.nanoseconds, '  ')}"
+            "  liveliness_lease_duration:\n"
+            f"{_duration_yaml(q.liveliness_lease_duration.nanoseconds, '  ')}"
             "  avoid_ros_namespace_conventions: "
             f"{'true' if q.avoid_ros_namespace_conventions else 'false'}"
         )
@@ -581,7 +582,10 @@ class Damage(NamedTuple):
             if self.messages is not None
             else "an unknown number of messages"
         )
-        return f"{where} at byte {self.offset} ({self.length} bytes, {self.reason}): {held} lost there"
+        return (
+            f"{where} at byte {self.offset} ({self.length} bytes, {self.reason}): "
+            f"{held} lost there"
+        )
 
 
 @dataclass

@@ -415,6 +415,12 @@ class CantileverNode(GuardedNode):
         # for the current wait cycle is canceled before it is taken
         self._stopped = True
 
+    @property
+    def force_subscribers(self) -> int:
+        """Subscriptions matched on cantilever/tip_sample_force (published only while there
+        are)."""
+        return self._pub_force.get_subscription_count()
+
     def destroy_node(self):
         # the EventsExecutor may still hold a timer event of this node: make it a no-op
         self._stopped = True

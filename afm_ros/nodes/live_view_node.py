@@ -472,6 +472,34 @@ class LiveViewNode(GuardedNode):
         if changed:
             self.server.publish_parameter_values(changed)
 
+    @property
+    def channels(self) -> list[str]:
+        """The topics it serves as Foxglove channels (full names)."""
+        with self._lock:
+            return list(self._channels)
+
+    @property
+    def subscriptions(self) -> list[tuple]:
+        """What it subscribes to: (kind, topic) keys (kind: 'raw', 'derived', ...)."""
+        with self._lock:
+            return list(self._subs)
+
+    @property
+    def known_parameters(self) -> dict[str, dict]:
+        """The parameters it has loaded, by node: {node fqn: {name: value}} (a copy)."""
+        with self._lock:
+            return {fqn: dict(values) for fqn, values in self._params.items()}
+
+    @property
+    def parameter_clients(self) -> list[str]:
+        """The nodes it holds a parameter client of (fully qualified names)."""
+        with self._lock:
+            return list(self._param_clients)
+
+    def viewer_parameters(self, names: list) -> list:
+        """What a viewer's getParameters(``names``) answers (every loaded parameter if none)."""
+        return self._get_parameters(names)
+
     def _get_parameters(self, names: list) -> list:
         with self._lock:
             if not names:

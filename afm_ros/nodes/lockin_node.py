@@ -107,7 +107,7 @@ class LockInNode(GuardedNode):
         self._pub_tune = self.create_publisher(String, "lockin/tune_result", topics.LATCHED_QOS)
         self._pub_tune_plan = self.create_publisher(String, topics.TUNE_PLAN, topics.LATCHED_QOS)
         self._input_end_time = 0.0  # simulated time at the end of the last chunk processed [s]
-        self.create_service(Trigger, "lockin/tune", self._start_tune)
+        self.create_service(Trigger, "lockin/tune", self.start_tune)
         self.pub_amplitude = self.create_publisher(Float64, "lockin/amplitude", OUTPUT_QOS)
         self.pub_phase = self.create_publisher(Float64, "lockin/phase", OUTPUT_QOS)
         self.pub_xy = self.create_publisher(Vector3Stamped, "lockin/xy", OUTPUT_QOS)
@@ -167,7 +167,9 @@ class LockInNode(GuardedNode):
         except (ValueError, AttributeError):
             pass
 
-    def _start_tune(self, request, response):
+    def start_tune(self, request=None, response=None) -> Trigger.Response:
+        """Start a drive tune (the service lockin/tune); the answer says whether and why not."""
+        response = Trigger.Response() if response is None else response
         if self.z_stage in ("engaged", "approaching", "withdrawing", "spectroscopy"):
             response.success = False
             response.message = refusals.tagged(
@@ -394,6 +396,16 @@ class LockInNode(GuardedNode):
                 "next_index": self._ack.next_index,
             },
         )
+
+    @property
+    def acknowledged_index(self) -> int:
+        """The sample index its last acknowledgement on cantilever/_ack reached."""
+        return self._ack.next_index
+
+    @property
+    def cantilever_values(self) -> dict | None:
+        """What the cantilever's cantilever/scan said of its drive (None before it spoke)."""
+        return self._cantilever_values
 
     def destroy_node(self):
         self._ack.leave()  # a cantilever that keeps running must not wait for this lock-in

@@ -21,13 +21,16 @@ from typing import Callable
 
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (
+    ExternalShutdownException,
+    MultiThreadedExecutor,
+    SingleThreadedExecutor,
+)
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
-
-from afm_ros.core.specs import NODE_SPECS, node_key, node_specs, spec_cells
 
 _stop_requested = False
 _stop_futures: list = []  # completed by the first Ctrl-C / SIGTERM (see serve)
@@ -95,12 +98,8 @@ def make_executor(kind: str = "events", context=None):
     if kind == "single":
         return SingleThreadedExecutor(context=context)
     if kind == "multi":
-        from rclpy.executors import MultiThreadedExecutor
-
         return MultiThreadedExecutor(num_threads=2, context=context)
     if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
         return EventsExecutor(context=context)
     raise ValueError(f"executor={kind!r} is not known; allowed: single, multi, events")
 
@@ -195,10 +194,14 @@ HELP_FLAGS = ("-h", "--help")
 def help_text(program: str, node: str, doc: str | None) -> str:
     """``program --help``: what the node does (the first paragraph of its module docstring), how
     to pass parameters, and its parameter table from the specs (:mod:`afm_ros.core.specs`)."""
+    # the registry imports every core (numba too): only for --help, so a node starts light
+    from afm_ros.core.specs import NODE_SPECS, node_key, node_specs, spec_cells  # noqa: PLC0415
 
-    wrap = lambda text, indent="": textwrap.fill(
-        " ".join(text.split()), 100, initial_indent=indent, subsequent_indent=indent
-    )
+    def wrap(text, indent=""):
+        return textwrap.fill(
+            " ".join(text.split()), 100, initial_indent=indent, subsequent_indent=indent
+        )
+
     summary = (doc or "").strip().split("\n\n")[0].replace("``", "")
     lines = [
         f"usage: {program} [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r "

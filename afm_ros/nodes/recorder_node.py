@@ -611,10 +611,10 @@ class RecorderNode(GuardedNode):
 
     def _write_snapshot_locked(self, node_name: str, params: list[ParameterMsg]) -> None:
         if PARAMETER_EVENTS not in self._channel:
-            from rclpy.qos import qos_profile_parameter_events as q
-
             self._channel[PARAMETER_EVENTS] = self.writer.add_channel(
-                PARAMETER_EVENTS, PARAMETER_EVENT_TYPE, qos_profiles_yaml([q])
+                PARAMETER_EVENTS,
+                PARAMETER_EVENT_TYPE,
+                qos_profiles_yaml([qos_profile_parameter_events]),
             )
             self._sequence.setdefault(PARAMETER_EVENTS, 0)
             self.received.setdefault(PARAMETER_EVENTS, 0)
@@ -738,6 +738,21 @@ class RecorderNode(GuardedNode):
                 )
         except RecordingError as exc:
             self._fail(exc)
+
+    @property
+    def exclude(self) -> list[str]:
+        """The topic patterns never recorded (the exclude parameter, resolved in the namespace)."""
+        return list(self._exclude)
+
+    @property
+    def acknowledges_outputs(self) -> bool:
+        """True when it acknowledges the lock-in's batches (the raw streams are not recorded)."""
+        return self._ack_by_outputs
+
+    @property
+    def acknowledged_index(self) -> int | None:
+        """The sample index its last acknowledgement reached (None: it acknowledges nothing)."""
+        return None if self._ack is None else self._ack.next_index
 
     def destroy_node(self):
         self.close()

@@ -295,6 +295,12 @@ class ReplayNode(GuardedNode):
                 f"({scan.truncated_reason or 'none is intact'})"
             )
 
+    @property
+    def rate(self) -> float:
+        """The playback speed in force (the rate parameter, applied)."""
+        with self._rate_lock:
+            return self._rate
+
     def destroy_node(self):
         self._stop.set()
         if self._thread.is_alive():

@@ -305,8 +305,8 @@ def _warn_unknown(
     ]
     if not unknown:
         return
-    try:
-        from afm_ros.core.specs import node_specs
+    try:  # the registry imports every core (numba too): only when a start key is unknown
+        from afm_ros.core.specs import node_specs  # noqa: PLC0415
 
         others = {name: node_name for node_name, s in node_specs().items() for name in s}
     except Exception:  # the warning must never stop a node

@@ -103,6 +103,7 @@ class ScannerNode(GuardedNode):
                 SCANNER_NODE_SPECS, lambda: dict(self._values), check_scanner_values, self._apply
             )
         )
+        self.applied_count = 0  # cantilever/scan messages taken (each applied scan, park or tune)
         self._lock = threading.RLock()
         self._pub_plan = self.create_publisher(String, topics.SCAN_PLAN, topics.LATCHED_QOS)
         self._pub_imperfections = self.create_publisher(
@@ -135,14 +136,12 @@ class ScannerNode(GuardedNode):
             None  # the z controller's latest z_controller/stage (None: not heard)
         )
         self.create_subscription(String, topics.Z_STAGE, self._on_stage, topics.LATCHED_QOS)
+        self.create_service(Trigger, "scanner/start", lambda req, res: self.start_scan(False, res))
         self.create_service(
-            Trigger, "scanner/start", lambda req, res: self._start(res, single=False)
-        )
-        self.create_service(
-            Trigger, "scanner/scan_frame", lambda req, res: self._start(res, single=True)
+            Trigger, "scanner/scan_frame", lambda req, res: self.start_scan(True, res)
         )
         self.create_service(Trigger, "scanner/stop", self._stop)
-        self.create_service(Trigger, "scanner/move_tip", self._move_tip)
+        self.create_service(Trigger, "scanner/move_tip", self.move_tip)
         self._pub_flags = self.create_publisher(String, "scanner/flags", topics.LATCHED_QOS)
         self.state = "idle"  # idle, requested (waiting for the cantilever), scanning
         self._request_id = 0
@@ -233,7 +232,16 @@ class ScannerNode(GuardedNode):
             values = {name: self._values[name] for name in ARTEFACT_SPECS}
         self._pub_imperfections.publish(String(data=json.dumps(values)))
 
-    def _start(self, response, single: bool):
+    @property
+    def values(self) -> dict:
+        """The scanner's parameters in force (a copy)."""
+        with self._lock:
+            return dict(self._values)
+
+    def start_scan(self, single: bool, response=None) -> Trigger.Response:
+        """Start a scan with the parameters in force (one frame if ``single``; the services
+        scanner/start and scanner/scan_frame); the answer says whether and why not."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             if self.state != "idle":
                 plan = self.plan
@@ -313,8 +321,10 @@ class ScannerNode(GuardedNode):
             )
         return plan
 
-    def _move_tip(self, request, response):
-        """Park the tip at (tip_x, tip_y) from the cantilever's next chunk boundary (idle only)."""
+    def move_tip(self, request=None, response=None) -> Trigger.Response:
+        """Park the tip at (tip_x, tip_y) from the cantilever's next chunk boundary (idle only; the
+        service scanner/move_tip)."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             if self.state != "idle":
                 response.success = False
@@ -475,6 +485,7 @@ class ScannerNode(GuardedNode):
             self.get_logger().error("malformed cantilever/scan message ignored")
             return
         self._applied = applied
+        self.applied_count += 1
         with self._lock:
             request = self._plan_request
             if (
@@ -815,6 +826,16 @@ class ScannerNode(GuardedNode):
                 else "unknown",
             },
         )
+
+    @property
+    def lockin_end(self) -> tuple:
+        """(input end index, input end time [s]) of the last lock-in batch taken."""
+        return self._lockin_end
+
+    def write_frame(self, frame, values: dict | None = None) -> threading.Thread:
+        """Write ``frame``'s files in a background thread (returned) with ``values`` (default: the
+        parameters in force), as a finished frame is written."""
+        return self._write_frame(frame, self.values if values is None else values)
 
     def destroy_node(self):
         self.wait_for_writers(30.0)

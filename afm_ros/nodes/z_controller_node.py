@@ -153,10 +153,10 @@ class ZControllerNode(GuardedNode):
         self.create_subscription(
             String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS
         )
-        self.create_service(Trigger, "z_controller/approach", self._approach)
-        self.create_service(Trigger, "z_controller/withdraw", self._withdraw)
-        self.create_service(Trigger, "z_controller/spectroscopy", self._spectroscopy)
-        self.create_service(Trigger, "z_controller/stop", self._stop)
+        self.create_service(Trigger, "z_controller/approach", self.start_approach)
+        self.create_service(Trigger, "z_controller/withdraw", self.start_withdraw)
+        self.create_service(Trigger, "z_controller/spectroscopy", self.start_spectroscopy)
+        self.create_service(Trigger, "z_controller/stop", self.stop)
         self.pub_curve = self.create_publisher(
             Float64MultiArray, SPECTROSCOPY_TOPIC, topics.LATCHED_QOS
         )
@@ -247,7 +247,10 @@ class ZControllerNode(GuardedNode):
             self._stage_reported = info
             self.pub_stage.publish(String(data=json.dumps(info)))
 
-    def _approach(self, request, response):
+    def start_approach(self, request=None, response=None) -> Trigger.Response:
+        """Start an approach (the service z_controller/approach); the answer says whether and why
+        not."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             if self.stage is None:
                 response.success = False
@@ -297,10 +300,11 @@ class ZControllerNode(GuardedNode):
         except (KeyError, TypeError, ValueError):
             return 0.0
 
-    def _stop(self, request, response):
+    def stop(self, request=None, response=None) -> Trigger.Response:
         """Stop the approach, withdraw or spectroscopy running now (ZStage.stop): the piezo and
         motor stay where they are (state stopped), a spectroscopy resumes the feedback (no
         curve)."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             if self.stage is None:
                 response.success, response.message = (
@@ -321,7 +325,9 @@ class ZControllerNode(GuardedNode):
         self.get_logger().info(response.message)
         return response
 
-    def _withdraw(self, request, response):
+    def start_withdraw(self, request=None, response=None) -> Trigger.Response:
+        """Start a withdraw (the service z_controller/withdraw)."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             t = 0.0 if self.controller.t_last is None else self.controller.t_last
             if self.stage is None:
@@ -338,9 +344,10 @@ class ZControllerNode(GuardedNode):
         self.get_logger().info(response.message)
         return response
 
-    def _spectroscopy(self, request, response):
+    def start_spectroscopy(self, request=None, response=None) -> Trigger.Response:
         """Start a z spectroscopy at the parked tip (refused, with the reason, unless engaged,
         parked and no curve is still being finished)."""
+        response = Trigger.Response() if response is None else response
         with self._lock:
             info = self.cantilever_info
             if self.stage is None or not info:

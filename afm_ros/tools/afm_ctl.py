@@ -33,7 +33,8 @@ from afm_ros.client import (
 from afm_ros.nodes import node_main
 from afm_ros.nodes.topics import LATCHED_QOS
 
-DESCRIPTION = """Control a running afm_ros instrument (afm_instrument, or nodes started as separate processes)
+DESCRIPTION = """Control a running afm_ros instrument (afm_instrument, or nodes started as \
+separate processes)
 from a second terminal; no ROS install needed. Values go through each node's own parameter
 services, so the node converts and checks them and a refusal prints the node's reason. It waits
 up to --timeout seconds for the nodes to be discovered. Options --ns and --timeout may come
@@ -41,10 +42,12 @@ before or after the command."""
 
 EXIT_CODES = """exit status:
   0    done (watch: also when ended with Ctrl-C)
-  1    refused or failed: the node's reason is printed (the node keeps its old values); status: a node
+  1    refused or failed: the node's reason is printed (the node keeps its old values); \
+status: a node
        reports an error
   2    usage error (unknown command or option, missing argument)
-  3    nothing answered within --timeout: no such node in the namespace, or a service did not answer
+  3    nothing answered within --timeout: no such node in the namespace, or a service did not \
+answer
   130  interrupted by Ctrl-C"""
 
 EXAMPLES = """examples:
@@ -145,7 +148,10 @@ def status_summary(what: str, values: dict) -> str:
             text += f", consumers dropped: {values['consumers_dropped']}"
         return text
     if what == "input stream":
-        return f"{values.get('chunks', '?')} chunks, {values.get('missing_samples', '?')} samples lost"
+        return (
+            f"{values.get('chunks', '?')} chunks, "
+            f"{values.get('missing_samples', '?')} samples lost"
+        )
     if what == "feedback":
         return (
             f"z piezo {_float(values, 'z_piezo_m') * 1e9:.3f} nm, error "
@@ -160,7 +166,10 @@ def status_summary(what: str, values: dict) -> str:
                 f"scanning line {values.get('line', '?')}/{values.get('lines', '?')}, "
                 f"{_float(values, 'time_left_s'):.1f} s left"
             )
-        return f"{state}, {values.get('frames_done', '?')} frame(s) done, {values.get('frames_written', '?')} written"
+        return (
+            f"{state}, {values.get('frames_done', '?')} frame(s) done, "
+            f"{values.get('frames_written', '?')} written"
+        )
     if what == "recording":
         path = values.get("file", "?")
         return (
@@ -726,7 +735,10 @@ def main(argv=None) -> int:
             )
             hint = f" (try --ns {other})"
         elif isinstance(exc, NoAnswer) and "set_parameters" in exc.what:
-            hint = "; the node may still apply the values when it gets to the request: check with afm_ctl get"
+            hint = (
+                "; the node may still apply the values when it gets to the request: "
+                "check with afm_ctl get"
+            )
         print(f"afm_ctl: {exc}{hint}", file=sys.stderr)
         status = 3
     except (ClientError, ParamsFileError) as exc:

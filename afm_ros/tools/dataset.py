@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import shutil
 import sys
@@ -150,8 +151,6 @@ def make_dataset(
             for i in todo:
                 progress.frame(frame_task(spec, out, i))
         else:
-            import multiprocessing
-
             with ProcessPoolExecutor(
                 max_workers=workers or os.cpu_count(),
                 mp_context=multiprocessing.get_context("spawn"),
@@ -199,7 +198,10 @@ def plan_text(spec: dict, first: dict, frame_s: float, workers, max_frames: int 
 
     frames = spec["frames"]
     total = frames * bytes_per_frame(first)
-    text = f"dataset: {frames} frames of {spec['pixels']} x {spec['lines']} pixels; frame 0 took {frame_s:.2g} s"
+    text = (
+        f"dataset: {frames} frames of {spec['pixels']} x {spec['lines']} pixels; "
+        f"frame 0 took {frame_s:.2g} s"
+    )
     cpu = (frames - 1) * frame_s
     if frames > 1:
         text += f"; the other {frames - 1} about {_hours(cpu)} of CPU"

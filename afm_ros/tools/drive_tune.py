@@ -10,6 +10,7 @@ from pathlib import Path
 
 from afm_ros.core.physics.parameters import CANTILEVER_SPECS, parse_number
 from afm_ros.core.tune import TUNE_SPECS, sweep_wired
+from afm_ros.core.wired import WiredInstrument
 from afm_ros.tools.figures import write_csv
 from afm_ros.tools.tune_figure import plot_tune
 
@@ -24,7 +25,10 @@ NOISE = {"temperature": 295.0, "detector_noise_density": 100e-15}  # the instrum
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    text = "drive-frequency tune of a free cantilever through the lock-in: f0, Q, working point (tune.csv, tune.png)"
+    text = (
+        "drive-frequency tune of a free cantilever through the lock-in: f0, Q, working point "
+        "(tune.csv, tune.png)"
+    )
     p = subparsers.add_parser("tune", help=text, description=text)
     for name in LEVER:
         spec = CANTILEVER_SPECS[name]
@@ -68,7 +72,6 @@ def run(args) -> int:
             for name in TUNE_SPECS
             if getattr(args, name) is not None
         }
-        from afm_ros.core.wired import WiredInstrument
 
         noise = {"temperature": 0.0, "detector_noise_density": 0.0} if args.exact else NOISE
         inst = WiredInstrument(

@@ -43,6 +43,7 @@ from afm_ros.core.session_stats import FmWindow
 from afm_ros.formats import chunk_layout
 from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
+from afm_ros.tools.instrument_summary import ScanProgress
 
 FREE_LOCK_S = (
     0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
@@ -136,11 +137,12 @@ class FmMonitor(GuardedNode):
         return w
 
 
-def _measure(instrument, fm: FmMonitor, seconds: float) -> FmWindow:
+def _measure(afm, fm: FmMonitor, seconds: float) -> FmWindow:
     """Run ``seconds`` simulated and return the FM statistics of their second half."""
+    instrument = afm.session
     t0 = instrument.t_paused
     w = fm.window(t0 + seconds / 2, t0 + seconds)
-    instrument.advance_to(t0 + seconds)
+    afm.wait_until(t0 + seconds)
     instrument.spin_until(
         lambda: fm.end_time >= instrument.t_paused - 1e-9, "waiting for the PLL's outputs"
     )
@@ -153,12 +155,12 @@ INTERACTIVE_SPAN_S = (
 )
 
 
-def run_fm_job(
-    instrument, duration: float, progress: bool = True, interactive: bool = False
-) -> dict:
-    """The FM session (module docstring) on an :class:`afm_ros.tools.afm_instrument.Instrument`
-    built with the pll and scanner nodes in this process; returns the summary's numbers (SI units).
-    ``interactive``: after the hold, run until Ctrl-C instead of scanning and withdrawing."""
+def run_fm_job(job, duration: float, progress: bool = True, interactive: bool = False) -> dict:
+    """The FM session (module docstring) as a :class:`afm_ros.tools.instrument_job.InstrumentJob`
+    whose instrument runs the pll and scanner nodes in this process; returns the summary's numbers
+    (SI units). ``interactive``: after the hold, run until Ctrl-C instead of scanning and
+    withdrawing."""
+    afm, instrument = job.afm, job.b
 
     if instrument.attached or not {"pll", "scanner"} <= set(instrument.nodes):
         raise RuntimeError(
@@ -173,13 +175,13 @@ def run_fm_job(
     wall0 = time.monotonic()
     out: dict = {"mode": "fm"}
     instrument.wait_ready()
-    instrument._start_far()
+    instrument.start_far()
     cantilever = instrument.cantilever
     c = cantilever.engine.setup.cantilever
     k, q_set = c.spring_constant, c.quality_factor
     a_set = float(instrument.get("pll", "amplitude_setpoint"))
     # 1-2: lock free, centre the PLL on the free resonance
-    free = _measure(instrument, fm, FREE_LOCK_S)
+    free = _measure(afm, fm, FREE_LOCK_S)
     if free.n == 0:
         raise RuntimeError("no PLL output while locking the free cantilever")
     centre = float(instrument.get("pll", "center_frequency"))
@@ -202,10 +204,10 @@ def run_fm_job(
         "quality_factor_set": q_set,
     }
     # 3: approach on df
-    out["approach"] = instrument._approach()
+    out["approach"] = afm.approach()
     out["df_setpoint_Hz"] = float(instrument.get("z_controller", "df_setpoint"))
     # 4: hold
-    hold = _measure(instrument, fm, duration)
+    hold = _measure(afm, fm, duration)
     out["hold"] = {
         name: {"mean": hold.mean(name), "std": hold.std(name)} for name in FmWindow.NAMES
     }
@@ -216,7 +218,7 @@ def run_fm_job(
     scanner = instrument.nodes["scanner"]
     if interactive:
         fm.recent_span = INTERACTIVE_SPAN_S
-        instrument._run_until_interrupted(status=lambda: fm.status_line(instrument))
+        job.run_until_interrupted(status=lambda: fm.status_line(instrument))
         last = fm.recent_window()
         out["last_second"] = {
             name: {"mean": last.mean(name), "std": last.std(name)} for name in FmWindow.NAMES
@@ -237,10 +239,14 @@ def run_fm_job(
         out["recording"] = instrument.recording_status(spin=False)
         return out
     # 5: scan
-    wall_scan = time.monotonic()
-    plan = instrument.start_single_scan()
-    artefacts = cantilever.simulation.artefacts.copy()
-    interrupted, wall_scan = instrument.scan_through(plan, progress, wall_scan)
+    afm.scan(progress=ScanProgress(instrument) if progress else None)
+    scan = instrument.last_scan
+    plan, artefacts, interrupted, wall_scan = (
+        scan.plan,
+        scan.artefacts,
+        scan.interrupted,
+        scan.wall_s,
+    )
     frame = (
         scanner.accumulator.frames_done[0] if scanner.frames_done >= 1 else scanner.partial_frame
     )
@@ -271,7 +277,7 @@ def run_fm_job(
         }
     out["image"] = image
     if not interrupted:
-        out["withdraw"] = instrument._withdraw()
+        out["withdraw"] = afm.withdraw()
     out["interrupted"] = interrupted
     out["simulated_s"] = instrument.t_paused
     out["wall_s"] = time.monotonic() - wall0

@@ -192,7 +192,10 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``reconstruct`` subcommand to an argparse subparsers object (as afm_study's)."""
-    text = "force from an FM frequency-shift curve with the inflection-point test (force.csv, force.png)"
+    text = (
+        "force from an FM frequency-shift curve with the inflection-point test "
+        "(force.csv, force.png)"
+    )
     p = subparsers.add_parser("reconstruct", help=text, description=text)
     _add_arguments(p)
     p.set_defaults(func=run)

@@ -15,6 +15,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from afm_ros.core.session_stats import RollingStats, WindowStats
+from afm_ros.tools.frame_report import frame_lines
 
 MAX_SUMMARY_CHANGES = 10  # changes printed in the summary text (the newest; the JSON has all kept)
 # measured recording sizes (zstd, default noise): the raw streams 28.6 MB for 2.03 s simulated; the
@@ -188,8 +189,6 @@ class Summary:
             if r.get("stopped"):
                 lines.append(f"                       {r['stopped']}")
         if self.image:
-            from afm_ros.tools.frame_report import frame_lines
-
             im = self.image
             partial = (
                 f" -- PARTIAL: {im['lines_done']} of {im['lines']} lines"
@@ -282,30 +281,32 @@ class JobState:
 
 
 class ScanProgress:
-    """The image job's progress line: at every tenth of the frame and at least every 15 s of wall
-    time."""
+    """The image job's progress line, as the client's ``scan(progress=...)`` callback of the
+    in-process backend (called while the frame runs): at every tenth of the frame and at least
+    every 15 s of wall time."""
 
-    def __init__(self, plan, scanner, monitor, every_wall_s: float = 15.0):
-        self.plan, self.scanner, self.monitor, self.every = plan, scanner, monitor, every_wall_s
+    def __init__(self, backend, every_wall_s: float = 15.0):
+        self.backend, self.every = backend, every_wall_s
         self.wall0 = self.last = time.monotonic()
-        self.marks = sorted({max(1, round(plan.lines * k / 10)) for k in range(1, 11)})
+        self.marks: list[int] | None = None
         self.shown = 0
 
-    def __call__(self) -> None:
-        done = min(self.scanner.lines_done, self.plan.lines)
+    def __call__(self, done: int, lines: int) -> None:
+        plan = self.backend.nodes["scanner"].plan
+        if self.marks is None:
+            self.marks = sorted({max(1, round(lines * k / 10)) for k in range(1, 11)})
         now = time.monotonic()
         mark = next((m for m in reversed(self.marks) if m <= done), 0)
-        if mark > self.shown or (now - self.last >= self.every and done < self.plan.lines):
+        if mark > self.shown or (now - self.last >= self.every and done < lines):
             self.shown = max(self.shown, mark)
             self.last = now
-            sim = max(self.monitor.answer_time - self.plan.start_time, 0.0)
+            sim = max(self.backend.monitor.answer_time - plan.start_time, 0.0)
             wall = now - self.wall0
             rate = sim / wall if wall > 0 else 0.0
-            left = max(self.plan.frame_time - sim, 0.0) / rate if rate > 0 else math.inf
+            left = max(plan.frame_time - sim, 0.0) / rate if rate > 0 else math.inf
             print(
-                f"scan: line {done}/{self.plan.lines} ({100 * done / self.plan.lines:.0f} %), "
-                f"{sim:.1f} of "
-                f"{self.plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left",
+                f"scan: line {done}/{lines} ({100 * done / lines:.0f} %), {sim:.1f} of "
+                f"{plan.frame_time:g} s simulated, {rate:.2f}x real time, ~{left:.0f} s left",
                 flush=True,
             )
 

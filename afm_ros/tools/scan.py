@@ -42,8 +42,6 @@ from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, build, default
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.lockin import LOCKIN_SPECS
 from afm_ros.core.offline_scan import (
-    FINISH_LINE_WALL_S,
-    IMAGING_MODELS,
     TOOL_SPECS,
     Interruption,  # noqa: F401
     ScanConfig,
@@ -501,7 +499,7 @@ def format_summary(s: dict) -> str:
         f"start {_nm(s['engage']['amplitude_error_at_scan_start_m'])}",
         *(
             [
-                f"  imperfections        "
+                "  imperfections        "
                 + ", ".join(
                     f"{k} {v:g}" if not isinstance(v, bool) else f"{k} {v}"
                     for k, v in s["imperfections"].items()

@@ -7,9 +7,12 @@ figures and CSV tables (header row, SI units in the column names) into ``--out D
 - ``convergence`` L1 error vs time step for Euler, notebook Verlet and RK4 (fitted orders)
 - ``sweep``       steady-state observables vs z_base (approach, optional retract)
 - ``trajectory``  tip position, drive and tip-sample force vs time at one z_base
-- ``fm-curve``    FM: df, drive and dissipation vs distance of the self-excited steady state (shooting)
-- ``bench``       moved: says to run ``python -m benchmarks.bench`` from the repository (not installed)
-- ``scan``        image a sample with the wired instrument (.gwy, PNGs, summary), see :mod:`afm_ros.tools.scan`
+- ``fm-curve``    FM: df, drive and dissipation vs distance of the self-excited steady state
+                  (shooting)
+- ``bench``       moved: says to run ``python -m benchmarks.bench`` from the repository
+                  (not installed)
+- ``scan``        image a sample with the wired instrument (.gwy, PNGs, summary), see
+                  :mod:`afm_ros.tools.scan`
 
 The reusable pieces (:func:`convergence_study`, :func:`fit_order`, :func:`sweep`,
 :func:`trajectory`) are plain functions so tests can call them on tiny inputs.
@@ -51,6 +54,7 @@ from afm_ros.core.physics.noise import detector_noise
 from afm_ros.core.physics.parameters import DISSIPATION_SPECS, DRIVE_FORCE_SPEC, NOISE_SPECS
 from afm_ros.core.physics.parameters import parse_number as _number
 from afm_ros.core.physics.self_excited import FM_CURVE_COLUMNS, fm_curve
+from afm_ros.core.physics.shooting import periodic_orbit
 from afm_ros.core.physics.simulation import Samples
 from afm_ros.tools import contrast, dataset, drive_tune, force_reconstruction, scan, thermal_tune
 from afm_ros.tools.figures import pyplot, write_csv
@@ -571,8 +575,6 @@ def sweep(
             rows.append(_sweep_row(direction, z_base, result, sem))
             continue
         if steady == "shooting":
-            from afm_ros.core.physics.shooting import periodic_orbit
-
             rows.append(_shooting_row(direction, z_base, periodic_orbit(sim, **orbit_options)))
             continue
         result = steady_state(

@@ -834,7 +834,10 @@ def write_outputs(result: TuneResult, out: Path) -> list[Path]:
 
 # --- command line
 # ---------------------------------------------------------------------------------
-HELP = "thermal tune: PSD of the undriven cantilever's Brownian motion, SHO fit (f0, Q, k) and equipartition k"
+HELP = (
+    "thermal tune: PSD of the undriven cantilever's Brownian motion, SHO fit (f0, Q, k) and "
+    "equipartition k"
+)
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:

@@ -148,7 +148,8 @@ class ViscoelasticDMTForce(DMTForce):
     """DMT plus a Kelvin-Voigt viscous term in contact (delta = a0 - d > 0 the indentation):
 
     gap > a0:  F = -H R / (6 d^2)
-    gap <= a0: F = -H R / (6 a0^2) + max(0, 4/3 E* sqrt(R) delta^(3/2) + eta sqrt(R delta) d(delta)/dt)
+    gap <= a0: F = -H R / (6 a0^2)
+                   + max(0, 4/3 E* sqrt(R) delta^(3/2) + eta sqrt(R delta) d(delta)/dt)
 
     with d(delta)/dt = -dd/dt. The viscous force opposes the indentation rate (repulsive while the
     tip indents, attractive while it leaves); the repulsive contact part (Hertz + viscous) is

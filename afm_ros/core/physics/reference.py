@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.parameters import DMTSample
@@ -81,6 +80,8 @@ def reference(cantilever, drive, model, z_base, y0, t_end, t_eval, work_from=Non
         bool(kind == "viscoelastic_dmt" and gap <= a0 and p[2] * (a0 - gap) - p[4] * y[1] <= 0),
         bool(kind == "hysteresis_dmt" and y[1] >= 0),
     ]
+    from scipy.integrate import solve_ivp  # slow to import: only when a reference is computed
+
     t_eval = np.asarray(t_eval, dtype=float)
     out = {}
     work = {}

@@ -9,7 +9,7 @@ import numpy as np
 
 from afm_ros.core.artefacts import ART_LENGTH
 from afm_ros.core.artefacts import off as artefacts_off
-from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION
+from afm_ros.core.physics.events import NEAR_SURFACE_FRACTION, advance_event
 from afm_ros.core.physics.forces import DMTForce, NoForce, make_force_model
 from afm_ros.core.physics.integrators import (
     METHODS,
@@ -29,6 +29,7 @@ from afm_ros.core.physics.parameters import (
     check_steps_per_resonance,
 )
 from afm_ros.core.samples import dilate
+from afm_ros.core.samples.surface import double_tip
 from afm_ros.core.scanner import PLAN_LENGTH, parked_plan
 
 MAP_METHODS = ("rk4", "rk4_event")  # the integrators of the sample-map kernel
@@ -264,8 +265,6 @@ class Simulation:
         out_h = None
         out_w = None
         if self.surface is None and self.method == "rk4_event":
-            from afm_ros.core.physics.events import advance_event
-
             out_w = np.empty((4, count if decimation == 1 else 0))
             advance_event(
                 self.y,
@@ -436,8 +435,6 @@ def surface_map(
         rows.append(np.asarray(model.packed(), dtype=np.float64))
     surface = dilate(sample, tip.tip_radius) if dilate_tip else sample
     if second_apex is not None:  # (offset_x, offset_y, height) [m] of a double tip's second apex
-        from afm_ros.core.samples.surface import double_tip
-
         surface = double_tip(surface, *second_apex)
     return SurfaceMap(
         np.ascontiguousarray(surface.height, dtype=np.float64),

@@ -35,4 +35,6 @@ __all__ = [
     "sample_from_description",
     "load_sample_file",
     "describe",
+    "builtin_samples",
+    "resolve_sample",
 ]

@@ -23,6 +23,7 @@ from PIL import Image
 from afm_ros.core.physics.materials import MATERIALS
 from afm_ros.core.physics.parameters import ParamSpec
 from afm_ros.core.samples.surface import Sample
+from afm_ros.formats.gwy import read_gwy
 
 _MATERIAL_NAMES = tuple(MATERIALS)
 
@@ -624,8 +625,6 @@ def from_file(
             f"{path}: SHA-256 is {digest}, the description expects sha256={p['sha256']!r}"
         )
     if ext == ".gwy":
-        from afm_ros.formats.gwy import read_gwy
-
         image = read_gwy(path)
         title = next(iter(image.channels)) if p["channel"] is None else p["channel"]
         if title not in image.channels:

@@ -29,10 +29,10 @@
   every node's parameters at start and every change.
 
 Setpoint history: the setpoint in force at every lock-in output is amplitude + error (the z trace's
-error = setpoint - amplitude at the same output times), so a change is placed at the exact simulated
+error = setpoint - amplitude at the same output times): a change is placed at the exact simulated
 time of the first output computed with it (its value from the matching /parameter_events change).
 Without the batches the changes come from /parameter_events, placed by their receive time. The
-settling after engaging ends at the first change (or the scan start); each change's settling is into
+settling after engaging ends at the first change (or the scan start); a change's settling is into
 +-SETTLING_BAND of its own setpoint; the final state is the last 20 % of the last segment.
 
 Memory does not grow with the session (peak RSS < :data:`PEAK_RSS_BOUND_MB` for one instrument's

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.core.tune import TuneResult
+from afm_ros.formats.frames import RANGE_TEXT, display_image
 from afm_ros.tools.report.accumulators import Envelope
 from afm_ros.tools.report.collect import SETTLING_BAND, ZOOM_PERIODS, force_distance
 from afm_ros.tools.report.session import (
@@ -16,6 +18,8 @@ from afm_ros.tools.report.session import (
     number_text,
     shown_images,
 )
+from afm_ros.tools.spectroscopy_figure import plot_spectroscopy
+from afm_ros.tools.tune_figure import plot_tune
 
 
 def _plot_trace(ax_full, ax_zoom, stream: ChunkStream, scale, label, color):
@@ -168,8 +172,6 @@ def write_image_figure(data: SessionData, out: Path) -> Path | None:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import ScalarFormatter
 
-    from afm_ros.formats.frames import RANGE_TEXT, display_image
-
     channels = list(dict.fromkeys(it.channel for it in shown))
     directions = list(
         dict.fromkeys(it.direction for it in sorted(shown, key=lambda it: it.direction != "trace"))
@@ -221,7 +223,10 @@ def write_image_figure(data: SessionData, out: Path) -> Path | None:
             fontsize=9,
         )
     if g:
-        size = f"{number_text(g, 'size_x_m', 1e6, '.3g')} x {number_text(g, 'size_y_m', 1e6, '.3g')} µm, "
+        size = (
+            f"{number_text(g, 'size_x_m', 1e6, '.3g')} x "
+            f"{number_text(g, 'size_y_m', 1e6, '.3g')} µm, "
+        )
     else:
         size = "scan geometry unknown, "
     fig.suptitle(f"last recorded frame: {size}{RANGE_TEXT} (spikes clipped)", fontsize=10)
@@ -238,8 +243,6 @@ def write_tune_figure(data: SessionData, out: Path) -> Path | None:
     t = data.tune
     if t is None:
         return None
-    from afm_ros.core.tune import TuneResult
-    from afm_ros.tools.tune_figure import plot_tune
 
     fit = TuneResult(
         t["frequency_Hz"],
@@ -263,7 +266,6 @@ def write_spectroscopy_figure(data: SessionData, out: Path) -> Path | None:
     (tools/spectroscopy_figure.py)."""
     if data.spectroscopy is None:
         return None
-    from afm_ros.tools.spectroscopy_figure import plot_spectroscopy
 
     c = data.spectroscopy
     return plot_spectroscopy(

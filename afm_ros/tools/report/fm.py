@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.core.fm import dissipation_from_drive
 from afm_ros.core.session_stats import FmWindow
 from afm_ros.tools.report.accumulators import Envelope
 from afm_ros.tools.report.cdr import cdr_fm_batch
@@ -171,7 +172,6 @@ def prepare(data, stream, stage: dict) -> FmData | None:
 def window_numbers(fm: FmData, name: str) -> dict:
     """Mean and std (SI units) of each block over window ``name``, its dissipation per cycle [J]
     and, for the free window, the oscillator frequency [Hz] and Q = k A / F."""
-    from afm_ros.core.fm import dissipation_from_drive
 
     w, what = fm.windows[name]
     out = {"what": what, "window_s": [w.t0, w.t1], "outputs": w.n}

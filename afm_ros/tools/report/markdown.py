@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.formats.frames import RANGE_TEXT, display_scale
 from afm_ros.tools.report.collect import DISPLAY_MAX_PIXELS, SETTLING_BAND
 from afm_ros.tools.report.fm import markdown_lines
 from afm_ros.tools.report.plan import parse_float
@@ -402,7 +403,6 @@ def _image_lines(data: SessionData) -> list[str]:
     shown = shown_images(data)
     if not shown:
         return []
-    from afm_ros.formats.frames import RANGE_TEXT, display_scale
 
     g = data.geometry
     lines = ["", "## Images (the last recorded frame)", ""]

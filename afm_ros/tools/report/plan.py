@@ -102,7 +102,7 @@ class Plan:
 
 
 def _param_value(v):
-    from rclpy.parameter import parameter_value_to_python
+    from rclpy.parameter import parameter_value_to_python  # noqa: PLC0415 - ROS only for the messages that need it
 
     value = parameter_value_to_python(v)
     return list(value) if type(value).__name__ == "array" else value

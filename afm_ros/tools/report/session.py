@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS, UNITS
 from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.formats.mcap_io import SessionScan
 from afm_ros.tools.report.accumulators import Envelope, StrideTable, TimeMapTable
@@ -363,7 +364,6 @@ def number_text(g: dict, key: str, scale: float = 1.0, fmt: str = ".4g") -> str:
 
 def image_unit(data: SessionData, channel: str) -> str:
     """The SI unit of an image channel (from scanner/geometry, else the imaging core's)."""
-    from afm_ros.core.imaging import UNITS
 
     unit = (data.geometry or {}).get("channels", {}).get(channel)
     return unit if isinstance(unit, str) else UNITS.get(channel, "")
@@ -374,7 +374,6 @@ def shown_images(data: SessionData) -> list[ImageTopic]:
     shown = [it for it in data.images.values() if it.array is not None]
     if not shown:
         return shown  # (and no import of the imaging core: numba costs ~50 MB)
-    from afm_ros.core.imaging import CHANNELS, DIRECTIONS, FM_CHANNELS
 
     fm = any(it.channel in FM_CHANNELS and it.channel not in CHANNELS for it in shown)
     order = {

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_ros.core.spectroscopy import expected_lag
 from afm_ros.formats.chunk_layout import (
     ChunkLayoutError,
     cdr_byte_order,
@@ -19,6 +20,7 @@ from afm_ros.formats.chunk_layout import (
     cdr_float64_array,
 )
 from afm_ros.formats.mcap_io import SessionScan, read_session
+from afm_ros.formats.spectroscopy_layout import unpack_curve
 from afm_ros.tools.report.accumulators import StrideTable, TimeMapTable
 from afm_ros.tools.report.cdr import (
     LAYOUT_NAMES,
@@ -182,8 +184,8 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
                 f"type {m.type_name or '(no schema)'}, not diagnostic_msgs/msg/DiagnosticArray"
             )
             return
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-        from rclpy.serialization import deserialize_message
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: PLC0415 - ROS only for the messages that need it
+        from rclpy.serialization import deserialize_message  # noqa: PLC0415 - ROS only for the messages that need it
 
         try:
             msg = deserialize_message(m.data, DiagnosticArray)
@@ -300,8 +302,8 @@ def survey_session(path) -> Survey:
                     )
                 s.survey(b.input_first_index, b.input_end_index, b.input_end_time, b.t, m.log_time)
             elif role == "parameter_events":
-                from rcl_interfaces.msg import ParameterEvent
-                from rclpy.serialization import deserialize_message
+                from rcl_interfaces.msg import ParameterEvent  # noqa: PLC0415 - ROS only for the messages that need it
+                from rclpy.serialization import deserialize_message  # noqa: PLC0415 - ROS only for the messages that need it
 
                 survey.events.append((m.log_time, deserialize_message(m.data, ParameterEvent)))
             else:
@@ -407,7 +409,6 @@ def check_spectroscopy(survey: Survey, data: SessionData) -> None:
     """The last z_controller/spectroscopy curve (formats/spectroscopy_layout.py), else a note."""
     if survey.spectroscopy is None:
         return
-    from afm_ros.formats.spectroscopy_layout import unpack_curve
 
     topic, k, raw = survey.spectroscopy
     try:
@@ -424,7 +425,6 @@ def check_spectroscopy(survey: Survey, data: SessionData) -> None:
 def spectroscopy_numbers(curve) -> dict:
     """The report's numbers of a curve: its set-up, the amplitude and phase at the legs' ends, the
     mean force's extremes and the lag the ramp rate implies (core/spectroscopy.expected_lag)."""
-    from afm_ros.core.spectroscopy import expected_lag
 
     lo, hi = expected_lag(
         curve.chunk_duration,
