@@ -7,7 +7,9 @@ package_name = "afm_ros"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(exclude=["test", "benchmarks", "benchmarks.*"]),  # benchmarks/ is not installed
+    packages=find_packages(
+        exclude=["test", "benchmarks", "benchmarks.*"]
+    ),  # benchmarks/ is not installed
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -33,9 +33,8 @@ from afm_ros.core.scanner import SCANNER_NODE_SPECS
 DOMAIN_ID = "37"
 VENV_BIN = Path(sys.executable).parent
 ROOT = Path(__file__).resolve().parents[1]
-PATIENCE = (
-    "60"  # --timeout [s] where a node is expected to answer: only a very busy machine needs long
-)
+# --timeout [s] where a node is expected to answer: only a very busy machine needs long
+PATIENCE = "60"
 
 
 @pytest.fixture
@@ -319,7 +318,7 @@ def test_scan_services_answer_and_refuse_with_the_reason(monkeypatch, ctl_env, r
         r = ctl(ctl_env, "scan", "stop", ns=ros_namespace)
         assert (r.returncode, r.stderr) == (
             1,
-            f"afm_ctl: {ros_namespace}/scanner/stop refused: no scan is running\n",
+            f"afm_ctl: {ros_namespace}/scanner/stop refused: [not_ready] no scan is running\n",
         )
         r = ctl(ctl_env, "scan", "frame", ns=ros_namespace)
         assert r.returncode == 0, r.stderr
@@ -332,7 +331,8 @@ def test_scan_services_answer_and_refuse_with_the_reason(monkeypatch, ctl_env, r
         ), r.stdout
         assert scanner.state in ("requested", "scanning")
         r = ctl(ctl_env, "scan", "start", ns=ros_namespace)
-        assert r.returncode == 1 and "refused: a scan is already running" in r.stderr, r.stderr
+        busy = "refused: [busy] a scan is already running"
+        assert r.returncode == 1 and busy in r.stderr, r.stderr
         r = ctl(ctl_env, "scan", "stop", ns=ros_namespace)
         assert r.returncode == 0 and r.stdout.startswith("scan stopped"), r.stderr
         assert scanner.state == "idle"

@@ -105,9 +105,8 @@ def test_a_setpoint_change_is_placed_and_settled_in_the_summary(instrument):
     assert first.setpoint_m == 48e-9 and first.setpoint_changes == []
     t_change = instrument.t_paused
     instrument.set("z_controller", setpoint=40e-9)
-    instrument.job.duration = (
-        0.6  # the hold now ends 0.6 s after engaging: last quarter from t_enable + 0.45
-    )
+    # the hold now ends 0.6 s after engaging: last quarter from t_enable + 0.45
+    instrument.job.duration = 0.6
     instrument.advance_to(instrument.job.t_enable + 0.6)
     instrument.job.t_end = instrument.t_paused
     s = instrument.summary()

@@ -18,9 +18,8 @@ from afm_ros.core.physics.materials import MATERIALS
 from afm_ros.tools import contrast
 
 FINE = 6400
-TOL_SIN = (
-    4e-5  # two runs, 2e-5 each (measured per-run error <= 7.1e-6 in test_physics_dissipation)
-)
+# two runs, 2e-5 each (measured per-run error <= 7.1e-6 in test_physics_dissipation)
+TOL_SIN = 4e-5
 SCAN = dict(
     steps_per_period=FINE, amplitude_tol=1e-13, steady_amplitude_tol=1e-15, phase_tol_deg=1e-6
 )

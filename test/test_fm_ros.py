@@ -22,7 +22,6 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
-from std_srvs.srv import Trigger
 
 from afm_ros.core.artefacts import INSTRUMENT_ARTEFACTS
 from afm_ros.core.imaging import DIRECTIONS, FM_CHANNELS, UNITS
@@ -123,7 +122,7 @@ def fm_scanned(tmp_path_factory):
         )  # latched; before the first chunk
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
         spin_until(ex, lambda: cantilever.paused and scanner.lockin_end[1] >= ENGAGE - 1e-9)
-        response = scanner._start(Trigger.Response(), single=True)
+        response = scanner.start_scan(single=True)
         assert response.success, response.message
         spin_until(ex, lambda: scanner.state == "scanning")
         cantilever.set_parameters(

@@ -462,7 +462,7 @@ def test_parameter_writes_go_through_the_nodes_validation_and_services_work(
         (True, True),
         (True, True),
     ]
-    assert calls[0]["value"]["message"] == "no scan is running"
+    assert calls[0]["value"]["message"] == "[not_ready] no scan is running"
     assert calls[1]["value"]["message"].startswith("scan 1 requested")
     assert calls[2]["value"]["message"].startswith("scan stopped")
 
@@ -634,7 +634,7 @@ def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(
         viewer.wait()
         live.set_parameters([Parameter("deflection_decimation", value=DECIMATION)])
     # the viewer is gone: its ROS subscriptions are removed
-    assert _wait(lambda: not live.serving and not live.subscriptions, 10.0)
+    assert _wait(lambda: not live.serving and not live.subscribed, 10.0)
 
 
 def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglove_client):
@@ -936,8 +936,8 @@ def test_fm_outputs_are_served_from_the_pll_batches_bit_for_bit(fm_instrument, f
             "parametersSubscribed"
         )  # every topic has delivered `count` messages; still subscribed
         assert _wait(lambda: set(topics) <= live.serving)
-        assert ("derived", f"{ns}/pll/outputs") in live.subscriptions
-        assert not any(key[0] == "direct" and key[1] in topics for key in live.subscriptions)
+        assert ("derived", f"{ns}/pll/outputs") in live.subscribed
+        assert not any(key[0] == "direct" and key[1] in topics for key in live.subscribed)
         pll.set_parameters([Parameter("frequency_range", value=400.0)])
         viewer.wait_for("done")
     finally:

@@ -127,7 +127,7 @@ def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(
 def test_an_exception_in_a_service_is_a_refusal_naming_it_and_the_next_call_works(
     ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path
 ):
-    _inject(monkeypatch, ZControllerNode, "_withdraw")
+    _inject(monkeypatch, ZControllerNode, "start_withdraw")
     node = _make(ZControllerNode, ros_context, ros_namespace, tmp_path)
     ros_executor.add_node(node)
     client = node.create_client(Trigger, f"{ros_namespace}/z_controller/withdraw")
@@ -187,3 +187,42 @@ def test_an_exception_in_a_parameter_callback_refuses_the_change_and_keeps_the_v
     assert node.get_parameter("rate").value == 1.0  # refused: the old value
     assert node.set_parameters([Parameter("rate", value=2.0)])[0].successful
     assert node.get_parameter("rate").value == 2.0
+
+
+def test_no_node_shadows_a_member_of_rclpy_node():
+    """A node's own names never hide rclpy's Node members (the executor reads ``subscriptions``,
+    ``timers``, ``services``... from every node it spins); only ``destroy_node`` (extended, calling
+    super) and the guard's wrapped ``create_*``/parameter-callback methods override them."""
+    import ast
+    from pathlib import Path
+
+    from rclpy.node import Node
+
+    allowed = {
+        "destroy_node",
+        "create_subscription",
+        "create_service",
+        "create_timer",
+        "add_on_set_parameters_callback",
+        "add_pre_set_parameters_callback",
+    }
+    node_members = {n for n in dir(Node) if not n.startswith("__")}
+    wrong = []
+    for path in (Path(__file__).resolve().parents[1] / "afm_ros" / "nodes").glob("*.py"):
+        for cls in (
+            n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.ClassDef)
+        ):
+            for item in ast.walk(cls):
+                name = None
+                if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    name = item.name
+                elif (
+                    isinstance(item, ast.Attribute)
+                    and isinstance(item.value, ast.Name)
+                    and item.value.id == "self"
+                    and isinstance(item.ctx, ast.Store)
+                ):
+                    name = item.attr
+                if name in node_members and name not in allowed:
+                    wrong.append(f"{path.name}:{item.lineno}: {cls.name}.{name}")
+    assert not wrong, "\n".join(wrong)

@@ -46,9 +46,8 @@ DOMAIN_ID = "41"
 OUTPUT_RATE = 90e3  # [S/s] 180 samples per 2 ms chunk: light on 2 shared cores
 SAMPLES_PER_CHUNK = 180
 DEFAULT_SAMPLES_PER_CHUNK = 1800  # at the cantilever's default 900 kS/s
-HISTORY_CHUNKS = (
-    200  # the chunk publishers' transient-local history (afm_ros.nodes.topics.HISTORY_QOS)
-)
+# the chunk publishers' transient-local history (afm_ros.nodes.topics.HISTORY_QOS)
+HISTORY_CHUNKS = 200
 
 
 def spin_until(executor, condition, timeout=60.0, what="condition"):

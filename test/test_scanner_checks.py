@@ -273,7 +273,7 @@ def stopped(tmp_path_factory):
         spin_until(ex, lambda: scanner.lockin_output_rate is not None)
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
         spin_until(ex, lambda: cantilever.paused and scanner.lockin_end[1] >= ENGAGE - 1e-9)
-        assert scanner._start(Trigger.Response(), single=True).success
+        assert scanner.start_scan(single=True).success
         spin_until(ex, lambda: scanner.state == "scanning")
         line_time = 1.0 / SCAN["line_rate"]
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE + 3.5 * line_time)])
@@ -285,7 +285,7 @@ def stopped(tmp_path_factory):
         # the second scan, stopped through the service (partial frames are written by default)
         assert scanner.write_error == ""
         t = cantilever.sim_time
-        assert scanner._start(Trigger.Response(), single=True).success
+        assert scanner.start_scan(single=True).success
         cantilever.set_parameters([Parameter("run_until", value=t + 2.5 * line_time)])
         spin_until(
             ex, lambda: scanner.state == "scanning" and scanner.accumulator.frame.lines_done >= 1

@@ -25,7 +25,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
-from std_srvs.srv import Trigger
 
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS
 from afm_ros.core.samples import resolve_sample
@@ -127,8 +126,8 @@ def scanned(tmp_path_factory):
         )  # latched; before the first chunk
         cantilever.set_parameters([Parameter("run_until", value=ENGAGE)])
         spin_until(ex, lambda: cantilever.paused and scanner.lockin_end[1] >= ENGAGE - 1e-9)
-        first = scanner._start(Trigger.Response(), single=True)
-        second = scanner._start(Trigger.Response(), single=True)
+        first = scanner.start_scan(single=True)
+        second = scanner.start_scan(single=True)
         spin_until(ex, lambda: scanner.state == "scanning")
         cantilever.set_parameters(
             [Parameter("run_until", value=ENGAGE + SCAN["lines"] / SCAN["line_rate"] + 0.01)]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_ros.core.imaging import CHANNELS, DIRECTIONS, UNITS, Frame
+from afm_ros.core.imaging import DIRECTIONS, UNITS, Frame
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.formats.frames import write_frame
 from afm_ros.formats.spectroscopy_layout import DIRECTIONS as LEGS
@@ -25,13 +25,13 @@ from afm_ros.formats.spectroscopy_layout import DIRECTIONS as LEGS
 
 def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):
     """An xarray Dataset of ``images[direction][channel]`` (lines x pixels) on ``plan``'s pixel
-    grid."""
+    grid, one variable per channel of ``images``."""
     import xarray as xr
 
     x = plan.x_left + (np.arange(plan.pixels) + 0.5) * plan.pixel_size
     y = plan.y_low + (np.arange(plan.lines) + 0.5) * plan.line_pitch
     data = {}
-    for c in CHANNELS:
+    for c in images[DIRECTIONS[0]]:  # CHANNELS, or FM_CHANNELS for an FM frame
         stacked = np.stack([np.asarray(images[d][c], dtype=np.float64) for d in DIRECTIONS])
         data[c] = xr.DataArray(stacked, dims=("direction", "y", "x"), attrs={"units": UNITS[c]})
     scan = {
@@ -123,11 +123,12 @@ def save_frame(ds, path, previews: bool = False) -> list:
     paths."""
 
     plan = plan_of(ds)
+    channels = [c for c in ds.data_vars if c in UNITS]  # an image channel's, in the frame's order
     frame = Frame(
         plan,
         0,
         {
-            d: {c: ds[c].sel(direction=d).values.astype(np.float32) for c in CHANNELS}
+            d: {c: ds[c].sel(direction=d).values.astype(np.float32) for c in channels}
             for d in DIRECTIONS
         },
         plan.lines,

@@ -76,9 +76,8 @@ class Monitor(GuardedNode):
         self.z = math.nan
         self.outputs = 0
         self.non_finite_outputs = 0
-        self.lost_input_samples = (
-            0  # lock-in batches that skipped input samples (the lock-in lost chunks)
-        )
+        # lock-in batches that skipped input samples (the lock-in lost chunks)
+        self.lost_input_samples = 0
         self.lost_batches = 0  # batches between consecutive ones that never reached the monitor
         self.diagnostics: dict[str, object] = {}
         self.waiter = None  # (condition, future): the job waits for condition(); completed here

@@ -46,15 +46,12 @@ from afm_ros.nodes.topics import matches
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
 STALL_TIMEOUT_S = 60.0  # [s] wall without progress of the loop: a wait fails
-APPROACH_STEP_S = (
-    0.02  # [s] simulated per advance while approaching or withdrawing (< RECENT_PAIRS chunks)
-)
-COPIES_WAIT_S = (
-    30.0  # [s] wall: the longest wait for the recorder to take the last per-output copies
-)
-WAIT_POLL_S = (
-    0.25  # [s] wall: while waiting, look at what the monitor cannot see (recorder, blow-up)
-)
+# [s] simulated per advance while approaching or withdrawing (< RECENT_PAIRS chunks)
+APPROACH_STEP_S = 0.02
+# [s] wall: the longest wait for the recorder to take the last per-output copies
+COPIES_WAIT_S = 30.0
+# [s] wall: while waiting, look at what the monitor cannot see (recorder, blow-up)
+WAIT_POLL_S = 0.25
 STATUS_PERIOD_S = 5.0  # [s] wall: run_until_interrupted's status callback period
 
 

@@ -40,12 +40,10 @@ from afm_ros.nodes import topics
 NODES = ("cantilever", "lockin", "z_controller", "scanner")
 # [s] simulated: a workflow step (approach, withdraw, spectroscopy) advances this far at a time
 STEP_S = 0.1
-BOUNDARY_TOLERANCE_S = (
-    1e-9  # a chunk boundary this close to a target counts as reaching it (float sums)
-)
-DRAIN_S = (
-    0.02  # [s] wall: messages already on their way after the last one waited for are taken too
-)
+# a chunk boundary this close to a target counts as reaching it (float sums)
+BOUNDARY_TOLERANCE_S = 1e-9
+# [s] wall: messages already on their way after the last one waited for are taken too
+DRAIN_S = 0.02
 SCAN_PARAMETERS = (
     "scan_size_x",
     "scan_size_y",

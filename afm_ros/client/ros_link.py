@@ -58,9 +58,8 @@ POLL_S = 0.05  # executor wait per loop while waiting for discovery or an answer
 # three node processes) 0.4 to 3.8 s after the link started, the late ones after Fast DDS's
 # periodic participant announcement (3 s)
 DISCOVERY_WINDOW_S = 4.5
-LIVENESS_MIN_S = (
-    5.0  # [s] wall: silence shorter than this is not a dead instrument (diagnostics at 1 Hz)
-)
+# [s] wall: silence shorter than this is not a dead instrument (diagnostics at 1 Hz)
+LIVENESS_MIN_S = 5.0
 # parameters every rclpy node declares itself (not the instrument's)
 RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
 RCLPY_PREFIXES = ("qos_overrides.",)

@@ -50,9 +50,8 @@ from afm_ros.core.tip import validate as tip_validate
 from afm_ros.core.tune import TunePlan
 from afm_ros.formats.chunk_layout import ChunkHeader
 
-TUNE_HOLD_CHUNKS = (
-    2  # drive changes that arrive during a tune apply this many chunks after its end
-)
+# drive changes that arrive during a tune apply this many chunks after its end
+TUNE_HOLD_CHUNKS = 2
 TUNE_DEFERRED = ("drive_frequency", "free_amplitude")
 # Paced: the timer runs at CATCH_UP times the chunk rate and integrates every chunk that is due
 CATCH_UP = 2.0

@@ -35,9 +35,8 @@ import numpy as np
 from afm_ros.core.image_analysis import MIN_SHIFT_SIZE, image_shift
 
 LIMIT_TOLERANCE_M = 1e-12
-FEATURE_FRACTION = (
-    0.2  # a line whose height steps are below this fraction of the frame's upper quartile is flat
-)
+# a line whose height steps are below this fraction of the frame's upper quartile is flat
+FEATURE_FRACTION = 0.2
 
 
 @dataclass(frozen=True)

@@ -208,9 +208,8 @@ def level_plane(image: np.ndarray) -> np.ndarray:
     return image - (offset + gx * cols + gy * rows)
 
 
-MIN_SHIFT_SIZE = (
-    8  # pixels along each axis image_shift needs (a correlation peak and its refinement)
-)
+# pixels along each axis image_shift needs (a correlation peak and its refinement)
+MIN_SHIFT_SIZE = 8
 
 
 def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]:

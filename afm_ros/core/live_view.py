@@ -126,9 +126,8 @@ DERIVED = {
     "pll/drive": ("pll/outputs", "drive"),
 }
 FM_FIELDS = ("df", "phase_error", "drive")  # blocks of a pll/outputs batch served as they are
-PARAMETER_SEPARATOR = (
-    "."  # Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
-)
+# Foxglove name of a ROS parameter: <node fqn>.<name>, as foxglove_bridge names it
+PARAMETER_SEPARATOR = "."
 
 # foxglove.RawImage as JSON (Foxglove decodes its well-known schemas in JSON encoding too)
 RAW_IMAGE_SCHEMA = {

@@ -110,9 +110,8 @@ _ANCHOR_SPAN = 1 << 24
 # Tolerances that decide whether a chunk preamble continues the previous reference/time or jumps.
 _PHASE_JUMP_RAD = 1e-6
 _TIME_JUMP_FRACTION = 1e-3  # of the sample interval
-_GRID_EPS = (
-    1e-6  # of an output period: an input sample this close before a grid point counts as on it
-)
+# of an output period: an input sample this close before a grid point counts as on it
+_GRID_EPS = 1e-6
 TWO_PI = 2.0 * math.pi
 
 

@@ -182,9 +182,8 @@ def run_scan(
     )
 
 
-FINISH_LINE_WALL_S = (
-    10.0  # a first Ctrl-C finishes the current line if that takes at most this [s] (wall)
-)
+# a first Ctrl-C finishes the current line if that takes at most this [s] (wall)
+FINISH_LINE_WALL_S = 10.0
 
 
 class Interruption:

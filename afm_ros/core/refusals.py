@@ -15,9 +15,8 @@ ENGAGED = "engaged"  # needs the cantilever free (a tune)
 BUSY = "busy"  # the same work is running (a tune, an approach, a scan, a spectroscopy)
 SCANNING = "scanning"  # needs the tip parked
 NOT_READY = "not_ready"  # the node does not know what it needs yet (another node has not spoken)
-BAD_VALUE = (
-    "bad_value"  # a value out of its range, or a request that does not fit (the z range, the rate)
-)
+# a value out of its range, or a request that does not fit (the z range, the rate)
+BAD_VALUE = "bad_value"
 INTERNAL = "internal"  # an exception in the node's own code (afm_ros.nodes.guard)
 CODES = (NOT_ENGAGED, ENGAGED, BUSY, SCANNING, NOT_READY, BAD_VALUE, INTERNAL)
 

@@ -163,9 +163,8 @@ class SettlingTracker:
         return None if self.inside_since is None else self.inside_since - self.t_enable
 
 
-SETPOINT_TOLERANCE_M = (
-    1e-15  # a reconstructed setpoint differs from the one in force by round-off only
-)
+# a reconstructed setpoint differs from the one in force by round-off only
+SETPOINT_TOLERANCE_M = 1e-15
 
 
 @dataclass

@@ -123,9 +123,8 @@ class SpectroscopyRamp:
         self.expected: list[int] = []  # first sample index of every chunk of the ramp, in order
         self.chunks: dict[int, dict] = {}
         self.done = False
-        self.failed = (
-            ""  # why the ramp never ran (the settled z left no room for it in the z range)
-        )
+        # why the ramp never ran (the settled z left no room for it in the z range)
+        self.failed = ""
         self.t_end = math.nan
 
     def place(self, z_held: float, t0: float) -> None:

@@ -138,12 +138,10 @@ class WiredInstrument:
         self.chunks = 0
         self.images: ImageAccumulator | None = None
         self.records: list[ChunkRecord] = []
-        self.stopped_frame = (
-            None  # the frame of a scan stopped before its end (its lines_done are whole)
-        )
-        self.wall_in_steps = (
-            0.0  # [s] wall time spent integrating chunks, for estimates of long work
-        )
+        # the frame of a scan stopped before its end (its lines_done are whole)
+        self.stopped_frame = None
+        # [s] wall time spent integrating chunks, for estimates of long work
+        self.wall_in_steps = 0.0
 
     def pick_up(self, offset_x: float, offset_y: float, height: float) -> None:
         """A double tip from now (a second apex at that offset [m], ``height`` [m] higher)."""

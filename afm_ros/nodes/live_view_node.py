@@ -89,9 +89,8 @@ STATE_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
-RECONCILE_PERIOD_S = (
-    0.1  # how soon a viewer's (un)subscription creates / removes the ROS subscription
-)
+# how soon a viewer's (un)subscription creates / removes the ROS subscription
+RECONCILE_PERIOD_S = 0.1
 # the WebSocket subprotocol foxglove-sdk accepts (fixed in its Rust handshake, not configurable),
 # and the older name of the same protocol that it refuses with HTTP 400 (docs/live_view.md, "Which
 # viewers connect")
@@ -479,7 +478,7 @@ class LiveViewNode(GuardedNode):
             return list(self._channels)
 
     @property
-    def subscriptions(self) -> list[tuple]:
+    def subscribed(self) -> list[tuple]:
         """What it subscribes to: (kind, topic) keys (kind: 'raw', 'derived', ...)."""
         with self._lock:
             return list(self._subs)

@@ -62,13 +62,11 @@ from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 from afm_ros.nodes.topics import sim_time_msg
 
-MAX_BUFFERED_BATCHES = (
-    2000  # outputs kept while the cantilever has not yet confirmed a requested scan
-)
+# outputs kept while the cantilever has not yet confirmed a requested scan
+MAX_BUFFERED_BATCHES = 2000
 DIAGNOSTICS_PERIOD_S = 1.0
-LOCKIN_POLL_PERIOD_S = (
-    0.05  # until the lock-in's output_rate is known, look for its service this often
-)
+# until the lock-in's output_rate is known, look for its service this often
+LOCKIN_POLL_PERIOD_S = 0.05
 LOCKIN_IDLE_PERIOD_S = 5.0
 
 
@@ -160,14 +158,12 @@ class ScannerNode(GuardedNode):
         ] = []  # wall time [s, monotonic] at which each line of the scan was closed
         self.frames_done = 0
         self.lines_done = 0
-        self.last_error = (
-            ""  # a problem of the data stream (e.g. the buffer before a scan started)
-        )
+        # a problem of the data stream (e.g. the buffer before a scan started)
+        self.last_error = ""
         self.write_error = ""  # the last failed frame write; cleared by a later successful one
         self.frames_failed = 0
-        self.partial_frame = (
-            None  # the completed lines of the last stopped scan (Frame.completed), if any
-        )
+        # the completed lines of the last stopped scan (Frame.completed), if any
+        self.partial_frame = None
         self.flags: list = []  # the problem flags of the last finished frame (afm_ros.core.flags)
         self.frame_flags_history: list = []  # (frame index, flags) of the recent frames
         self._last_frame = None

@@ -27,9 +27,8 @@ ACK = "cantilever/_ack"
 LOCKIN_OUTPUTS = "lockin/outputs"
 Z_COMMAND = "z_controller/z_command"
 Z_TRACE = "z_controller/trace"
-PLL_OUTPUTS = (
-    "pll/outputs"  # FM loop outputs per lock-in batch (afm_ros.formats.chunk_layout FM batch)
-)
+# FM loop outputs per lock-in batch (afm_ros.formats.chunk_layout FM batch)
+PLL_OUTPUTS = "pll/outputs"
 EXCITATION = "pll/excitation"  # the FM drive (frequency, force) per answered chunk
 SCAN_PLAN = "scanner/plan"  # std_msgs/String, JSON: the scan the scanner asks for (latched)
 # std_msgs/String, JSON: the scan the cantilever runs, with its start (latched)

@@ -69,9 +69,8 @@ from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
 
 INPUT_QOS = topics.CONSUMER_QOS
-FM_PHASE_SETPOINT_DEG = (
-    90.0  # FM: the lag a spectroscopy records is the PLL's phase error + 90 deg
-)
+# FM: the lag a spectroscopy records is the PLL's phase error + 90 deg
+FM_PHASE_SETPOINT_DEG = 90.0
 # z_piezo and error: transient local with a history of 200 samples, so a late subscriber gets the
 # current position at once and a recorder that matches late the recent samples.
 Z_QOS = topics.HISTORY_QOS
@@ -140,9 +139,8 @@ class ZControllerNode(GuardedNode):
         self.answered_end_index = 0  # end index of the last deflection chunk answered
         self.lost_batches = 0  # input chunks whose outputs never arrived (index gaps)
         self.lost_samples = 0
-        self.stale_batches = (
-            0  # batches of chunks already answered (e.g. a restarted lock-in's history)
-        )
+        # batches of chunks already answered (e.g. a restarted lock-in's history)
+        self.stale_batches = 0
         self.create_subscription(
             Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS
         )

@@ -599,9 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("node", metavar="NODE", help=NODE_HELP)
     p.add_argument("pairs", nargs="+", metavar="NAME VALUE", help="one or more name value pairs")
-    p._negative_number_matcher = (
-        _NEGATIVE_NUMBER  # -1.5e-7 is a value (argparse: only -5 and -.5 forms)
-    )
+    # -1.5e-7 is a value (argparse: only -5 and -.5 forms)
+    p._negative_number_matcher = _NEGATIVE_NUMBER
     p = command(
         "dump",
         "the node's parameters as a parameter file (for afm_ctl load, ros2 param load and "

@@ -63,12 +63,10 @@ from afm_ros.tools.instrument_summary import recording_line
 from afm_ros.tools.run_setup import RUNS_DIR, RosArgs, make_run_folder
 
 ROLES = ("cantilever", "lockin", "z_controller")
-WORKFLOW_SIMULATED_S = (
-    8.0  # [s] at most for the tune (~1 s), an approach from 5 um (~4 s), the withdraw
-)
-IMAGE_SAMPLE = (
-    "ps_ldpe_blend"  # the default sample: topography (islands) and phase contrast (PS vs LDPE)
-)
+# [s] at most for the tune (~1 s), an approach from 5 um (~4 s), the withdraw
+WORKFLOW_SIMULATED_S = 8.0
+# the default sample: topography (islands) and phase contrast (PS vs LDPE)
+IMAGE_SAMPLE = "ps_ldpe_blend"
 # the default frame (each can be set with -p scanner:<name>:=...): 64 x 64 pixels over 5 um at 2
 # lines/s, 32 s simulated, about a minute on 2 cores with recording
 IMAGE_SCAN = {"pixels_per_line": 64, "lines": 64, "line_rate": 2.0}

@@ -45,9 +45,8 @@ from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.tools.instrument_summary import ScanProgress
 
-FREE_LOCK_S = (
-    0.3  # [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
-)
+# [s] simulated withdrawn: the PLL locks (~0.1 s at 20 Hz) and the amplitude rings up
+FREE_LOCK_S = 0.3
 # a vacuum cantilever, PLL-excited, 2 ms chunks (the cantilever's default; the PLL keeps 43 deg of
 # phase margin at its 4.6 ms loop delay, 57 deg at 1 ms chunks, where the ROS loop is not real time
 # on 2 cores)
@@ -89,9 +88,8 @@ class FmMonitor(GuardedNode):
         self.windows: list[FmWindow] = []
         self.end_time = -math.inf  # simulated end [s] of the input chunk the newest batch answered
         self.latest = None
-        self.recent_span = (
-            0.0  # [s] simulated: > 0 keeps the batches of that last span (interactive)
-        )
+        # [s] simulated: > 0 keeps the batches of that last span (interactive)
+        self.recent_span = 0.0
         self.recent: deque = deque()
         self.create_subscription(
             Float64MultiArray, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS
@@ -150,9 +148,8 @@ def _measure(afm, fm: FmMonitor, seconds: float) -> FmWindow:
     return w
 
 
-INTERACTIVE_SPAN_S = (
-    1.0  # [s] simulated: --interactive's summary covers the last second before Ctrl-C
-)
+# [s] simulated: --interactive's summary covers the last second before Ctrl-C
+INTERACTIVE_SPAN_S = 1.0
 
 
 def run_fm_job(job, duration: float, progress: bool = True, interactive: bool = False) -> dict:

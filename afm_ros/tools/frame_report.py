@@ -41,9 +41,8 @@ from afm_ros.core.image_analysis import (
 from afm_ros.core.imaging import DIRECTIONS
 from afm_ros.tools.contrast import CONTRAST_MODELS, DEFAULT_SPP, contrast_study
 
-DISCRETE_LEVELS = (
-    16  # more distinct true heights than this: no step to measure (e.g. a rough sample)
-)
+# more distinct true heights than this: no step to measure (e.g. a rough sample)
+DISCRETE_LEVELS = 16
 # [m] largest median amplitude error on the kept pixels for the frame to count as settled
 SETTLED_ERROR = 0.1e-9
 NOT_SETTLED = " [feedback not settled: biased, see the warning]"

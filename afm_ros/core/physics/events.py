@@ -51,9 +51,8 @@ RETRACT = 4
 ROOT_ITERATIONS = 60  # Illinois iterations at most (about 6-10 are taken)
 MAX_SWITCHES = 4  # per step; more would mean a step far too coarse for the contact
 MAX_PIECES = 256  # sub-steps of one step near the surface
-NEAR_SURFACE_FRACTION = (
-    0.4  # the tip crosses at most this fraction of the force's length scale per sub-step
-)
+# the tip crosses at most this fraction of the force's length scale per sub-step
+NEAR_SURFACE_FRACTION = 0.4
 # [rad] per unit of NEAR_SURFACE_FRACTION: the largest phase of the contact oscillation per
 # sub-step
 STIFF_PHASE = 0.25

@@ -16,9 +16,8 @@ import numpy as np
 from afm_ros.core.physics.forces import DMTForce, HysteresisDMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.parameters import DMTSample
 
-HARD_TAPPING_Z_BASE = (
-    20e-9  # [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
-)
+# [m] the seed lever (A0 = 60 nm) taps hard: every model switches law twice per period
+HARD_TAPPING_Z_BASE = 20e-9
 
 
 def hard_tapping_models() -> dict:

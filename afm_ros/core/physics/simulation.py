@@ -118,9 +118,8 @@ class Simulation:
         self.noise_index = 0  # absolute step count since the start: the thermal stream's counter
         self.segment_start = float(t0)
         self.segment_phase = self.drive.phase
-        self.surface = (
-            None  # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
-        )
+        # SurfaceMap: a sample map under the tip (None: flat sample at height 0)
+        self.surface = None
         self.plan = parked_plan(0.0, 0.0)  # packed scan plan (afm_ros.core.scanner)
         self.artefacts = artefacts_off()  # packed imperfections (afm_ros.core.artefacts)
         # rk4_event: near the surface a step is cut so that the tip moves at most this fraction of

@@ -127,9 +127,8 @@ __all__ = [
 ]
 
 
-PEAK_RSS_BOUND_MB = (
-    300  # stated bound (see docs/recording.md, "Report"), checked by test_report_memory
-)
+# stated bound (see docs/recording.md, "Report"), checked by test_report_memory
+PEAK_RSS_BOUND_MB = 300
 
 
 def load_session(path) -> SessionData:

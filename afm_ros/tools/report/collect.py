@@ -43,9 +43,8 @@ PENDING_CAP = (
     1 << 20
 )  # samples waiting for their partner (deflection<->force, amplitude<->xy, error)
 SERIES_BATCH = 4096  # series messages handled together
-DISPLAY_MAX_PIXELS = (
-    1024  # an image is reduced to at most this many pixels per side for the figure
-)
+# an image is reduced to at most this many pixels per side for the figure
+DISPLAY_MAX_PIXELS = 1024
 
 
 def _keep_image(it: ImageTopic, data) -> None:

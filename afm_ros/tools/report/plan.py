@@ -294,9 +294,8 @@ def make_plan(data: SessionData, events: list) -> Plan:
             s.stamped = True
             s.t_first, s.t_last = s.stamp_first, s.stamp_last
         elif role in ("amplitude", "phase") and xy is not None and s.count == xy.count:
-            s.stamped = (
-                True  # lock-in outputs are published together with xy (exact simulated time)
-            )
+            # lock-in outputs are published together with xy (exact simulated time)
+            s.stamped = True
             s.t_first, s.t_last = xy.stamp_first, xy.stamp_last
         else:
             s.t_first, s.t_last = (float(v) for v in plan.map([s.first_log, s.last_log]))

@@ -18,13 +18,11 @@ from afm_ros.tools.report.accumulators import Envelope, StrideTable, TimeMapTabl
 STAMP_LAG_CAP = (
     1 << 16
 )  # lock-in outputs waiting for their lockin/xy stamp (or stamps for their value)
-SETPOINT_REL_TOL = (
-    1e-9  # amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
-)
+# amplitude + error differs from the setpoint by rounding only (~1e-16 relative)
+SETPOINT_REL_TOL = 1e-9
 SETPOINT_ABS_TOL = 1e-18  # [m]
-CHANGES_CAP = (
-    10_000  # setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
-)
+# setpoint changes rebuilt from the data beyond this: not a setpoint (foreign data)
+CHANGES_CAP = 10_000
 DIAGNOSTIC_ERRORS_CAP = 100  # distinct (status name, message) ERROR entries kept
 
 
