@@ -11,7 +11,9 @@ from afm_ros.client.results import (
     ApproachResult,
     Feedback,
     ScanSettings,
+    Signals,
     StageState,
+    Trace,
     Truth,
     TuneResult,
     WithdrawResult,
@@ -59,3 +61,18 @@ class Backend(Protocol):
     def flags(self) -> dict: ...
 
     def truth(self) -> Truth: ...
+
+    def set_tick(self, tick: Callable[[], None] | None) -> None:
+        """Call ``tick()`` between chunks inside every verb (see Microscope.set_tick)."""
+
+    def signals(self) -> Signals: ...
+
+    def frame_so_far(self) -> Any:
+        """The running (or last) scan's frame on its whole raster, NaN where not yet scanned;
+        None before any scan."""
+
+    def move_motor(self, steps: int) -> None: ...
+
+    def move_z(self, z: float) -> None: ...
+
+    def oscilloscope(self, samples: int) -> Trace: ...

@@ -141,3 +141,14 @@ def save_frame(ds, path, previews: bool = False) -> list:
         }
     }
     return write_frame(frame, stem, meta, previews=previews)
+
+
+def trace_of(chunks: list, samples: int) -> dict:
+    """The last ``samples`` samples of consecutive deflection ``chunks`` ((t_start [s], sample
+    interval [s], values [m]) each, oldest first) as a Trace dict (fewer if fewer were kept)."""
+    if not chunks:
+        return {"t0_s": float("nan"), "dt_s": float("nan"), "deflection_m": []}
+    values = np.concatenate([np.asarray(c[2], dtype=np.float64) for c in chunks])[-samples:]
+    t_end_start, dt, last = chunks[-1]
+    t0 = t_end_start + (len(last) - values.size) * dt
+    return {"t0_s": float(t0), "dt_s": float(dt), "deflection_m": values.tolist()}

@@ -3,8 +3,10 @@ the nodes run, with the nodes' parameters and refusals (no ROS)."""
 
 from __future__ import annotations
 
+from math import nan
+
 from afm_ros.client.errors import Refused, WorkflowFailed, refusal
-from afm_ros.client.frames import curve_dataset, frame_dataset
+from afm_ros.client.frames import curve_dataset, frame_dataset, trace_of
 from afm_ros.core import artefacts
 from afm_ros.core.angles import wrap_deg
 from afm_ros.core.approach import APPROACH_SPECS, INSTRUMENT_Z
@@ -12,7 +14,13 @@ from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.flags import feedback_setpoint, frame_flags
 from afm_ros.core.refusals import ENGAGED, NOT_ENGAGED, Refusal, code_of
 from afm_ros.core.samples import resolve_sample
-from afm_ros.core.scanner import SCANNER_NODE_SPECS, ScanPlan, check_scan, check_scanner_values
+from afm_ros.core.scanner import (
+    SCANNER_NODE_SPECS,
+    ScanPlan,
+    check_scan,
+    check_scanner_values,
+    scan_position,
+)
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 from afm_ros.core.spectroscopy import validate as spectroscopy_validate
 from afm_ros.core.tip import INSTRUMENT_TIP, TIP_SPECS
@@ -331,6 +339,72 @@ class LocalBackend:
 
     def flags(self) -> dict:
         return dict(self.last_flags)
+
+    # --- a controller's needs (Microscope.set_tick, signals, ...)
+    # ---------------------------------
+    def set_tick(self, tick) -> None:
+        self.w.on_step = tick
+
+    def signals(self) -> dict:
+        w = self.w
+        last = w.last
+        amplitude = float(last.amplitude[-1]) if last is not None and last.amplitude.size else nan
+        phase = float(last.phase_deg[-1]) if last is not None and last.phase_deg.size else nan
+        scanning = w.images is not None and not w.images.done
+        if scanning:
+            x, y = scan_position(w.images.plan.packed(), w.t)
+        else:
+            x, y = w.parked_at
+        raw = w.raw[-1][2] if w.raw else None
+        setup = w.setup
+        return {
+            "t_s": w.t,
+            "x_m": float(x),
+            "y_m": float(y),
+            "z_m": float(w.stage.z),
+            "motor_m": float(w.motor),
+            "amplitude_m": amplitude,
+            "phase_deg": phase,
+            "amplitude_error_m": float(w.controller.params["setpoint"]) - amplitude,
+            "frequency_Hz": float(setup.drive.frequency),
+            "frequency_shift_Hz": nan,
+            "drive_N": float(setup.drive.force),
+            "deflection_m": float(raw[-1]) if raw is not None and raw.size else nan,
+            "stage": w.stage.state,
+            "feedback": bool(w.stage.engaged and w.controller.params["enabled"]),
+            "scanning": bool(scanning),
+        }
+
+    def frame_so_far(self):
+        w = self.w
+        if w.images is not None:
+            frame = w.frame_so_far
+        elif w.stopped_frame is not None:
+            frame = w.stopped_frame
+        else:
+            frame = self.last_frame
+        if frame is None:
+            return None
+        return frame_dataset(
+            frame.images,
+            frame.plan,
+            {"source": "local", "lines_done": frame.lines_done, "sample": self.sample_name},
+        )
+
+    def move_motor(self, steps: int) -> None:
+        try:
+            self.w.move_motor(steps, timeout=WORKFLOW_TIMEOUT_S)
+        except ValueError as exc:
+            raise refusal("z_controller/move_motor", exc) from None
+
+    def move_z(self, z: float) -> None:
+        try:
+            self.w.move_z(z)
+        except ValueError as exc:
+            raise refusal("z_controller/move_z", exc) from None
+
+    def oscilloscope(self, samples: int) -> dict:
+        return trace_of(list(self.w.raw), samples)
 
     def truth(self) -> dict:
         w = self.w

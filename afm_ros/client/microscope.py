@@ -37,7 +37,9 @@ from afm_ros.client.results import (
     ApproachResult,
     Feedback,
     ScanSettings,
+    Signals,
     StageState,
+    Trace,
     Truth,
     TuneResult,
     WithdrawResult,
@@ -443,6 +445,50 @@ class Microscope:
         """Simulated time ``t_s`` [s] and the z stage's ``stage`` (engaged, withdrawn, approaching,
         ...)."""
         return self._backend.state()
+
+    # --- what a controller needs (the Nanonis server: afm_ros.client.nanonis)
+    # ----------------------
+    def set_tick(self, tick) -> None:
+        """``tick()`` is then called from inside every verb and wait, in its thread, between two
+        chunks of the simulation (over ROS at least every 20 ms of wall time while it waits): a
+        controller executes its short commands there (reads and settings of this Microscope) and
+        may raise :class:`Interrupted` to stop the verb, which then recovers as after Ctrl-C (a
+        scan keeps its lines, an approach stops with the feedback off). None removes it."""
+        if tick is not None and not callable(tick):
+            raise BadArgument(f"tick={tick!r} must be a function tick() or None")
+        self._backend.set_tick(tick)
+
+    def signals(self) -> Signals:
+        """The live values now: tip position, z piezo, motor, amplitude, phase, frequency, drive,
+        deflection, the z stage (see :class:`afm_ros.client.results.Signals`)."""
+        return self._backend.signals()
+
+    def frame_so_far(self):
+        """The frame being scanned, or the last one, as a Dataset on its whole raster (NaN in the
+        lines not scanned yet; attribute ``lines_done``); None before the first scan."""
+        return self._backend.frame_so_far()
+
+    def move_motor(self, steps: int) -> None:
+        """Move the coarse motor ``steps`` steps (positive: away from the sample, negative:
+        towards it; the z controller's motor_step each) with the tip withdrawn; returns when
+        done."""
+        steps = _integer("steps", steps)
+        if abs(steps) > 1_000_000:
+            raise BadArgument(f"steps={steps} is out of range; allowed [-1000000, 1000000]")
+        self._run("move_motor", steps)
+
+    def move_z(self, z: float) -> None:
+        """Put the z piezo at ``z`` [m] (within the z controller's [z_min, z_max]) with the
+        feedback off (set z_controller enabled False first)."""
+        self._backend.move_z(_number("z", z, unit="m"))
+
+    def oscilloscope(self, samples: int = 5000) -> Trace:
+        """The last ``samples`` samples of the measured deflection (the raw stream: detector
+        noise included) and their timing (see :class:`afm_ros.client.results.Trace`)."""
+        samples = _integer("samples", samples)
+        if not 1 <= samples <= 100_000:
+            raise BadArgument(f"samples={samples} is out of range; allowed [1, 100000]")
+        return self._backend.oscilloscope(samples)
 
     # --- the same verbs, asynchronous
     # -------------------------------------------------------------------

@@ -98,3 +98,32 @@ class Truth(TypedDict, total=False):
     drift_z_m: float
     tip_radius_m: float  # the worn apex in force [m]
     second_apex_m: list  # a picked-up second apex (x, y, height) [m]; zeros without
+
+
+class Signals(TypedDict, total=False):
+    """:meth:`Microscope.signals`: the instrument's live values now (NaN where this mode has none:
+    the frequency shift in tapping mode)."""
+
+    t_s: float  # simulated time [s]
+    x_m: float  # commanded tip position, sample coordinates [m]
+    y_m: float
+    z_m: float  # z piezo [m] (higher: retracted)
+    motor_m: float  # coarse motor [m]
+    amplitude_m: float  # oscillation amplitude, last lock-in output [m]
+    phase_deg: float  # its phase [deg]
+    amplitude_error_m: float  # setpoint - amplitude [m]
+    frequency_Hz: float  # drive (AM) or PLL oscillator (FM) frequency [Hz]
+    frequency_shift_Hz: float  # FM: f - centre frequency [Hz]
+    drive_N: float  # drive force amplitude [N]
+    deflection_m: float  # the last measured deflection sample [m]
+    stage: str  # the z stage: engaged, withdrawn, approaching, ...
+    feedback: bool  # the z loop regulates
+    scanning: bool
+
+
+class Trace(TypedDict):
+    """:meth:`Microscope.oscilloscope`: the last samples of the measured deflection."""
+
+    t0_s: float  # simulated time of the first sample [s]
+    dt_s: float  # sample interval [s]
+    deflection_m: list  # [m]

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.physics.parameters import ParamSpec, validate_values
-from afm_ros.core.refusals import NOT_ENGAGED, Refusal
+from afm_ros.core.refusals import BAD_VALUE, BUSY, ENGAGED, NOT_ENGAGED, Refusal
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS, SpectroscopyRamp
 
 APPROACH_SPECS: dict[str, ParamSpec] = {
@@ -104,6 +104,26 @@ APPROACH_SPECS: dict[str, ParamSpec] = {
             "session starts (tune, then approach); false: engaged at z_base from the first chunk "
             "(the ideal start)",
             kind=bool,
+        ),
+        ParamSpec(
+            "motor_move_steps",
+            0,
+            "steps",
+            "coarse motor steps that the service z_controller/move_motor makes (Nanonis "
+            "Motor.StartMove): positive away from the sample (Z+), negative towards it (Z-); "
+            "only while the tip is not engaged",
+            -1000000,
+            1000000,
+            kind=int,
+        ),
+        ParamSpec(
+            "z_position",
+            0.0,
+            "m",
+            "z piezo position that the service z_controller/move_z moves to while the feedback "
+            "is off (Nanonis ZCtrl.ZPosSet); within [z_min, z_max]",
+            -1e-4,
+            1e-4,
         ),
     )
 }
@@ -289,6 +309,7 @@ class ZStage:
         self.state = "engaged"
         self.reason = ""
         self._withdraw: dict | None = None
+        self._move: dict | None = None  # a motor move (Motor.StartMove)
         self.ramp: SpectroscopyRamp | None = None  # the z spectroscopy running or last run
         self.settling: dict | None = (
             None  # a spectroscopy's settling under feedback before it holds
@@ -401,6 +422,46 @@ class ZStage:
         }
         c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
 
+    def start_motor_move(self, steps: int, values: dict) -> None:
+        """Move the coarse motor ``steps`` steps (positive: away from the sample) at
+        motor_step_time each, the piezo held where it is; refused while the tip is engaged or the
+        stage is busy. The stage goes back to its state when the steps are done (stop() ends it
+        early)."""
+        v = validate(values)
+        if self.state in ("engaged", "approaching", "withdrawing", "spectroscopy", "moving"):
+            raise Refusal(
+                ENGAGED if self.state == "engaged" else BUSY,
+                f"motor move refused: the z stage is {self.state}; the motor moves only with the "
+                "tip withdrawn (withdraw first)",
+            )
+        if steps == 0:
+            return
+        c = self.controller
+        c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
+        direction = 1.0 if steps > 0 else -1.0
+        self._move = {
+            "steps": abs(int(steps)),
+            "step": direction * v["motor_step"],
+            "step_time": v["motor_step_time"],
+            "t_motor": None,
+            "was": self.state,
+        }
+        self.state, self.reason = "moving", ""
+
+    def move_z(self, z: float) -> None:
+        """Put the z piezo at ``z`` [m] now (Nanonis ZCtrl.ZPosSet): only with the feedback off
+        and the stage at rest; ValueError naming the range otherwise."""
+        c = self.controller
+        if self.state in ("approaching", "withdrawing", "spectroscopy", "moving"):
+            raise Refusal(BUSY, f"z move refused: the z stage is {self.state}")
+        if c.params["enabled"]:
+            raise Refusal(BAD_VALUE, "z move refused: the z feedback is on (switch it off first)")
+        low, high = c.params["z_min"], c.params["z_max"]
+        if not low <= z <= high:
+            raise ValueError(f"z_position={z:g} m is outside the z range [{low:g}, {high:g}] m")
+        c.configure(disabled_action="hold", max_slew_rate=0.0)
+        c.z = c.integrator = float(z)
+
     def stop(self, why: str) -> str:
         """Stop what the stage is doing now (an interrupted verb, Motor.StopMove): an approach or
         withdraw leaves the piezo and motor where they are with the feedback off (state
@@ -409,12 +470,12 @@ class ZStage:
         ran)."""
         was = self.state
         c = self.controller
-        if was in ("approaching", "withdrawing"):
+        if was in ("approaching", "withdrawing", "moving"):
             z = self.z
             c.configure(enabled=False, disabled_action="hold", max_slew_rate=0.0)
             c.z = c.integrator = z
             self.state, self.reason = "stopped", why
-            self._withdraw = None
+            self._withdraw = self._move = None
             return was
         if was == "spectroscopy":
             z = self.z
@@ -470,6 +531,19 @@ class ZStage:
             self.controller.error = self.controller.setpoint - amplitude
             return z
         z = self.controller.update(amplitude, t)
+        if self.state == "moving":
+            m = self._move
+            if m["t_motor"] is None:
+                m["t_motor"] = t
+            due = min(m["steps"], int((t - m["t_motor"]) / m["step_time"]))
+            while due > 0:
+                self.motor += m["step"]
+                m["steps"] -= 1
+                m["t_motor"] += m["step_time"]
+                due -= 1
+            if m["steps"] == 0:
+                self.state, self._move = m["was"], None
+            return z
         if self.state == "withdrawing":
             w = self._withdraw
             if z >= self.controller.params["z_max"]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 
 NOT_ENGAGED = "not_engaged"  # needs the tip on the surface (a scan, a spectroscopy)
-ENGAGED = "engaged"  # needs the cantilever free (a tune)
+ENGAGED = "engaged"  # needs the cantilever free (a tune, a coarse motor move)
 BUSY = "busy"  # the same work is running (a tune, an approach, a scan, a spectroscopy)
 SCANNING = "scanning"  # needs the tip parked
 NOT_READY = "not_ready"  # the node does not know what it needs yet (another node has not spoken)

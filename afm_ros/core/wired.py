@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -37,6 +38,9 @@ from afm_ros.core.refusals import NOT_ENGAGED, SCANNING, Refusal
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean
 from afm_ros.core.tip import TIP_SPECS, TipWear
+
+# chunks of measured deflection kept for an oscilloscope (2 ms each by default)
+RAW_CHUNKS_KEPT = 64
 
 
 @dataclass
@@ -142,6 +146,10 @@ class WiredInstrument:
         self.stopped_frame = None
         # [s] wall time spent integrating chunks, for estimates of long work
         self.wall_in_steps = 0.0
+        self.on_step = None  # called after every chunk (a controller's tick); may raise to stop
+        self.last: ChunkRecord | None = None  # the last chunk's record
+        # the measured deflection of the last chunks: (t_start [s], sample interval [s], samples)
+        self.raw: deque = deque(maxlen=RAW_CHUNKS_KEPT)
 
     def pick_up(self, offset_x: float, offset_y: float, height: float) -> None:
         """A double tip from now (a second apex at that offset [m], ``height`` [m] higher)."""
@@ -230,6 +238,20 @@ class WiredInstrument:
         with self._stopped_if_interrupted("withdraw"):
             while self.stage.state == "withdrawing" and self.sim.t < t_end:
                 self.step()
+
+    def move_motor(self, steps: int, timeout: float = 600.0) -> None:
+        """Move the coarse motor ``steps`` steps (positive: away from the sample;
+        :meth:`afm_ros.core.approach.ZStage.start_motor_move`) and run until they are done."""
+        self.stage.start_motor_move(steps, self.approach_values)
+        t_end = self.sim.t + timeout
+        with self._stopped_if_interrupted("motor move"):
+            while self.stage.state == "moving" and self.sim.t < t_end:
+                self.step()
+
+    def move_z(self, z: float) -> None:
+        """The z piezo at ``z`` [m] with the feedback off (ZStage.move_z): the next chunk's
+        answer commands it (applied feedback_latency chunks later, as over ROS)."""
+        self.stage.move_z(z)
 
     def spectroscopy(
         self, values: dict | None = None, timeout: float = 600.0
@@ -337,9 +359,12 @@ class WiredInstrument:
         """Integrate, demodulate and feed back one chunk (lockstep semantics)."""
         wall = time.perf_counter()
         try:
-            return self._step()
+            record = self._step()
         finally:
             self.wall_in_steps += time.perf_counter() - wall
+        if self.on_step is not None:
+            self.on_step()
+        return record
 
     def _step(self) -> ChunkRecord:
         s, sim = self.setup, self.sim
@@ -403,6 +428,7 @@ class WiredInstrument:
                 chunk_mean(samples.force),
             )
         self.answers.append(self.stage.command)
+        self.raw.append((header.t_start, header.sample_interval, measured))
         self.next_index = first + count
         self.chunks += 1
         phase = phases_deg(out.x, out.y)
@@ -431,6 +457,7 @@ class WiredInstrument:
         if self.sample is not None and self.wear.enabled:  # the taps of this chunk wear the tip
             if wear_by_chunk(self.wear, s, record.force_peak, sim.t):
                 self._build_surface(self.wear.built_radius)
+        self.last = record
         if self.keep_records:
             self.records.append(record)
             if fm_out is not None:
