@@ -40,6 +40,7 @@ setup(
             "afm_study = afm_ros.tools.study:main",
             "afm_report = afm_ros.tools.report:main",
             "afm_ctl = afm_ros.tools.afm_ctl:main",
+            "nanonis_node = afm_ros.tools.nanonis_node:main",
         ],
     },
 )

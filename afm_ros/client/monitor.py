@@ -74,6 +74,7 @@ class Monitor(GuardedNode):
         self.answer_index = -1  # newest z command's answered index (-1: none yet)
         self.answer_time = -1.0
         self.z = math.nan
+        self.last_output = (math.nan, math.nan)  # the newest lock-in output: amplitude [m], phase
         self.outputs = 0
         self.non_finite_outputs = 0
         # lock-in batches that skipped input samples (the lock-in lost chunks)
@@ -112,6 +113,8 @@ class Monitor(GuardedNode):
         a = np.hypot(b.x, b.y)
         p = phases_deg(b.x, b.y)
         self.outputs += a.shape[0]
+        if a.shape[0]:
+            self.last_output = (float(a[-1]), float(p[-1]))
         self.non_finite_outputs += int(np.count_nonzero(~np.isfinite(a)))
         self._amplitudes[b.input_end_index] = (b.t, a, p, b.input_end_time)
         self._pair()

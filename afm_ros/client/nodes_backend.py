@@ -28,11 +28,11 @@ from rclpy.parameter_client import AsyncParameterClient
 from rclpy.task import Future
 
 from afm_ros.client.errors import refusal
-from afm_ros.client.frames import curve_dataset, frame_dataset
+from afm_ros.client.frames import curve_dataset, frame_dataset, trace_of
 from afm_ros.client.monitor import Monitor
 from afm_ros.core import artefacts as artefact_models
 from afm_ros.core.refusals import NOT_ENGAGED, Refusal
-from afm_ros.core.scanner import ScanPlan, check_scan
+from afm_ros.core.scanner import ScanPlan, check_scan, scan_position
 from afm_ros.formats.folders import check_output_directory
 from afm_ros.nodes import node_main, topics
 from afm_ros.nodes.cantilever_node import PAUSE_TOLERANCE_S, PHYSICS_REPORT_KEYS, CantileverNode
@@ -53,6 +53,7 @@ COPIES_WAIT_S = 30.0
 # [s] wall: while waiting, look at what the monitor cannot see (recorder, blow-up)
 WAIT_POLL_S = 0.25
 STATUS_PERIOD_S = 5.0  # [s] wall: run_until_interrupted's status callback period
+TICK_POLL_S = 0.01  # [s] wall: the poll while a controller's tick is set (its commands' latency)
 
 
 class BlowUpError(RuntimeError):
@@ -195,8 +196,12 @@ class NodesBackend:
         self.attached_recorder: str | None = None  # a recorder running beside attached nodes
         self.last_scan: ScanRecord | None = None  # the frame behind the last scan's Dataset
         self._advanced = [0.0, 0.0]  # simulated and wall seconds of the advances, for estimates
-        self._finishing = False  # finishing the current scan line after a first Ctrl-C
+        # finishing the current scan line after a first Ctrl-C, or serving a controller (the
+        # Nanonis server) that stops its own work on Ctrl-C: waits then go on after the stop
+        # request and end only when the context is shut down
+        self.finishing = False
         self.run_folder = ""  # where the session and frames go (set by main)
+        self.tick = None  # a controller's tick (Microscope.set_tick), called while waiting
 
     @property
     def cantilever(self) -> CantileverNode:
@@ -213,7 +218,7 @@ class NodesBackend:
         """False after Ctrl-C / SIGTERM (see afm_ros.nodes.node_main) or once the context is shut
         down; while the job finishes after a first Ctrl-C (the current scan line), only the
         latter."""
-        if self._finishing:
+        if self.finishing:
             return rclpy.ok(context=self.context)
         return node_main.running(self.context)
 
@@ -226,28 +231,31 @@ class NodesBackend:
         last_progress = time.monotonic()
         last_mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
         reached = Future()  # completed by the monitor's callbacks as soon as the condition holds
-        self.monitor.waiter = (condition, reached)
+        outer, self.monitor.waiter = self.monitor.waiter, (condition, reached)
         try:
             self._spin_until(
                 condition, reached, what, stall_timeout, last_progress, last_mark, on_poll
             )
         finally:
-            self.monitor.waiter = None
+            self.monitor.waiter = outer
 
     def _spin_until(
         self, condition, reached, what, stall_timeout, last_progress, last_mark, on_poll
     ) -> None:
         events = node_main.is_events_executor(self.executor)
+        poll = WAIT_POLL_S if self.tick is None else TICK_POLL_S
         while not condition():
             if not self.context_ok():
                 raise ExternalShutdownException()
             self._check_blowup()
             if events:  # one C++ loop until the monitor completes the future (or a poll)
-                self.executor.spin_until_future_complete(reached, timeout_sec=WAIT_POLL_S)
+                self.executor.spin_until_future_complete(reached, timeout_sec=poll)
             else:
                 self.executor.spin_once(timeout_sec=0.01)
             if on_poll is not None:
                 on_poll()
+            if self.tick is not None:
+                self.tick()
             mark = (self.monitor.answer_index, self.monitor.outputs_end_index)
             now = time.monotonic()
             if mark != last_mark:
@@ -585,7 +593,7 @@ class NodesBackend:
             lambda: self.cantilever.get_parameter("drive_frequency").value == r.drive_frequency,
             "waiting for the cantilever to take the tuned drive",
         )
-        return {**r.summary(), "start_s": plan.start_time, "end_s": plan.end_time}
+        return {**r.message(), "start_s": plan.start_time, "end_s": plan.end_time}
 
     def approach(self) -> dict:
         """z_controller/approach, run in steps of APPROACH_STEP_S until the stage engaged; its
@@ -701,7 +709,7 @@ class NodesBackend:
                 flush=True,
             )
             done = scanner.lines_done
-            self._finishing = True
+            self.finishing = True
             try:
                 self.advance_to(t_line + 2 * chunk)
                 self.spin_until(
@@ -709,7 +717,7 @@ class NodesBackend:
                     f"waiting for line {line} to close",
                 )
             finally:
-                self._finishing = False
+                self.finishing = False
         if scanner.frames_done >= 1:  # the last line closed the frame: nothing is partial
             return (
                 f"at t={self.monitor.answer_time:.3f} s simulated, at the end of the scan: the "
@@ -794,7 +802,7 @@ class NodesBackend:
         """After Ctrl-C inside a verb: the z stage's work stopped where it is, a scan stopped."""
         if self.attached:
             return
-        if verb in ("approach", "withdraw", "spectroscopy"):
+        if verb in ("approach", "withdraw", "spectroscopy", "move_motor"):
             self.nodes["z_controller"].stop()
         elif verb == "scan" and "scanner" in self.nodes:
             self.nodes["scanner"].stop_scan()
@@ -917,6 +925,78 @@ class NodesBackend:
             if old:
                 self.set_values("z_controller", old)
         return curve_dataset(zc.spectroscopy_curve, {"source": "in_process"})
+
+    # --- a controller's needs (Microscope.set_tick, signals, ...)
+    # ---------------------------------
+    def set_tick(self, tick) -> None:
+        self.tick = tick
+
+    def signals(self) -> dict:
+        zc, c = self.nodes["z_controller"], self.cantilever
+        engine = c.engine
+        t = self.sim_time()
+        plan = c.simulation.plan
+        x, y = scan_position(plan, t)
+        amplitude, phase = self.monitor.last_output
+        values = {
+            "t_s": t,
+            "x_m": float(x),
+            "y_m": float(y),
+            "z_m": float(zc.stage.z if zc.stage is not None else zc.controller.z),
+            "motor_m": float(zc.stage.motor if zc.stage is not None else 0.0),
+            "amplitude_m": amplitude,
+            "phase_deg": phase,
+            "amplitude_error_m": float(zc.controller.params["setpoint"]) - amplitude,
+            "frequency_Hz": float(engine.setup.drive.frequency),
+            "frequency_shift_Hz": math.nan,
+            "drive_N": float(engine.setup.drive.force),
+            "deflection_m": float(engine.raw[-1][2][-1]) if engine.raw else math.nan,
+            "stage": zc.stage_state,
+            "feedback": bool(zc.stage_state == "engaged" and zc.controller.params["enabled"]),
+            "scanning": "scanner" in self.nodes and self.nodes["scanner"].state == "scanning",
+        }
+        pll = self.nodes.get("pll")
+        if pll is not None:
+            loop = pll.loop
+            values.update(
+                frequency_Hz=float(loop.frequency),
+                frequency_shift_Hz=float(loop.df),
+                drive_N=float(loop.drive),
+                amplitude_error_m=float(loop.params["amplitude_setpoint"]) - amplitude,
+            )
+        return values
+
+    def frame_so_far(self):
+        scanner = self.nodes.get("scanner")
+        if scanner is None:
+            return None
+        frame = scanner.frame_so_far
+        if frame is None:
+            return None
+        return frame_dataset(
+            frame.images,
+            frame.plan,
+            {"source": "in_process", "lines_done": frame.lines_done},
+        )
+
+    def move_motor(self, steps: int) -> None:
+        zc = self.nodes["z_controller"]
+        self.set_values("z_controller", {"motor_move_steps": int(steps)})
+        answer = zc.start_motor_move()
+        if not answer.success:
+            raise refusal("z_controller/move_motor", answer.message)
+        while zc.stage_state == "moving":
+            self.advance(APPROACH_STEP_S)
+
+    def move_z(self, z: float) -> None:
+        zc = self.nodes["z_controller"]
+        self.set_values("z_controller", {"z_position": float(z)})
+        answer = zc.move_z()
+        if not answer.success:
+            raise refusal("z_controller/move_z", answer.message)
+
+    def oscilloscope(self, samples: int) -> dict:
+        return trace_of(list(self.cantilever.engine.raw), samples)
 
     def flags(self) -> dict:
         scanner = self.nodes.get("scanner")

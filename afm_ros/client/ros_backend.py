@@ -29,10 +29,11 @@ from afm_ros.client.errors import (
     WorkflowFailed,
     refusal,
 )
-from afm_ros.client.frames import curve_dataset, frame_dataset
+from afm_ros.client.frames import curve_dataset, frame_dataset, trace_of
 from afm_ros.client.ros_link import RosLink, status_node
+from afm_ros.core.angles import phase_deg
 from afm_ros.core.imaging import CHANNELS, DIRECTIONS
-from afm_ros.core.scanner import ScanPlan
+from afm_ros.core.scanner import ScanPlan, scan_position
 from afm_ros.formats import chunk_layout
 from afm_ros.formats.spectroscopy_layout import unpack_curve
 from afm_ros.nodes import topics
@@ -91,7 +92,7 @@ class RosBackend:
         tip parked); a tune runs to the end of its sweep (under a second simulated) and applies its
         working point, as the lock-in has no stop of its own."""
         try:
-            if verb in ("approach", "withdraw", "spectroscopy"):
+            if verb in ("approach", "withdraw", "spectroscopy", "move_motor"):
                 self.link.trigger("z_controller/stop", node="z_controller")
             elif verb == "scan":
                 self.link.trigger("scanner/stop", node="scanner")
@@ -131,6 +132,7 @@ class RosBackend:
         self.counts: dict = {k: 0 for k in self.latest}
         self.t_end = -math.inf  # the end of the last chunk a lock-in batch came from [s]
         self.images: dict = {}
+        self.last_plan: ScanPlan | None = None  # the plan of the last scan started
 
         def keep(key, decode):
             def take(msg):
@@ -176,11 +178,17 @@ class RosBackend:
             topics.LATCHED_QOS,
         )
 
+        self.last_output = (math.nan, math.nan)  # amplitude [m], phase [deg] of the newest
+
         def on_batch(msg: Float64MultiArray) -> None:
             try:
-                self.t_end = max(self.t_end, chunk_layout.unpack_outputs(msg.data).input_end_time)
+                b = chunk_layout.unpack_outputs(msg.data)
             except ValueError:
-                pass
+                return
+            self.t_end = max(self.t_end, b.input_end_time)
+            if b.x.size:
+                x, y = float(b.x[-1]), float(b.y[-1])
+                self.last_output = (math.hypot(x, y), phase_deg(x, y))
 
         node.create_subscription(
             Float64MultiArray, link.resolve(topics.LOCKIN_OUTPUTS), on_batch, topics.HISTORY_QOS
@@ -188,12 +196,16 @@ class RosBackend:
         self.z_end = (
             -math.inf
         )  # the end of the last chunk the z controller handled [s] (its trace)
+        self.last_z = math.nan  # the newest z piezo [m] of its trace
 
         def on_trace(msg: Float64MultiArray) -> None:
             try:
-                self.z_end = max(self.z_end, chunk_layout.unpack_z_trace(msg.data).input_end_time)
+                tr = chunk_layout.unpack_z_trace(msg.data)
             except ValueError:
-                pass
+                return
+            self.z_end = max(self.z_end, tr.input_end_time)
+            if tr.z.size:
+                self.last_z = float(tr.z[-1])
 
         node.create_subscription(
             Float64MultiArray, link.resolve(topics.Z_TRACE), on_trace, topics.HISTORY_QOS
@@ -389,6 +401,7 @@ class RosBackend:
             "the cantilever starting the scan (cantilever/scan)",
         )
         plan = ScanPlan(**self.latest["applied"]["plan"])
+        self.last_plan = plan
         end = plan.start_time + plan.frame_time
         t = self.now()
         while t < end:  # line by line, for the progress
@@ -448,6 +461,85 @@ class RosBackend:
             if old:
                 self.set_values("z_controller", old)
         return curve_dataset(self.latest["curve"], {"source": "ros"})
+
+    # --- a controller's needs (Microscope.set_tick, signals, ...)
+    # ---------------------------------
+    def set_tick(self, tick) -> None:
+        self.link.tick = tick
+
+    def _position(self) -> tuple[float, float]:
+        applied = self.latest["applied"] or {}
+        if "plan" in applied:
+            return scan_position(ScanPlan(**applied["plan"]).packed(), self.now())
+        park = applied.get("park") or (math.nan, math.nan)
+        return float(park[0]), float(park[1])
+
+    def signals(self) -> dict:
+        applied = self.latest["applied"] or {}
+        stage = self.latest["stage"] or {}
+        amplitude, phase = self.last_output
+        zc = self.link.get_parameters("z_controller", ["setpoint", "enabled"])
+        x, y = self._position()
+        k = applied.get("spring_constant_N_per_m", math.nan)
+        q = applied.get("quality_factor", math.nan)
+        return {
+            "t_s": self.now(),
+            "x_m": float(x),
+            "y_m": float(y),
+            "z_m": self.last_z,
+            "motor_m": float(stage.get("motor_m", math.nan)),
+            "amplitude_m": amplitude,
+            "phase_deg": phase,
+            "amplitude_error_m": float(zc["setpoint"]) - amplitude,
+            "frequency_Hz": float(applied.get("drive_frequency_Hz", math.nan)),
+            "frequency_shift_Hz": math.nan,
+            "drive_N": k * float(applied.get("free_amplitude_m", math.nan)) / q,
+            "deflection_m": math.nan,
+            "stage": stage.get("state", ""),
+            "feedback": stage.get("state") == "engaged" and bool(zc["enabled"]),
+            "scanning": "plan" in applied,
+        }
+
+    def frame_so_far(self):
+        plan = self.last_plan
+        if plan is None or not all((c, d) in self.images for c in CHANNELS for d in DIRECTIONS):
+            return None
+        images = {d: {c: self.images[(c, d)][1] for c in CHANNELS} for d in DIRECTIONS}
+        done = int(np.count_nonzero(np.isfinite(images[DIRECTIONS[1]][CHANNELS[0]]).all(axis=1)))
+        return frame_dataset(images, plan, {"source": "ros", "lines_done": done})
+
+    def move_motor(self, steps: int) -> None:
+        self.set_values("z_controller", {"motor_move_steps": int(steps)})
+        stage = self._run_stage("z_controller/move_motor", "moving")
+        if stage.get("state") == "moving":
+            raise WorkflowFailed(f"the motor move did not end (t={self.now():.6g} s)")
+
+    def move_z(self, z: float) -> None:
+        self.set_values("z_controller", {"z_position": float(z)})
+        self._trigger("z_controller/move_z", "z_controller")
+
+    def oscilloscope(self, samples: int) -> dict:
+        chunks: list = []
+        count = [0]
+
+        def take(msg: Float64MultiArray) -> None:
+            try:
+                header, values = chunk_layout.unpack(msg.data)
+            except ValueError:
+                return
+            chunks.append((header.t_start, header.sample_interval, values))
+            count[0] += values.size
+
+        sub = self.link.node.create_subscription(
+            Float64MultiArray, self.link.resolve(topics.DEFLECTION), take, topics.HISTORY_QOS
+        )
+        try:
+            if self.hold:
+                self.advance(samples / 900e3 + 2 * self.chunk)
+            self._wait(lambda: count[0] >= samples, "the raw deflection (cantilever/deflection)")
+        finally:
+            self.link.node.destroy_subscription(sub)
+        return trace_of(chunks, samples)
 
     def flags(self) -> dict:
         return dict(self.latest["flags"]["flags"]) if self.latest["flags"] else {}

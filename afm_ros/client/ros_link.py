@@ -297,6 +297,7 @@ class RosLink:
         self.namespace = "/" + namespace.strip("/")
         self.timeout = float(timeout)
         self._interrupted = interrupted
+        self.tick = None
         self._owns_context = context is None
         if context is None:
             context = rclpy.Context()
@@ -388,6 +389,8 @@ class RosLink:
             context=self.context
         ):
             raise Interrupted()
+        if self.tick is not None:  # a controller's (Microscope.set_tick): it may raise to stop
+            self.tick()
 
     # --- discovery
     # ---------------------------------------------------------------------------------

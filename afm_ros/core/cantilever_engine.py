@@ -14,6 +14,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Callable, NamedTuple
 
@@ -51,6 +52,8 @@ from afm_ros.core.tune import TunePlan
 from afm_ros.formats.chunk_layout import ChunkHeader
 
 # drive changes that arrive during a tune apply this many chunks after its end
+# chunks of measured deflection kept for an oscilloscope (2 ms each by default: 128 ms)
+RAW_CHUNKS_KEPT = 64
 TUNE_HOLD_CHUNKS = 2
 TUNE_DEFERRED = ("drive_frequency", "free_amplitude")
 # Paced: the timer runs at CATCH_UP times the chunk rate and integrates every chunk that is due
@@ -227,6 +230,9 @@ class CantileverEngine:
         self.on_applied = on_applied or (lambda applied: None)
         self.on_worn_tip = on_worn_tip or (lambda row: None)
         self.samples: dict = {}  # sample parameter -> loaded Sample (None: flat)
+        # the measured deflection of the last chunks (t_start [s], sample interval [s], samples):
+        # an oscilloscope's view of the raw stream (references to the published arrays)
+        self.raw: deque = deque(maxlen=RAW_CHUNKS_KEPT)
         self.surfaces: dict = {}  # _surface_key -> its SurfaceMap (tip-dilated, force constants)
         self._lock = threading.Lock()
         self._pending: dict = {}
@@ -761,6 +767,7 @@ class CantileverEngine:
             header, measured = measure(
                 sim, s, samples, job.first, job.noise_density, job.noise_seed
             )
+            self.raw.append((header.t_start, header.sample_interval, measured))
         if sim.surface is not None and self.wear.enabled:  # the taps of this chunk wear the tip
             if wear_by_chunk(self.wear, s, float(np.max(samples.force, initial=-math.inf)), sim.t):
                 self._worn_radius = self.wear.built_radius

@@ -135,7 +135,8 @@ FM_SPECS: dict[str, ParamSpec] = {
             5e-12,
             "N",
             "drive force amplitude at the start (k A / Q of the default FM set-up: 10 N/m, 5 nm, "
-            "Q 1e4)",
+            "Q 1e4), and the drive held while amplitude_enabled is false (Nanonis "
+            "PLL.ExcitationSet)",
             0.0,
             1e-3,
         ),
@@ -248,7 +249,8 @@ class OscillationController:
         if shift:  # re-centred (e.g. auto-zero far from the surface): the oscillator does not jump
             self.integral -= shift
             self.df -= shift
-        if merged["drive_initial"] != old["drive_initial"] and self.t_last is None:
+        held = self.t_last is None or not merged["amplitude_enabled"]
+        if merged["drive_initial"] != old["drive_initial"] and held:
             self.drive = self.amp_integral = merged["drive_initial"]
 
     @property

@@ -27,7 +27,14 @@ import numpy as np
 from afm_ros.core.angles import phase_deg, phases_deg
 from afm_ros.core.approach import ApproachLog, ZStage, blind_time
 from afm_ros.core.artefacts import Imperfections, check_plan
-from afm_ros.core.cantilever_engine import excite, measure, retune, sample_surface, wear_by_chunk
+from afm_ros.core.cantilever_engine import (
+    RAW_CHUNKS_KEPT,
+    excite,
+    measure,
+    retune,
+    sample_surface,
+    wear_by_chunk,
+)
 from afm_ros.core.cantilever_params import build, default_values
 from afm_ros.core.controller import ZController
 from afm_ros.core.fm import OscillationController
@@ -38,9 +45,6 @@ from afm_ros.core.refusals import NOT_ENGAGED, SCANNING, Refusal
 from afm_ros.core.scanner import ScanPlan, parked_plan
 from afm_ros.core.spectroscopy import SpectroscopyCurve, chunk_mean
 from afm_ros.core.tip import TIP_SPECS, TipWear
-
-# chunks of measured deflection kept for an oscilloscope (2 ms each by default)
-RAW_CHUNKS_KEPT = 64
 
 
 @dataclass

@@ -164,6 +164,7 @@ class ScannerNode(GuardedNode):
         self.frames_failed = 0
         # the completed lines of the last stopped scan (Frame.completed), if any
         self.partial_frame = None
+        self.stopped_frame = None  # the frame a stop ended, on its whole raster
         self.flags: list = []  # the problem flags of the last finished frame (afm_ros.core.flags)
         self.frame_flags_history: list = []  # (frame index, flags) of the recent frames
         self._last_frame = None
@@ -377,6 +378,18 @@ class ScannerNode(GuardedNode):
         writer.join(timeout)
         return list(getattr(writer, "paths", []))
 
+    @property
+    def frame_so_far(self):
+        """The frame being scanned (its lines done so far, NaN elsewhere), else the last one: the
+        last finished or the one a stop ended, on its whole raster; None before any."""
+        acc = self.accumulator
+        if acc is not None:
+            if self.state == "scanning" and not acc.done:
+                return acc.frame
+            if acc.frames_done:
+                return acc.frames_done[-1]
+        return self.stopped_frame
+
     def line_end_after(self, t: float) -> float | None:
         """Simulated time [s] at which the line being scanned at ``t`` [s] ends (None: no scan
         confirmed); run the cantilever past it and wait for ``lines_done`` to finish a line."""
@@ -402,6 +415,7 @@ class ScannerNode(GuardedNode):
             self._plan_request = None
             values = dict(self._values)
         self._pub_plan.publish(String(data=json.dumps(park)))
+        self.stopped_frame = frame
         self.partial_frame = (
             frame.completed() if frame is not None and frame.lines_done > 0 else None
         )

@@ -18,6 +18,11 @@ z command is then the piezo plus the coarse motor's position. ``z_controller/sta
 withdrawn, failed, with the motor position and the approach's log); the scanner refuses to scan
 unless it is engaged.
 
+By hand, with the tip withdrawn or the feedback off: ``z_controller/move_motor`` moves the coarse
+motor ``motor_move_steps`` steps (stage ``moving`` meanwhile), ``z_controller/move_z`` puts the z
+piezo at ``z_position`` (Nanonis Motor.StartMove and ZCtrl.ZPosSet); ``z_controller/stop`` stops
+a motor move where it is.
+
 Z spectroscopy (:mod:`afm_ros.core.spectroscopy`, its parameters are this node's too): the service
 ``z_controller/spectroscopy`` (std_srvs/Trigger) holds the feedback and ramps z up, down and back
 at the parked tip (the stage is ``spectroscopy`` meanwhile; refused unless engaged and parked); the
@@ -155,6 +160,8 @@ class ZControllerNode(GuardedNode):
         self.create_service(Trigger, "z_controller/withdraw", self.start_withdraw)
         self.create_service(Trigger, "z_controller/spectroscopy", self.start_spectroscopy)
         self.create_service(Trigger, "z_controller/stop", self.stop)
+        self.create_service(Trigger, "z_controller/move_motor", self.start_motor_move)
+        self.create_service(Trigger, "z_controller/move_z", self.move_z)
         self.pub_curve = self.create_publisher(
             Float64MultiArray, SPECTROSCOPY_TOPIC, topics.LATCHED_QOS
         )
@@ -321,6 +328,51 @@ class ZControllerNode(GuardedNode):
             else f"nothing to stop: the z stage is {self.stage.state}"
         )
         self.get_logger().info(response.message)
+        return response
+
+    def start_motor_move(self, request=None, response=None) -> Trigger.Response:
+        """Move the coarse motor motor_move_steps steps (the service z_controller/move_motor;
+        refused while the tip is engaged or the stage busy)."""
+        response = Trigger.Response() if response is None else response
+        steps = self.approach_values["motor_move_steps"]
+        with self._lock:
+            if self.stage is None:
+                response.success = False
+                response.message = refusals.tagged(
+                    refusals.NOT_READY,
+                    "motor move refused: the cantilever's z_base is not known yet",
+                )
+                return response
+            try:
+                self.stage.start_motor_move(steps, self.approach_values)
+            except ValueError as exc:
+                response.success = False
+                response.message = refusals.tagged(refusals.code_of(exc), str(exc))
+                return response
+            self._report_stage()
+        response.success = True
+        response.message = f"moving the motor {steps:+d} steps (positive: away from the sample)"
+        self.get_logger().info(response.message)
+        return response
+
+    def move_z(self, request=None, response=None) -> Trigger.Response:
+        """Put the z piezo at z_position with the feedback off (the service z_controller/move_z;
+        refused with the feedback on, the stage busy or outside [z_min, z_max])."""
+        response = Trigger.Response() if response is None else response
+        z = self.approach_values["z_position"]
+        with self._lock:
+            if self.stage is None:
+                self.stage = ZStage(self.controller, 0.0)
+            try:
+                self.stage.move_z(z)
+            except ValueError as exc:
+                response.success = False
+                response.message = refusals.tagged(refusals.code_of(exc), str(exc))
+                return response
+            self._publish_z()
+            self._report_stage()
+        response.success = True
+        response.message = f"z piezo at {z:g} m (feedback off)"
         return response
 
     def start_withdraw(self, request=None, response=None) -> Trigger.Response:

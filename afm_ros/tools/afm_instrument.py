@@ -29,6 +29,7 @@ import argparse
 import json
 import math
 import sys
+import time
 import warnings
 from dataclasses import asdict
 from pathlib import Path
@@ -39,6 +40,7 @@ from rclpy.logging import LoggingSeverity, set_logger_level
 from rclpy.utilities import remove_ros_args
 
 from afm_ros.client import LongWork, Microscope
+from afm_ros.client.nanonis import serve, supported
 from afm_ros.core.approach import INSTRUMENT_Z
 from afm_ros.core.artefacts import (
     ARTEFACT_NODE_SPECS,
@@ -197,11 +199,36 @@ def parse_args(argv):
         "--interactive: after the hold, run until Ctrl-C (scan with afm_ctl)",
     )
     parser.add_argument(
+        "--nanonis",
+        action="store_true",
+        help="serve the instrument over the Nanonis TCP programming interface (127.0.0.1:6501 by "
+        "default, --nanonis-port, --nanonis-address) instead of running a job: lab scripts "
+        "written for a Nanonis-controlled AFM tune, approach, scan and take spectra; frames saved "
+        "as .sxm, spectra as .dat in the run folder, until Ctrl-C (docs/nanonis.md); with --fm "
+        "the FM instrument",
+    )
+    parser.add_argument(
+        "--nanonis-port", type=int, default=6501, help="with --nanonis: TCP port (default 6501)"
+    )
+    parser.add_argument(
+        "--nanonis-address",
+        default="127.0.0.1",
+        help="with --nanonis: address to listen on (default 127.0.0.1: the protocol has no "
+        "authentication)",
+    )
+    parser.add_argument(
         "--json", action="store_true", help="also print the summary as one JSON line"
     )
     args = parser.parse_args(argv)
     if args.fm and (args.attach or args.image):
         parser.error("--fm is a job of its own: not with --attach or --image")
+    if args.nanonis and (args.attach or args.image or args.interactive or args.ideal):
+        parser.error(
+            "--nanonis serves the instrument to a Nanonis client: not with --attach, --image, "
+            "--interactive or --ideal"
+        )
+    if not 0 <= args.nanonis_port <= 65535:
+        parser.error(f"--nanonis-port={args.nanonis_port}: allowed 0-65535 (0: any free port)")
     for name in ("duration", "free_time"):
         if not (getattr(args, name) > 0 and math.isfinite(getattr(args, name))):
             parser.error(f"--{name.replace('_', '-')}={getattr(args, name)} s must be > 0")
@@ -466,7 +493,7 @@ def main(args=None):
                 instrument.check_scan()
                 plan = ScanPlan.from_values(instrument.nodes["scanner"].values)
                 frame_time, frame = plan.frame_time, (plan.pixels, plan.lines)
-            if not options.interactive:  # a bounded job: its session must fit
+            if not options.interactive and not options.nanonis:  # a bounded job: it must fit
                 workflow_s = WORKFLOW_SIMULATED_S if workflow or options.fm else 0.0
                 job.check_recording(
                     options.free_time + options.duration + frame_time + workflow_s,
@@ -480,6 +507,8 @@ def main(args=None):
         except ValueError:
             refused = True
             raise
+        if options.nanonis:
+            return serve_nanonis(afm, run_folder, options)
         if options.fm:
             fm_summary = run_fm_job(job, options.duration, interactive=options.interactive)
             print(summary_text(fm_summary), flush=True)
@@ -555,6 +584,50 @@ def main(args=None):
         if refused and run_folder is not None and options.out is None:
             _remove_unused_run_folder(run_folder)
     return status
+
+
+def serve_nanonis(afm: Microscope, run_folder: Path, options) -> int:
+    """The instrument behind a Nanonis server until Ctrl-C (then the frame being scanned is saved
+    as far as it got); the exit status."""
+    instrument = afm.session
+    instrument.wait_ready()
+    instrument.start_far()
+    instrument.finishing = True  # Ctrl-C ends the server, which stops its own work first
+    served = serve(
+        afm,
+        run_folder,
+        mode="fm" if options.fm else "am",
+        address=options.nanonis_address,
+        port=options.nanonis_port,
+        log=nanonis_log,
+    )
+    print(
+        f"Nanonis server on {options.nanonis_address}:{served.port} ({len(supported())} "
+        f"commands, {'FM' if options.fm else 'AM'}; no authentication): point a Nanonis script "
+        "at it; Ctrl-C stops",
+        flush=True,
+    )
+    try:
+        while node_main.running(instrument.context) and not served.session.controller.failure:
+            time.sleep(0.2)
+    finally:
+        try:
+            served.close()
+        except KeyboardInterrupt:
+            print("afm_instrument: Ctrl-C again: stopped without waiting", file=sys.stderr)
+    failure = served.session.controller.failure
+    print(
+        f"nanonis: {len(served.session.files)} file(s) in {run_folder}"
+        + (f"; the instrument stopped: {failure}" if failure else ""),
+        flush=True,
+    )
+    return 1 if failure else 0
+
+
+def nanonis_log(level: str, text: str) -> None:
+    """The server's lines worth printing: files saved, warnings and errors."""
+    if level != "info" or text.startswith(("frame saved", "spectroscopy saved")):
+        print(text if level == "info" else f"nanonis [{level}]: {text}", flush=True)
 
 
 def say_long_job(simulated_s: float, real_time_factor) -> None:

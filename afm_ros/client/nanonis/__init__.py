@@ -11,6 +11,6 @@ every command with its mapping, units and limits.
 
 from afm_ros.client.nanonis import pll, readout, scan, spectroscopy, zctrl  # noqa: F401 - commands
 from afm_ros.client.nanonis.commands import COMMANDS, supported
-from afm_ros.client.nanonis.session import Session
+from afm_ros.client.nanonis.session import Served, Session, serve
 
-__all__ = ["COMMANDS", "Session", "supported"]
+__all__ = ["COMMANDS", "Served", "Session", "serve", "supported"]

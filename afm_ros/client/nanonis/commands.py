@@ -15,6 +15,8 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
+
 from afm_ros.client.errors import ClientError
 from afm_ros.formats.nanonis_wire import WireError, decode, encode, response
 
@@ -69,16 +71,33 @@ def dispatch(session, name: str, body: bytes) -> bytes:
     try:
         args = decode(cmd.args, body, cmd.optional_from)
     except WireError as exc:
-        return response(name, error=f"{name}: malformed arguments: {exc}")
+        return _failed(cmd, f"malformed arguments: {exc}")
     try:
         values = cmd.handler(session, **args)
     except (ClientError, ValueError, TimeoutError, RuntimeError) as exc:
-        return response(name, error=f"{name}: {_one_line(exc)}")
+        return _failed(cmd, _one_line(exc))
+    except Exception as exc:  # a fault of the emulator's own: this command fails, not the server
+        session.log("error", f"{name}: internal error: {exc!r}")
+        return _failed(cmd, f"internal error of the emulator: {_one_line(exc)}")
     values = () if values is None else values
     try:
         return response(name, encode(cmd.returns, values))
     except WireError as exc:  # a value the wire cannot carry: say so, never a broken frame
-        return response(name, error=f"{name}: the answer cannot be encoded: {exc}")
+        return _failed(cmd, f"the answer cannot be encoded: {exc}")
+
+
+def _failed(cmd: Command, reason: str) -> bytes:
+    """An error response the clients can parse: every return field empty or zero (the clients
+    read the fields before the error section), then the error section with ``reason``."""
+    empty = [EMPTY[code] for _, code in cmd.returns]
+    return response(cmd.name, encode(cmd.returns, empty), error=f"{cmd.name}: {reason}")
+
+
+# the value of each field code in an error response
+EMPTY = {
+    "H": 0, "h": 0, "I": 0, "i": 0, "f": 0.0, "d": 0.0, "str": "", "strarr": [],
+    "i[]": [], "f[]": [], "d[]": [], "f2d": np.zeros((0, 0)), "str2d": [],
+}  # fmt: skip
 
 
 def _one_line(exc: BaseException) -> str:

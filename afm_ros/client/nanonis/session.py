@@ -20,6 +20,7 @@ from afm_ros.client.microscope import Microscope
 from afm_ros.client.nanonis import commands
 from afm_ros.client.nanonis.controller import Controller, Job
 from afm_ros.client.nanonis.signals import BY_CHANNEL, SIGNALS, Z_INDEX, image_channels
+from afm_ros.core.nanonis_server import DEFAULT_PORT, MAX_CLIENTS, NanonisServer
 from afm_ros.formats.nanonis_files import SxmChannel, SxmFrame, scan_order, write_sxm
 
 VERSION = "afm_ros Nanonis emulation 1"
@@ -217,3 +218,46 @@ class Session:
         """Raise what ended ``job`` unless it ended well or was stopped on request."""
         if job.error is not None and not job.stopped:
             raise job.error
+
+
+class Served:
+    """A Session and the NanonisServer in front of it (:func:`serve`); :meth:`close` stops the
+    action running (its results kept: a stopped frame is saved), then the server."""
+
+    def __init__(self, session: Session, server):
+        self.session, self.server = session, server
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def close(self) -> None:
+        try:
+            self.session.close()
+        finally:
+            self.server.close()
+
+
+def serve(
+    afm: Microscope,
+    folder,
+    mode: str = "am",
+    address: str = "127.0.0.1",
+    port: int = DEFAULT_PORT,
+    idle: str = "run",
+    pace: bool = False,
+    real_time_factor: float = 1.0,
+    max_clients: int = MAX_CLIENTS,
+    log: Callable[[str, str], None] | None = None,
+) -> Served:
+    """Serve ``afm`` over the Nanonis protocol on ``address``:``port`` (0: any free port), files
+    in ``folder``; OSError naming the address if it cannot listen (nothing left running)."""
+    session = Session(afm, folder, mode, idle, pace, real_time_factor, log).start()
+    try:
+        server = NanonisServer(
+            session.dispatch, address, port, max_clients=max_clients, log=log
+        ).start()
+    except BaseException:
+        session.close()
+        raise
+    return Served(session, server)
