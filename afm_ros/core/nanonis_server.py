@@ -98,6 +98,11 @@ class NanonisServer:
         return self._listener.getsockname()[1] if self._listener else self.requested_port
 
     @property
+    def bound(self) -> tuple:
+        """The (address, port) listened on."""
+        return self._listener.getsockname()[:2] if self._listener else (self.address, self.port)
+
+    @property
     def clients(self) -> int:
         """Connections open now."""
         with self._lock:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from afm_ros.client.nanonis import signals as table
+import afm_ros.client.nanonis.signals as table
 from afm_ros.client.nanonis.commands import Unsupported, command, flag, supported
 from afm_ros.client.nanonis.session import HOST_RELEASE, RT_RELEASE, VERSION
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from afm_ros.client.errors import Interrupted
 from afm_ros.client.microscope import Microscope
-from afm_ros.client.nanonis import commands
+from afm_ros.client.nanonis.commands import dispatch as dispatch_command
 from afm_ros.client.nanonis.controller import Controller, Job
 from afm_ros.client.nanonis.signals import BY_CHANNEL, SIGNALS, Z_INDEX, image_channels
 from afm_ros.core.nanonis_server import DEFAULT_PORT, MAX_CLIENTS, NanonisServer
@@ -99,7 +99,7 @@ class Session:
         return self.controller.call(fn) if timeout is None else self.controller.call(fn, timeout)
 
     def dispatch(self, name: str, body: bytes) -> bytes:
-        return commands.dispatch(self, name, body)
+        return dispatch_command(self, name, body)
 
     # --- files
     # ---------------------------------------------------------------------------------------
