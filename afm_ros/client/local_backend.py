@@ -135,7 +135,7 @@ class LocalBackend:
             self._checked("scanner", values, self.scanner)
             if any(name in artefacts.ARTEFACT_SPECS for name in values):
                 w.imperfect.configure(
-                    **{name: self.scanner[name] for name in artefacts.ARTEFACT_SPECS}
+                    t=w.t, **{name: self.scanner[name] for name in artefacts.ARTEFACT_SPECS}
                 )
                 w.sim.set_artefacts(
                     w.imperfect.packed(w.images.plan if w.images is not None else None)

@@ -175,8 +175,47 @@ ARTEFACT_SPECS: dict[str, ParamSpec] = {
             1e-3,
             10.0,
         ),
+        ParamSpec(
+            "drift_compensation",
+            False,
+            "",
+            "drift compensation on (Nanonis Piezo.DriftCompSet): the scanner moves the tip at "
+            "drift_compensation_x/y/z from the time it is set, so the drift the images show is "
+            "the true drift minus it; off: the scanner stops where the compensation got it",
+            kind=bool,
+        ),
+        ParamSpec(
+            "drift_compensation_x",
+            0.0,
+            "m/s",
+            "drift compensation velocity in x (set it to the drift measured between two frames)",
+            -1e-6,
+            1e-6,
+        ),
+        ParamSpec(
+            "drift_compensation_y", 0.0, "m/s", "drift compensation velocity in y", -1e-6, 1e-6
+        ),
+        ParamSpec(
+            "drift_compensation_z", 0.0, "m/s", "drift compensation velocity in z", -1e-6, 1e-6
+        ),
+        ParamSpec(
+            "drift_compensation_limit",
+            0.1,
+            "1",
+            "the compensation saturates (stops growing) at this fraction of scanner_field on "
+            "each axis (Nanonis' saturation limit)",
+            0.0,
+            1.0,
+        ),
     )
 }
+COMPENSATION = (
+    "drift_compensation",
+    "drift_compensation_x",
+    "drift_compensation_y",
+    "drift_compensation_z",
+    "drift_compensation_limit",
+)
 
 # what a real instrument at room temperature shows (afm_instrument's defaults;
 # docs/imperfections.md)
@@ -225,13 +264,26 @@ CREEP_MOVES = 8
     ART_FROZEN_Y,
     ART_MOVES,
 ) = range(15)
-ART_LENGTH = ART_MOVES + 3 * CREEP_MOVES  # (t, dx, dy) per move; t = inf: unused
+# after the moves ((t, dx, dy) each; t = inf: unused): the drift compensation, its offset (x, y,
+# z) [m] at time T0 [s], its velocity [m/s] from then and its saturation limit [m]
+(
+    ART_COMP_ON,
+    ART_COMP_T0,
+    ART_COMP_X0,
+    ART_COMP_Y0,
+    ART_COMP_Z0,
+    ART_COMP_VX,
+    ART_COMP_VY,
+    ART_COMP_VZ,
+    ART_COMP_LIMIT,
+) = range(ART_MOVES + 3 * CREEP_MOVES, ART_MOVES + 3 * CREEP_MOVES + 9)
+ART_LENGTH = ART_COMP_LIMIT + 1
 
 
 def off() -> np.ndarray:
     """The packed array of an ideal instrument."""
     out = np.zeros(ART_LENGTH)
-    out[ART_MOVES::3] = math.inf
+    out[ART_MOVES : ART_MOVES + 3 * CREEP_MOVES : 3] = math.inf
     return out
 
 
@@ -300,6 +352,9 @@ class Imperfections:
         self.moves: list[tuple[float, float, float]] = []
         self.frozen = (0.0, 0.0)
         self.last_center: tuple[float, float] | None = None
+        # the drift compensation's offset [m] at the simulated time [s] its settings last changed
+        self.comp_offset = (0.0, 0.0, 0.0)
+        self.comp_since = 0.0
 
     @property
     def enabled(self) -> bool:
@@ -313,11 +368,36 @@ class Imperfections:
                 not v["closed_loop"]
                 and (v["hysteresis_small"] or v["hysteresis_large"] or v["creep_per_decade"])
             )
+            or self.compensating
         )
 
-    def configure(self, **changes) -> None:
-        """Validate every change, then apply all (ValueError naming the field: nothing applied)."""
-        self.values = validate({**self.values, **changes})
+    @property
+    def compensating(self) -> bool:
+        """The drift compensation moves the tip now or has moved it."""
+        return bool(self.values["drift_compensation"] or any(self.comp_offset))
+
+    def compensation(self, t: float) -> tuple[float, float, float]:
+        """The drift compensation's offset (x, y, z) [m] at simulated time t [s] (saturated at
+        the limit)."""
+        v = self.values
+        limit = v["drift_compensation_limit"] * v["scanner_field"]
+        if not v["drift_compensation"]:
+            return self.comp_offset
+        elapsed = t - self.comp_since
+        return tuple(
+            min(max(c0 + v[f"drift_compensation_{axis}"] * elapsed, -limit), limit)
+            for c0, axis in zip(self.comp_offset, "xyz")
+        )
+
+    def configure(self, t: float = 0.0, **changes) -> None:
+        """Validate every change, then apply all (ValueError naming the field: nothing applied);
+        ``t`` [s]: the simulated time of the change (the drift compensation goes on from where it
+        got then)."""
+        new = validate({**self.values, **changes})
+        if any(new[k] != self.values[k] for k in COMPENSATION):
+            self.comp_offset = self.compensation(t)
+            self.comp_since = float(t)
+        self.values = new
 
     def move(self, center_x: float, center_y: float, t: float) -> None:
         """The scan centre is now (center_x, center_y) [m] from simulated time t [s]: a creep
@@ -354,6 +434,14 @@ class Imperfections:
             out[ART_FROZEN_X], out[ART_FROZEN_Y] = self.frozen
             for i, (t, dx, dy) in enumerate(self.moves):
                 out[ART_MOVES + 3 * i : ART_MOVES + 3 * i + 3] = (t, dx, dy)
+        if self.compensating:
+            on = v["drift_compensation"]
+            out[ART_COMP_ON] = 1.0
+            out[ART_COMP_T0] = self.comp_since
+            out[ART_COMP_X0], out[ART_COMP_Y0], out[ART_COMP_Z0] = self.comp_offset
+            for i, axis in enumerate("xyz"):
+                out[ART_COMP_VX + i] = v[f"drift_compensation_{axis}"] if on else 0.0
+            out[ART_COMP_LIMIT] = v["drift_compensation_limit"] * v["scanner_field"]
         return out
 
 
@@ -368,6 +456,12 @@ def slow_terms(art, t):
     dx = art[ART_VX] * t
     dy = art[ART_VY] * t
     dz = art[ART_VZ] * t
+    if art[ART_COMP_ON] != 0.0:  # the scanner follows the drift: what remains of it
+        elapsed = t - art[ART_COMP_T0]
+        limit = art[ART_COMP_LIMIT]
+        dx -= min(max(art[ART_COMP_X0] + art[ART_COMP_VX] * elapsed, -limit), limit)
+        dy -= min(max(art[ART_COMP_Y0] + art[ART_COMP_VY] * elapsed, -limit), limit)
+        dz -= min(max(art[ART_COMP_Z0] + art[ART_COMP_VZ] * elapsed, -limit), limit)
     cx = art[ART_FROZEN_X]
     cy = art[ART_FROZEN_Y]
     g = art[ART_G]
@@ -416,7 +510,8 @@ def hysteresis_offsets(art, plan, t):
 
 def truth(art: np.ndarray, plan: np.ndarray, t) -> dict:
     """Ground truth at simulated times t [s]: the piezo's ``hysteresis_x/y`` and ``creep_x/y``
-    (true minus commanded position [m]) and the sample's ``drift_x/y/z`` [m]. (The kernel holds
+    (true minus commanded position [m]) and the sample's ``drift_x/y/z`` [m] against the tip (less
+    the scanner's drift compensation). (The kernel holds
     drift and creep per block of SLOW_BLOCK steps: they differ from these by < 1e-11 m.)"""
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     out = np.zeros((7, t.shape[0]))

@@ -607,7 +607,7 @@ class CantileverEngine:
         self._imperfections_seen = True
         if values == self.imperfect.values:
             return
-        self.imperfect.configure(**values)
+        self.imperfect.configure(t=self.sim.t, **values)
         self._pack_imperfections()
         changed = "on" if self.imperfect.enabled else "off"
         self.log.info(f"imperfections {changed} from t={self.sim.t:.6g} s")

@@ -298,3 +298,69 @@ def tilt_get(s):
         math.degrees(math.atan(v["slope_compensation_x"])),
         math.degrees(math.atan(v["slope_compensation_y"])),
     )
+
+
+_COMP = ("drift_compensation_x", "drift_compensation_y", "drift_compensation_z")
+
+
+@command(
+    "Piezo.DriftCompSet",
+    args=[("on", "I"), ("vx", "f"), ("vy", "f"), ("vz", "f"), ("saturation_limit", "f")],
+    optional_from=4,
+)
+def drift_set(s, on: int, vx: float, vy: float, vz: float, saturation_limit: float = -1.0):
+    """Drift compensation (0 no change, 1 on, 2 off) at (vx, vy, vz) [m/s]: the scanner moves the
+    tip so, from now on; it saturates at saturation_limit [%] of the scanner's field (-1 or
+    absent: no change). It acts on the emulator's real drift (docs/imperfections.md)."""
+    flag("on", on, (0, 1, 2))
+    velocities = [finite(n, v, "m/s") for n, v in (("vx", vx), ("vy", vy), ("vz", vz))]
+    values = dict(zip(_COMP, velocities))
+    if on:
+        values["drift_compensation"] = on == 1
+    if saturation_limit != -1.0:
+        limit = finite("saturation_limit", saturation_limit, "%")
+        if not 0 <= limit <= 100:
+            raise ValueError(f"saturation_limit={limit:g} %: allowed [0, 100] (-1: no change)")
+        values["drift_compensation_limit"] = limit / 100.0
+
+    def apply(afm):
+        afm.set("scanner", **values)
+        s.drift_since = afm.state()["t_s"]
+
+    s.controller.call(apply)
+
+
+@command(
+    "Piezo.DriftCompGet",
+    returns=[
+        ("on", "I"),
+        ("vx", "f"),
+        ("vy", "f"),
+        ("vz", "f"),
+        ("x_saturated", "I"),
+        ("y_saturated", "I"),
+        ("z_saturated", "I"),
+        ("saturation_limit", "f"),
+    ],
+)
+def drift_get(s):
+    """The compensation's state; an axis reads saturated when its velocity times the time since
+    the last DriftCompSet reached the limit."""
+
+    def read(afm):
+        v = afm.get("scanner", "drift_compensation", *_COMP, "drift_compensation_limit",
+                    "scanner_field")  # fmt: skip
+        return v, afm.state()["t_s"]
+
+    v, t = s.controller.call(read)
+    limit = v["drift_compensation_limit"] * v["scanner_field"]
+    elapsed = t - s.drift_since
+    saturated = [
+        1 if v["drift_compensation"] and abs(v[name] * elapsed) >= limit else 0 for name in _COMP
+    ]
+    return (
+        1 if v["drift_compensation"] else 0,
+        *(v[name] for name in _COMP),
+        *saturated,
+        100.0 * v["drift_compensation_limit"],
+    )
