@@ -145,10 +145,18 @@ def save_frame(ds, path, previews: bool = False) -> list:
 
 def trace_of(chunks: list, samples: int) -> dict:
     """The last ``samples`` samples of consecutive deflection ``chunks`` ((t_start [s], sample
-    interval [s], values [m]) each, oldest first) as a Trace dict (fewer if fewer were kept)."""
+    interval [s], values [m]) each, oldest first) as a Trace dict: only the newest chunks of one
+    sample interval (a tune changes it), so fewer if fewer are kept."""
     if not chunks:
         return {"t0_s": float("nan"), "dt_s": float("nan"), "deflection_m": []}
-    values = np.concatenate([np.asarray(c[2], dtype=np.float64) for c in chunks])[-samples:]
-    t_end_start, dt, last = chunks[-1]
-    t0 = t_end_start + (len(last) - values.size) * dt
+    dt = chunks[-1][1]
+    same = []
+    for chunk in reversed(chunks):
+        if chunk[1] != dt:
+            break
+        same.append(chunk)
+    same.reverse()
+    values = np.concatenate([np.asarray(c[2], dtype=np.float64) for c in same])[-samples:]
+    t_last, _, last = same[-1]
+    t0 = t_last + (len(last) - values.size) * dt
     return {"t0_s": float(t0), "dt_s": float(dt), "deflection_m": values.tolist()}

@@ -3,7 +3,7 @@ version (docs/nanonis.md)."""
 
 from __future__ import annotations
 
-from datetime import datetime
+import math
 
 import afm_ros.client.nanonis.signals as table
 from afm_ros.client.nanonis.commands import Unsupported, command, flag, supported
@@ -89,10 +89,18 @@ def osci_run(s):
 )
 def osci_data(s, osci: int, data_to_get: int, timeout: float):
     """The last samples of the measured deflection [m] (the raw 900 kS/s stream, detector noise
-    included), the time of the first (simulated seconds, as text) and the sample interval [s]."""
+    included), the time of the first (simulated seconds, as text) and the sample interval [s];
+    data_to_get 1 (next): first let the samples' time pass (fresh data), 0: what is there."""
     flag("osci", osci, (0, 1))
     flag("data_to_get", data_to_get, (0, 1))
     n = s.osci["samples"]
+    if data_to_get == 1:
+        dt = s.controller.call(lambda afm: afm.oscilloscope(1))["dt_s"]
+        span = n * (dt if math.isfinite(dt) else 1.0 / 900e3)
+        job = s.controller.submit("oscilloscope", lambda afm: afm.wait(span))
+        if not job.done.wait(max(timeout, 0.0) + 60.0):
+            return ("", 0.0, [], 1)
+        s.job_error(job)
     trace = s.controller.call(lambda afm: afm.oscilloscope(n))
     return (f"{trace['t0_s']:.9f}", trace["dt_s"], trace["deflection_m"], 0)
 
@@ -114,7 +122,3 @@ def version(s):
         HOST_RELEASE,
         RT_RELEASE,
     )
-
-
-def timestamp() -> str:
-    return datetime.now().strftime("%d.%m.%Y %H:%M:%S")
