@@ -217,10 +217,12 @@ def phase_gain_set(s, modulator: int, p_gain: float, time_constant: float):
 @command(
     "PLL.PhasCtrlGainGet",
     args=[("modulator", "i")],
-    returns=[("p_gain", "f"), ("time_constant", "f"), ("i_gain", "f")],
+    returns=[("p_gain", "f"), ("time_constant", "f")],
 )
 def phase_gain_get(s, modulator: int):
-    return _gains_get(s, modulator, PHASE_GAINS, "the phase controller")
+    """P [Hz/deg] and the time constant [s] (I = P / time constant), as nanonis_spm reads it (the
+    document adds the I gain; the server follows nanonis_spm)."""
+    return _gains_get(s, modulator, PHASE_GAINS, "the phase controller")[:2]
 
 
 # --- the frequency sweep (the tune)

@@ -204,23 +204,14 @@ def spectr_props_set(s, backward, points, sweeps, autosave, show_save_dialog, sa
         ("parameters", "strarr"),
         ("fixed_parameters", "strarr"),
         ("sweeps", "H"),
-        ("autosave", "H"),
-        ("show_save_dialog", "H"),
         ("save_all", "H"),
     ],
 )
 def spectr_props_get(s):
+    """As nanonis_spm reads it (the document adds autosave and the save dialog after the sweeps;
+    where the two disagree the server follows nanonis_spm)."""
     z = s.zspectr
-    return (
-        int(z["backward"]),
-        z["points"],
-        list(PARAMETERS),
-        list(FIXED),
-        1,
-        int(z["autosave"]),
-        0,
-        int(z["save_all"]),
-    )
+    return (int(z["backward"]), z["points"], list(PARAMETERS), list(FIXED), 1, int(z["save_all"]))
 
 
 @command("ZSpectr.ChsSet", args=[("channels", "i[]")])
