@@ -1,6 +1,8 @@
-"""``python -m afm_ros.tools.config_gen yaml|table``: print ``config/afm.yaml`` or the Markdown
-parameter table (docs/parameters.md) generated from the parameter specs
-(:mod:`afm_ros.core.specs`). A test checks that the committed files agree with the specs.
+"""``python -m afm_ros.tools.config_gen yaml|table|nanonis``: print ``config/afm.yaml``, the
+Markdown parameter table (docs/parameters.md) generated from the parameter specs
+(:mod:`afm_ros.core.specs`) or the Nanonis command table (docs/nanonis.md) generated from the
+server's command declarations (:mod:`afm_ros.client.nanonis`). Tests check that the committed
+files agree with them.
 """
 
 from __future__ import annotations
@@ -8,6 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from afm_ros.client.nanonis.commands import command_table
+from afm_ros.client.nanonis.signals import signal_table
 from afm_ros.core.specs import table_text, yaml_text
 
 
@@ -15,9 +19,14 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m afm_ros.tools.config_gen", description=__doc__
     )
-    parser.add_argument("what", choices=["yaml", "table"])
+    parser.add_argument("what", choices=["yaml", "table", "nanonis"])
     args = parser.parse_args(argv)
-    sys.stdout.write(yaml_text() if args.what == "yaml" else table_text())
+    text = {
+        "yaml": yaml_text,
+        "table": table_text,
+        "nanonis": lambda: command_table() + "\n" + signal_table(),
+    }[args.what]()
+    sys.stdout.write(text)
     return 0
 
 

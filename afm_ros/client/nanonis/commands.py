@@ -125,3 +125,47 @@ def timeout_s(value_ms: int) -> float | None:
     if value_ms < 0:
         raise ValueError(f"timeout={value_ms} ms: -1 (no limit) or >= 0")
     return value_ms / 1000.0
+
+
+TYPES = {
+    "H": "uint16",
+    "h": "int16",
+    "I": "uint32",
+    "i": "int32",
+    "f": "float32",
+    "d": "float64",
+    "str": "string",
+    "strarr": "string array",
+    "i[]": "int32 array",
+    "f[]": "float32 array",
+    "d[]": "float64 array",
+    "f2d": "2D float32",
+    "str2d": "2D string",
+}
+
+
+def describe(cmd: Command) -> str:
+    """What a command does, in one paragraph (its handler's docstring; a Get without one reads
+    back what its Set sets)."""
+    doc = cmd.handler.__doc__
+    if doc:
+        return " ".join(doc.split())
+    setter = cmd.name[:-3] + "Set" if cmd.name.endswith("Get") else ""
+    if setter in COMMANDS:
+        return f"What {setter} sets, read back."
+    return ""
+
+
+def command_table() -> str:
+    """The Markdown table of every command (docs/nanonis.md): wire name, arguments and return
+    values with their wire types, what it does. Generated from :data:`COMMANDS`."""
+
+    def fields(items) -> str:
+        return ", ".join(f"{name} ({TYPES[code]})" for name, code in items) or "-"
+
+    rows = ["| command | arguments | returns | what it does |", "|---|---|---|---|"]
+    for name in supported():
+        cmd = COMMANDS[name]
+        text = describe(cmd).replace("|", "\\|")
+        rows.append(f"| `{name}` | {fields(cmd.args)} | {fields(cmd.returns)} | {text} |")
+    return "\n".join(rows) + "\n"

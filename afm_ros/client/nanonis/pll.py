@@ -83,6 +83,7 @@ def excitation_set(s, modulator: int, excitation: float):
 
 @command("PLL.ExcitationGet", args=[("modulator", "i")], returns=[("excitation", "f")])
 def excitation_get(s, modulator: int):
+    """The drive force now [N]."""
     _mod(modulator)
     return (s.controller.call(lambda afm: afm.signals())["drive_N"],)
 
@@ -153,6 +154,7 @@ def _loop_get(s, modulator: int, name: str) -> tuple:
 
 @command("PLL.AmpCtrlOnOffSet", args=[("modulator", "i"), ("on", "I")])
 def amplitude_on_set(s, modulator: int, on: int):
+    """FM: the amplitude controller on (1) or off (0: the drive holds); AM: off only."""
     _loop_on(s, modulator, "amplitude_enabled", on, "the amplitude controller")
 
 
@@ -163,6 +165,7 @@ def amplitude_on_get(s, modulator: int):
 
 @command("PLL.PhasCtrlOnOffSet", args=[("modulator", "i"), ("on", "I")])
 def phase_on_set(s, modulator: int, on: int):
+    """FM: the phase-locked loop on (1) or off (0: the frequency holds); AM: off only."""
     _loop_on(s, modulator, "pll_enabled", on, "the phase controller")
 
 
@@ -229,6 +232,7 @@ def phase_gain_get(s, modulator: int):
 # ---------------------------------------------------------------------
 @command("PLLFreqSwp.Open", args=[("modulator", "i")])
 def sweep_open(s, modulator: int):
+    """Nothing to open (accepted for scripts that call it)."""
     _mod(modulator)
 
 

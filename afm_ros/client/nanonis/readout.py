@@ -14,6 +14,7 @@ DEFLECTION = 8  # the only signal the high-resolution oscilloscope records (the 
 
 @command("Signals.NamesGet", returns=[("names", "strarr")])
 def names_get(s):
+    """The signals' names with their units, index = position (Z at 14)."""
     return (list(table.NAMES),)
 
 
@@ -30,6 +31,7 @@ def value_get(s, index: int, wait_newest: int):
     returns=[("values", "f[]")],
 )
 def values_get(s, indexes, wait_newest: int):
+    """Several signals' values now (NaN where this mode has none)."""
     chosen = [int(i) for i in indexes]
     for i in chosen:
         table.signal(i)
@@ -67,6 +69,7 @@ def osci_channel_get(s, osci: int):
 
 @command("OsciHR.SamplesSet", args=[("samples", "i")])
 def osci_samples_set(s, samples: int):
+    """Samples OsciDataGet returns, [1, 100000]."""
     if not 1 <= samples <= 100_000:
         raise ValueError(f"samples={samples}: allowed [1, 100000]")
     s.osci["samples"] = samples
@@ -79,6 +82,7 @@ def osci_samples_get(s):
 
 @command("OsciHR.Run")
 def osci_run(s):
+    """The oscilloscope always runs (accepted for scripts that call it)."""
     pass
 
 
@@ -107,6 +111,7 @@ def osci_data(s, osci: int, data_to_get: int, timeout: float):
 
 @command("Util.SessionPathGet", returns=[("path", "str")])
 def session_path(s):
+    """The session folder, where the .sxm and .dat files go."""
     return (str(s.folder),)
 
 

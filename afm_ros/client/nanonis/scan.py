@@ -45,6 +45,7 @@ def scan_action(s, action: int, direction: int):
 
 @command("Scan.StatusGet", returns=[("scan_running", "I")])
 def scan_status(s):
+    """1 while a scan runs."""
     return (1 if s.controller.running("scan") else 0,)
 
 

@@ -88,3 +88,34 @@ def value(index: int, values: dict) -> float:
 def image_channels(mode: str) -> tuple:
     """The image channels a frame of ``mode`` ('am' or 'fm') has."""
     return FM_CHANNELS if mode == "fm" else CHANNELS
+
+
+SOURCES = {
+    "": "not modelled (an error says so)",
+    "x_m": "the tip's commanded x (on the scan's path while scanning)",
+    "y_m": "the tip's commanded y",
+    "amplitude_m": "the oscillation amplitude, the newest lock-in output",
+    "phase_deg": "its phase (the tune sets the free phase to 90 deg)",
+    "frequency_shift_Hz": "FM: the PLL's frequency shift (NaN in AM)",
+    "drive_N": "the drive force amplitude (AM: fixed; FM: the amplitude controller's)",
+    "deflection_m": "the newest measured deflection sample (the raw stream)",
+    "amplitude_error_m": "setpoint - amplitude (AM: the z loop's; FM: the amplitude loop's)",
+    "frequency_Hz": "the drive (AM) or PLL oscillator (FM) frequency",
+    "z_m": "the z piezo (higher: retracted)",
+    "motor_m": "the coarse motor's position",
+    "t_s": "the simulated time",
+}
+
+
+def signal_table() -> str:
+    """The Markdown table of the signals (docs/nanonis.md), generated from :data:`SIGNALS`."""
+    rows = [
+        "| index | name | live value (Signals.ValGet) | image channel | range (max, min) |",
+        "|---|---|---|---|---|",
+    ]
+    for s in SIGNALS:
+        live = SOURCES[s.key] if s.key or s.index in (0, 1) else "image only (NaN live)"
+        rows.append(
+            f"| {s.index} | {s.name} | {live} | {s.channel or '-'} | {s.high:g}, {s.low:g} |"
+        )
+    return "\n".join(rows) + "\n"

@@ -95,6 +95,7 @@ def _params(z: dict) -> list[float]:
 
 @command("ZSpectr.Open")
 def spectr_open(s):
+    """Nothing to open (accepted for scripts that call it)."""
     pass
 
 
@@ -156,11 +157,13 @@ def _dat_header(curve, z: dict, values: dict) -> dict:
 
 @command("ZSpectr.Stop")
 def spectr_stop(s):
+    """Stops the spectroscopy running (the feedback resumes; no data)."""
     s.controller.stop("spectroscopy")
 
 
 @command("ZSpectr.StatusGet", returns=[("running", "I")])
 def spectr_status(s):
+    """1 while a Z spectroscopy runs."""
     return (1 if s.controller.running("spectroscopy") else 0,)
 
 
@@ -216,6 +219,8 @@ def spectr_props_get(s):
 
 @command("ZSpectr.ChsSet", args=[("channels", "i[]")])
 def spectr_channels_set(s, channels):
+    """The channels recorded: 4 Amplitude and 5 Phase (AM) or 6 Frequency Shift (FM), 8 Deflection
+    (per chunk)."""
     chosen = [int(c) for c in channels]
     allowed = CURVE_CHANNELS[s.mode]
     bad = [c for c in chosen if c not in allowed]

@@ -42,6 +42,7 @@ def on_off_set(s, on: int):
 
 @command("ZCtrl.OnOffGet", returns=[("on", "I")])
 def on_off_get(s):
+    """1 while the z loop regulates (engaged, feedback on)."""
     return (1 if s.controller.call(lambda afm: afm.signals()["feedback"]) else 0,)
 
 
@@ -93,11 +94,13 @@ def z_set(s, z: float):
 
 @command("ZCtrl.ZPosGet", returns=[("z", "f")])
 def z_get(s):
+    """The z piezo now [m] (higher: retracted)."""
     return (s.controller.call(lambda afm: afm.signals()["z_m"]),)
 
 
 @command("ZCtrl.LimitsGet", returns=[("z_high", "f"), ("z_low", "f")])
 def limits_get(s):
+    """The z piezo's range: z_max (retracted) then z_min [m]."""
     v = s.controller.call(lambda afm: afm.feedback())
     return (v["z_max"], v["z_min"])
 
@@ -116,11 +119,13 @@ def status_get(s):
 
 @command("ZCtrl.CtrlListGet", returns=[("controllers", "strarr"), ("active", "i")])
 def controllers_get(s):
+    """The controllers: Amplitude (m) and Frequency Shift (Hz); the active one is the mode's."""
     return (list(CONTROLLERS), 1 if _fm(s) else 0)
 
 
 @command("ZCtrl.ActiveCtrlSet", args=[("index", "i")])
 def controller_set(s, index: int):
+    """The active controller: only the mode's own (0 amplitude in AM, 1 frequency shift in FM)."""
     flag("index", index, (0, 1))
     active = 1 if _fm(s) else 0
     if index != active:
@@ -160,6 +165,7 @@ def home(s):
 # ----------------------------------------------------------------------
 @command("AutoApproach.Open")
 def approach_open(s):
+    """Nothing to open (accepted for scripts that call it)."""
     pass
 
 
@@ -176,6 +182,7 @@ def approach_on_off(s, on: int):
 
 @command("AutoApproach.OnOffGet", returns=[("running", "H")])
 def approach_get(s):
+    """1 while the coarse approach runs."""
     return (1 if s.controller.running("approach") else 0,)
 
 
@@ -201,6 +208,7 @@ def motor_move(s, direction: int, steps: int, group: int, wait: int):
 
 @command("Motor.StopMove")
 def motor_stop(s):
+    """Stops a motor move where it is (the z stage then reads stopped)."""
     s.controller.stop("motor")
 
 
@@ -248,6 +256,7 @@ def _folme_speed(s) -> float:
 
 @command("FolMe.XYPosGet", args=[("wait_newest", "I")], returns=[("x", "d"), ("y", "d")])
 def xy_get(s, wait_newest: int):
+    """The tip's commanded position now [m] (while scanning: on the scan's path)."""
     v = s.controller.call(lambda afm: afm.signals())
     return (v["x_m"], v["y_m"])
 
@@ -271,6 +280,8 @@ def folme_speed_get(s):
 # ------------------------------------------------------------------------------------------
 @command("Piezo.RangeGet", returns=[("x", "f"), ("y", "f"), ("z", "f")])
 def piezo_range(s):
+    """The scanner's field in x and y and the z piezo's range (z_max - z_min) [m]."""
+
     def ranges(afm):
         field = afm.get("scanner", "scanner_field")["scanner_field"]
         f = afm.feedback()
