@@ -4,6 +4,8 @@ issue 30 names."""
 
 from pathlib import Path
 
+import pytest
+
 from afm_ros.client.nanonis import COMMANDS
 from afm_ros.client.nanonis.commands import command_table
 from afm_ros.client.nanonis.signals import signal_table
@@ -52,3 +54,29 @@ def test_every_command_says_what_it_does():
     from afm_ros.client.nanonis.commands import describe
 
     assert not [name for name, cmd in COMMANDS.items() if not describe(cmd)]
+
+
+@pytest.mark.slow
+def test_the_readmes_nanonis_script_scans_a_frame(tmp_path, capsys):
+    """The README's script, as written (its port aside), against an in-process instrument."""
+    import re
+
+    import numpy as np
+
+    from afm_ros.client import Microscope
+    from afm_ros.client.nanonis import serve
+
+    readme = (DOC.parents[1] / "README.md").read_text()
+    section = readme.split("## Speaking Nanonis", 1)[1]
+    script = section.split("```python\n", 1)[1].split("```", 1)[0]
+    with Microscope.local(ideal=True) as afm:
+        served = serve(afm, tmp_path, port=0, idle="hold")
+        try:
+            namespace = {}
+            exec(re.sub(r"\b6501\b", str(served.port), script), namespace)
+        finally:
+            served.close()
+    printed = capsys.readouterr().out.strip().splitlines()[-1]
+    assert printed.endswith("Scan001.sxm") and (tmp_path / "Scan001.sxm").exists()
+    z = np.asarray(namespace["z"])
+    assert z.shape == (64, 64) and np.isfinite(z).all()
