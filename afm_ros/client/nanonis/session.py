@@ -21,6 +21,7 @@ from afm_ros.client.nanonis.commands import dispatch as dispatch_command
 from afm_ros.client.nanonis.controller import Controller, Job
 from afm_ros.client.nanonis.signals import BY_CHANNEL, SIGNALS, Z_INDEX, image_channels
 from afm_ros.core.nanonis_server import DEFAULT_PORT, MAX_CLIENTS, NanonisServer
+from afm_ros.formats.folders import check_output_directory
 from afm_ros.formats.nanonis_files import SxmChannel, SxmFrame, scan_order, write_sxm
 
 VERSION = "afm_ros Nanonis emulation 1"
@@ -44,8 +45,7 @@ class Session:
     ):
         if mode not in ("am", "fm"):
             raise ValueError(f"mode={mode!r}: 'am' (tapping) or 'fm'")
-        self.folder = Path(folder).resolve()
-        self.folder.mkdir(exist_ok=True)
+        self.folder = check_output_directory(folder, create=True, field="session folder")
         self.mode = mode
         self.log = log or (lambda level, text: None)
         self.controller = Controller(
