@@ -226,8 +226,8 @@ def test_settings_read_back_as_set(instrument):
     n.Scan_FrameSet(4e-6, 6e-6, 2e-6, 1e-6, 30.0)
     assert n.Scan_FrameGet()[2] == pytest.approx([4e-6, 6e-6, 2e-6, 1e-6, 30.0], rel=1e-6)
     assert served.session.call(lambda a: a.scan_settings())["scan_angle"] == pytest.approx(-30.0)
-    n.Scan_BufferSet([14, 5, 9], 32, 0)  # 0 lines: the frame's aspect ratio
-    r = n.Scan_BufferGet()[2]
+    n.Scan_BufferSet([14, 5, 9], 37, 0)  # 0 lines: the frame's aspect ratio
+    r = n.Scan_BufferGet()[2]  # 37 pixels coerced to 32, the closest multiple of 16
     assert [c[0] for c in r[1]] == [14, 5, 9] and r[2:] == [32, 16]
     n.Scan_SpeedSet(8e-6, 8e-6, 0.0, 0.0, 1, 1.0)  # 8 um/s over 2 um: 2 lines/s
     fwd, bwd, t_fwd, t_bwd, keep, ratio = n.Scan_SpeedGet()[2]

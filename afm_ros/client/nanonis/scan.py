@@ -9,6 +9,7 @@ from afm_ros.client.nanonis.commands import Unsupported, command, finite, flag, 
 from afm_ros.client.nanonis.signals import SIGNALS, image_channels, signal
 
 START, STOP, PAUSE, RESUME, FREEZE, UNFREEZE, GO_TO_CENTER = range(7)
+PIXEL_PACKET = 16  # the controller's lines travel in packets of 16 pixels
 
 
 @command("Scan.Action", args=[("action", "H"), ("direction", "I")])
@@ -84,8 +85,9 @@ def frame_get(s):
 
 @command("Scan.BufferSet", args=[("channels", "i[]"), ("pixels", "i"), ("lines", "i")])
 def buffer_set(s, channels, pixels: int, lines: int):
-    """The channels recorded (signal indices of image channels: Signals.NamesGet) and the raster;
-    lines 0 keeps the frame's aspect ratio."""
+    """The channels recorded (signal indices of image channels: Signals.NamesGet) and the raster:
+    pixels coerced to the closest multiple of 16 (at least 16), as the controller sends lines in
+    packets of 16 pixels; lines 0 keeps the frame's aspect ratio."""
     chosen = [int(c) for c in channels]
     if not chosen:
         raise ValueError("channels: at least one")
@@ -100,13 +102,15 @@ def buffer_set(s, channels, pixels: int, lines: int):
     if len(set(chosen)) != len(chosen):
         raise ValueError(f"channels {chosen}: each at most once")
 
+    coerced = max(PIXEL_PACKET, PIXEL_PACKET * round(pixels / PIXEL_PACKET))
+
     def apply(afm):
         if lines <= 0:
             v = afm.scan_settings()
-            n = max(1, round(pixels * v["scan_size_y"] / v["scan_size_x"]))
+            n = max(1, round(coerced * v["scan_size_y"] / v["scan_size_x"]))
         else:
             n = lines
-        afm.set_scan(pixels=pixels, lines=n)
+        afm.set_scan(pixels=coerced, lines=n)
 
     if s.controller.running("scan"):
         raise ValueError("buffer refused: a scan is running (stop it first)")
