@@ -250,12 +250,14 @@ def image_shift(reference: np.ndarray, moved: np.ndarray) -> tuple[float, float]
     target = b[inner].ravel()
     rows, cols = np.indices(b[inner].shape)
     basis = np.column_stack([np.ones(target.size), rows.ravel(), cols.ravel()])
-    project = basis @ np.linalg.pinv(basis)  # the least-squares plane of a difference
-    scale = float(np.mean((target - project @ target) ** 2)) or 1.0
+    fit = np.linalg.pinv(
+        basis
+    )  # 3 x N: the least-squares plane of a difference is basis @ fit @ d
+    scale = float(np.mean((target - basis @ (fit @ target)) ** 2)) or 1.0
 
     def cost(shift):
         d = ndimage.shift(a, shift, order=3, mode="nearest")[inner].ravel() - target
-        d -= project @ d  # a height offset or plane between the images is not a shift
+        d -= basis @ (fit @ d)  # a height offset or plane between the images is not a shift
         return float(np.mean(d * d)) / scale
 
     best = optimize.minimize(
