@@ -19,6 +19,7 @@ setup(
         ("share/" + package_name + "/config/foxglove", glob("config/foxglove/*.json")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
+    package_data={"afm_ros.formats": ["nanonis_catalog.json"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="afm_ros developers",

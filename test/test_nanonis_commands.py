@@ -254,3 +254,18 @@ def test_what_is_not_modelled_says_so(instrument):
     assert n.PLL_FreqShiftGet(1)[2][0] == 0.0
     assert "modulator 1" in n.PLL_CenterFreqGet(2)[0]
     assert "bouncy" in n.Scan_PropsSet(0, 1, 0, "", "", [], 0)[0]
+
+
+def test_a_spectroscopy_of_more_points_than_lock_in_outputs_has_no_empty_point(instrument):
+    """256 points over a 30 nm ramp of 0.1 s per direction: 100 lock-in outputs (1 kHz) per
+    direction, so most points get none of their own and take the interpolation of their
+    neighbours; the data are finite and follow the ramp (the amplitude falls towards the
+    sample)."""
+    afm, served, n = instrument
+    engage(n)
+    n.ZSpectr_PropsSet(1, 256, 1, 2, 0, 0)
+    n.ZSpectr_TimingSet(0.1, 0.05, 0.0, 0.0, 0.1 / 256, 0.0, 0.0)
+    names, data = (lambda r: (r[2], np.asarray(r[5])))(n.ZSpectr_Start(1, "")[2])
+    assert data.shape == (5, 256) and np.isfinite(data).all()
+    forward = data[1]
+    assert forward[0] > forward[-1] and np.all(np.diff(forward[128:]) < 5e-10)

@@ -16,6 +16,7 @@ saved as far as it got (docs/nanonis.md).
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from pathlib import Path
@@ -100,7 +101,8 @@ def main(argv=None) -> int:
     served = afm = None
     try:
         folder = Path(options.out) if options.out else make_run_folder(None, namespace)
-        if options.local:
+        if options.local:  # SIGTERM ends it as Ctrl-C does: what it made is saved
+            signal.signal(signal.SIGTERM, _terminate_as_interrupt)
             afm = Microscope.local(ideal=options.ideal)
         else:
             _init_ros(["nanonis_node", "--ros-args", *ros] if ros else ["nanonis_node"])
@@ -163,6 +165,10 @@ def _init_ros(args: list[str]) -> None:
     from afm_ros.nodes import node_main  # noqa: PLC0415 - not for --local, which runs without ROS
 
     node_main.init(args)
+
+
+def _terminate_as_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def _running(local: bool) -> bool:

@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from afm_ros.client.errors import ClientError
+from afm_ros.formats.nanonis_catalog import empty_fields
 from afm_ros.formats.nanonis_wire import WireError, decode, encode, response
 
 
@@ -63,10 +64,17 @@ def dispatch(session, name: str, body: bytes) -> bytes:
     cmd = COMMANDS.get(name)
     if cmd is None:
         modules = sorted({n.split(".")[0] for n in COMMANDS})
+        known = empty_fields(name)
+        why = (
+            "a Nanonis command this emulator does not model"
+            if known is not None
+            else "not a command of this emulator"
+        )
         return response(
             name,
-            error=f"{name}: not a command of this emulator (afm_ros answers {len(COMMANDS)} "
-            f"commands of the modules {', '.join(modules)}; docs/nanonis.md lists them)",
+            known or b"",
+            error=f"{name}: {why} (afm_ros answers {len(COMMANDS)} commands of the modules "
+            f"{', '.join(modules)}; docs/nanonis.md lists them)",
         )
     try:
         args = decode(cmd.args, body, cmd.optional_from)

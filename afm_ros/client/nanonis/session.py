@@ -88,6 +88,11 @@ class Session:
     # --- the instrument
     # -------------------------------------------------------------------------------
     def start(self) -> "Session":
+        # the frame checks register consecutive frames with scipy (0.3 s to import): loaded now,
+        # not while the first frame ends and every connection waits
+        import scipy.ndimage  # noqa: F401
+        import scipy.optimize  # noqa: F401
+
         self.controller.start()
         return self
 

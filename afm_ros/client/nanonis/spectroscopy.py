@@ -8,7 +8,8 @@ spectroscopy_distance), at the rate that gives each of the ``points`` its settli
 time (spectroscopy_rate = distance / (points x (settling + integration))); the initial settling is
 spectroscopy_settle_time. The data are the ramp's lock-in outputs averaged in ``points`` equal z
 bins per direction (forward: towards the sample; backward: back), as the controller averages each
-point over its integration time.
+point over its integration time; a point shorter than the lock-in's output interval has no output
+of its own and takes the linear interpolation of its neighbours'.
 """
 
 from __future__ import annotations
@@ -71,21 +72,28 @@ def bin_curve(curve, settings: dict, mode: str) -> tuple[list[str], np.ndarray]:
             legs_of = curve["chunk_branch"].values if chunked else branch
             values = np.asarray(curve[var].values, dtype=np.float64)
             keep = legs_of == suffix_leg
-            rows.append(_bin(z[keep], values[keep], edges))
+            rows.append(_bin(z[keep], values[keep], edges, grid))
             name, unit = SIGNALS[index].name.rsplit(" (", 1)
             names.append(f"{name}{suffix} ({unit}")
     return names, np.vstack(rows)
 
 
-def _bin(z: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Mean of ``values`` in each z bin between consecutive ``edges`` (descending); NaN where a
-    bin got nothing."""
+def _bin(z: np.ndarray, values: np.ndarray, edges: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Mean of ``values`` in each z bin between consecutive ``edges`` (descending); a bin that got
+    no output (points shorter than the lock-in's output interval) takes the linear interpolation
+    of the outputs at its centre (beyond the first or last output: that output's value)."""
     lo, hi = np.minimum(edges[:-1], edges[1:]), np.maximum(edges[:-1], edges[1:])
     out = np.full(lo.size, np.nan)
     for i in range(lo.size):
         inside = (z >= lo[i]) & (z < hi[i]) if i < lo.size - 1 else (z >= lo[i]) & (z <= hi[i])
         if inside.any():
             out[i] = float(np.mean(values[inside]))
+    empty = np.isnan(out)
+    finite = np.isfinite(values)
+    if empty.any() and finite.sum() >= 2:
+        order = np.argsort(z[finite])
+        zs, vs = z[finite][order], values[finite][order]
+        out[empty] = np.interp(centres[empty], zs, vs)
     return out
 
 
@@ -278,3 +286,29 @@ def spectr_timing_set(s, **times):
 @command("ZSpectr.TimingGet", returns=_TIMING)
 def spectr_timing_get(s):
     return tuple(s.zspectr[name] for name, _ in _TIMING)
+
+
+# --- bias spectroscopy: no tunnelling junction here; its settings are kept (tools such as
+# afspm set them at start-up), its status reads not running, starting it is refused
+@command(
+    "BiasSpectr.PropsSet",
+    args=[
+        ("save_all", "H"),
+        ("sweeps", "i"),
+        ("backward", "H"),
+        ("points", "i"),
+        ("z_offset", "f"),
+        ("autosave", "H"),
+        ("show_save_dialog", "H"),
+    ],
+)
+def bias_props_set(s, **values):
+    """Kept, without effect: afm_ros has no bias spectroscopy (BiasSpectr.Start says so); accepted
+    so that tools which configure every module at start-up (afspm) start."""
+    s.bias_spectroscopy = dict(values)
+
+
+@command("BiasSpectr.StatusGet", returns=[("running", "I")])
+def bias_status(s):
+    """0: a bias spectroscopy never runs here."""
+    return (0,)
