@@ -54,6 +54,25 @@ def frame_dataset(images: dict, plan: ScanPlan, attrs: dict):
     return ds
 
 
+def warm_up() -> None:
+    """Build a one-pixel frame Dataset: xarray loads its optional array modules (dask among them,
+    about a second) at its first array, and a controller should pay that before the first frame
+    ends, not while every client waits."""
+    plan = ScanPlan.from_values(
+        {
+            "scan_size_x": 1e-6,
+            "scan_size_y": 1e-6,
+            "scan_center_x": 0.0,
+            "scan_center_y": 0.0,
+            "pixels_per_line": 2,
+            "lines": 1,
+            "line_rate": 1.0,
+        }
+    )
+    one = np.zeros((1, 2), dtype=np.float32)
+    frame_dataset({d: {"height": one} for d in DIRECTIONS}, plan, {})
+
+
 def curve_dataset(curve, attrs: dict | None = None):
     """An xarray Dataset of a :class:`afm_ros.core.spectroscopy.SpectroscopyCurve`: per lock-in
     output (dimension ``t`` [s]) the z piezo and the gap z [m], amplitude [m], phase [deg] and the

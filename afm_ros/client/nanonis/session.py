@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 
 from afm_ros.client.errors import Interrupted
+from afm_ros.client.frames import warm_up
 from afm_ros.client.microscope import Microscope
 from afm_ros.client.nanonis.commands import dispatch as dispatch_command
 from afm_ros.client.nanonis.controller import Controller, Job
@@ -88,11 +89,12 @@ class Session:
     # --- the instrument
     # -------------------------------------------------------------------------------
     def start(self) -> "Session":
-        # the frame checks register consecutive frames with scipy (0.3 s to import): loaded now,
-        # not while the first frame ends and every connection waits
+        # what the first frame's end would load (scipy for the frame checks, xarray's array
+        # modules: a second together) is loaded now, not while every connection waits for it
         import scipy.ndimage  # noqa: F401
         import scipy.optimize  # noqa: F401
 
+        warm_up()
         self.controller.start()
         return self
 
