@@ -110,7 +110,10 @@ def test_a_client_gone_mid_message_ends_only_its_own_connection(server):
             s.close()
             assert ask(good, "Still.Here")[0] == "Still.Here"
     until(lambda: server.clients == 0, "the connections gone mid-message are closed")
-    assert any("mid-message" in text for _, text in server.logs)
+    until(
+        lambda: sum("mid-message" in text for _, text in server.logs) == 2,
+        "both logged as gone mid-message",
+    )
 
 
 def test_a_client_that_never_reads_is_dropped_and_does_not_stall_the_others(server):
@@ -216,8 +219,10 @@ def test_malformed_arguments_and_unknown_commands_are_errors_and_the_instrument_
     with socket.create_connection(("127.0.0.1", instrument.port), timeout=DEADLINE_S) as s:
         _, error = call(s, "Signals.ValGet", [("i", "i")], [14], [("v", "f")])  # one field short
         assert "malformed arguments" in error and "wait_newest" in error
-        name, body = ask(s, "Bias.Set", struct.pack(">f", 1.0))
-        assert name == "Bias.Set" and b"not a command of this emulator" in body
+        name, body = ask(s, "Bias.Set", struct.pack(">f", 1.0))  # a Nanonis command, not modelled
+        assert name == "Bias.Set" and b"a Nanonis command this emulator does not model" in body
+        name, body = ask(s, "Foo.Bar")  # no Nanonis command at all
+        assert name == "Foo.Bar" and b"not a command of this emulator" in body
         values, error = call(s, "Signals.ValGet", [("i", "i"), ("w", "I")], [16, 1], [("v", "f")])
         assert error == "" and values["v"] >= 0.0  # the simulated time, still answered
 
