@@ -10,6 +10,7 @@ from afm_ros.client.frames import curve_dataset, frame_dataset, trace_of
 from afm_ros.core import artefacts
 from afm_ros.core.angles import wrap_deg
 from afm_ros.core.approach import APPROACH_SPECS, INSTRUMENT_Z
+from afm_ros.core.approach import validate as approach_validate
 from afm_ros.core.controller import Z_CONTROLLER_SPECS
 from afm_ros.core.flags import feedback_setpoint, frame_flags
 from afm_ros.core.refusals import ENGAGED, NOT_ENGAGED, Refusal, code_of
@@ -199,7 +200,7 @@ class LocalBackend:
             "scanner": self.scanner,
             "z_controller": {
                 **w.controller.params,
-                **w.approach_values,
+                **approach_validate(w.approach_values),
                 **self.spectroscopy_values,
             },
             "lockin": {**w.lock_in.params, **self.tune_values},

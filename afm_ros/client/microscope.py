@@ -44,6 +44,7 @@ from afm_ros.client.results import (
     TuneResult,
     WithdrawResult,
 )
+from afm_ros.core.approach import APPROACH_SPECS, approach_time
 from afm_ros.core.spectroscopy import SPECTROSCOPY_SPECS
 
 LONG_WALL_S = 60.0  # [s] wall: a verb expected to take longer says so first (LongWork)
@@ -339,6 +340,12 @@ class Microscope:
         """Coarse approach and engage: the motor and z piezo bring the tip down until the amplitude
         falls to the setpoint, then the z loop regulates. Returns the approach's numbers (cycles,
         motor steps, engaged_s [s], engaged_z_m [m]); :class:`WorkflowFailed` with the reason."""
+        try:
+            v = self.get("z_controller", "z_min", "z_max", *APPROACH_SPECS)
+            estimate = approach_time({k: v[k] for k in APPROACH_SPECS}, v["z_min"], v["z_max"])
+        except (ValueError, KeyError):
+            estimate = 0.0  # a bad value: the approach is refused with the node's reason
+        self._announce("approach()", estimate)
         return self._run("approach")
 
     def engage(self) -> ApproachResult | StageState:

@@ -291,7 +291,7 @@ class RosBackend:
             elif time.monotonic() - since > self.link.timeout:
                 raise NoAnswer(
                     f"the simulated time (stuck at t={last:.6g} s on the way to {t:.6g} s: is the "
-                    f"cantilever paused by someone else, or blown up?)",
+                    f"cantilever paused by someone else, stopped or killed, or blown up?)",
                     self.link.timeout,
                 )
         # the z controller handles a chunk after the lock-in: its stage message for that chunk

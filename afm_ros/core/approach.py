@@ -145,6 +145,24 @@ def validate(values: dict) -> dict:
     return validate_values(APPROACH_SPECS, values, "an approach")
 
 
+def approach_time(values: dict, z_min: float, z_max: float) -> float:
+    """[s] simulated an approach from approach_start_distance takes until it engages, about (each
+    cycle extends the piezo at approach_speed, retracts it at retract_speed and steps the motor
+    by approach_cycle_fraction of the range), for a surface at the start distance: what a caller
+    says before a long one."""
+    v = validate(values)
+    z_range = max(z_max - z_min, 1e-12)
+    step = v["approach_cycle_fraction"] * z_range
+    # the first extension covers the piezo's range; each next cycle the motor brings step more
+    cycles = 1 + math.ceil(max(0.0, v["approach_start_distance"] - z_range) / step)
+    per_cycle = (
+        z_range / v["approach_speed"]
+        + z_range / v["retract_speed"]
+        + math.ceil(step / v["motor_step"]) * v["motor_step_time"]
+    )
+    return cycles * per_cycle
+
+
 def blind_time(
     chunk_duration: float, feedback_latency: int, quality_factor: float, resonance_frequency: float
 ) -> float:

@@ -26,6 +26,9 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 
+import numpy as np
+
+from afm_ros import numba_cache
 from afm_ros.core.dataset import load_spec, make_frame
 from afm_ros.formats import dataset_store as store
 from afm_ros.formats.dataset_store import bytes_per_frame, write_frame
@@ -88,6 +91,7 @@ def make_dataset(
         )
     t0 = time.monotonic()
     if existing is None:
+        compiled = numba_cache.compilations()
         try:
             first = make_frame(spec, 0)
         except KeyboardInterrupt:
@@ -106,6 +110,7 @@ def make_dataset(
                 time.monotonic() - t0,
                 scheduler or workers or os.cpu_count() or 1,
                 max_frames,
+                compiling=numba_cache.compilations() > compiled,
             )
         )
         created = not Path(out).exists()
@@ -125,13 +130,13 @@ def make_dataset(
                 "wall_s": time.monotonic() - t0,
                 "interrupted": True,
             }
-    done = store.done_frames(out)
-    todo = [i for i in range(spec["frames"]) if not done[i]]
-    if max_frames is not None:  # stop once this many frames are in the store
-        todo = todo[: max(0, max_frames - int(done.sum()))]
-    progress = Progress(spec["frames"], int(done.sum()), say)
     interrupted = False
-    try:
+    try:  # from here on Ctrl-C keeps what is in the store and says so
+        done = store.done_frames(out)
+        todo = np.flatnonzero(~np.asarray(done, dtype=bool)).tolist()
+        if max_frames is not None:  # stop once this many frames are in the store
+            todo = todo[: max(0, max_frames - int(done.sum()))]
+        progress = Progress(spec["frames"], int(done.sum()), say)
         if not todo:
             pass
         elif scheduler:
@@ -191,10 +196,18 @@ def make_dataset(
     return summary
 
 
-def plan_text(spec: dict, first: dict, frame_s: float, workers, max_frames: int | None) -> str:
+def plan_text(
+    spec: dict,
+    first: dict,
+    frame_s: float,
+    workers,
+    max_frames: int | None,
+    compiling: bool = False,
+) -> str:
     """The work ahead, said before it starts: the frames, the time frame 0 took and what the others
     will take on ``workers`` (a count, or a scheduler's address), the bytes stored, and where
-    --max-frames stops."""
+    --max-frames stops. ``compiling``: frame 0's time included compiling the kernels (a cold
+    numba cache), so it says nothing of the others': the estimate waits for the next frames."""
 
     frames = spec["frames"]
     total = frames * bytes_per_frame(first)
@@ -203,7 +216,12 @@ def plan_text(spec: dict, first: dict, frame_s: float, workers, max_frames: int 
         f"frame 0 took {frame_s:.2g} s"
     )
     cpu = (frames - 1) * frame_s
-    if frames > 1:
+    if frames > 1 and compiling:
+        text += (
+            " including compiling the kernels (a cold cache): the time of the others follows "
+            "from the next frames' rate"
+        )
+    elif frames > 1:
         text += f"; the other {frames - 1} about {_hours(cpu)} of CPU"
         text += (
             f" (~{_hours(cpu / workers)} on {workers} worker{'s' if workers > 1 else ''})"
