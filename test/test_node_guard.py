@@ -30,6 +30,8 @@ from afm_ros.nodes.replay_node import ReplayNode
 from afm_ros.nodes.scanner_node import ScannerNode
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
+pytestmark = pytest.mark.ros
+
 # node class -> (the callback made to raise once, a live parameter and a new value to set
 # afterwards)
 TIMER_FAULTS = {
@@ -226,3 +228,39 @@ def test_no_node_shadows_a_member_of_rclpy_node():
                 if name in node_members and name not in allowed:
                     wrong.append(f"{path.name}:{item.lineno}: {cls.name}.{name}")
     assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("executor_kind", ["single", "events"])
+@pytest.mark.parametrize("listener", ["Monitor", "FmMonitor"])
+def test_the_jobs_own_listeners_are_guarded_too(
+    listener, executor_kind, ros_context, ros_namespace, monkeypatch, tmp_path
+):
+    """afm_instrument's monitor (lockin/outputs) and the FM session's (pll/outputs): their batch
+    callback raises on the first batch, the later ones are taken, on the executor afm_instrument
+    uses (events) and the single-threaded one."""
+    from afm_ros.client.monitor import Monitor
+    from afm_ros.nodes.node_main import make_executor
+    from afm_ros.tools.fm_session import FmMonitor
+
+    cls = {"Monitor": Monitor, "FmMonitor": FmMonitor}[listener]
+    calls = _inject(monkeypatch, cls, "_on_batch")
+    nodes = [_make(CantileverNode, ros_context, ros_namespace, tmp_path)]
+    nodes.append(_make(LockInNode, ros_context, ros_namespace, tmp_path))
+    if cls is FmMonitor:
+        nodes.append(_make(PllNode, ros_context, ros_namespace, tmp_path))
+    watcher = cls(context=ros_context, namespace=ros_namespace)
+    executor = make_executor(executor_kind, ros_context)
+    try:
+        for n in [*nodes, watcher]:
+            executor.add_node(n)
+        _spin_until(executor, lambda: len(calls) >= 10, "the listener taking batches after")
+        assert watcher.callback_faults == 1 and "subscription" in watcher.first_fault
+        if cls is Monitor:
+            assert watcher.outputs > 0  # the batches after the first were taken
+        else:
+            assert watcher.latest is not None
+    finally:
+        for n in [*nodes, watcher]:
+            executor.remove_node(n)
+            n.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
