@@ -52,6 +52,8 @@ APPROACH_STEP_S = 0.02
 COPIES_WAIT_S = 30.0
 # [s] wall: while waiting, look at what the monitor cannot see (recorder, blow-up)
 WAIT_POLL_S = 0.25
+# [s] simulated: the advances' wall time per simulated second counts from this much on
+MEASURED_SIMULATED_S = 1.0
 STATUS_PERIOD_S = 5.0  # [s] wall: run_until_interrupted's status callback period
 TICK_POLL_S = 0.01  # [s] wall: the poll while a controller's tick is set (its commands' latency)
 
@@ -808,8 +810,10 @@ class NodesBackend:
             self.nodes["scanner"].stop_scan()
 
     def wall_per_simulated_second(self) -> float:
+        """Wall seconds per simulated second of the advances so far; nan until a second of
+        simulated time was measured (short advances are mostly waiting, not a rate)."""
         sim, wall = self._advanced
-        return wall / sim if sim > 0 else math.nan
+        return wall / sim if sim >= MEASURED_SIMULATED_S else math.nan
 
     def set_values(self, node: str, values: dict) -> None:
         if values:

@@ -43,6 +43,8 @@ NODES = ("cantilever", "lockin", "z_controller", "scanner")
 STEP_S = 0.1
 # a chunk boundary this close to a target counts as reaching it (float sums)
 BOUNDARY_TOLERANCE_S = 1e-9
+# [s] simulated: the advances' wall time per simulated second counts from this much on
+MEASURED_SIMULATED_S = 1.0
 # [s] wall: messages already on their way after the last one waited for are taken too
 DRAIN_S = 0.02
 SCAN_PARAMETERS = (
@@ -107,8 +109,11 @@ class RosBackend:
             pass  # the instrument went away, or a second Ctrl-C: nothing more to do here
 
     def wall_per_simulated_second(self) -> float:
-        """Wall seconds per simulated second of this client's advances so far (nan before one)."""
-        return self._advance_wall / self._advance_sim if self._advance_sim > 0 else math.nan
+        """Wall seconds per simulated second of this client's advances so far; nan until a second
+        of simulated time was measured (short advances are mostly waiting, not a rate)."""
+        if self._advance_sim < MEASURED_SIMULATED_S:
+            return math.nan
+        return self._advance_wall / self._advance_sim
 
     # --- what the nodes say
     # ------------------------------------------------------------------------------
