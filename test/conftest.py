@@ -10,10 +10,18 @@ Fixtures:
 - ``ros_executor``: a ``SingleThreadedExecutor`` on that context (nodes you add are destroyed
   with it after the test).
 - ``ros_namespace``: a unique namespace per test (``/t_<testname>_<n>``) for topic isolation.
+
+Markers (setup.cfg): ``ros`` on every test file that starts ROS 2 nodes or talks over DDS (a test
+that calls ``rclpy.init`` without it fails, see ``_rclpy_only_in_ros_tests``), ``slow`` on each
+test that takes more than about 2 s on a 2-core machine (``pytest -m "not slow"`` is the quick
+loop). With ``-n 2`` (pytest-xdist) a file's tests stay on one worker
+(``pytest_xdist_make_scheduler``), so the files' own ROS domains (:data:`DOMAIN_IDS`) keep files
+that run side by side apart.
 """
 
 from __future__ import annotations
 
+import collections
 import itertools
 import os
 import re
@@ -32,6 +40,94 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
 sys.path.append(str(Path(__file__).resolve().parents[1]))
 
 _counter = itertools.count()
+
+# Every ROS_DOMAIN_ID the suite uses, one per test file whose processes use DDS, so that two files
+# running side by side (pytest -n 2) never discover each other (the other files' nodes run in
+# this process with discovery OFF). All are within 0-101, the ids whose DDS ports stay below
+# Linux's ephemeral port range. A file takes its id with domain_id(__name__) or writes it as a
+# literal; test_suite.py checks that the literals are the table's and no two files share one.
+DOMAIN_IDS = {
+    "test_ros2cli": 13,
+    "test_executables": 17,
+    "test_node_help": 31,
+    "test_afm_ctl": 37,
+    "test_readme_commands": 41,
+    "test_recording_robustness": 43,
+    "test_recorder": 51,
+    "test_client": 59,
+    "test_nanonis_ros": 67,
+    "test_live_view": 71,
+    "test_dead_instrument": 73,
+    "test_interruptions": 79,
+    "test_fm_session": 83,
+    "test_processes": 91,
+    "test_determinism": 95,
+}
+# files that share a session fixture run on the same worker (the fixture runs once)
+SHARED_WORKER = {"test_report_fm": "test_fm_session"}
+
+
+def domain_id(module: str) -> str:
+    """The ROS_DOMAIN_ID of test module ``module`` (``__name__``), as a string."""
+    return str(DOMAIN_IDS[module.rsplit(".", 1)[-1]])
+
+
+def _file_group(nodeid: str) -> str:
+    """The group a test runs in under ``-n N``: its file, or the file it shares a fixture with."""
+    module = Path(nodeid.split("::", 1)[0]).stem
+    return SHARED_WORKER.get(module, module)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)  # before xdist's own choice
+def pytest_xdist_make_scheduler(config, log):
+    """With ``-n N`` (pytest-xdist) a file's tests run on one worker, in order, with its module
+    fixtures once: files, not tests, are spread over the workers (xdist's ``loadscope`` with the
+    file, or :data:`SHARED_WORKER`'s group, as the scope), in the order of the collection."""
+    if config.getoption("dist") == "each":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByFile(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _file_group(nodeid)
+
+    config.option.loadscopereorder = False  # keep the order of pytest_collection_modifyitems
+    return ByFile(config, log)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under ``-n N``: the files with the most ``slow`` tests first, each file's tests in their
+    order, so that the quick files fill the ends of the workers' runs instead of one slow file
+    running alone at the end (both workers collect, and sort, alike)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    slow = collections.Counter(
+        _file_group(item.nodeid) for item in items if item.get_closest_marker("slow")
+    )
+    first = {}
+    for n, item in enumerate(items):
+        first.setdefault(_file_group(item.nodeid), n)
+    items.sort(key=lambda item: (-slow[_file_group(item.nodeid)], first[_file_group(item.nodeid)]))
+
+
+@pytest.fixture(autouse=True)
+def _rclpy_only_in_ros_tests(request, monkeypatch):
+    """A test not marked ``ros`` that initialises rclpy fails, naming the marker it lacks (so that
+    ``-m "not ros"`` really runs without ROS)."""
+    try:
+        import rclpy
+    except ImportError:  # no ROS here: nothing can initialise it
+        rclpy = None
+    if rclpy is None or request.node.get_closest_marker("ros") is not None:
+        yield
+        return
+
+    def refused(*args, **kwargs):
+        raise RuntimeError(f"{request.node.nodeid} initialises rclpy: mark its file `ros`")
+
+    monkeypatch.setattr(rclpy, "init", refused)
+    yield
+
 
 # The cantilever node's defaults are a real instrument (room temperature, a detector floor); tests
 # that hold its output against the physics core or against exact expectations switch noise off.

@@ -21,6 +21,8 @@ from afm_ros.nodes.lockin_node import LockInNode
 from afm_ros.nodes.scanner_node import ScannerNode
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
+pytestmark = pytest.mark.ros
+
 Z = {"z_min": -3e-6, "z_max": 0.0, "approach_start_distance": 2e-6}
 
 
@@ -39,6 +41,7 @@ def call(executor, node, name):
     return future.result()
 
 
+@pytest.mark.slow
 def test_approach_engages_over_ros_like_the_wired_instrument_and_withdraw_blocks_scans(
     ros_context, ros_executor, ros_namespace
 ):

@@ -24,6 +24,8 @@ from afm_ros.formats.chunk_layout import unpack
 from afm_ros.nodes.cantilever_node import CHUNK_QOS, Z_COMMAND_QOS, CantileverNode
 from afm_ros.nodes.topics import CONSUMER_QOS, Acknowledger
 
+pytestmark = pytest.mark.ros
+
 A0 = 60e-9  # default free amplitude [m]
 
 
@@ -268,6 +270,7 @@ def test_z_command_input_moves_the_gap(ros_context, ros_executor, ros_namespace)
     assert not node.feedback_locked
 
 
+@pytest.mark.slow
 def test_long_run_sample_continuity_and_force_stream(ros_context, ros_executor, ros_namespace):
     node, col = start(ros_context, ros_executor, ros_namespace, chunk_duration=1e-3)
     forces = Node("force_collector", context=ros_context, namespace=ros_namespace)

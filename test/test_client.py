@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 import xarray as xr
-from conftest import instrument_nodes
+from conftest import domain_id, instrument_nodes
 
 from afm_ros.client import Microscope, NodeNotFound, NotEngaged, Refused
 from afm_ros.core.artefacts import ARTEFACT_NODE_SPECS, IDEAL_ARTEFACTS, drift_velocity
@@ -26,7 +26,9 @@ from afm_ros.core.tip import IDEAL_TIP
 from afm_ros.formats.frames import channel_title
 from afm_ros.formats.gwy import read_gwy
 
-DOMAIN_ID = "59"
+pytestmark = pytest.mark.ros
+
+DOMAIN_ID = domain_id(__name__)
 EXACT_IDEAL = {
     "temperature": 0.0,
     "detector_noise_density": 0.0,
@@ -55,6 +57,7 @@ def nodes_in_process(
     )
 
 
+@pytest.mark.slow
 def test_every_verb_in_process_on_a_real_instrument():
     with Microscope.local() as afm:
         assert afm.state() == {"t_s": 0.0, "stage": "withdrawn"}
@@ -125,6 +128,7 @@ def test_the_same_script_gives_the_same_frame_in_process():
         xr.testing.assert_identical(_script(a), _script(b))
 
 
+@pytest.mark.slow
 def test_over_ros_the_frame_equals_the_in_process_one(monkeypatch, ros_namespace):
     """Both start engaged at t = 0 with the nodes' defaults (noise, imperfections, tip wear): the
     client holds the cantilever between verbs, so the scan starts at the same chunk boundary, and
@@ -149,6 +153,7 @@ def test_over_ros_the_frame_equals_the_in_process_one(monkeypatch, ros_namespace
         )
 
 
+@pytest.mark.slow
 def test_every_verb_over_ros_and_its_errors(monkeypatch, ros_namespace, tmp_path):
     cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
     z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
@@ -205,6 +210,7 @@ def test_every_verb_over_ros_and_its_errors(monkeypatch, ros_namespace, tmp_path
                 afm.spectroscopy()
 
 
+@pytest.mark.slow
 def test_no_instrument_in_the_namespace_fails_within_the_timeout(monkeypatch):
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN_ID)
@@ -214,6 +220,7 @@ def test_no_instrument_in_the_namespace_fails_within_the_timeout(monkeypatch):
     assert time.monotonic() - start < 15.0
 
 
+@pytest.mark.slow
 def test_a_script_with_an_approach_repeats_bit_for_bit_over_ros(monkeypatch, ros_namespace):
     """Approach, then scan, twice on fresh nodes: the approach's end is found from the z stage's
     message, which the client takes only after the z controller's trace of the same chunk, so both
@@ -294,6 +301,7 @@ def _interrupt_after(seconds: float):
     return timer
 
 
+@pytest.mark.slow
 def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
     """Ctrl-C inside a slow spectroscopy (800 s simulated: still running whenever the key comes)
     and inside an approach: the spectroscopy gives the feedback back (engaged), the approach stops
@@ -378,6 +386,7 @@ def test_an_approach_while_engaged_is_a_real_approach_in_process():
     _check_again(first, again, frame, -3e-6)
 
 
+@pytest.mark.slow
 def test_an_approach_while_engaged_is_a_real_approach_over_ros(monkeypatch, ros_namespace):
     cantilever = {"run_until": 0.0, "real_time_factor": 0.0, "sample": "ps_ldpe_blend"}
     z = {"z_min": -3e-6, "z_max": 0.0, "start_withdrawn": True, "approach_start_distance": 2e-6}
@@ -387,6 +396,7 @@ def test_an_approach_while_engaged_is_a_real_approach_over_ros(monkeypatch, ros_
     _check_again(first, again, frame, -3e-6)
 
 
+@pytest.mark.slow
 def test_spectroscopy_at_a_point_moves_settles_then_holds_the_same_over_ros_and_in_process(
     monkeypatch, ros_namespace
 ):
@@ -423,6 +433,7 @@ def _two_small_frames(afm) -> list:
     return [afm.scan(), afm.scan()]
 
 
+@pytest.mark.slow
 def test_a_second_frame_of_two_lines_is_scanned_and_flagged_in_process_and_over_ros(
     monkeypatch, ros_namespace
 ):

@@ -19,6 +19,8 @@ from afm_ros.core.physics import (
 )
 from afm_ros.tools.instrument_job import start_instrument
 
+pytestmark = pytest.mark.ros
+
 
 @pytest.fixture
 def instrument(ros_context, ros_namespace):

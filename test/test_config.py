@@ -8,6 +8,8 @@ import yaml
 
 from afm_ros.core.specs import node_key, node_specs, table_text, yaml_text
 
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -45,6 +45,7 @@ def viscous_pair():
     return _pair(mats, "viscoelastic_dmt")
 
 
+@pytest.mark.slow
 def test_setpoints_are_met(viscous_pair):
     rows, points = viscous_pair
     for p in points:
@@ -58,6 +59,7 @@ def test_setpoints_are_met(viscous_pair):
     )
 
 
+@pytest.mark.slow
 def test_viscosity_contrast_follows_cleveland(viscous_pair):
     """At the same amplitude the more viscous sample dissipates more and lags more (measured at
     A/A0 = 0.8: E_dis 6.7 % vs 15.5 % of the drive work, phase difference 12.07 deg). Cleveland's
@@ -94,6 +96,7 @@ def test_identical_materials_show_no_contrast():
     )
 
 
+@pytest.mark.slow
 def test_elastic_contrast_only_through_harmonics():
     """Conservative DMT, moduli 70 MPa vs 3 GPa (seed vs polystyrene's E, same H): E_dis ~ 0
     (the integrator's energy error, < 1e-5 of the drive work), so at the same amplitude

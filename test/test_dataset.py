@@ -135,12 +135,14 @@ def test_bad_spec_is_refused_naming_the_field_before_any_work(tmp_path, change, 
     assert not out.exists()  # refused before any work
 
 
+@pytest.mark.slow
 def test_the_same_dataset_with_two_worker_processes(spec_file, reference, tmp_path):
     out = tmp_path / "two.zarr"
     make_dataset(load_spec(spec_file), out, workers=2, say=lambda s: None)
     _equal(reference, out)
 
 
+@pytest.mark.slow
 def test_the_same_dataset_on_a_local_dask_cluster_of_two_workers(spec_file, reference, tmp_path):
     from distributed import LocalCluster
 
@@ -154,6 +156,7 @@ def test_the_same_dataset_on_a_local_dask_cluster_of_two_workers(spec_file, refe
     _equal(reference, out)
 
 
+@pytest.mark.slow
 def test_a_killed_run_continues_where_it_stopped(spec_file, reference, tmp_path):
     """SIGKILL once frame 0 and at least one more are in the store (no chance to clean up); running
     the same command again makes only the missing frames and ends with the reference, bit for
@@ -185,6 +188,7 @@ def test_a_killed_run_continues_where_it_stopped(spec_file, reference, tmp_path)
     _equal(reference, out)
 
 
+@pytest.mark.slow
 def test_max_frames_stops_with_that_many_frames_in_the_store(spec_file, reference, tmp_path):
     out = tmp_path / "part.zarr"
     spec = load_spec(spec_file)
@@ -302,12 +306,14 @@ def _refused(spec_path, out, field: str) -> None:
     assert code.returncode == 2 and len(lines) == 1 and field in lines[0], code.stderr
 
 
+@pytest.mark.slow
 def test_an_output_folder_that_cannot_be_written_is_refused_naming_out(spec_file, tmp_path):
     _refused(spec_file, "/proc/never.zarr", "--out='/proc/never.zarr': cannot write in /proc")
     (tmp_path / "a_file").write_text("")
     _refused(spec_file, tmp_path / "a_file", "is a file, not a folder")
 
 
+@pytest.mark.slow
 def test_a_hostile_spec_is_refused_in_one_line(tmp_path):
     """Nine levels of nine aliases (a billion laughs), 5000 nested lists, a binary file, a huge
     file."""
@@ -327,6 +333,7 @@ def test_a_hostile_spec_is_refused_in_one_line(tmp_path):
         assert not (tmp_path / "never.zarr").exists()
 
 
+@pytest.mark.slow
 def test_ten_million_frames_say_what_they_cost_before_the_work_and_the_store_is_made_at_once(
     tmp_path,
 ):

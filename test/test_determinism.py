@@ -27,12 +27,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from conftest import domain_id
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
 from afm_ros.formats.mcap_io import read_session
 from afm_ros.tools import report
 from afm_ros.tools.instrument_job import start_instrument
+
+pytestmark = pytest.mark.ros
 
 HOLD = 0.3  # simulated seconds after engaging
 FREE = 0.03
@@ -120,6 +123,7 @@ def test_reference_run_is_a_real_session(reference):
     assert reference["recorded_z"].shape[0] == s["lockin_outputs"] + 2
 
 
+@pytest.mark.slow
 def test_same_session_with_both_cores_busy_paced_on_the_single_threaded_executor(
     reference, tmp_path
 ):
@@ -142,9 +146,10 @@ def test_same_session_with_both_cores_busy_paced_on_the_single_threaded_executor
     assert "complete: no sample lost" in rep.markdown.read_text()
 
 
+@pytest.mark.slow
 def test_same_session_as_four_separate_processes(reference, tmp_path):
     ns = f"/det_c_{os.getpid()}"
-    domain = str(150 + os.getpid() % 80)
+    domain = domain_id(__name__)
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": domain}
     recording = tmp_path / "c.mcap"
     ros = ["--ros-args", "-r", f"__ns:={ns}"]

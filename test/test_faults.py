@@ -22,6 +22,8 @@ from afm_ros.formats.chunk_layout import unpack
 from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.topics import CONSUMER_QOS, Acknowledger
 
+pytestmark = pytest.mark.ros
+
 BIN = Path(sys.executable).parent
 # the issue's sequence: each value alone is in range, the third makes F0 = k A0 / Q = 2 mN (> 1 mN)
 SEQUENCE = (("free_amplitude", 1e-6), ("quality_factor", 5.0), ("spring_constant", 1e4))
@@ -144,6 +146,7 @@ def test_too_many_chunks_per_second_refused(ros_context, ros_executor, ros_names
     assert set_param("chunk_duration", 1e-3).successful  # 1000 per second: fine
 
 
+@pytest.mark.slow
 def test_blow_up_is_caught_in_its_chunk_reported_and_recovered(
     ros_context, ros_executor, ros_namespace
 ):
@@ -184,6 +187,7 @@ def test_blow_up_is_caught_in_its_chunk_reported_and_recovered(
     assert all(np.isfinite(s).all() for _, s in watcher.chunks[n:])
 
 
+@pytest.mark.slow
 def test_instrument_with_a_blow_up_reports_it_instead_of_a_summary(tmp_path):
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
     args = [a for name, value in BLOW_UP for a in ("-p", f"{name}:={value!r}")]
@@ -354,6 +358,7 @@ def small_disk(tmp_path):
         subprocess.run(["umount", str(mount)], capture_output=True)
 
 
+@pytest.mark.slow
 def test_full_disk_fails_the_job_marks_the_session_incomplete_and_keeps_the_file_readable(
     small_disk,
 ):
@@ -428,6 +433,7 @@ def _rss_kb(pid: int) -> int:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
 
 
+@pytest.mark.slow
 def test_long_session_memory_stays_flat(tmp_path):
     """afm_instrument for 60 simulated seconds (as fast as possible, recording): RSS sampled every
     0.5 s of wall time must not grow between the first third of the run and its end (medians of 5 s

@@ -4,6 +4,7 @@ too fast for the gains, drift between frames (test_imperfections.py), a trace/re
 jumps; and a clean slow scan that raises none."""
 
 import numpy as np
+import pytest
 
 from afm_ros.core.flags import flags_metadata, frame_flags
 from afm_ros.core.samples import grating
@@ -50,6 +51,7 @@ def test_a_clean_slow_scan_raises_no_flag():
     assert flags == [] and flags_metadata(flags) == {"flags.none": "no problem detected"}
 
 
+@pytest.mark.slow
 def test_a_sample_taller_than_the_z_range_is_flagged():
     """500 nm steps with a 300 nm z range: on the lines the piezo retracts to z_max (100 nm) and
     cannot follow; the clipped pixels are flagged (and the loop's error too)."""
@@ -85,6 +87,7 @@ def test_a_jump_in_the_trace_retrace_mismatch_is_a_suspected_tip_change():
     assert flags["tip_change_suspected"].values["line"] == 5
 
 
+@pytest.mark.slow
 def test_hysteresis_on_features_is_not_a_tip_change():
     """A real instrument's scan (open-loop hysteresis: trace and retrace 100 nm apart at the
     centre) into an LDPE island from its 10th line on: the raw trace/retrace mismatch jumps over 3

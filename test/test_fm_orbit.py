@@ -315,6 +315,7 @@ def test_wired_fm_loop_settles_on_the_self_excited_orbit(model, extra, df_setpoi
         )
 
 
+@pytest.mark.slow
 def test_sader_jarvis_recovers_dmt_from_the_simulated_curve():
     """The whole chain: df(z) of self-excited orbits (no first-order assumption in the simulation),
     inverted by Sader-Jarvis with 2 correction sweeps, recovers the DMT force within 2 % outside

@@ -36,6 +36,8 @@ from afm_ros.nodes.scanner_node import ScannerNode, image_topic
 from afm_ros.nodes.topics import LATCHED_QOS
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 # a vacuum cantilever (Q 1e4) self-excited at 5 nm (the PLL's amplitude setpoint), 8 nm above the
 # blend, with the nodes' real tip (wear) and scanner (drift, tilt, creep, hysteresis), given to the
 # wired one too

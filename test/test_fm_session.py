@@ -12,11 +12,14 @@ same df its dissipation is the larger.
 from __future__ import annotations
 
 import pytest
+from conftest import domain_id
 
 from afm_ros.core.imaging import DIRECTIONS, FM_CHANNELS
 from afm_ros.formats.frames import channel_title
 from afm_ros.formats.gwy import read_gwy
 from afm_ros.formats.mcap_io import read_session
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +83,7 @@ def test_the_gwy_file_and_the_session_hold_the_fm_channels(session):
 def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_path):
     """--fm --interactive: lock, centre, approach on df and hold as the job does, then run until
     Ctrl-C with FM status lines (df, amplitude, drive); a frame asked for with ``afm_ctl scan
-    frame`` from another process (localhost DDS, this test's ROS_DOMAIN_ID 83) is scanned in FM and
+    frame`` from another process (localhost DDS, this file's own ROS domain) is scanned in FM and
     listed; the summary's last second before Ctrl-C holds df at its setpoint (the hold's tolerance,
     0.5 Hz) and the amplitude at 5 nm (0.1 %, the amplitude controller's integral action), the exit
     status is 0 and the recording is complete."""
@@ -95,7 +98,7 @@ def test_interactive_fm_runs_until_ctrl_c_and_summarises_the_last_second(tmp_pat
     env = {
         **os.environ,
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_DOMAIN_ID": "83",
+        "ROS_DOMAIN_ID": domain_id(__name__),
         "PYTHONUNBUFFERED": "1",
     }
     proc = subprocess.Popen(

@@ -288,6 +288,7 @@ def test_plain_sader_jarvis_error_is_the_formulas_own(dmt_inversion):
     assert np.max(np.abs(plain[pick] / dmt_force(d[pick]) / predicted - 1.0)) < 2e-3
 
 
+@pytest.mark.slow
 def test_matrix_method_agrees_with_sader_jarvis():
     """Uniform 0.02 nm grid to 40 nm: the matrix method and Sader-Jarvis with two sweeps agree
     within 1e-3 of the adhesion force for a0 < d <= 5 nm (measured <= 3.4e-5: both converge to the

@@ -11,6 +11,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from afm_ros.tools.frame_report import NOT_SETTLED, frame_lines
 from afm_ros.tools.instrument_summary import Summary
 
@@ -31,6 +33,7 @@ ARGS = [
 MEASURED = ("  step height ", "  phase contrast ", "  dissipation (trace) ")
 
 
+@pytest.mark.slow
 def test_an_unsettled_frame_is_marked_in_both_summaries(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "afm_ros.tools.study", "scan", *ARGS, "--out", str(tmp_path)],

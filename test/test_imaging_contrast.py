@@ -29,6 +29,8 @@ from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.wired import WiredInstrument
 from afm_ros.tools.contrast import contrast_study
 
+pytestmark = pytest.mark.slow
+
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "viscoelastic_dmt"}
 PLAN = dict(
     scan_size_x=2.5e-6,

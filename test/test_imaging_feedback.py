@@ -29,6 +29,8 @@ from afm_ros.core.samples import grating
 from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.wired import WiredInstrument
 
+pytestmark = pytest.mark.slow
+
 EXACT = {"temperature": 0.0, "detector_noise_density": 0.0, "force_model": "dmt"}
 H = 40e-9  # [m]
 PITCH = 4e-6  # [m]

@@ -80,6 +80,7 @@ def scanned():
     return w.scan_frame(PLAN)
 
 
+@pytest.mark.slow
 def test_height_image_is_the_dilated_surface_and_the_step_is_true(scanned):
     """Away from the edges the height image equals the tip-dilated surface up to a constant.
 

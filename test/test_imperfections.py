@@ -77,6 +77,7 @@ def test_image_shift_finds_a_known_subpixel_shift():
         assert abs(got[0] - dr) < 0.01 and abs(got[1] - dc) < 0.01, (dr, dc, got)
 
 
+@pytest.mark.slow
 def test_drift_between_two_frames_is_the_configured_rate():
     """Two frames of the same area 12 s apart: the second is shifted by the drift over one frame
     time, v T, and raised by vz T. Along x a line takes 1/8 s: the drift within it is negligible
@@ -134,6 +135,7 @@ def _edges(profile: np.ndarray, x: np.ndarray, half_window: int = 7) -> np.ndarr
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_trace_retrace_edges_move_as_the_hysteresis_model_says():
     """Grating edges (1 um pitch, lines along y) in trace and retrace with a 4 % loop: each edge is
     seen where the piezo's true position (ascending branch on trace, descending on retrace) reaches
@@ -196,6 +198,7 @@ def test_trace_retrace_edges_move_as_the_hysteresis_model_says():
     )  # the model moved the edges: up to 2 w L / 4
 
 
+@pytest.mark.slow
 def test_creep_after_an_offset_move_follows_the_log_law():
     """The scan centre moves by d = 2.25 um at t_m and the piezo creeps on: every grating edge of
     every line appears displaced by -c(t) against the same scan without creep, c(t) = d g lg((t -
@@ -261,6 +264,7 @@ def test_creep_after_an_offset_move_follows_the_log_law():
     assert checked >= 7 * 5
 
 
+@pytest.mark.slow
 def test_tilted_sample_gives_the_tilt_plane():
     """A tilted mount: the height image minus the untilted one is a plane with the configured
     slopes (the loop follows a plane but for a constant lag, which only offsets it; the islands
@@ -284,6 +288,7 @@ def _lag(frame, direction: str) -> float:
     return float(np.median(err[:, n // 5 : n - n // 5]))
 
 
+@pytest.mark.slow
 def test_the_loop_lags_on_a_tilt_by_the_ramp_error_and_slope_compensation_removes_it():
     """An integral loop tracking a ramp of rate r = slope x tip speed holds a steady error r /
     i_gain (type-1 loop; the proportional term only acts on the error's change): amplitude below

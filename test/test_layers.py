@@ -94,6 +94,7 @@ def imports(path: Path) -> list[tuple[str, list[str], int]]:
     return out
 
 
+@pytest.mark.slow
 def test_no_layer_imports_a_higher_one():
     wrong = [
         f"{name} (layer {layer(name)}) imports {target} (layer {layer(target)}) at line {line}"
@@ -104,6 +105,7 @@ def test_no_layer_imports_a_higher_one():
     assert not wrong, "\n".join(wrong)
 
 
+@pytest.mark.slow
 def test_no_import_circle():
     graph = {
         name: {t for t, _, _ in imports(path) if t in MODULES and t != name}
@@ -139,6 +141,7 @@ def test_no_import_circle():
     assert not circles, circles
 
 
+@pytest.mark.slow
 def test_no_private_name_is_imported_from_another_module():
     wrong = [
         f"{name}:{line} imports {n} from {target}"
@@ -150,6 +153,7 @@ def test_no_private_name_is_imported_from_another_module():
     assert not wrong, "\n".join(wrong)
 
 
+@pytest.mark.slow
 def test_nothing_in_the_package_imports_the_benchmarks():
     wrong = [
         f"{name} imports {t}"

@@ -31,7 +31,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import EXACT_PHYSICS
+from conftest import EXACT_PHYSICS, domain_id
 
 from afm_ros.core.live_view import (
     LIVE_VIEW_SPECS,
@@ -41,6 +41,8 @@ from afm_ros.core.live_view import (
     parameter_name,
     split_parameter_name,
 )
+
+pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT_DIR = ROOT / "test" / "foxglove_client"
@@ -507,6 +509,7 @@ class _Viewer:
         self.thread.join(5.0)
 
 
+@pytest.mark.slow
 def test_each_parameter_change_is_pushed_once_to_each_subscribed_viewer(
     instrument, foxglove_client
 ):
@@ -598,6 +601,7 @@ def test_a_viewer_offering_only_the_old_subprotocol_is_refused(instrument, foxgl
         assert _one(events, "channels")["protocol"] == "foxglove.sdk.v1"
 
 
+@pytest.mark.slow
 def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(
     instrument, foxglove_client
 ):
@@ -755,7 +759,10 @@ def test_a_parameter_node_that_leaves_is_forgotten_and_reloaded_when_it_returns(
 
 def test_standalone_executable_serves_and_stops_on_sigint(foxglove_client):
     env = dict(
-        os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="OFF", ROS_DOMAIN_ID="73", PYTHONUNBUFFERED="1"
+        os.environ,
+        ROS_AUTOMATIC_DISCOVERY_RANGE="OFF",
+        ROS_DOMAIN_ID=domain_id(__name__),
+        PYTHONUNBUFFERED="1",
     )
     child = subprocess.Popen(
         [

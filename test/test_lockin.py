@@ -38,6 +38,8 @@ from afm_ros.formats import chunk_layout
 from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.nodes.lockin_node import CHUNK_QOS, LockInNode
 
+pytestmark = pytest.mark.ros
+
 FS = 900e3  # input sample rate [S/s] (the cantilever's default output rate)
 DT = 1.0 / FS
 F_DRIVE = 45e3  # [Hz]

@@ -102,6 +102,7 @@ def _make(cls, ctx, ns, tmp_path):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cls", list(TIMER_FAULTS), ids=lambda c: c.__name__)
 def test_an_exception_in_a_timer_callback_is_reported_and_the_node_goes_on(
     cls, ros_context, ros_executor, ros_namespace, monkeypatch, tmp_path

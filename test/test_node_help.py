@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import domain_id
 
 from afm_ros.core.specs import node_specs
 
@@ -30,7 +31,7 @@ EXECUTABLES = {
     "live_view_node": "live_view",
 }
 # a node that did start would only see this process (and is killed at the timeout)
-ENV = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "ROS_DOMAIN_ID": "31"}
+ENV = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF", "ROS_DOMAIN_ID": domain_id(__name__)}
 TIMEOUT_S = 60  # an import of rclpy and the node module takes ~1 s; a node that starts never exits
 
 

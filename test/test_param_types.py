@@ -19,6 +19,8 @@ from rcl_interfaces.msg import ParameterType
 
 from afm_ros.core.specs import node_specs
 
+pytestmark = pytest.mark.ros
+
 TIMEOUT = 30.0
 TYPE_OF_KIND = {
     float: ParameterType.PARAMETER_DOUBLE,
@@ -389,6 +391,7 @@ def test_every_bounded_numeric_parameter_shows_its_range_in_describe(afm_nodes):
             assert node.describe_parameters([name])[0] == d
 
 
+@pytest.mark.slow
 def test_dump_then_load_round_trips_every_parameter_of_every_node(afm_nodes, tmp_path):
     """`ros2 param dump` then `ros2 param load` of that very file: every writable parameter is set
     again with its value and type unchanged; read-only ones are refused only as read-only."""

@@ -146,6 +146,7 @@ def test_hysteresis_dissipation_is_the_area_between_the_force_curves(fine_runs):
             )
 
 
+@pytest.mark.slow
 def test_default_step_count_is_accurate_for_the_dissipative_models():
     """Amplitude within 0.02 nm and phase within 0.05 deg of a converged run (steps doubled from
     880 until amplitude and phase change by < 1e-4 nm and 1e-3 deg), every 10 nm from 75 to 5 nm,

@@ -18,12 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from conftest import domain_id
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64
 
 from afm_ros.formats.chunk_layout import cdr_chunk_index
 from afm_ros.formats.mcap_io import read_session
 from afm_ros.tools.instrument_job import start_instrument
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 BIN = Path(sys.executable).parent
 
@@ -32,7 +35,7 @@ def private_env() -> dict:
     return {
         **os.environ,
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "ROS_DOMAIN_ID": str(20 + os.getpid() % 80),
+        "ROS_DOMAIN_ID": domain_id(__name__),
     }
 
 

@@ -19,11 +19,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import domain_id
+
+pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 BIN = Path(sys.executable).parent
-DOMAIN_ID = "41"
+DOMAIN_ID = domain_id(__name__)
 
 DURATION = ".venv/bin/afm_instrument --duration 0.5"
 INTERACTIVE = ".venv/bin/afm_instrument --interactive"
@@ -64,6 +67,7 @@ def test_the_commands_are_the_readmes():
         assert f"`{command}`" in README, command
 
 
+@pytest.mark.slow
 def test_duration_runs_the_operating_workflow_and_withdraws(env, tmp_path):
     result = subprocess.run(
         _argv(DURATION) + ["--json"],
@@ -85,6 +89,7 @@ def test_duration_runs_the_operating_workflow_and_withdraws(env, tmp_path):
     assert "withdrawn            at t=" in result.stdout
 
 
+@pytest.mark.slow
 def test_ideal_starts_engaged_without_the_workflow(env, tmp_path):
     result = subprocess.run(
         _argv(DURATION) + ["--ideal", "--json", "--no-record"],
@@ -99,6 +104,7 @@ def test_ideal_starts_engaged_without_the_workflow(env, tmp_path):
     assert summary["workflow"] == {} and "imperfections: none" in result.stdout
 
 
+@pytest.mark.slow
 def test_interactive_has_a_scanner_runs_the_workflow_and_answers_the_second_terminal(
     env, tmp_path
 ):

@@ -4,8 +4,9 @@ write.
 - in-process: the real cantilever node + recorder in a private context (discovery OFF, see
   conftest.py); the file is decoded by mcap_ros2 and by rosbags with an *empty* type store
   (so our schema text alone must define every type), and compared with what was published;
-- subprocesses (LOCALHOST discovery, ROS_DOMAIN_ID 51): SIGKILL and SIGTERM of a recording, and a
-  recorder whose file size limit runs out (the kernel's EFBIG, as a full disk gives ENOSPC);
+- subprocesses (LOCALHOST discovery, this file's own ROS domain, conftest.DOMAIN_IDS): SIGKILL and
+  SIGTERM of a recording, and a recorder whose file size limit runs out (the kernel's EFBIG, as a
+  full disk gives ENOSPC);
 - bad output paths.
 """
 
@@ -22,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import domain_id
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.parameter import Parameter
@@ -33,8 +35,10 @@ from afm_ros.formats.mcap_io import RecordingError, read_session, recover, scan_
 from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 
+pytestmark = pytest.mark.ros
+
 VENV_BIN = Path(sys.executable).parent
-DOMAIN_ID = "51"
+DOMAIN_ID = domain_id(__name__)
 OUTPUT_RATE = 90e3  # [S/s] decimated output keeps the in-process test light on 2 cores
 
 
@@ -61,6 +65,7 @@ def chunk_stream(messages):
     return np.concatenate(idx), np.concatenate(vals)
 
 
+@pytest.mark.slow
 def test_round_trip_with_foreign_readers(ros_context, ros_executor, ros_namespace, tmp_path):
     ns = ros_namespace
     path = tmp_path / "session.mcap"
@@ -252,6 +257,7 @@ def _wait_for_growth(path: Path, size: int, timeout=30.0):
 FLUSH_INTERVAL = 0.5  # [s]
 
 
+@pytest.mark.slow
 def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp_path):
     killed, termed = tmp_path / "killed.mcap", tmp_path / "termed.mcap"
     topics = "cantilever/deflection,cantilever/tip_sample_force"
@@ -323,6 +329,7 @@ def test_sigkill_loses_at_most_one_flush_interval_and_sigterm_closes_cleanly(tmp
     assert idx_t[-1] >= idx[-1]
 
 
+@pytest.mark.slow
 def test_write_failure_stops_with_clear_error_and_no_complete_claim(tmp_path):
     """A file size limit (RLIMIT_FSIZE -> EFBIG) fails writes like a full disk (ENOSPC) does."""
     path = tmp_path / "limited.mcap"

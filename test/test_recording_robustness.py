@@ -4,9 +4,8 @@ recorders, and the disk budget (max_size, min_free_space).
 
 Real parts only: sessions recorded by the real cantilever / lock-in nodes over DDS into real MCAP
 files, read back by this project's readers and by mcap / rosbags; subprocesses (replay_node,
-recorder_node, cantilever_node, lockin_node) in ROS_DOMAIN_ID 41 (LOCALHOST), or with discovery OFF
-where they need no peer.
-"""
+recorder_node, cantilever_node, lockin_node) in its own ROS domain (conftest.DOMAIN_IDS;
+LOCALHOST), or with discovery OFF where they need no peer."""
 
 from __future__ import annotations
 
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import rclpy
+from conftest import domain_id
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from mcap.reader import make_reader
 from mcap.records import Channel, Message
@@ -41,8 +41,10 @@ from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.lockin_node import LockInNode
 from afm_ros.nodes.recorder_node import RecorderNode
 
+pytestmark = pytest.mark.ros
+
 BIN = Path(sys.executable).parent
-DOMAIN_ID = "41"
+DOMAIN_ID = domain_id(__name__)
 OUTPUT_RATE = 90e3  # [S/s] 180 samples per 2 ms chunk: light on 2 shared cores
 SAMPLES_PER_CHUNK = 180
 DEFAULT_SAMPLES_PER_CHUNK = 1800  # at the cantilever's default 900 kS/s
@@ -153,6 +155,7 @@ def _flip(path: Path, offset: int) -> None:
     path.write_bytes(bytes(data))
 
 
+@pytest.mark.slow
 def test_damaged_first_chunk_loses_only_its_own_messages(session, tmp_path, capsys):
     """Issue 16.12: the topic definitions are read from the summary, so one flipped bit in the
     first chunk loses that chunk's messages, nothing else; every reader says which chunk and how
@@ -205,6 +208,7 @@ def test_damaged_first_chunk_loses_only_its_own_messages(session, tmp_path, caps
     assert f"chunk 1 of {len(chunks)}" in (tmp_path / "rep" / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_a_file_missing_its_last_byte_is_not_complete(session, tmp_path, capsys):
     """Issue 16.18: the closing magic is part of a complete file."""
     cut = tmp_path / "cut.mcap"
@@ -238,6 +242,7 @@ def _replay(path: Path) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_replay_exit_status_says_whether_everything_was_replayed(session, tmp_path):
     """Issue 16.18: 0 = every message replayed, 2 = damaged file, intact part replayed (and what
     was lost is named), 1 = nothing readable (one line naming the file)."""
@@ -293,6 +298,7 @@ def localhost_context():
                 os.environ[k] = v
 
 
+@pytest.mark.slow
 def test_recorder_joining_a_running_instrument_starts_clean(localhost_context, tmp_path):
     """Issue 16.11: cantilever and lock-in run as processes, as fast as they can; recorders join
     eight times. Each file's deflection stream is contiguous from its first chunk and begins with
@@ -504,6 +510,7 @@ def test_output_of_a_namespaced_recorder_from_the_command_line(tmp_path):
 # ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_max_size_closes_a_complete_file_and_the_loop_goes_on(
     ros_context, ros_executor, ros_namespace, tmp_path
 ):
@@ -634,6 +641,7 @@ def test_min_free_space_above_the_free_space_refuses_to_start(ros_context, tmp_p
     assert not path.exists()
 
 
+@pytest.mark.slow
 def test_min_free_space_raised_live_stops_a_running_recording(
     ros_context, ros_executor, ros_namespace, tmp_path
 ):

@@ -22,6 +22,8 @@ from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 from afm_ros.nodes.replay_node import ReplayNode
 
+pytestmark = pytest.mark.ros
+
 OUTPUT_RATE = 450e3  # [S/s] 10 samples per drive period for the lock-in
 RECORD_S = 1.5  # [s] wall
 
@@ -101,6 +103,7 @@ def _stamp(m):
     return round((m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec) * 1e9)
 
 
+@pytest.mark.slow
 def test_replay_into_live_lockin_and_z_controller_reproduces_recording(
     loop_session, ros_context, ros_executor
 ):

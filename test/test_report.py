@@ -19,6 +19,8 @@ from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 from afm_ros.tools import report
 
+pytestmark = pytest.mark.ros
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 OUTPUT_RATE = 450e3  # [S/s] 10 samples per drive period: enough for the lock-in, light for 2 cores
 SESSION_S = 2.0  # [s] wall
@@ -85,6 +87,7 @@ def _is_png(path):
     return path.exists() and path.read_bytes()[:8] == PNG_MAGIC and path.stat().st_size > 5000
 
 
+@pytest.mark.slow
 def test_full_session_report(sessions, tmp_path):
     full, _ = sessions
     assert report.main([str(full), "--out", str(tmp_path)]) == 0
@@ -144,6 +147,7 @@ def test_full_session_report(sessions, tmp_path):
     assert not data.fm_feedback and data.fm is None
 
 
+@pytest.mark.slow
 def test_truncated_session_report(sessions, tmp_path):
     full, _ = sessions
     data = full.read_bytes()
@@ -163,6 +167,7 @@ def test_truncated_session_report(sessions, tmp_path):
     assert (d.first_index, d.last_index, d.lost, d.gaps, d.repeats) == (0, d.samples - 1, 0, 0, 0)
 
 
+@pytest.mark.slow
 def test_subset_session_report(sessions, tmp_path):
     _, subset = sessions
     assert report.main([str(subset), "--out", str(tmp_path)]) == 0

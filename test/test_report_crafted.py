@@ -244,6 +244,7 @@ def test_session_with_only_broken_images_still_gives_the_rest(tmp_path, capsys):
     assert (tmp_path / "rep" / "report.md").exists()
 
 
+@pytest.mark.slow
 def test_crafted_file_from_the_command_line_no_traceback(tmp_path):
     session = write_session(
         tmp_path / "c.mcap", geometry=[1], extra=CASES["garbage image"]["extra"]

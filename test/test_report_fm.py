@@ -23,6 +23,8 @@ from afm_ros.core.imaging import DIRECTIONS, FM_CHANNELS
 from afm_ros.formats.mcap_io import SessionWriter
 from afm_ros.tools import report
 
+pytestmark = pytest.mark.ros
+
 BIN = Path(sys.executable).parent
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 LINES = 4  # the shared session's frame (conftest: FM_SESSION_ARGS)
@@ -56,6 +58,7 @@ def _overlap(a, b) -> float:
     return max(0.0, min(a[1], b[1]) - max(a[0], b[0])) / max(a[1] - a[0], b[1] - b[0])
 
 
+@pytest.mark.slow
 def test_fm_numbers_agree_with_the_sessions_own_summary(fm_report):
     s, numbers, _, _ = fm_report
     fm = numbers["fm"]
@@ -108,6 +111,7 @@ def test_fm_numbers_agree_with_the_sessions_own_summary(fm_report):
     assert abs(scan["df"]["mean"] - s["df_setpoint_Hz"]) < scan["df"]["std"]
 
 
+@pytest.mark.slow
 def test_fm_figures_images_and_no_amplitude_tracking(fm_report):
     s, numbers, out, stdout = fm_report
     assert "wrote" in stdout and "and 3 figures" in stdout

@@ -27,6 +27,8 @@ from afm_ros.tools import report
 from afm_ros.tools.afm_instrument import RAW_EXCLUDE
 from afm_ros.tools.instrument_job import start_instrument
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 FAST = {
     **EXACT_PHYSICS,
     "real_time_factor": 0.0,

@@ -39,6 +39,7 @@ def _run_measured(*args) -> tuple[int, str, str, float]:
     return r["status"], r["stdout"], r["stderr"], r["peak_rss_mb"]
 
 
+@pytest.mark.slow
 def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
     """600 simulated seconds: 300 000 chunks per stream (more than report.TABLE_CAP /clock
     messages, so the time table really is decimated), 12 M samples per stream, 60 000 lock-in
@@ -97,6 +98,7 @@ def test_ten_minute_session_in_bounded_memory_with_exact_numbers(tmp_path):
         assert (tmp_path / "rep" / name).stat().st_size > 5000
 
 
+@pytest.mark.slow
 def test_kept_force_distance_pairs_are_exact_and_evenly_spaced(tmp_path):
     """60 s (1.2 M pairs > MAX_SCATTER_POINTS): exactly MAX_SCATTER_POINTS pairs are kept, evenly
     spaced in the sample index, and each one lies on the DMT curve the generator used (gap and
@@ -155,6 +157,7 @@ def test_non_finite_samples_are_counted_and_never_averaged(tmp_path):
     assert not env.is_raw and np.all(np.isfinite(env.lo[~np.isnan(env.lo)]))
 
 
+@pytest.mark.slow
 def test_time_map_table_keeps_corners_and_bounds_its_error():
     """The /clock table of a long session: 1 M messages (2000 s at 500 Hz) with two pauses, a
     change of real-time factor and receive-time jitter (sigma 0.02 / 0.2 / 2 ms), into a table of
@@ -235,6 +238,7 @@ def test_batches_give_the_numbers_of_the_per_output_copies(tmp_path):
     assert numbers["batches"] == numbers["both"]
 
 
+@pytest.mark.slow
 def test_long_session_of_batches_in_bounded_memory(tmp_path):
     """150 s recorded as afm_instrument records it (batches at 2 kHz, 300 000 outputs: more than
     report.TABLE_CAP, so the output-time table is decimated) plus the raw chunks: under the bound,

@@ -10,9 +10,9 @@ venv from the Jazzy sources (ros2cli tag 0.32.2, rosidl_runtime_py tag 0.13.1):
     .venv/bin/pip install --no-build-isolation --no-deps src/rosidl_runtime_py src/ros2cli \\
         src/ros2node src/ros2service src/ros2param src/ros2topic
 
-Each test runs its nodes in its own namespace with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a
-private ROS_DOMAIN_ID; every ros2 command runs with --no-daemon (no daemon is spawned or used)
-and waits for the node with --timeout instead of sleeping.
+Each test runs its nodes in its own namespace with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST in this
+file's own ROS_DOMAIN_ID (conftest.DOMAIN_IDS); every ros2 command runs with --no-daemon (no
+daemon is spawned or used) and waits for the node with --timeout instead of sleeping.
 """
 
 from __future__ import annotations
@@ -26,24 +26,22 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import domain_id
 
 VENV_BIN = Path(sys.executable).parent
 ROS2 = VENV_BIN / "ros2"
 WAIT = "30"  # seconds a ros2 command waits for the node to appear
 
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("ros2cli") is None
-    or importlib.util.find_spec("ros2param") is None
-    or not ROS2.exists(),
-    reason="the ros2 CLI (ros2cli, ros2param) is not installed in this Python environment; it is "
-    "not on "
-    "PyPI: build it from the ros2cli Jazzy sources as this module's docstring says",
-)
-
-
-def _domain_id(namespace: str) -> str:
-    # 1..100: valid on Linux for every DDS, and unlikely to be shared with another run
-    return str(1 + (os.getpid() * 31 + sum(map(ord, namespace))) % 100)
+pytestmark = [
+    pytest.mark.ros,
+    pytest.mark.skipif(
+        importlib.util.find_spec("ros2cli") is None
+        or importlib.util.find_spec("ros2param") is None
+        or not ROS2.exists(),
+        reason="the ros2 CLI (ros2cli, ros2param) is not installed in this Python environment; it "
+        "is not on PyPI: build it from the ros2cli Jazzy sources as this module's docstring says",
+    ),
+]
 
 
 @pytest.fixture
@@ -51,7 +49,7 @@ def ros2_env(tmp_path, ros_namespace):
     env = dict(os.environ)
     env.update(
         ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=_domain_id(ros_namespace),
+        ROS_DOMAIN_ID=domain_id(__name__),
         ROS_LOG_DIR=str(tmp_path / "ros_log"),
         PYTHONUNBUFFERED="1",
     )

@@ -19,6 +19,8 @@ from afm_ros.core.samples import from_file, rough
 from afm_ros.formats.gwy import write_gwy
 from afm_ros.nodes.cantilever_node import CantileverNode
 
+pytestmark = pytest.mark.ros
+
 
 def spin_until(executor, condition, timeout=120.0):
     end = time.monotonic() + timeout

@@ -301,6 +301,7 @@ def test_dilation_rejects_a_bad_tip_radius_by_name():
         dilate(tiny, 1e-6)
 
 
+@pytest.mark.slow
 def test_dilation_of_a_1024_map_takes_seconds():
     """1024 x 1024 pixels of 1 nm, a 20 nm tip (1257 disk offsets), on a rough surface where
     little can be skipped. A loose bound (about 1.5 s measured on the development machine):

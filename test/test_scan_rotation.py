@@ -54,6 +54,7 @@ def scan(values: dict):
     return w.scan_frame(values)
 
 
+@pytest.mark.slow
 def test_a_rotated_scan_images_the_sample_at_the_rotated_positions():
     """At 30 deg the levelled height image correlates with the true heights at the rotated pixel
     centres (0.917 measured; the tip's dilation and the loop's edge transients keep it below 1) and

@@ -67,6 +67,7 @@ def frame():
     return scan.run_scan(config).frame
 
 
+@pytest.mark.slow
 def test_cli_writes_gwy_previews_and_summary(cli):
     out, proc = cli
     text = proc.stdout
@@ -105,6 +106,7 @@ def test_cli_writes_gwy_previews_and_summary(cli):
     ]  # atomic writes left no temporary
 
 
+@pytest.mark.slow
 def test_gwy_read_back_with_gwyfile(cli, frame):
     """gwyfile itself: 10 channels with titles, pixel counts, real size = scan size, offsets =
     the scan's lower-left corner, SI units, values equal to the frame's, metadata as strings."""
@@ -138,6 +140,7 @@ def test_gwy_read_back_with_gwyfile(cli, frame):
     assert all(isinstance(v, str) for v in meta.values())
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     shutil.which("gwyddion-thumbnailer") is None,
     reason="gwyddion-thumbnailer not installed (Debian package gwyddion)",
@@ -165,6 +168,7 @@ def test_gwyddion_renders_the_scan(cli, tmp_path):
         assert data.startswith(PNG_SIGNATURE) and len(data) > 60
 
 
+@pytest.mark.slow
 def test_written_gwy_is_a_sample_again(cli, frame, tmp_path, capsys):
     """from_file takes the first channel (Height (trace), unit m) at the file's real size: the
     height map is the frame's, bit for bit; and the tool images it (--sample FILE.gwy)."""
@@ -278,6 +282,7 @@ LONG = [
 ]
 
 
+@pytest.mark.slow
 def test_ctrl_c_keeps_the_completed_lines_and_exits_130(tmp_path):
     """SIGINT once lines have been reported: the scan finishes the current line, writes the
     completed lines as scan_partial.gwy (+ previews, readable by gwyfile; the lines equal those of
@@ -336,6 +341,7 @@ def test_ctrl_c_keeps_the_completed_lines_and_exits_130(tmp_path):
         assert np.array_equal(data, values[:done]), title
 
 
+@pytest.mark.slow
 def test_approach_and_a_real_instrument_from_the_command_line(tmp_path):
     """--approach 5e-6: the workflow's approach (3 um z range, 50 nm motor steps, 80 % of the range
     per cycle) finds no surface in the first extension, steps 2.4 um (48 steps) and engages in the
@@ -384,6 +390,7 @@ def test_approach_and_a_real_instrument_from_the_command_line(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_the_analysis_compares_each_pixel_with_the_sample_where_the_scanner_truly_was():
     """With a wide hysteresis loop (10 % of the scan: pixels land up to 250 nm, 3 pixels, off their
     commanded place, in opposite directions on trace and retrace), the material a pixel's phase

@@ -45,6 +45,8 @@ from afm_ros.nodes.lockin_node import LockInNode
 from afm_ros.nodes.scanner_node import ScannerNode
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
+pytestmark = pytest.mark.ros
+
 CANTILEVER = {**EXACT_PHYSICS, "force_model": "viscoelastic_dmt", "sample": "ps_ldpe_blend"}
 SCAN = dict(
     scan_size_x=5e-6,
@@ -329,6 +331,7 @@ def stopped(tmp_path_factory):
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.slow
 def test_a_stopped_scan_writes_its_completed_lines_as_a_partial_frame(stopped):
     paths = stopped["paths"]
     assert paths and paths[0].name.endswith("_partial.gwy"), paths
@@ -379,6 +382,7 @@ def test_a_stopped_scan_writes_its_completed_lines_as_a_partial_frame(stopped):
     assert meta["scan.lines"] == "8"  # the scan as planned; the data field has the completed part
 
 
+@pytest.mark.slow
 def test_scanner_stop_keeps_the_lines_done_by_default(stopped):
     answer, files = stopped["service_stop"], stopped["service_file"]
     assert answer.success and "partial frame" in answer.message, answer.message
@@ -387,6 +391,7 @@ def test_scanner_stop_keeps_the_lines_done_by_default(stopped):
     assert field.data.shape[0] == stopped["service_lines"] >= 1
 
 
+@pytest.mark.slow
 def test_diagnostics_clear_an_old_write_error_after_a_successful_write(stopped):
     failed, recovered = stopped["failed"], stopped["recovered"]
     values = {kv.key: kv.value for kv in failed.values}

@@ -36,6 +36,8 @@ from afm_ros.nodes.scanner_node import ScannerNode, image_topic
 from afm_ros.nodes.topics import LATCHED_QOS
 from afm_ros.nodes.z_controller_node import ZControllerNode
 
+pytestmark = pytest.mark.ros
+
 # the tip wears and picks things up too (core/tip.py; exaggerated: ~6 nm of wear over the frame, a
 # dozen map rebuilds, and a few double-tip events)
 CANTILEVER = {
@@ -184,6 +186,7 @@ def run_refusals(ex, cantilever, scanner, tmp) -> dict:
     return results
 
 
+@pytest.mark.slow
 def test_ros_frame_equals_the_wired_cores_bit_for_bit(scanned):
     wired = WiredInstrument(
         cantilever=CANTILEVER, sample=resolve_sample("ps_ldpe_blend"), imperfections=IMPERFECT
@@ -206,6 +209,7 @@ def test_ros_frame_equals_the_wired_cores_bit_for_bit(scanned):
     assert len(wired.wear.events) >= 2  # and picked things up during the frame
 
 
+@pytest.mark.slow
 def test_published_images_and_gwy_file_hold_the_frame(scanned):
     import gwyfile
 
@@ -254,6 +258,7 @@ def test_published_images_and_gwy_file_hold_the_frame(scanned):
     assert "blend" in value("cantilever.description.generator")
 
 
+@pytest.mark.slow
 def test_services_and_progress(scanned):
     assert scanned["first"].success, scanned["first"].message
     assert not scanned["second"].success and "already running" in scanned["second"].message
@@ -263,6 +268,7 @@ def test_services_and_progress(scanned):
     assert last["frame"] == 1 and last["lines_done"] == SCAN["lines"] and last["state"] == "idle"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "case,words",
     [

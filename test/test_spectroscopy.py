@@ -28,6 +28,8 @@ from afm_ros.core.wired import WiredInstrument
 from afm_ros.formats.spectroscopy_layout import pack_curve, unpack_curve
 from afm_ros.tools.study import sweep
 
+pytestmark = pytest.mark.ros
+
 RATE = 50e-9  # [m/s] a slow ramp: 10 nm up, 30 nm down and back (1.6 s simulated)
 # the loop has settled already (SETTLE): the ramp holds at once (the settling before a curve is
 # tested on its own below)

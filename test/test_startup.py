@@ -186,6 +186,7 @@ def read_only_install():
         shutil.rmtree(base, ignore_errors=True)
 
 
+@pytest.mark.slow
 def test_read_only_install_caches_in_the_user_dir_and_starts_warm(read_only_install):
     name, prefix, install, home, env = read_only_install
     print(f"unprivileged process: {name}")

@@ -160,6 +160,7 @@ def test_trajectory_subcommand(tmp_path):
     assert (tmp_path / "trajectory.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_notebook_subcommand(tmp_path):
     code = study.main(["notebook", "--out", str(tmp_path), "--quick"])
     assert code == 0

@@ -16,6 +16,8 @@ from afm_ros.client import Microscope
 from afm_ros.core.artefacts import INSTRUMENT_ARTEFACTS
 from afm_ros.core.samples import resolve_sample
 
+pytestmark = pytest.mark.slow
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "survey_agent.py"
 
 

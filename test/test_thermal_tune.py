@@ -260,6 +260,7 @@ def _peak_traced_bytes(seconds: float) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.slow
 def test_memory_does_not_grow_with_the_record_length():
     """The record is simulated and reduced block by block: the peak of the arrays allocated
     (numpy's, traced) is the same for 1 s and 4 s of record, ~12 MB. Before, the whole record and
@@ -336,6 +337,7 @@ def test_the_accumulator_fed_in_any_pieces_is_scipys_welch():
     assert all(np.array_equal(r[0], results[0][0]) and r[1] == results[0][1] for r in results)
 
 
+@pytest.mark.slow
 def test_ctrl_c_tunes_on_the_record_so_far_and_says_so(tmp_path):
     """Ctrl-C during a long record ends it at the next block; the tune of what was simulated is
     written, marked interrupted, and the exit status is 130."""

@@ -22,6 +22,8 @@ from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.recorder_node import RecorderNode
 from afm_ros.tools import thermal_tune
 
+pytestmark = pytest.mark.ros
+
 SECONDS = 1.2  # [s] simulated; the first 20 decay times (~3.5 ms) are dropped by the tune
 TEMPERATURE = 300.0  # [K]
 SEED = 17

@@ -108,6 +108,7 @@ def test_tapping_above_the_threshold_wears_the_tip_and_below_it_does_not():
     assert w.wear.radius - r0 == pytest.approx(expected, rel=1e-9, abs=0) and expected > 1e-9
 
 
+@pytest.mark.slow
 def test_a_worn_tip_widens_a_step_as_the_grown_sphere_predicts():
     """After wear to R ~ 150 nm the grating's lines image wider than with the fresh 20 nm tip by 2
     (A(R) - A(20 nm)) / H, A the area a sphere adds beside a step of H = 20 nm: 71 nm. Tolerance 10
@@ -147,6 +148,7 @@ def _islands():
     return ISLANDS
 
 
+@pytest.mark.slow
 def test_a_double_tip_images_every_island_twice():
     """A picked-up second apex 10 image pixels (312.5 nm) to the right of the main one and 3 nm
     higher: the image G equals max(F(x), F(x + offset) - 3 nm), F the single tip's image of the

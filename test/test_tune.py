@@ -9,6 +9,8 @@ import pytest
 from afm_ros.core.tune import TUNE_SPECS, settings, sweep_wired
 from afm_ros.core.wired import WiredInstrument
 
+pytestmark = pytest.mark.ros
+
 FREE = {"temperature": 0.0, "detector_noise_density": 0.0, "z_base": 2e-6}
 
 

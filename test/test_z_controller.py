@@ -23,6 +23,8 @@ from afm_ros.formats.chunk_layout import OutputBatch, pack_outputs, unpack_z_com
 from afm_ros.nodes import topics
 from afm_ros.nodes.z_controller_node import Z_QOS, ZControllerNode
 
+pytestmark = pytest.mark.ros
+
 A_FREE = 60e-9  # [m]
 SETPOINT = Z_CONTROLLER_SPECS["setpoint"].default
 P, I_GAIN = Z_CONTROLLER_SPECS["p_gain"].default, Z_CONTROLLER_SPECS["i_gain"].default
