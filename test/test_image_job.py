@@ -26,6 +26,8 @@ from afm_ros.formats.gwy import read_gwy
 from afm_ros.formats.mcap_io import SessionScan, read_session
 from afm_ros.tools import report
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 BIN = Path(sys.executable).parent
 # a small frame at 10 lines/s (100 um/s): on the instrument's tilted sample (0.008, -0.005) the
 # loop would lag 8 nm uphill and downhill, so the operator compensates the slope as on a real
@@ -52,28 +54,39 @@ ARGS = [
 ]
 
 
-def run_job(cwd: Path) -> dict:
+def start_job(cwd: Path) -> subprocess.Popen:
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    proc = subprocess.run(
+    return subprocess.Popen(
         [str(BIN / "afm_instrument"), *ARGS],
         cwd=cwd,
         env=env,
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=600,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "Traceback" not in proc.stderr
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def job_summary(proc: subprocess.Popen) -> dict:
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-3000:]
+    assert "Traceback" not in err
+    return json.loads(out.strip().splitlines()[-1])
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    out = []
-    for name in ("a", "b"):
-        cwd = tmp_path_factory.mktemp(name)
-        out.append((cwd, run_job(cwd)))
-    return out
+    """The job twice, both at the same time (each its own process, discovery OFF: they share
+    nothing but the cores, which they compete for: the same numbers anyway, see
+    test_two_runs_give_the_same_summary_and_frame)."""
+    cwds = [tmp_path_factory.mktemp(name) for name in ("a", "b")]
+    procs = [start_job(cwd) for cwd in cwds]
+    try:
+        return [(cwd, job_summary(proc)) for cwd, proc in zip(cwds, procs)]
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
 
 
 def frame_arrays(cwd: Path) -> dict:
