@@ -291,21 +291,24 @@ def test_work_of_more_than_a_minute_says_so_with_an_estimate_before_it_starts():
         assert afm.state()["stage"] == "engaged"
 
 
-def _interrupt_after(seconds: float):
-    """Ctrl-C in the main thread after ``seconds`` of wall time (as a person pressing it)."""
-    import _thread
-    import threading
+def _interrupt_after(afm, seconds: float) -> None:
+    """Ctrl-C inside the next verb once ``seconds`` of simulated time passed (from the client's
+    tick, so it lands in the same place every run, whatever the machine's load)."""
+    t_stop = afm.state()["t_s"] + seconds
 
-    timer = threading.Timer(seconds, _thread.interrupt_main)
-    timer.start()
-    return timer
+    def tick():
+        if afm.state()["t_s"] >= t_stop:
+            afm.set_tick(None)
+            raise KeyboardInterrupt
+
+    afm.set_tick(tick)
 
 
 @pytest.mark.slow
 def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
-    """Ctrl-C inside a slow spectroscopy (800 s simulated: still running whenever the key comes)
-    and inside an approach: the spectroscopy gives the feedback back (engaged), the approach stops
-    where it is (stopped); then the next verbs work."""
+    """Ctrl-C 1 s (simulated) into a slow spectroscopy (800 s simulated), an approach and a scan:
+    the spectroscopy gives the feedback back (engaged), the approach stops where it is (stopped),
+    the scan stops; then the next verbs work."""
     import warnings
 
     from afm_ros.client import LongWork
@@ -314,10 +317,9 @@ def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
         afm.wait(0.05)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LongWork)
-            timer = _interrupt_after(1.0)
+            _interrupt_after(afm, 1.0)
             with pytest.raises(KeyboardInterrupt):
                 afm.spectroscopy(spectroscopy_rate=1e-10)
-            timer.join()
         assert afm.state()["stage"] == "engaged"
         afm.set_scan(**SMALL)
         frame = afm.scan()
@@ -329,10 +331,9 @@ def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
         afm.set(
             "z_controller", approach_speed=1e-7
         )  # 30 s simulated per extension: still running at the key
-        timer = _interrupt_after(1.0)
+        _interrupt_after(afm, 1.0)
         with pytest.raises(KeyboardInterrupt):
             afm.approach()
-        timer.join()
         afm.set("z_controller", approach_speed=2e-6)
         assert afm.state()["stage"] == "stopped"
         with pytest.raises(NotEngaged):
@@ -341,10 +342,9 @@ def test_an_interrupted_verb_leaves_the_instrument_where_the_next_verb_works():
         afm.set_scan(pixels=64, lines=64, line_rate=0.5)  # 128 s simulated
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", LongWork)
-            timer = _interrupt_after(1.0)
+            _interrupt_after(afm, 1.0)
             with pytest.raises(KeyboardInterrupt):
                 afm.scan()
-            timer.join()
         curve = (
             afm.spectroscopy()
         )  # the scan stopped (it was refused as "a scan is running" before)

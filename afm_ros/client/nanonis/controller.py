@@ -62,6 +62,7 @@ class Job:
 @dataclass
 class _Call:
     fn: Callable[[Microscope], Any]
+    taken: threading.Event = field(default_factory=threading.Event)
     done: threading.Event = field(default_factory=threading.Event)
     result: Any = None
     error: BaseException | None = None
@@ -113,7 +114,8 @@ class Controller:
 
     def call(self, fn: Callable[[Microscope], Any], timeout: float = CALL_TIMEOUT_S):
         """``fn(afm)`` on the instrument thread, between two chunks; its result, or its exception
-        raised here. TimeoutError if the instrument does not take it within ``timeout`` [s]."""
+        raised here. TimeoutError if the instrument does not take it within ``timeout`` [s] (once
+        taken, it runs to its end: its own work takes the time it takes)."""
         if threading.current_thread() is self._thread:
             return fn(self.afm)
         if self.failure:
@@ -122,11 +124,16 @@ class Controller:
         with self._wake:
             self._calls.append(item)
             self._wake.notify_all()
-        if not item.done.wait(timeout):
+        if not item.taken.wait(timeout):
             with self._wake:
                 if item in self._calls:
                     self._calls.remove(item)
-            raise TimeoutError(f"the instrument did not take the command within {timeout:g} s")
+                    raise TimeoutError(
+                        f"the instrument did not take the command within {timeout:g} s"
+                    )
+        while not item.done.wait(1.0):
+            if self.failure:
+                raise RuntimeError(f"the instrument stopped: {self.failure}")
         if item.error is not None:
             raise item.error
         return item.result
@@ -202,6 +209,7 @@ class Controller:
                 calls, self._calls = list(self._calls), deque()
             for item in calls:
                 item.error = RuntimeError(f"the instrument stopped: {self.failure or 'closed'}")
+                item.taken.set()
                 item.done.set()
 
     def _idle_step(self) -> None:
@@ -244,6 +252,7 @@ class Controller:
                 if not self._calls:
                     return
                 item = self._calls.popleft()
+                item.taken.set()
             try:
                 item.result = item.fn(self.afm)
             except BaseException as exc:  # handed to the caller's thread
