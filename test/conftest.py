@@ -22,10 +22,13 @@ that run side by side apart.
 from __future__ import annotations
 
 import collections
+import glob
 import itertools
 import os
 import re
+import subprocess
 import sys
+import tempfile
 import threading
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,6 +68,44 @@ DOMAIN_IDS = {
 }
 # files that share a session fixture run on the same worker (the fixture runs once)
 SHARED_WORKER = {"test_report_fm": "test_fm_session"}
+
+
+# one small main job (--image, 8 x 2 pixels): compiles the instrument's numba kernels
+WARM_UP = [
+    "--image",
+    "--no-record",
+    "--ros-args",
+    "-p",
+    "scanner:pixels_per_line:=8",
+    "-p",
+    "scanner:lines:=2",
+    "-p",
+    "scanner:line_rate:=20.0",
+    "-p",
+    "cantilever:real_time_factor:=0.0",
+]
+
+
+def pytest_configure(config):
+    """Under ``-n N`` with a cold numba cache (a fresh clone, or kernel sources changed since the
+    cache was written): the instrument's kernels compiled once here, before the workers start,
+    instead of by both workers at the same time (about 30 s of CPU each); the first tests'
+    deadlines then include no compilation on a loaded machine."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or not getattr(config.option, "numprocesses", None):
+        return
+    from afm_ros import numba_cache  # importing afm_ros drops a stale cache
+
+    cache = numba_cache.chosen or os.path.join(numba_cache.PACKAGE_DIR, "core", "physics")
+    if glob.glob(os.path.join(cache, "**", "*.nbi"), recursive=True):
+        return
+    with tempfile.TemporaryDirectory(prefix="afm_warm_up_") as cwd:
+        subprocess.run(
+            [str(Path(sys.executable).parent / "afm_instrument"), *WARM_UP],
+            cwd=cwd,
+            env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"},
+            capture_output=True,
+            timeout=900,
+        )  # a failure here fails again, with its reason, in the tests
 
 
 def domain_id(module: str) -> str:
