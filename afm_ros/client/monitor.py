@@ -18,7 +18,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterEvent
 from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import qos_profile_parameter_events
-from std_msgs.msg import Float64MultiArray
 
 from afm_ros.core.angles import phases_deg
 from afm_ros.core.session_stats import SetpointHistory, WindowStats
@@ -83,15 +82,9 @@ class Monitor(GuardedNode):
         self.diagnostics: dict[str, object] = {}
         self.waiter = None  # (condition, future): the job waits for condition(); completed here
         self._ack = topics.Acknowledger(self)
-        self.create_subscription(
-            Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS
-        )
-        self.create_subscription(
-            Float64MultiArray, topics.Z_COMMAND, self._on_command, topics.CONSUMER_QOS
-        )
-        self.create_subscription(
-            Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS
-        )
+        topics.subscribe_values(self, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS)
+        topics.subscribe_values(self, topics.Z_COMMAND, self._on_command, topics.CONSUMER_QOS)
+        topics.subscribe_values(self, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 50)
         self.create_subscription(
             ParameterEvent,
@@ -100,7 +93,7 @@ class Monitor(GuardedNode):
             qos_profile_parameter_events,
         )
 
-    def _on_batch(self, msg: Float64MultiArray) -> None:
+    def _on_batch(self, msg: topics.ArrayMessage) -> None:
         try:
             b = chunk_layout.unpack_outputs(msg.data)
         except ValueError:
@@ -126,7 +119,7 @@ class Monitor(GuardedNode):
         self._ack.send(b.input_end_index)
         self._poke()
 
-    def _on_trace(self, msg: Float64MultiArray) -> None:
+    def _on_trace(self, msg: topics.ArrayMessage) -> None:
         try:
             tr = chunk_layout.unpack_z_trace(msg.data)
         except ValueError:
@@ -180,7 +173,7 @@ class Monitor(GuardedNode):
             if not future.done() and condition():
                 future.set_result(True)
 
-    def _on_command(self, msg: Float64MultiArray) -> None:
+    def _on_command(self, msg: topics.ArrayMessage) -> None:
         try:
             c = chunk_layout.unpack_z_command(msg.data)
         except ValueError:

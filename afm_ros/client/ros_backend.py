@@ -185,7 +185,7 @@ class RosBackend:
 
         self.last_output = (math.nan, math.nan)  # amplitude [m], phase [deg] of the newest
 
-        def on_batch(msg: Float64MultiArray) -> None:
+        def on_batch(msg: topics.ArrayMessage) -> None:
             try:
                 b = chunk_layout.unpack_outputs(msg.data)
             except ValueError:
@@ -195,15 +195,15 @@ class RosBackend:
                 x, y = float(b.x[-1]), float(b.y[-1])
                 self.last_output = (math.hypot(x, y), phase_deg(x, y))
 
-        node.create_subscription(
-            Float64MultiArray, link.resolve(topics.LOCKIN_OUTPUTS), on_batch, topics.HISTORY_QOS
+        topics.subscribe_values(
+            node, link.resolve(topics.LOCKIN_OUTPUTS), on_batch, topics.HISTORY_QOS
         )
         self.z_end = (
             -math.inf
         )  # the end of the last chunk the z controller handled [s] (its trace)
         self.last_z = math.nan  # the newest z piezo [m] of its trace
 
-        def on_trace(msg: Float64MultiArray) -> None:
+        def on_trace(msg: topics.ArrayMessage) -> None:
             try:
                 tr = chunk_layout.unpack_z_trace(msg.data)
             except ValueError:
@@ -212,9 +212,7 @@ class RosBackend:
             if tr.z.size:
                 self.last_z = float(tr.z[-1])
 
-        node.create_subscription(
-            Float64MultiArray, link.resolve(topics.Z_TRACE), on_trace, topics.HISTORY_QOS
-        )
+        topics.subscribe_values(node, link.resolve(topics.Z_TRACE), on_trace, topics.HISTORY_QOS)
         cantilever = link.resolve("cantilever")
 
         def on_diagnostics(msg: DiagnosticArray) -> None:

@@ -316,10 +316,71 @@ def cdr_byte_order(data) -> str:
     return "<" if data[1] == 1 else ">"
 
 
+_CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation: plain CDR, little-endian
+
+
+def _multiarray_head(label: str, size: int, stride: int, data_offset: int, count: int) -> bytes:
+    """The serialized layout (one dimension) and data count of a std_msgs MultiArray, padded to
+    the 8-byte alignment its float64/int64 data needs (offsets relative to the byte after the
+    encapsulation header, as CDR counts them)."""
+    name = label.encode("utf-8") + b"\0"
+    head = _CDR_LE + struct.pack("<II", 1, len(name)) + name
+    head += b"\0" * ((-(len(head) - 4)) % 4)
+    head += struct.pack("<IIII", size, stride, data_offset, count)
+    return head + b"\0" * ((-(len(head) - 4)) % 8)
+
+
+def cdr_float64_multiarray(
+    label: str, size: int, stride: int, data_offset: int, values: np.ndarray
+) -> bytes:
+    """The serialized std_msgs/Float64MultiArray (little-endian CDR) with one layout dimension
+    ``label``/``size``/``stride``, ``data_offset`` and ``values``: the bytes rclpy would make of
+    the message (test_chunk_layout checks it), built with numpy instead of per-element Python, to
+    publish with ``Publisher.publish(bytes)``."""
+    values = np.ascontiguousarray(values, dtype="<f8")
+    return _multiarray_head(label, size, stride, data_offset, values.size) + values.tobytes()
+
+
+def cdr_int64_multiarray(
+    label: str, size: int, stride: int, data_offset: int, values: np.ndarray
+) -> bytes:
+    """The serialized std_msgs/Int64MultiArray, as :func:`cdr_float64_multiarray`."""
+    values = np.ascontiguousarray(values, dtype="<i8")
+    return _multiarray_head(label, size, stride, data_offset, values.size) + values.tobytes()
+
+
+def cdr_chunk_message(header: ChunkHeader, samples: np.ndarray) -> bytes:
+    """A sample chunk (preamble, then ``samples``) serialized as its Float64MultiArray."""
+    n = samples.shape[0]
+    return cdr_float64_multiarray(SAMPLES_LABEL, n, n, PREAMBLE_LENGTH, pack(header, samples))
+
+
+def cdr_multiarray_label(data) -> str:
+    """The first layout dimension's label of a serialized MultiArray ('' without one)."""
+    mv = memoryview(data)
+    order = cdr_byte_order(mv)
+    if len(mv) < 12 or struct.unpack_from(order + "I", mv, 4)[0] < 1:
+        return ""
+    length = struct.unpack_from(order + "I", mv, 8)[0]
+    if length < 1 or 12 + length > len(mv):
+        raise ValueError("the MultiArray's label runs past its end")
+    return bytes(mv[12 : 12 + length - 1]).decode("utf-8", "replace")
+
+
+def cdr_int64_array(data) -> tuple[int, np.ndarray]:
+    """(``layout.data_offset``, values) of a serialized std_msgs/Int64MultiArray (see
+    :func:`cdr_float64_array`; the same layout, int64 data)."""
+    return _cdr_multiarray(data, "i8", np.int64)
+
+
 def cdr_float64_array(data) -> tuple[int, np.ndarray]:
     """(``layout.data_offset``, values) of a serialized std_msgs/Float64MultiArray (CDR, as a raw
     subscription or a recording holds it); the values are a read-only view (no copy for
     little-endian data). ValueError if the bytes are not a Float64MultiArray."""
+    return _cdr_multiarray(data, "f8", np.float64)
+
+
+def _cdr_multiarray(data, code: str, native) -> tuple[int, np.ndarray]:
     mv = memoryview(data)
     order = cdr_byte_order(mv)
     u32 = struct.Struct(order + "I")
@@ -327,7 +388,7 @@ def cdr_float64_array(data) -> tuple[int, np.ndarray]:
     def take(p: int) -> tuple[int, int]:
         p = 4 + ((p - 4 + 3) & ~3)  # CDR alignment is relative to the byte after the 4-byte header
         if p + 4 > len(mv):
-            raise ValueError("the Float64MultiArray ends inside its layout")
+            raise ValueError("the MultiArray ends inside its layout")
         return u32.unpack_from(mv, p)[0], p + 4
 
     ndim, pos = take(4)
@@ -340,7 +401,7 @@ def cdr_float64_array(data) -> tuple[int, np.ndarray]:
             pos = 4 + ((p + 16 - 4 + 7) & ~7)
     if offset is None:
         if ndim > 16:
-            raise ValueError(f"{ndim} layout dimensions: not a Float64MultiArray of this kind")
+            raise ValueError(f"{ndim} layout dimensions: not a MultiArray of this kind")
         for _ in range(ndim):
             length, pos = take(pos)
             pos += length
@@ -351,8 +412,8 @@ def cdr_float64_array(data) -> tuple[int, np.ndarray]:
         pos = 4 + ((pos - 4 + 7) & ~7)
     if pos + 8 * count > len(mv):
         raise ValueError(f"{count} values announced, the message holds fewer")
-    arr = np.frombuffer(mv[pos : pos + 8 * count], dtype=order + "f8")
-    return offset, (arr.astype(np.float64) if order == ">" else arr)
+    arr = np.frombuffer(mv[pos : pos + 8 * count], dtype=order + code)
+    return offset, (arr.astype(native) if order == ">" else arr)
 
 
 def cdr_chunk(data) -> tuple[ChunkHeader, np.ndarray]:

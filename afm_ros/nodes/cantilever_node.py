@@ -60,6 +60,9 @@ from afm_ros.formats.chunk_layout import (
     PREAMBLE_LENGTH,
     SAMPLES_LABEL,
     ChunkHeader,
+    cdr_chunk_message,
+    cdr_int64_array,
+    cdr_multiarray_label,
     pack,
     unpack_excitation,
     unpack_z_command,
@@ -148,13 +151,15 @@ class CantileverNode(GuardedNode):
         self._pub_force = self.create_publisher(Float64MultiArray, topics.FORCE, CHUNK_QOS)
         self._pub_clock = self.create_publisher(ClockMsg, "clock", CLOCK_QOS)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._z_sub = self.create_subscription(
-            Float64MultiArray, Z_COMMAND_TOPIC, self._on_z_command, Z_COMMAND_QOS
+        self._z_sub = topics.subscribe_values(
+            self, Z_COMMAND_TOPIC, self._on_z_command, Z_COMMAND_QOS
         )
-        self._excitation_sub = self.create_subscription(
-            Float64MultiArray, topics.EXCITATION, self._on_excitation, Z_COMMAND_QOS
+        self._excitation_sub = topics.subscribe_values(
+            self, topics.EXCITATION, self._on_excitation, Z_COMMAND_QOS
         )
-        self._ack_sub = self.create_subscription(Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS)
+        self._ack_sub = self.create_subscription(
+            Int64MultiArray, ACK_TOPIC, self._on_ack, ACK_QOS, raw=True
+        )
         self._pub_scan = self.create_publisher(String, topics.SCAN_APPLIED, LATCHED_QOS)
         self._publish_applied(self.engine.applied())
         self._plan_sub = self.create_subscription(
@@ -299,7 +304,7 @@ class CantileverNode(GuardedNode):
             self._timer.timer_period_ns = ns
 
     # --- inputs ------------------------------------------------------------------------------
-    def _on_z_command(self, msg: Float64MultiArray) -> None:
+    def _on_z_command(self, msg: topics.ArrayMessage) -> None:
         try:
             cmd = unpack_z_command(msg.data)
         except ValueError as exc:
@@ -316,7 +321,7 @@ class CantileverNode(GuardedNode):
             self.engine.gate.receive(cmd)
         self._try_step(MAX_BURST)
 
-    def _on_excitation(self, msg: Float64MultiArray) -> None:
+    def _on_excitation(self, msg: topics.ArrayMessage) -> None:
         """The PLL's drive (FM, excitation 'pll'): gated like the z command."""
         try:
             cmd = unpack_excitation(msg.data)
@@ -339,14 +344,20 @@ class CantileverNode(GuardedNode):
             self.engine.excitation_gate.receive(cmd)
         self._try_step(MAX_BURST)
 
-    def _on_ack(self, msg: Int64MultiArray) -> None:
-        if not msg.layout.dim or not msg.data:
+    def _on_ack(self, data: bytes) -> None:
+        """A consumer's acknowledgement (serialized std_msgs/Int64MultiArray: its name as the
+        label, the next index it waits for)."""
+        try:
+            name = cdr_multiarray_label(data)
+            _, values = cdr_int64_array(data)
+        except ValueError:
             return
-        name = msg.layout.dim[0].label
+        if not name or not values.size:
+            return
         window = self.engine.window
         with self.engine.step_lock:
             before = window.acks.get(name)
-            new = window.receive(name, int(msg.data[0]), self.engine.starts.next_index)
+            new = window.receive(name, int(values[0]), self.engine.starts.next_index)
             if new or window.acks.get(name) != before:
                 self._consumer_progress[name] = time.monotonic()
         if before is not None and name not in window.acks:
@@ -502,9 +513,9 @@ class CantileverNode(GuardedNode):
             self._publish_diagnostics(time.monotonic(), force=True)
             return
         if chunk.header is not None:
-            self._pub_deflection.publish(chunk_message(chunk.header, chunk.deflection))
+            self._pub_deflection.publish(cdr_chunk_message(chunk.header, chunk.deflection))
             if self._pub_force.get_subscription_count():
-                self._pub_force.publish(chunk_message(chunk.header, chunk.force))
+                self._pub_force.publish(cdr_chunk_message(chunk.header, chunk.force))
         if chunk.truth is not None:
             self._truth_msg.data = chunk.truth
             self._pub_truth.publish(self._truth_msg)

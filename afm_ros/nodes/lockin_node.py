@@ -16,7 +16,6 @@ Hz) and in throttled warnings.
 
 from __future__ import annotations
 
-import array
 import json
 import math
 import sys
@@ -28,7 +27,7 @@ from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from std_msgs.msg import Float64, Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from afm_ros.core import refusals
@@ -121,7 +120,7 @@ class LockInNode(GuardedNode):
         self._events_logged_until = -math.inf
         self._events_suppressed = 0
         self._ack = topics.Acknowledger(self)
-        self.create_subscription(Float64MultiArray, topics.DEFLECTION, self._on_chunk, CHUNK_QOS)
+        topics.subscribe_values(self, topics.DEFLECTION, self._on_chunk, CHUNK_QOS)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
         self.get_logger().info(
@@ -303,11 +302,11 @@ class LockInNode(GuardedNode):
         self._events_suppressed = len(events) - 1
         self._events_logged_until = now + WARNING_PERIOD_S
 
-    def _on_chunk(self, msg: Float64MultiArray) -> None:
+    def _on_chunk(self, msg: topics.ArrayMessage) -> None:
         try:
-            if msg.layout.data_offset != chunk_layout.PREAMBLE_LENGTH:
+            if msg.data_offset != chunk_layout.PREAMBLE_LENGTH:
                 raise ValueError(
-                    f"layout.data_offset={msg.layout.data_offset}, expected "
+                    f"layout.data_offset={msg.data_offset}, expected "
                     f"{chunk_layout.PREAMBLE_LENGTH} (afm_ros chunk layout)"
                 )
             header, samples = chunk_layout.unpack(msg.data)
@@ -327,26 +326,26 @@ class LockInNode(GuardedNode):
         self._input_end_time = header.t_start + samples.shape[0] * header.sample_interval
         if tune_step is not None:
             self._finish_tune(tune_step)
-        batch = Float64MultiArray()
         n = len(out)
-        batch.layout.dim = [
-            MultiArrayDimension(label=chunk_layout.OUTPUTS_LABEL, size=n, stride=3 * n)
-        ]
-        batch.layout.data_offset = chunk_layout.OUTPUTS_PREAMBLE_LENGTH
-        batch.data = array.array(
-            "d",
-            chunk_layout.pack_outputs(
-                chunk_layout.OutputBatch(
-                    header.first_sample_index,
-                    end,
-                    header.t_start + samples.shape[0] * header.sample_interval,
-                    out.t,
-                    out.x,
-                    out.y,
-                )
-            ).tobytes(),
+        packed = chunk_layout.pack_outputs(
+            chunk_layout.OutputBatch(
+                header.first_sample_index,
+                end,
+                header.t_start + samples.shape[0] * header.sample_interval,
+                out.t,
+                out.x,
+                out.y,
+            )
         )
-        self.pub_batch.publish(batch)
+        self.pub_batch.publish(  # serialized with numpy: no message object per chunk
+            chunk_layout.cdr_float64_multiarray(
+                chunk_layout.OUTPUTS_LABEL,
+                n,
+                3 * n,
+                chunk_layout.OUTPUTS_PREAMBLE_LENGTH,
+                packed,
+            )
+        )
         # the per-output copies of the batch cost ~10 us per message: published while subscribed
         want_amp = self.pub_amplitude.get_subscription_count() > 0
         want_phase = self.pub_phase.get_subscription_count() > 0

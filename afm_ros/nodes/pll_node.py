@@ -19,13 +19,12 @@ and, per output while someone subscribes, ``pll/frequency_shift`` (std_msgs/Floa
 
 from __future__ import annotations
 
-import array
 import sys
 import threading
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64, Float64MultiArray
 
 from afm_ros.core.fm import FM_SPECS, OscillationController, validate
 from afm_ros.formats import chunk_layout
@@ -62,9 +61,7 @@ class PllNode(GuardedNode):
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.answered_end_index = 0
         self.stale_batches = 0
-        self.create_subscription(
-            Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS
-        )
+        topics.subscribe_values(self, topics.LOCKIN_OUTPUTS, self._on_batch, topics.CONSUMER_QOS)
         self._send_excitation(0, 0.0)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
@@ -89,18 +86,21 @@ class PllNode(GuardedNode):
         self.get_logger().info("PLL parameters changed: %s" % changed)
 
     def _send_excitation(self, index: int, t: float) -> None:
-        msg = Float64MultiArray()
-        msg.layout.dim = [
-            MultiArrayDimension(label=chunk_layout.EXCITATION_LABEL, size=4, stride=4)
-        ]
-        msg.data = chunk_layout.pack_excitation(
-            chunk_layout.ExcitationCommand(
-                int(index), float(t), float(self.loop.frequency), float(self.loop.drive)
+        self.pub_excitation.publish(
+            chunk_layout.cdr_float64_multiarray(
+                chunk_layout.EXCITATION_LABEL,
+                4,
+                4,
+                0,
+                chunk_layout.pack_excitation(
+                    chunk_layout.ExcitationCommand(
+                        int(index), float(t), float(self.loop.frequency), float(self.loop.drive)
+                    )
+                ),
             )
-        ).tolist()
-        self.pub_excitation.publish(msg)
+        )
 
-    def _on_batch(self, msg: Float64MultiArray) -> None:
+    def _on_batch(self, msg: topics.ArrayMessage) -> None:
         try:
             batch = chunk_layout.unpack_outputs(msg.data)
         except ValueError as exc:
@@ -126,17 +126,15 @@ class PllNode(GuardedNode):
             out.amplitude,
         )
         n = out.t.shape[0]
-        m = Float64MultiArray()
-        m.layout.dim = [
-            MultiArrayDimension(
-                label=chunk_layout.FM_OUTPUTS_LABEL,
-                size=n,
-                stride=len(chunk_layout.FM_OUTPUT_BLOCKS) * n,
+        self.pub_outputs.publish(
+            chunk_layout.cdr_float64_multiarray(
+                chunk_layout.FM_OUTPUTS_LABEL,
+                n,
+                len(chunk_layout.FM_OUTPUT_BLOCKS) * n,
+                chunk_layout.OUTPUTS_PREAMBLE_LENGTH,
+                chunk_layout.pack_fm_outputs(fm),
             )
-        ]
-        m.layout.data_offset = chunk_layout.OUTPUTS_PREAMBLE_LENGTH
-        m.data = array.array("d", chunk_layout.pack_fm_outputs(fm).tobytes())
-        self.pub_outputs.publish(m)
+        )
         for name, values in (
             ("frequency_shift", out.df),
             ("phase_error", out.phase_error),

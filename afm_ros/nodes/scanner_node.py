@@ -36,7 +36,7 @@ from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import qos_profile_parameter_events
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from afm_ros.core import refusals
@@ -120,15 +120,9 @@ class ScannerNode(GuardedNode):
         self.published_copies = {pub: 0 for pub in self._pub_images.values()}
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._ack = topics.Acknowledger(self)
-        self.create_subscription(
-            Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS
-        )
-        self.create_subscription(
-            Float64MultiArray, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS
-        )
-        self.create_subscription(
-            Float64MultiArray, topics.PLL_OUTPUTS, self._on_fm, topics.CONSUMER_QOS
-        )
+        topics.subscribe_values(self, topics.LOCKIN_OUTPUTS, self._on_outputs, topics.CONSUMER_QOS)
+        topics.subscribe_values(self, topics.Z_TRACE, self._on_trace, topics.CONSUMER_QOS)
+        topics.subscribe_values(self, topics.PLL_OUTPUTS, self._on_fm, topics.CONSUMER_QOS)
         self.create_subscription(String, topics.SCAN_APPLIED, self._on_applied, topics.LATCHED_QOS)
         self.z_stage: dict | None = (
             None  # the z controller's latest z_controller/stage (None: not heard)
@@ -580,13 +574,13 @@ class ScannerNode(GuardedNode):
         self._pub_geometry.publish(String(data=json.dumps(geometry)))
 
     # --- data ------------------------------------------------------------------------------------
-    def _on_outputs(self, msg: Float64MultiArray) -> None:
+    def _on_outputs(self, msg: topics.ArrayMessage) -> None:
         self._consume("outputs", msg.data)
 
-    def _on_trace(self, msg: Float64MultiArray) -> None:
+    def _on_trace(self, msg: topics.ArrayMessage) -> None:
         self._consume("trace", msg.data)
 
-    def _on_fm(self, msg: Float64MultiArray) -> None:
+    def _on_fm(self, msg: topics.ArrayMessage) -> None:
         self._consume("fm", msg.data)
 
     @property

@@ -10,15 +10,25 @@ never drops a message the Python side has not taken yet) and acknowledge what th
 from __future__ import annotations
 
 import fnmatch
+import struct
 import threading
+from typing import NamedTuple
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Int64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
 from afm_ros.core.plan_layout import TRUTH_KEYS
-from afm_ros.formats.chunk_layout import ACK_LEAVING, ACK_READY
+from afm_ros.formats.chunk_layout import (
+    ACK_LEAVING,
+    ACK_READY,
+    cdr_float64_array,
+    cdr_int64_multiarray,
+)
+
+_INT64 = struct.Struct("<q")
 
 DEFLECTION = "cantilever/deflection"
 FORCE = "cantilever/tip_sample_force"
@@ -137,10 +147,9 @@ class Acknowledger:
         cantilever is at; 0: the cantilever holds until the consumer has caught up from its
         history)."""
         self._pub = node.create_publisher(Int64MultiArray, topic, ACK_PUB_QOS)
-        self._msg = Int64MultiArray()
-        self._msg.layout.dim = [
-            MultiArrayDimension(label=node.get_fully_qualified_name(), size=1, stride=1)
-        ]
+        # the message serialized once but for its value (published raw: no message object per
+        # chunk); the value is the last 8 bytes
+        self._head = cdr_int64_multiarray(node.get_fully_qualified_name(), 1, 1, 0, [0])[:-8]
         self._lock = threading.Lock()
         self.left = False
         self.next_index = first_index
@@ -152,8 +161,7 @@ class Acknowledger:
             if self.left:
                 return
             self.next_index = int(next_index)
-            self._msg.data = [self.next_index]
-            self._pub.publish(self._msg)
+            self._pub.publish(self._head + _INT64.pack(self.next_index))
 
     def leave(self) -> None:
         """Stop being waited for (closing, or the consumer's output failed); final."""
@@ -161,11 +169,38 @@ class Acknowledger:
             if self.left:
                 return
             self.left = True
-            self._msg.data = [ACK_LEAVING]
             try:
-                self._pub.publish(self._msg)
+                self._pub.publish(self._head + _INT64.pack(ACK_LEAVING))
             except Exception:  # noqa: BLE001 - the context may already be gone at shutdown
                 pass
+
+
+class ArrayMessage(NamedTuple):
+    """A std_msgs/Float64MultiArray as :func:`subscribe_values` hands it over: ``data`` the values
+    (a read-only float64 array over the received bytes) and the layout's ``data_offset``."""
+
+    data: np.ndarray
+    data_offset: int
+
+
+def subscribe_values(node, topic: str, callback, qos, what: str = ""):
+    """Subscribe the Float64MultiArray ``topic`` serialized (``raw=True``): ``callback`` gets an
+    :class:`ArrayMessage` read from the bytes with numpy, no message object per message (the
+    loop's topics carry one per chunk). A message that is not a Float64MultiArray is dropped
+    with a warning (at most one per 5 s)."""
+
+    def take(data: bytes) -> None:
+        try:
+            offset, values = cdr_float64_array(data)
+        except ValueError as exc:
+            node.get_logger().warning(
+                f"ignoring a malformed message on {what or topic}: {exc}",
+                throttle_duration_sec=5.0,
+            )
+            return
+        callback(ArrayMessage(values, offset))
+
+    return node.create_subscription(Float64MultiArray, topic, take, qos, raw=True)
 
 
 def fqn(namespace: str, name: str) -> str:

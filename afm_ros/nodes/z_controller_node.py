@@ -137,21 +137,13 @@ class ZControllerNode(GuardedNode):
             Float64MultiArray, topics.Z_TRACE, topics.HISTORY_QOS
         )
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._command = Float64MultiArray()
-        self._command.layout.dim = [
-            MultiArrayDimension(label=chunk_layout.Z_COMMAND_LABEL, size=3, stride=3)
-        ]
         self.answered_end_index = 0  # end index of the last deflection chunk answered
         self.lost_batches = 0  # input chunks whose outputs never arrived (index gaps)
         self.lost_samples = 0
         # batches of chunks already answered (e.g. a restarted lock-in's history)
         self.stale_batches = 0
-        self.create_subscription(
-            Float64MultiArray, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS
-        )
-        self.create_subscription(
-            Float64MultiArray, topics.PLL_OUTPUTS, self._on_fm_batch, INPUT_QOS
-        )
+        topics.subscribe_values(self, topics.LOCKIN_OUTPUTS, self._on_batch, INPUT_QOS)
+        topics.subscribe_values(self, topics.PLL_OUTPUTS, self._on_fm_batch, INPUT_QOS)
         self.pub_stage = self.create_publisher(String, topics.Z_STAGE, topics.LATCHED_QOS)
         self.create_subscription(
             String, topics.SCAN_APPLIED, self._on_cantilever, topics.LATCHED_QOS
@@ -537,10 +529,19 @@ class ZControllerNode(GuardedNode):
 
     def _send_command(self, answered_end_index: int, answered_end_time: float) -> None:
         z = self.controller.z if self.stage is None else self.stage.command
-        self._command.data = chunk_layout.pack_z_command(
-            chunk_layout.ZCommand(int(answered_end_index), float(answered_end_time), float(z))
-        ).tolist()
-        self.pub_command.publish(self._command)
+        self.pub_command.publish(
+            chunk_layout.cdr_float64_multiarray(
+                chunk_layout.Z_COMMAND_LABEL,
+                3,
+                3,
+                0,
+                chunk_layout.pack_z_command(
+                    chunk_layout.ZCommand(
+                        int(answered_end_index), float(answered_end_time), float(z)
+                    )
+                ),
+            )
+        )
 
     def _apply(self, changed: dict) -> None:
         approach = {k: v for k, v in changed.items() if k in APPROACH_SPECS}
@@ -573,7 +574,7 @@ class ZControllerNode(GuardedNode):
                 -1, 0.0 if self.controller.t_last is None else self.controller.t_last
             )
 
-    def _on_batch(self, msg: Float64MultiArray) -> None:
+    def _on_batch(self, msg: topics.ArrayMessage) -> None:
         """A lock-in batch: the loop's input unless it regulates the frequency shift (FM)."""
         if self.controller.fm:
             return
@@ -597,7 +598,7 @@ class ZControllerNode(GuardedNode):
             [phase_deg(x, y) for x, y in zip(xs, ys)],
         )
 
-    def _on_fm_batch(self, msg: Float64MultiArray) -> None:
+    def _on_fm_batch(self, msg: topics.ArrayMessage) -> None:
         """A PLL batch (pll/outputs): the loop's input when it regulates the frequency shift
         (FM)."""
         if not self.controller.fm:
@@ -677,20 +678,23 @@ class ZControllerNode(GuardedNode):
                 self._batches_since_done += 1
                 self._finish_spectroscopy()
             self._report_stage()
-        trace = Float64MultiArray()
-        trace.layout.dim = [
-            MultiArrayDimension(label=chunk_layout.Z_TRACE_LABEL, size=n, stride=3 * n)
-        ]
-        trace.layout.data_offset = chunk_layout.Z_TRACE_PREAMBLE_LENGTH
-        trace.data = array.array(
-            "d",
-            chunk_layout.pack_z_trace(
-                chunk_layout.ZTrace(
-                    input_end_index, input_end_time, np.asarray(t, dtype=np.float64), zs, errors
-                )
-            ).tobytes(),
+        self.pub_trace.publish(
+            chunk_layout.cdr_float64_multiarray(
+                chunk_layout.Z_TRACE_LABEL,
+                n,
+                3 * n,
+                chunk_layout.Z_TRACE_PREAMBLE_LENGTH,
+                chunk_layout.pack_z_trace(
+                    chunk_layout.ZTrace(
+                        input_end_index,
+                        input_end_time,
+                        np.asarray(t, dtype=np.float64),
+                        zs,
+                        errors,
+                    )
+                ),
+            )
         )
-        self.pub_trace.publish(trace)
 
     def _publish_diagnostics(self) -> None:
         c = self.controller

@@ -35,7 +35,6 @@ import time
 from collections import deque
 
 import numpy as np
-from std_msgs.msg import Float64MultiArray
 
 from afm_ros.core.fm import dissipation_from_drive
 from afm_ros.core.image_analysis import fm_material_contrast
@@ -91,11 +90,9 @@ class FmMonitor(GuardedNode):
         # [s] simulated: > 0 keeps the batches of that last span (interactive)
         self.recent_span = 0.0
         self.recent: deque = deque()
-        self.create_subscription(
-            Float64MultiArray, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS
-        )
+        topics.subscribe_values(self, topics.PLL_OUTPUTS, self._on_batch, topics.HISTORY_QOS)
 
-    def _on_batch(self, msg: Float64MultiArray) -> None:
+    def _on_batch(self, msg: topics.ArrayMessage) -> None:
         out = chunk_layout.unpack_fm_outputs(msg.data)
         for w in self.windows:
             w.add(out.t, out.df, out.drive, out.amplitude, out.phase_error)
