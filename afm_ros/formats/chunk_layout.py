@@ -380,8 +380,22 @@ def cdr_float64_array(data) -> tuple[int, np.ndarray]:
     return _cdr_multiarray(data, "f8", np.float64)
 
 
+_LE_U32 = struct.Struct("<II")  # little-endian: dimensions, then the first label's length
+_LE_DIM = struct.Struct("<IIII")  # size, stride, data_offset, count
+
+
 def _cdr_multiarray(data, code: str, native) -> tuple[int, np.ndarray]:
     mv = memoryview(data)
+    if len(mv) >= 12 and mv[0] == 0 and mv[1] == 1:  # little-endian, the loop's own messages
+        ndim, length = _LE_U32.unpack_from(mv, 4)
+        if ndim == 1:  # one dimension: read in one go
+            p = 4 + ((12 + length - 4 + 3) & ~3)
+            if p + 16 <= len(mv):
+                _, _, offset, count = _LE_DIM.unpack_from(mv, p)
+                pos = 4 + ((p + 16 - 4 + 7) & ~7)
+                if pos + 8 * count > len(mv):
+                    raise ValueError(f"{count} values announced, the message holds fewer")
+                return offset, np.frombuffer(mv, dtype="<" + code, count=count, offset=pos)
     order = cdr_byte_order(mv)
     u32 = struct.Struct(order + "I")
 
@@ -392,24 +406,16 @@ def _cdr_multiarray(data, code: str, native) -> tuple[int, np.ndarray]:
         return u32.unpack_from(mv, p)[0], p + 4
 
     ndim, pos = take(4)
-    offset = count = None
-    if ndim == 1 and len(mv) >= 12:  # the usual layout: one dimension, read in one go
-        length = u32.unpack_from(mv, 8)[0]
-        p = 4 + ((12 + length - 4 + 3) & ~3)
-        if p + 16 <= len(mv):
-            _, _, offset, count = struct.unpack_from(order + "IIII", mv, p)
-            pos = 4 + ((p + 16 - 4 + 7) & ~7)
-    if offset is None:
-        if ndim > 16:
-            raise ValueError(f"{ndim} layout dimensions: not a MultiArray of this kind")
-        for _ in range(ndim):
-            length, pos = take(pos)
-            pos += length
-            _, pos = take(pos)
-            _, pos = take(pos)
-        offset, pos = take(pos)
-        count, pos = take(pos)
-        pos = 4 + ((pos - 4 + 7) & ~7)
+    if ndim > 16:
+        raise ValueError(f"{ndim} layout dimensions: not a MultiArray of this kind")
+    for _ in range(ndim):
+        length, pos = take(pos)
+        pos += length
+        _, pos = take(pos)
+        _, pos = take(pos)
+    offset, pos = take(pos)
+    count, pos = take(pos)
+    pos = 4 + ((pos - 4 + 7) & ~7)
     if pos + 8 * count > len(mv):
         raise ValueError(f"{count} values announced, the message holds fewer")
     arr = np.frombuffer(mv[pos : pos + 8 * count], dtype=order + code)
