@@ -177,7 +177,7 @@ class Acknowledger:
 
 class ArrayMessage(NamedTuple):
     """A std_msgs/Float64MultiArray as :func:`subscribe_values` hands it over: ``data`` the values
-    (a read-only float64 array over the received bytes) and the layout's ``data_offset``."""
+    (a writable float64 array of their own) and the layout's ``data_offset``."""
 
     data: np.ndarray
     data_offset: int
@@ -198,7 +198,9 @@ def subscribe_values(node, topic: str, callback, qos, what: str = ""):
                 throttle_duration_sec=5.0,
             )
             return
-        callback(ArrayMessage(values, offset))
+        # A copy (a few microseconds for a chunk): a read-only view over the message's bytes is
+        # another numba type, and each kernel it reached would compile a second signature.
+        callback(ArrayMessage(values.copy(), offset))
 
     return node.create_subscription(Float64MultiArray, topic, take, qos, raw=True)
 
