@@ -10,10 +10,14 @@ real-time factor is the simulated hold time over the wall time it took. Layouts:
 
 - ``one``: cantilever, lock-in and z controller in one process on one EventsExecutor, as
   ``afm_instrument --no-record`` (the job's monitor in the same process);
-- ``one+recorder``: the same plus the recorder (zstd, file in a temp dir), as ``afm_instrument``;
+- ``one+recorder``: the same plus the recorder (zstd, file in a temp dir) at the main job's default
+  recording (``afm_instrument``: the batches, state and images, not the raw 900 kS/s streams);
+- ``one+raw``: the same recording everything (``afm_instrument --record-raw``);
 - ``three``: ``cantilever_node``, ``lockin_node`` and ``z_controller_node`` as three processes (the
   ``ros2 run`` layout; DDS over the loopback), the job attached from this process;
-- ``three+recorder``: the same plus ``recorder_node`` as a fourth process.
+- ``three+recorder``: the same plus ``recorder_node`` as a fourth process, at the main job's
+  default recording (``-p exclude:=...``); ``three+raw``: recording everything (the recorder
+  node's own default).
 
 Runs are interleaved (repeat 1 of every layout, then repeat 2, ...) so a busy moment of the
 machine does not hit one layout only. Reported per run: real-time factor, CPU seconds per
@@ -38,9 +42,10 @@ from pathlib import Path
 import rclpy
 
 from afm_ros.nodes.node_main import spin_for
+from afm_ros.tools.afm_instrument import RAW_EXCLUDE
 from afm_ros.tools.instrument_job import start_instrument
 
-LAYOUTS = ("one", "one+recorder", "three", "three+recorder")
+LAYOUTS = ("one", "one+recorder", "one+raw", "three", "three+recorder", "three+raw")
 
 
 def _cpu_of(pid: int) -> float:
@@ -60,7 +65,14 @@ def _executable(name: str) -> str:
     return str(exe) if exe.exists() else name
 
 
-def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: float = 0.0) -> dict:
+def _recorder_overrides(record: str | None) -> dict | None:
+    """The recorder's parameters for ``record`` (None: no recorder, 'default', 'raw')."""
+    return {"exclude": RAW_EXCLUDE} if record == "default" else {}
+
+
+def run_one_process(
+    tmp: Path, hold: float, record: str | None, latency: int, rtf: float = 0.0
+) -> dict:
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "OFF"
     ctx = rclpy.Context()
@@ -69,7 +81,12 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
     os.chdir(tmp)
     inst = None
     try:
-        inst = start_instrument(context=ctx, namespace="/bench_one", record=record)
+        inst = start_instrument(
+            context=ctx,
+            namespace="/bench_one",
+            record=record is not None,
+            recorder_overrides=_recorder_overrides(record),
+        )
         inst.set("cantilever", real_time_factor=rtf, feedback_latency=latency)
         cpu0 = _self_cpu()
         summary = inst.run_job(duration=hold, free_time=0.03, setpoint_ratio=None)
@@ -93,7 +110,7 @@ def run_one_process(tmp: Path, hold: float, record: bool, latency: int, rtf: flo
 
 
 def run_processes(
-    tmp: Path, hold: float, record: bool, latency: int, domain: int, rtf: float = 0.0
+    tmp: Path, hold: float, record: str | None, latency: int, domain: int, rtf: float = 0.0
 ) -> dict:
 
     ns = f"/bench_three_{os.getpid()}"
@@ -124,6 +141,8 @@ def run_processes(
             "-p",
             f"output:={tmp / f'three_{time.time_ns()}.mcap'}",
         ]
+        if record == "default":
+            cmds["recorder"] += ["-p", f"exclude:={RAW_EXCLUDE}"]
     procs = {
         k: subprocess.Popen(c, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         for k, c in cmds.items()
@@ -222,7 +241,7 @@ def main(argv=None) -> int:
         for rep in range(args.repeats):
             for latency in latencies:
                 for layout in layouts:
-                    record = layout.endswith("+recorder")
+                    record = {"recorder": "default", "raw": "raw"}.get(layout.partition("+")[2])
                     if layout.startswith("one"):
                         r = run_one_process(tmp, args.hold, record, latency)
                     else:
@@ -242,7 +261,7 @@ def main(argv=None) -> int:
                 "median": rates[len(rates) // 2],
             }
         if args.paced_hold > 0:
-            r = run_processes(tmp, args.paced_hold, True, latencies[0], domain, rtf=1.0)
+            r = run_processes(tmp, args.paced_hold, "default", latencies[0], domain, rtf=1.0)
             out["paced_three+recorder_real_time_factor_1"] = r
         out["load_average_at_end"] = os.getloadavg()
     print(json.dumps(out, indent=2))

@@ -397,14 +397,18 @@ class NodesBackend:
                 f"waiting for the per-output publishers to match {name}",
             )
             return
+
+        def recording_all() -> bool:
+            v = self.monitor.diagnostic_values(name, "recording")
+            excluded = [p for p in v.get("exclude", "").split(",") if p]
+            return {t for t in wanted if not matches(t, excluded)} <= set(
+                v.get("topics", "").split(",")
+            )
+
         self.spin_until(
-            lambda: (
-                wanted
-                <= set(
-                    self.monitor.diagnostic_values(name, "recording").get("topics", "").split(",")
-                )
-            ),
-            f"waiting for {name} to subscribe to {sorted(wanted)} (its diagnostics)",
+            recording_all,
+            f"waiting for {name} to subscribe to {sorted(wanted)} but what it excludes "
+            "(its diagnostics)",
         )
 
     def _copy_publishers(self) -> list[tuple]:

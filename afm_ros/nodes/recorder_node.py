@@ -572,6 +572,7 @@ class RecorderNode(GuardedNode):
             values=[
                 KeyValue(key="file", value=self.output_path),
                 KeyValue(key="topics", value=",".join(self.topics)),
+                KeyValue(key="exclude", value=",".join(self.exclude)),
                 KeyValue(key="messages", value=str(self.writer.message_count)),
                 KeyValue(key="lost_samples", value=str(lost)),
                 KeyValue(key="bytes_written", value=str(self.writer.bytes_written)),
