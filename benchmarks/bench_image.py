@@ -8,7 +8,9 @@ benchmark scans ``--lines`` lines (default 16) of 128-pixel lines at 1 Hz and re
 factor over the scan (from the scan request to the frame's last line) and the samples lost:
 ``scan_real_time_factor`` over the whole scan phase (request to last line, including the job's
 pause, start and polling), ``sustained_real_time_factor`` between the first and the last line
-closed (what the loop sustains). Runs with and without the recorder alternate (``--repeat`` times)
+closed (what the loop sustains); over the whole job (tune, approach, scan, withdraw)
+``job_real_time_factor`` and ``job_cpu_s_per_simulated_s`` (the process's CPU seconds, all
+threads, per simulated second). Runs with and without the recorder alternate (``--repeat`` times)
 in one process each, so they see the same machine state. ``python -m benchmarks.bench_image``.
 """
 
@@ -20,6 +22,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 
 import rclpy
 
@@ -49,7 +52,9 @@ def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float)
         recorder_overrides={"exclude": RAW_EXCLUDE},
     )
     try:
+        cpu0, wall0 = time.process_time(), time.monotonic()
         summary = inst.run_image_job(0.05, 0.03, None, predict=False)
+        cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
         rec = summary.recording or {}
         return {
             "record": record,
@@ -58,6 +63,8 @@ def one_run(record: bool, rtf: float, lines: int, pixels: int, line_rate: float)
             "sustained_real_time_factor": summary.image["line_real_time_factor"],
             "scan_wall_s": summary.image["scan_wall_s"],
             "simulated_scan_s": summary.image["frame_time_s"],
+            "job_real_time_factor": summary.simulated_time_s / wall,
+            "job_cpu_s_per_simulated_s": cpu / summary.simulated_time_s,
             "lost_samples": summary.lost_samples,
             "recording_lost_samples": rec.get("lost_samples"),
             "recording_complete": rec.get("complete"),

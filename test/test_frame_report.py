@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-from afm_ros.tools.frame_report import NOT_SETTLED, frame_lines
+from afm_ros.tools.frame_report import NOT_SETTLED, frame_lines, phase_contrasts
 from afm_ros.tools.instrument_summary import Summary
 
 ARGS = [
@@ -83,3 +83,20 @@ def test_an_unsettled_frame_is_marked_in_both_summaries(tmp_path):
     assert all(line in text for line in frame_lines(report))
     instrument_lines = [line for line in text.splitlines() if line.startswith(MEASURED)]
     assert instrument_lines == study_lines
+
+
+def test_a_material_missing_from_one_direction_gives_the_contrast_of_the_other():
+    """A frame of a few lines over the blend, or a retrace shifted by hysteresis, can leave one
+    material without kept pixels in one direction (bench_image's 8-line frame raised KeyError
+    'ldpe' after the scan): the contrast is given where both materials are, and left out where
+    neither direction has both."""
+    phase = {"trace": {"ps": 80.0, "ldpe": 83.5}, "retrace": {"ps": 80.25}}
+    pred = {"ps": {"phase_deg": 79.0}, "ldpe": {"phase_deg": 82.0}}
+    c = phase_contrasts(phase, ["ps", "ldpe"], ["ps", "ldpe"], pred)
+    assert c == {"ldpe - ps": {"trace": 3.5, "predicted": 3.0}}
+    assert (
+        phase_contrasts(
+            {"trace": {"ps": 1.0}, "retrace": {"ldpe": 2.0}}, ["ps", "ldpe"], ["ps", "ldpe"], {}
+        )
+        == {}
+    )

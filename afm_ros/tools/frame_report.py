@@ -176,6 +176,29 @@ def _height_slope(frame) -> list[float] | None:
     return [gx / frame.plan.pixel_size, gy / frame.plan.line_pitch]
 
 
+def phase_contrasts(phase: dict, present: list, names: list, pred: dict) -> dict:
+    """Phase contrast [deg] of each present material against the reference (the sample's first
+    material if present), per direction from the per-direction medians ``phase[d][material]``; a
+    direction whose kept pixels miss one of the two (a few lines, wide edges, the retrace shifted
+    by hysteresis) has none, a pair with none in either direction is left out."""
+    contrast: dict = {}
+    if len(present) < 2:
+        return contrast
+    ref = present[0] if names[0] not in present else names[0]
+    for other in (m for m in present if m != ref):
+        c = {
+            d: phase[d][other] - phase[d][ref]
+            for d in DIRECTIONS
+            if other in phase[d] and ref in phase[d]
+        }
+        if not c:
+            continue
+        if other in pred and ref in pred:
+            c["predicted"] = float(pred[other]["phase_deg"] - pred[ref]["phase_deg"])
+        contrast[f"{other} - {ref}"] = c
+    return contrast
+
+
 def analyse_frame(
     frame,
     sample,
@@ -299,16 +322,7 @@ def analyse_frame(
     sensitivity = math.degrees(
         1.0 / (numbers["free_amplitude_m"] * math.sqrt(max(1.0 - ratio**2, 1e-12)))
     )
-    contrast: dict = {}
-    if len(present) >= 2:
-        ref = present[0] if names[0] not in present else names[0]
-        for other in (m for m in present if m != ref):
-            key = f"{other} - {ref}"
-            contrast[key] = {d: phase[d][other] - phase[d][ref] for d in DIRECTIONS}
-            if other in pred and ref in pred:
-                contrast[key]["predicted"] = float(
-                    pred[other]["phase_deg"] - pred[ref]["phase_deg"]
-                )
+    contrast = phase_contrasts(phase, present, names, pred)
     return clean(
         {
             "feedback": numbers,
@@ -396,10 +410,8 @@ def frame_lines(s: dict) -> list[str]:
             if c.get("predicted") is not None
             else ""
         )
-        lines.append(
-            f"  phase contrast       {key}: {c['trace']:.3f} deg (trace), "
-            f"{c['retrace']:.3f} deg (retrace){pred}{caveat}"
-        )
+        measured = ", ".join(f"{c[d]:.3f} deg ({d})" for d in DIRECTIONS if d in c)
+        lines.append(f"  phase contrast       {key}: {measured}{pred}{caveat}")
     ds = s["dissipation_J"]["trace"]
     if ds:
         lines.append(
