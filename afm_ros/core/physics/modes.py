@@ -1,0 +1,274 @@
+"""A cantilever of N flexural eigenmodes (docs/bimodal.md, section 1).
+
+Mode i = 1..N is an oscillator of its own, coupled to the others only through the tip-sample
+force at the tip, which sees the summed deflection (Lozano and Garcia, PRL 100, 076102 (2008)):
+
+    m_i z_i'' + (m_i w_i / Q_i) z_i' + k_i z_i = F_i(t) + F_ts(z_base + sum_j z_j, sum_j z_j'),
+
+m_i = k_i / w_i^2. Drives are sinusoids, each on one mode (its projection on the others is
+negligible: docs/bimodal.md 1.1 (c)). Defaults from the clamped-free rectangular beam with the tip
+at the free end: w_n / w_1 = (b_n / b_1)^2, k_n = k_1 (b_n / b_1)^4 (k_2 = 39.27 k_1), Q_n =
+Q_1 (w_n / w_1)^p (p = 1 for uniform viscous damping). SI units throughout.
+
+:func:`advance_modes` integrates the modes with classic RK4 at a fixed step, with the energies of
+each mode (the drive's work, the damping loss, the tip-sample force's work) integrated with the
+same stages, so each mode's balance can be checked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from afm_ros.core.physics.forces import tip_sample_force
+from afm_ros.core.physics.parameters import Cantilever
+
+MAX_MODES = 8
+Q_SCALING_EXPONENTS = (0.0, 0.5, 1.0)  # Q_n / Q_1 = (w_n / w_1)^p: constant, Sader-like, viscous
+
+
+def clamped_free_eigenvalues(n: int) -> np.ndarray:
+    """The first ``n`` roots b_k L of cos(x) cosh(x) + 1 = 0 (clamped-free beam), by bisection
+    inside ((2k-1) pi/2 - 0.5, (2k-1) pi/2 + 0.5), to machine precision."""
+    if not 1 <= n <= MAX_MODES:
+        raise ValueError(f"modes={n!r}: must be within 1-{MAX_MODES}")
+
+    def f(x: float) -> float:  # cos x cosh x + 1, scaled by 1/cosh x (no overflow)
+        return math.cos(x) + 1.0 / math.cosh(x)
+
+    roots = []
+    for k in range(1, n + 1):
+        lo, hi = (2 * k - 1) * math.pi / 2 - 0.5, (2 * k - 1) * math.pi / 2 + 0.5
+        flo = f(lo)
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            fm = f(mid)
+            if fm == 0.0 or hi - lo <= 4e-16 * mid:
+                break
+            if (fm > 0.0) == (flo > 0.0):
+                lo, flo = mid, fm
+            else:
+                hi = mid
+        roots.append(0.5 * (lo + hi))
+    return np.array(roots)
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One eigenmode: free frequency [Hz], modal stiffness at the tip [N/m], quality factor [1]."""
+
+    resonance_frequency: float
+    spring_constant: float
+    quality_factor: float
+
+    def __post_init__(self):
+        for name, low in (
+            ("resonance_frequency", 0.0),
+            ("spring_constant", 0.0),
+            ("quality_factor", 0.5),
+        ):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > low):
+                raise ValueError(f"mode {name}={value!r}: must be > {low:g} and finite (SI units)")
+            object.__setattr__(self, name, value)
+
+    @property
+    def omega(self) -> float:
+        """Angular frequency w_i [rad/s]."""
+        return 2.0 * math.pi * self.resonance_frequency
+
+    @property
+    def mass(self) -> float:
+        """Modal mass m_i = k_i / w_i^2 [kg]."""
+        return self.spring_constant / self.omega**2
+
+    @property
+    def damping(self) -> float:
+        """Modal damping c_i = m_i w_i / Q_i [kg/s]."""
+        return self.mass * self.omega / self.quality_factor
+
+    def as_cantilever(self) -> Cantilever:
+        """The point-mass cantilever of this mode alone (within the point mass's ranges)."""
+        return Cantilever(self.spring_constant, self.resonance_frequency, self.quality_factor)
+
+
+def rectangular_modes(cantilever: Cantilever, n: int = 2, q_exponent: float = 1.0) -> list[Mode]:
+    """The first ``n`` modes of a rectangular beam whose first mode is ``cantilever``: frequencies
+    and tip stiffnesses from the clamped-free eigenvalues, Q_n = Q_1 (w_n / w_1)^q_exponent."""
+    if q_exponent not in Q_SCALING_EXPONENTS:
+        raise ValueError(
+            f"q_exponent={q_exponent!r}: must be one of {Q_SCALING_EXPONENTS} "
+            "(constant Q, Sader's high-Reynolds scaling, uniform viscous damping)"
+        )
+    b = clamped_free_eigenvalues(n)
+    out = []
+    for bn in b:
+        r = (bn / b[0]) ** 2
+        out.append(
+            Mode(
+                cantilever.resonance_frequency * r,
+                cantilever.spring_constant * r * r,
+                cantilever.quality_factor * r**q_exponent,
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class ModeDrive:
+    """A sinusoidal force F cos(2 pi f t + phase) [N] on mode ``mode`` (0-based)."""
+
+    mode: int
+    frequency: float
+    force: float
+    phase: float = 0.0
+
+
+def _pack(modes: list[Mode], drives: list[ModeDrive]):
+    n = len(modes)
+    if not 1 <= n <= MAX_MODES:
+        raise ValueError(f"modes: {n} given, must be within 1-{MAX_MODES}")
+    for d in drives:
+        if not 0 <= d.mode < n:
+            raise ValueError(f"drive.mode={d.mode!r}: must be within 0-{n - 1}")
+        if not (math.isfinite(d.frequency) and d.frequency >= 0.0):
+            raise ValueError(f"drive.frequency={d.frequency!r} Hz: must be >= 0 and finite")
+        if not (math.isfinite(d.force) and math.isfinite(d.phase)):
+            raise ValueError("drive.force [N] and drive.phase [rad] must be finite")
+    k = np.array([m.spring_constant for m in modes])
+    c = np.array([m.damping for m in modes])
+    inv_m = np.array([1.0 / m.mass for m in modes])
+    dmode = np.array([d.mode for d in drives], dtype=np.int64)
+    dw = np.array([2.0 * math.pi * d.frequency for d in drives])
+    dforce = np.array([d.force for d in drives])
+    dphase = np.array([d.phase for d in drives])
+    return k, c, inv_m, dmode, dw, dforce, dphase
+
+
+@njit(cache=True, inline="always")
+def _drive_forces(out, t, dmode, dw, dforce, dphase):
+    out[:] = 0.0
+    for j in range(dmode.shape[0]):
+        out[dmode[j]] += dforce[j] * math.cos(dw[j] * t + dphase[j])
+
+
+@njit(cache=True, inline="always")
+def _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a, e):
+    """Accelerations ``a`` and energy rates ``e`` (rows: drive power, damping loss, tip-sample
+    power per mode) at state (z, v), time t."""
+    _drive_forces(fd, t, dmode, dw, dforce, dphase)
+    zs = 0.0
+    vs = 0.0
+    for i in range(z.shape[0]):
+        zs += z[i]
+        vs += v[i]
+    fts = tip_sample_force(model, p, z_base + zs, vs)
+    for i in range(z.shape[0]):
+        a[i] = (-k[i] * z[i] - c[i] * v[i] + fd[i] + fts) * inv_m[i]
+        e[0, i] = fd[i] * v[i]
+        e[1, i] = c[i] * v[i] * v[i]
+        e[2, i] = fts * v[i]
+
+
+@njit(cache=True, nogil=True)
+def _advance_modes(
+    z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, t0, dt, nsteps,
+    every, out_z,
+):  # fmt: skip
+    n = z.shape[0]
+    fd = np.empty(n)
+    a1, a2, a3, a4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    e1, e2, e3, e4 = np.empty((3, n)), np.empty((3, n)), np.empty((3, n)), np.empty((3, n))
+    zt, vt = np.empty(n), np.empty(n)
+    v1, v2, v3 = np.empty(n), np.empty(n), np.empty(n)
+    h = 0.5 * dt
+    row = 0
+    for s in range(nsteps):
+        t = t0 + s * dt
+        _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a1, e1)
+        for i in range(n):
+            v1[i] = v[i]
+            zt[i] = z[i] + h * v[i]
+            vt[i] = v[i] + h * a1[i]
+        for i in range(n):
+            v2[i] = vt[i]
+        _derivs(
+            zt, vt, t + h, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a2, e2
+        )
+        for i in range(n):
+            zt[i] = z[i] + h * v2[i]
+            vt[i] = v[i] + h * a2[i]
+        for i in range(n):
+            v3[i] = vt[i]
+        _derivs(
+            zt, vt, t + h, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a3, e3
+        )
+        for i in range(n):
+            zt[i] = z[i] + dt * v3[i]
+            vt[i] = v[i] + dt * a3[i]
+        _derivs(
+            zt, vt, t + dt, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a4, e4
+        )
+        for i in range(n):
+            z[i] += dt / 6.0 * (v1[i] + 2.0 * (v2[i] + v3[i]) + vt[i])
+            v[i] += dt / 6.0 * (a1[i] + 2.0 * (a2[i] + a3[i]) + a4[i])
+            for r in range(3):
+                energy[r, i] += dt / 6.0 * (e1[r, i] + 2.0 * (e2[r, i] + e3[r, i]) + e4[r, i])
+        if (s + 1) % every == 0 and row < out_z.shape[0]:
+            for i in range(n):
+                out_z[row, i] = z[i]
+            row += 1
+
+
+class MultiModeSimulation:
+    """N modes over a flat sample at ``z_base`` [m] with the force model ``force`` (a
+    :mod:`afm_ros.core.physics.forces` model), integrated by fixed-step RK4 of ``dt`` [s].
+
+    State: ``z``, ``v`` per mode [m, m/s], time ``t`` [s] (the drives' phase origin), and
+    ``energy`` [J], rows drive work, damping loss, tip-sample work (int F_ts z_i' dt) per mode,
+    accumulated since the start."""
+
+    def __init__(self, modes, drives, force, z_base: float, dt: float):
+        self.modes = list(modes)
+        self.drives = list(drives)
+        self._k, self._c, self._inv_m, self._dmode, self._dw, self._df, self._dp = _pack(
+            self.modes, self.drives
+        )
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt={dt!r} s: must be > 0 and finite")
+        fastest = max(m.resonance_frequency for m in self.modes)
+        if dt * fastest > 0.05:
+            raise ValueError(
+                f"dt={dt!r} s: must resolve the highest mode ({fastest:g} Hz) with at least "
+                f"20 steps per period (dt <= {0.05 / fastest:g} s)"
+            )
+        self.force, self.z_base, self.dt = force, float(z_base), float(dt)
+        self._model, self._p = force.model_id, force.packed()
+        n = len(self.modes)
+        self.z, self.v = np.zeros(n), np.zeros(n)
+        self.energy = np.zeros((3, n))
+        self.t = 0.0
+        self.steps = 0
+
+    def mode_energy(self) -> np.ndarray:
+        """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
+        return 0.5 * (self.v**2 / self._inv_m + self._k * self.z**2)
+
+    def advance(self, nsteps: int, every: int = 1) -> np.ndarray:
+        """Integrate ``nsteps`` steps; the modes' deflections [m] after every ``every``-th step
+        (rows: samples, columns: modes)."""
+        if nsteps < 0 or every < 1:
+            raise ValueError(f"nsteps={nsteps!r} must be >= 0 and every={every!r} >= 1")
+        out = np.empty((nsteps // every, len(self.modes)))
+        t0 = self.steps * self.dt  # times from the step count: no drift of a summed t
+        _advance_modes(
+            self.z, self.v, self.energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
+            self._df, self._dp, self._model, self._p, self.z_base, t0, self.dt, nsteps, every,
+            out,
+        )  # fmt: skip
+        self.steps += nsteps
+        self.t = self.steps * self.dt
+        return out
