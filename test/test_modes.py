@@ -157,10 +157,57 @@ def test_each_modes_energy_balance_while_tapping():
         sim.energy[:] = 0.0
         e0 = sim.mode_energy()
         sim.advance(20 * per_period)
-        drive, damping, tip = sim.energy
+        drive, damping, tip, thermal = sim.energy
+        assert np.all(thermal == 0.0)
         residual = drive - (sim.mode_energy() - e0) - damping + tip
         assert np.all(-tip > 0.01 * drive)  # each mode gives the sample a share of its drive
         residuals.append(np.abs(residual) / drive)
         assert np.all(residuals[-1] < 1e-5), residuals[-1]  # issue 19's balance bar
     # the residual is the integrator's error: it falls at least as dt^2 across the contact's kinks
     assert np.all(residuals[0] / residuals[1] > 4.0), residuals
+
+
+def _undriven(seed, temperature=300.0):
+    modes = rectangular_modes(SEED, 2)
+    sim = MultiModeSimulation(
+        modes, [], NoForce(), 100e-9, 1.0 / (modes[1].resonance_frequency * 40)
+    )
+    sim.set_thermal(temperature, seed)
+    return sim
+
+
+@pytest.mark.slow
+def test_each_mode_holds_equipartition_with_thermal_noise():
+    """k_i <z_i^2> = kB T for both modes (docs/bimodal.md 1.4). With Q_n proportional to w_n both
+    modes' amplitude correlation time is tau = 2 Q / w = 0.177 ms; a 0.5 s record holds 2830 tau,
+    so a mean square has a relative standard error sqrt(tau / T_rec) = 1.9 %: 8 % is a 4-sigma
+    bound. The force held over the RK4 stages shifts the variance by O((w dt)^2) = 2.5e-2 for mode
+    2 at 40 steps per period (the point mass's own test: 8e-4 at 220), inside the bound. The modes'
+    forces are independent: <z_1 z_2> is within 4 sigma of 0."""
+    sim = _undriven(seed=11)
+    per = sim.dt * 40 * 6.267  # one mode-1 period [s]
+    sim.advance(round(20 * 2 * SEED.quality_factor / (2 * math.pi) * per / sim.dt))  # forget z = 0
+    z = sim.advance(round(0.5 / sim.dt), every=7)
+    kt = 1.380649e-23 * 300.0
+    for i, mode in enumerate(sim.modes):
+        assert mode.spring_constant * np.mean(z[:, i] ** 2) == pytest.approx(kt, rel=0.08, abs=0)
+    rms = np.sqrt(np.mean(z**2, axis=0))
+    assert abs(np.mean(z[:, 0] * z[:, 1])) < 4 * rms[0] * rms[1] * math.sqrt(1.77e-4 / 0.5)
+    assert np.all(sim.energy[3] != 0.0) and np.all(sim.energy[0] == 0.0)
+
+
+def test_thermal_runs_are_chunk_invariant_and_reproducible_from_the_seed():
+    whole = _undriven(seed=42).advance(30_000)
+    parts = _undriven(seed=42)
+    rng = np.random.default_rng(0)
+    pieces, left = [], 30_000
+    while left:
+        n = min(left, int(rng.integers(1, 4000)))
+        pieces.append(parts.advance(n))
+        left -= n
+    assert np.array_equal(np.concatenate(pieces), whole)  # any chunking: bit for bit
+    assert np.array_equal(_undriven(seed=42).advance(30_000), whole)
+    assert not np.array_equal(_undriven(seed=43).advance(30_000), whole)
+    assert np.all(_undriven(seed=42, temperature=0.0).advance(1000) == 0.0)
+    with pytest.raises(ValueError, match="noise_seed"):
+        _undriven(seed=-1)

@@ -12,7 +12,10 @@ Q_1 (w_n / w_1)^p (p = 1 for uniform viscous damping). SI units throughout.
 
 :func:`advance_modes` integrates the modes with classic RK4 at a fixed step, with the energies of
 each mode (the drive's work, the damping loss, the tip-sample force's work) integrated with the
-same stages, so each mode's balance can be checked.
+same stages, so each mode's balance can be checked. A thermal force per mode (fluctuation-
+dissipation with the mode's own damping, one-sided density 4 kB T c_i, drawn once per step and
+held over the stages; mode i from stream ``THERMAL_STREAM + 16 i`` of the seed, mode 1 from the
+point mass's own stream) gives each mode equipartition, k_i <z_i^2> = kB T.
 """
 
 from __future__ import annotations
@@ -24,9 +27,11 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.physics.forces import tip_sample_force
+from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at, thermal_force_sigma
 from afm_ros.core.physics.parameters import Cantilever
 
 MAX_MODES = 8
+MODE_STREAM_STRIDE = 16  # mode i's thermal force: stream THERMAL_STREAM + 16 i of the seed
 Q_SCALING_EXPONENTS = (0.0, 0.5, 1.0)  # Q_n / Q_1 = (w_n / w_1)^p: constant, Sader-like, viscous
 
 
@@ -156,9 +161,9 @@ def _drive_forces(out, t, dmode, dw, dforce, dphase):
 
 
 @njit(cache=True, inline="always")
-def _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a, e):
+def _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fth, fd, a, e):
     """Accelerations ``a`` and energy rates ``e`` (rows: drive power, damping loss, tip-sample
-    power per mode) at state (z, v), time t."""
+    power, thermal power per mode) at state (z, v), time t, thermal forces ``fth``."""
     _drive_forces(fd, t, dmode, dw, dforce, dphase)
     zs = 0.0
     vs = 0.0
@@ -167,28 +172,35 @@ def _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, f
         vs += v[i]
     fts = tip_sample_force(model, p, z_base + zs, vs)
     for i in range(z.shape[0]):
-        a[i] = (-k[i] * z[i] - c[i] * v[i] + fd[i] + fts) * inv_m[i]
+        a[i] = (-k[i] * z[i] - c[i] * v[i] + fd[i] + fts + fth[i]) * inv_m[i]
         e[0, i] = fd[i] * v[i]
         e[1, i] = c[i] * v[i] * v[i]
         e[2, i] = fts * v[i]
+        e[3, i] = fth[i] * v[i]
 
 
 @njit(cache=True, nogil=True)
 def _advance_modes(
     z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, t0, dt, nsteps,
-    every, out_z,
+    every, out_z, sigma, seed, step0,
 ):  # fmt: skip
     n = z.shape[0]
     fd = np.empty(n)
+    fth = np.zeros(n)
     a1, a2, a3, a4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    e1, e2, e3, e4 = np.empty((3, n)), np.empty((3, n)), np.empty((3, n)), np.empty((3, n))
+    e1, e2, e3, e4 = np.empty((4, n)), np.empty((4, n)), np.empty((4, n)), np.empty((4, n))
     zt, vt = np.empty(n), np.empty(n)
     v1, v2, v3 = np.empty(n), np.empty(n), np.empty(n)
     h = 0.5 * dt
     row = 0
     for s in range(nsteps):
         t = t0 + s * dt
-        _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a1, e1)
+        for i in range(n):
+            if sigma[i] != 0.0:
+                fth[i] = sigma[i] * normal_at(
+                    seed, THERMAL_STREAM + MODE_STREAM_STRIDE * i, step0 + s
+                )
+        _derivs(z, v, t, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fth, fd, a1, e1)
         for i in range(n):
             v1[i] = v[i]
             zt[i] = z[i] + h * v[i]
@@ -196,7 +208,23 @@ def _advance_modes(
         for i in range(n):
             v2[i] = vt[i]
         _derivs(
-            zt, vt, t + h, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a2, e2
+            zt,
+            vt,
+            t + h,
+            k,
+            c,
+            inv_m,
+            dmode,
+            dw,
+            dforce,
+            dphase,
+            model,
+            p,
+            z_base,
+            fth,
+            fd,
+            a2,
+            e2,
         )
         for i in range(n):
             zt[i] = z[i] + h * v2[i]
@@ -204,18 +232,50 @@ def _advance_modes(
         for i in range(n):
             v3[i] = vt[i]
         _derivs(
-            zt, vt, t + h, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a3, e3
+            zt,
+            vt,
+            t + h,
+            k,
+            c,
+            inv_m,
+            dmode,
+            dw,
+            dforce,
+            dphase,
+            model,
+            p,
+            z_base,
+            fth,
+            fd,
+            a3,
+            e3,
         )
         for i in range(n):
             zt[i] = z[i] + dt * v3[i]
             vt[i] = v[i] + dt * a3[i]
         _derivs(
-            zt, vt, t + dt, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, fd, a4, e4
+            zt,
+            vt,
+            t + dt,
+            k,
+            c,
+            inv_m,
+            dmode,
+            dw,
+            dforce,
+            dphase,
+            model,
+            p,
+            z_base,
+            fth,
+            fd,
+            a4,
+            e4,
         )
         for i in range(n):
             z[i] += dt / 6.0 * (v1[i] + 2.0 * (v2[i] + v3[i]) + vt[i])
             v[i] += dt / 6.0 * (a1[i] + 2.0 * (a2[i] + a3[i]) + a4[i])
-            for r in range(3):
+            for r in range(4):
                 energy[r, i] += dt / 6.0 * (e1[r, i] + 2.0 * (e2[r, i] + e3[r, i]) + e4[r, i])
         if (s + 1) % every == 0 and row < out_z.shape[0]:
             for i in range(n):
@@ -228,8 +288,8 @@ class MultiModeSimulation:
     :mod:`afm_ros.core.physics.forces` model), integrated by fixed-step RK4 of ``dt`` [s].
 
     State: ``z``, ``v`` per mode [m, m/s], time ``t`` [s] (the drives' phase origin), and
-    ``energy`` [J], rows drive work, damping loss, tip-sample work (int F_ts z_i' dt) per mode,
-    accumulated since the start."""
+    ``energy`` [J], rows drive work, damping loss, tip-sample work (int F_ts z_i' dt), thermal
+    force work per mode, accumulated since the start (or since the caller zeroed it)."""
 
     def __init__(self, modes, drives, force, z_base: float, dt: float):
         self.modes = list(modes)
@@ -249,9 +309,22 @@ class MultiModeSimulation:
         self._model, self._p = force.model_id, force.packed()
         n = len(self.modes)
         self.z, self.v = np.zeros(n), np.zeros(n)
-        self.energy = np.zeros((3, n))
+        self.energy = np.zeros((4, n))
         self.t = 0.0
         self.steps = 0
+        self.temperature = 0.0
+        self.seed = 0
+        self._sigma = np.zeros(n)
+
+    def set_thermal(self, temperature: float, seed: int) -> None:
+        """Thermal force on every mode at ``temperature`` [K] from ``seed`` (0 K: none); the force
+        of step s is a pure function of (seed, mode, s), so any chunking gives the same run."""
+        if not (isinstance(seed, (int, np.integer)) and 0 <= seed < 2**63):
+            raise ValueError(f"noise_seed={seed!r}: must be an integer within 0-2^63")
+        self._sigma = np.array(
+            [thermal_force_sigma(temperature, m.damping, self.dt) for m in self.modes]
+        )
+        self.temperature, self.seed = float(temperature), int(seed)
 
     def mode_energy(self) -> np.ndarray:
         """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
@@ -267,7 +340,7 @@ class MultiModeSimulation:
         _advance_modes(
             self.z, self.v, self.energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
             self._df, self._dp, self._model, self._p, self.z_base, t0, self.dt, nsteps, every,
-            out,
+            out, self._sigma, self.seed, self.steps,
         )  # fmt: skip
         self.steps += nsteps
         self.t = self.steps * self.dt
