@@ -56,7 +56,15 @@ from afm_ros.core.physics.parameters import parse_number as _number
 from afm_ros.core.physics.self_excited import FM_CURVE_COLUMNS, fm_curve
 from afm_ros.core.physics.shooting import periodic_orbit
 from afm_ros.core.physics.simulation import Samples
-from afm_ros.tools import contrast, dataset, drive_tune, force_reconstruction, scan, thermal_tune
+from afm_ros.tools import (
+    bimodal_study,
+    contrast,
+    dataset,
+    drive_tune,
+    force_reconstruction,
+    scan,
+    thermal_tune,
+)
 from afm_ros.tools.figures import pyplot, write_csv
 
 # --- parameters from flags ----------------------------------------------------------------
@@ -1452,6 +1460,7 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_parser(sub)
     dataset.add_parser(sub)
     force_reconstruction.add_parser(sub)
+    bimodal_study.add_parser(sub)
     return parser
 
 
@@ -1471,6 +1480,7 @@ EXTERNAL = {
     "scan": "scan",
     "dataset": "dataset",
     "reconstruct": "force_reconstruction",
+    "bimodal": "bimodal_study",
 }
 
 
