@@ -3,6 +3,9 @@ the written numbers, and bad values refused in one line before any work."""
 
 import csv
 import math
+import signal
+import subprocess
+import sys
 
 import pytest
 
@@ -53,3 +56,23 @@ def test_bad_values_are_refused_in_one_line_before_any_work(tmp_path, capsys, ar
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_writes_the_points_done_and_says_so(tmp_path):
+    out = tmp_path / "cut"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "afm_ros.tools.study", "bimodal", "--materials", "ldpe",
+         "--z-base", ",".join(["21e-9"] * 50), "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    for line in proc.stdout:  # the first point's line: one is done
+        if "ldpe" in line and "z_base" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    rest, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    rows = list(csv.DictReader(open(out / "bimodal.csv")))
+    assert 1 <= len(rows) < 50
+    assert f"interrupted after {len(rows)} point(s); writing those" in err
+    assert "Traceback" not in err
