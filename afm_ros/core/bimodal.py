@@ -153,3 +153,23 @@ def loss_tangent_mode1(a01: float, a1: float, phi1: float) -> float:
     """tan(delta) at mode 1's frequency from A01, A1 [m] and phi1 [rad] (driven at resonance):
     (A01 sin(phi1) - A1) / (A01 cos(phi1))."""
     return (a01 * math.sin(phi1) - a1) / (a01 * math.cos(phi1))
+
+
+def loss_tangent_mode2(f2: float, q2: float, df2: float, drive_ratio: float) -> float:
+    """tan(delta) at mode 2's frequency from the PLL's shift df2 [Hz] and the amplitude
+    controller's drive over the free drive for the same A2, ``drive_ratio`` = F2 / F2_free
+    (free frequency f2 [Hz], quality factor Q2): (f2 / (2 Q2 df2)) (F2 / F2_free - 1), to first
+    order in df2 / f2 (docs/bimodal.md 3.4)."""
+    if not (math.isfinite(df2) and df2 > 0.0):
+        raise ValueError(f"df2={df2!r} Hz: must be > 0 (a repulsive contact)")
+    if not (math.isfinite(drive_ratio) and drive_ratio > 0.0):
+        raise ValueError(f"drive_ratio={drive_ratio!r}: must be > 0 and finite")
+    return f2 / (2.0 * q2 * df2) * (drive_ratio - 1.0)
+
+
+def kelvin_voigt_loss_tangent(
+    frequency: float, viscosity: float, effective_modulus: float
+) -> float:
+    """The Kelvin-Voigt contact's own tan(delta) at ``frequency`` [Hz]: w eta_p / (2 E*), with the
+    project's viscosity eta_p [Pa s] (F_visc = eta_p sqrt(R delta) delta') and E* [Pa]."""
+    return 2.0 * math.pi * frequency * viscosity / (2.0 * effective_modulus)

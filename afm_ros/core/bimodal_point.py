@@ -26,8 +26,10 @@ PHASE_TOLERANCE = math.radians(0.02)
 
 @dataclass(frozen=True)
 class BimodalPoint:
-    """Steady-state observables: A1 [m], phi1 [rad], A2 [m], the locked drive frequency of mode 2
-    [Hz] and df2 = f_lock - f2 [Hz], the mean gap z_c [m] (z_base + the modes' mean deflections),
+    """Steady-state observables: A1 [m], phi1 [rad], A2 [m] (at the free drive for the target
+    A2: mode 2 answers linearly, so the amplitude controller's drive over the free one would be
+    F2 / F2_free = A2_target / A2), the locked drive frequency of mode 2 [Hz] and df2 = f_lock -
+    f2 [Hz], the mean gap z_c [m] (z_base + the modes' mean deflections),
     the time-averaged tip-sample stiffness over the simulated orbit <k_ts> [N/m], the deepest gap
     [m], and the per-mode tip-sample work over the window [J]."""
 

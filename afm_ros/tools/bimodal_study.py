@@ -7,7 +7,10 @@ first-order frequency shift over the simulated orbit and over the harmonic orbit
 assume, and the modulus and indentation the closed forms recover from the observables against
 the material's true E*. Writes ``bimodal.csv`` (SI units in the column names) and ``bimodal.png``
 into ``--out``; prints a table. Hertz contact (no adhesion) by default, the closed forms'
-assumption; ``--adhesion`` keeps the material's Hamaker constant (DMT) to show that bias.
+assumption; ``--adhesion`` keeps the material's Hamaker constant (DMT) to show that bias. With
+``--force-model viscoelastic_dmt`` the contact has the material's Kelvin-Voigt viscosity, and the
+loss tangents recovered from mode 1 (phase and amplitude) and mode 2 (the drive the amplitude
+controller would need) are set beside the contact's own w eta / (2 E*).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pathlib import Path
 
 from afm_ros.core import bimodal
 from afm_ros.core.bimodal_point import bimodal_point
-from afm_ros.core.physics.forces import DMTForce
+from afm_ros.core.physics.forces import DMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.materials import MATERIALS, material, sample_for
 from afm_ros.core.physics.modes import Q_SCALING_EXPONENTS, rectangular_modes
 from afm_ros.core.physics.parameters import Cantilever
@@ -43,7 +46,12 @@ COLUMNS = (
     "recovered_indentation_m",
     "deepest_indentation_m",
     "lock_trials",
+    "loss_tangent_mode1",
+    "loss_tangent_mode2",
+    "true_loss_tangent_mode1",
+    "true_loss_tangent_mode2",
 )
+FORCE_MODELS = ("dmt", "viscoelastic_dmt")
 
 
 def _numbers(name: str, text: str, low: float, high: float) -> list[float]:
@@ -95,6 +103,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--adhesion", action="store_true", help="keep the material's Hamaker constant (DMT)"
+    )
+    p.add_argument(
+        "--force-model",
+        default="dmt",
+        help="dmt (elastic, default) or viscoelastic_dmt (the material's viscosity)",
     )
     p.add_argument("--out", default="afm_study_bimodal", help="output folder")
     p.set_defaults(func=run)
@@ -157,6 +170,10 @@ def run(args) -> int:
         a01 = _one("free_amplitude", args.free_amplitude, 1e-10, 1e-6)
         a2 = _one("mode2_amplitude", args.mode2_amplitude, 1e-13, 1e-8)
         spp = int(_one("steps_per_period", args.steps_per_period, 20, 2000))
+        if args.force_model not in FORCE_MODELS:
+            raise ValueError(
+                f"force_model: {args.force_model!r} is not one of {', '.join(FORCE_MODELS)}"
+            )
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".afm_write_test"
@@ -179,8 +196,9 @@ def run(args) -> int:
     try:
         for m in mats:
             overrides = {} if args.adhesion else {"hamaker_constant": 0.0}
-            sample, _, _ = sample_for(m, **overrides)
-            force = DMTForce(sample)
+            sample, eta, _ = sample_for(m, **overrides)
+            viscous = args.force_model == "viscoelastic_dmt"
+            force = ViscoelasticDMTForce(sample, viscosity=eta) if viscous else DMTForce(sample)
             for zb in z_bases:
                 p = bimodal_point(modes, force, zb, a01, a2, spp)
                 row = {
@@ -200,7 +218,21 @@ def run(args) -> int:
                     "true_modulus_Pa": sample.effective_modulus,
                     "deepest_indentation_m": sample.intermolecular_distance - p.min_gap,
                     "lock_trials": p.iterations,
+                    "loss_tangent_mode1": bimodal.loss_tangent_mode1(a01, p.a1, p.phi1),
+                    "true_loss_tangent_mode1": bimodal.kelvin_voigt_loss_tangent(
+                        lever.resonance_frequency,
+                        eta if viscous else 0.0,
+                        sample.effective_modulus,
+                    ),
+                    "true_loss_tangent_mode2": bimodal.kelvin_voigt_loss_tangent(
+                        f2, eta if viscous else 0.0, sample.effective_modulus
+                    ),
                 }
+                row["loss_tangent_mode2"] = (
+                    bimodal.loss_tangent_mode2(f2, modes[1].quality_factor, p.df2, a2 / p.a2)
+                    if p.df2 > 0.0
+                    else math.nan
+                )
                 try:
                     est = bimodal.hertz_from_observables(
                         p.a1, row["virial_Nm"], p.df2, f2, k2, sample.tip_radius, p.a2
@@ -219,10 +251,17 @@ def run(args) -> int:
                     else f"E* {row['recovered_modulus_Pa'] / 1e9:.4g} GPa recovered vs "
                     f"{sample.effective_modulus / 1e9:.4g} true ({row['modulus_bias']:+.1%})"
                 )
+                loss = (
+                    f"; tan(delta) {row['loss_tangent_mode1']:.4g} (mode 1), "
+                    f"{row['loss_tangent_mode2']:.4g} (mode 2) vs "
+                    f"{row['true_loss_tangent_mode1']:.4g}, {row['true_loss_tangent_mode2']:.4g}"
+                    if viscous
+                    else ""
+                )
                 print(
                     f"  {m.name:<12s} z_base {zb * 1e9:6.2f} nm: A1 {p.a1 * 1e9:7.3f} nm, phi1 "
                     f"{row['phi1_deg']:6.2f} deg, df2 {p.df2:8.1f} Hz (first order "
-                    f"{row['df2_first_order_orbit_Hz']:8.1f}), {modulus}",
+                    f"{row['df2_first_order_orbit_Hz']:8.1f}), {modulus}{loss}",
                     flush=True,
                 )
     except KeyboardInterrupt:
