@@ -77,8 +77,9 @@ def test_mode_2_frequency_shift_and_the_recovered_modulus_against_the_truth(mate
     """Mode 2 phase-locked at 90 deg while mode 1 taps a Hertz sample (A01 25 nm, A2 0.05 nm):
 
     - its frequency shift agrees with the first-order average (f2 / 2 k2) <k_ts> over the
-      simulated orbit within 5 % (measured -2.9 to +4.9 %; the averaging's own error against the
-      exact dynamics is +1.1 % for PS and -3.3 % for LDPE at this lever, docs/bimodal.md 3.2);
+      simulated orbit within 7 % (measured -2.9 to +4.9 %; the averaging's own error against the
+      exact dynamics, computed for a harmonic orbit, is +1.1 % for PS and -3.3 % for LDPE at this
+      lever, docs/bimodal.md 3.2);
     - the modulus the closed forms recover from the observables (A1, phi1, df2, A2) is within 15 %
       of the true E* (measured: PS -8.5 % and -3.8 %, LDPE +5.9 % and +11.6 % at 21 and 16 nm): the
       method's own bias, mostly its harmonic orbit: the simulated deepest point lies 0.08-0.09 nm
@@ -90,7 +91,11 @@ def test_mode_2_frequency_shift_and_the_recovered_modulus_against_the_truth(mate
     f2, k2 = MODES[1].resonance_frequency, MODES[1].spring_constant
     assert p.a2 == pytest.approx(A2, rel=0.05)  # at 90 deg mode 2 answers with its free amplitude
     first_order = f2 / (2 * k2) * p.mean_stiffness
-    assert p.df2 == pytest.approx(first_order, rel=0.05)
+    assert p.df2 == pytest.approx(first_order, rel=0.07)
+    # AM-AM (the first trial, mode 2 driven at f2): cos(phi2) = Q2 A2 <k_ts> / (k2 A02), the same
+    # first-order stiffness (measured -1.3 to +5.3 %)
+    cos_am = bimodal.am_am_cos_phase(MODES[1].quality_factor, k2, p.a2_am, A2, p.mean_stiffness)
+    assert math.cos(p.phi2_am) == pytest.approx(cos_am, rel=0.08)
     v1 = bimodal.virial_at_resonance(
         LEVER.spring_constant, LEVER.quality_factor, A01, p.a1, p.phi1
     )

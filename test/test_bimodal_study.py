@@ -30,7 +30,7 @@ def test_the_sweep_writes_the_table_and_figure_with_the_physics_in_them(tmp_path
     assert near["df2_Hz"] > mid["df2_Hz"] > 0.0
     for r in (mid, near):
         # the averaging's own error (docs/bimodal.md 3.2) and the method's bias (test_bimodal)
-        assert r["df2_Hz"] == pytest.approx(r["df2_first_order_orbit_Hz"], rel=0.05)
+        assert r["df2_Hz"] == pytest.approx(r["df2_first_order_orbit_Hz"], rel=0.07)
         assert r["recovered_modulus_Pa"] == pytest.approx(r["true_modulus_Pa"], rel=0.15)
         assert r["modulus_bias"] == pytest.approx(
             r["recovered_modulus_Pa"] / r["true_modulus_Pa"] - 1.0, rel=1e-12

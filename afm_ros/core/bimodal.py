@@ -173,3 +173,10 @@ def kelvin_voigt_loss_tangent(
     """The Kelvin-Voigt contact's own tan(delta) at ``frequency`` [Hz]: w eta_p / (2 E*), with the
     project's viscosity eta_p [Pa s] (F_visc = eta_p sqrt(R delta) delta') and E* [Pa]."""
     return 2.0 * math.pi * frequency * viscosity / (2.0 * effective_modulus)
+
+
+def am_am_cos_phase(q2: float, k2: float, a2: float, a02: float, mean_stiffness: float) -> float:
+    """cos(phi2) of mode 2 driven at its free frequency (AM-AM): Q2 A2 <k_ts> / (k2 A02), from
+    mode 2's virial V2 = -(k2 A2 A02 / (2 Q2)) cos(phi2) = -<k_ts> A2^2 / 2 (A2 small: mode 2 a
+    linear oscillator of stiffness k2 + <k_ts>; docs/bimodal.md 4). A2, A02 [m]; k [N/m]."""
+    return q2 * a2 * mean_stiffness / (k2 * a02)

@@ -31,7 +31,8 @@ class BimodalPoint:
     F2 / F2_free = A2_target / A2), the locked drive frequency of mode 2 [Hz] and df2 = f_lock -
     f2 [Hz], the mean gap z_c [m] (z_base + the modes' mean deflections),
     the time-averaged tip-sample stiffness over the simulated orbit <k_ts> [N/m], the deepest gap
-    [m], and the per-mode tip-sample work over the window [J]."""
+    [m], the per-mode tip-sample work over the window [J]; and AM-AM's observables, mode 2's
+    amplitude [m] and phase lag [rad] when driven at its free frequency (the first trial)."""
 
     a1: float
     phi1: float
@@ -43,6 +44,8 @@ class BimodalPoint:
     min_gap: float
     tip_work: tuple
     iterations: int
+    a2_am: float
+    phi2_am: float
 
 
 def _fit(t: np.ndarray, z: np.ndarray, freqs) -> np.ndarray:
@@ -99,6 +102,8 @@ def bimodal_point(
     below = above = None  # (f, phase miss) with the lag under / over 90 deg: the lag grows with f
     for it in range(1, 17):
         r = _settled(modes, force, z_base, a01, a2, f, steps_per_period)
+        if it == 1:
+            am = (r["a2"], r["phi2"])
         miss = r["phi2"] - 0.5 * math.pi
         if abs(miss) < PHASE_TOLERANCE:
             break
@@ -115,5 +120,5 @@ def bimodal_point(
         raise RuntimeError(f"mode 2 did not lock at 90 deg within 16 trials (last {lag:.4f} deg)")
     return BimodalPoint(
         r["a1"], r["phi1"], r["a2"], f, f - m2.resonance_frequency, r["z_c"],
-        r["mean_stiffness"], r["min_gap"], r["tip_work"], it,
+        r["mean_stiffness"], r["min_gap"], r["tip_work"], it, *am,
     )  # fmt: skip

@@ -5,7 +5,8 @@ For each material and z_base, the two-mode cantilever runs to the steady state w
 phase-locked at 90 deg (:func:`afm_ros.core.bimodal_point.bimodal_point`); beside each point: the
 first-order frequency shift over the simulated orbit and over the harmonic orbit the closed forms
 assume, and the modulus and indentation the closed forms recover from the observables against
-the material's true E*. Writes ``bimodal.csv`` (SI units in the column names) and ``bimodal.png``
+the material's true E*; and AM-AM's observables, mode 2's amplitude and phase when driven at its
+free frequency. Writes ``bimodal.csv`` (SI units in the column names) and ``bimodal.png``
 into ``--out``; prints a table. Hertz contact (no adhesion) by default, the closed forms'
 assumption; ``--adhesion`` keeps the material's Hamaker constant (DMT) to show that bias. With
 ``--force-model viscoelastic_dmt`` the contact has the material's Kelvin-Voigt viscosity, and the
@@ -50,6 +51,8 @@ COLUMNS = (
     "loss_tangent_mode2",
     "true_loss_tangent_mode1",
     "true_loss_tangent_mode2",
+    "am_am_a2_m",
+    "am_am_phase2_deg",
 )
 FORCE_MODELS = ("dmt", "viscoelastic_dmt")
 
@@ -218,6 +221,8 @@ def run(args) -> int:
                     "true_modulus_Pa": sample.effective_modulus,
                     "deepest_indentation_m": sample.intermolecular_distance - p.min_gap,
                     "lock_trials": p.iterations,
+                    "am_am_a2_m": p.a2_am,
+                    "am_am_phase2_deg": math.degrees(p.phi2_am),
                     "loss_tangent_mode1": bimodal.loss_tangent_mode1(a01, p.a1, p.phi1),
                     "true_loss_tangent_mode1": bimodal.kelvin_voigt_loss_tangent(
                         lever.resonance_frequency,
