@@ -218,9 +218,8 @@ def _session_with_chunks(path: Path, n: int = 3000) -> dict[str, int]:
     from rclpy.serialization import serialize_message
     from rosgraph_msgs.msg import Clock
 
-    from afm_ros.formats.chunk_layout import ChunkHeader
+    from afm_ros.formats.chunk_layout import ChunkHeader, cdr_chunk_message
     from afm_ros.formats.mcap_io import SessionWriter
-    from afm_ros.nodes.cantilever_node import chunk_message
 
     w = SessionWriter(path, compression="zstd", chunk_size=64 * 1024)
     defl = w.add_channel("/cantilever/deflection", "std_msgs/msg/Float64MultiArray")
@@ -228,8 +227,8 @@ def _session_with_chunks(path: Path, n: int = 3000) -> dict[str, int]:
     rng = np.random.default_rng(1)
     for k in range(n):
         samples = rng.normal(size=60) * 1e-8
-        msg = chunk_message(ChunkHeader(60 * k, k * 6e-5, 1e-6, 0.0, 45e3, 4e-8), samples)
-        w.write(defl, serialize_message(msg), 1_000_000 * k + 1)
+        msg = cdr_chunk_message(ChunkHeader(60 * k, k * 6e-5, 1e-6, 0.0, 45e3, 4e-8), samples)
+        w.write(defl, msg, 1_000_000 * k + 1)
         c = Clock()
         c.clock.nanosec = 60_000 * (k + 1)
         w.write(clock, serialize_message(c), 1_000_000 * k + 2)

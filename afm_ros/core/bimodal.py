@@ -47,24 +47,12 @@ def _stiffness(model_id: int, p: np.ndarray, gap: np.ndarray) -> np.ndarray:
     return np.where(gap > p[0], outside, 1.5 * p[2] * np.sqrt(delta))
 
 
-def _force(model_id: int, p: np.ndarray, gap: np.ndarray) -> np.ndarray:
-    """The conservative DMT-family force [N] at ``gap`` [m]."""
-    if model_id == MODEL_NONE:
-        return np.zeros_like(gap)
-    if model_id not in (MODEL_DMT, MODEL_VISCOELASTIC_DMT, MODEL_HYSTERESIS_DMT):
-        raise ValueError(f"force model id {model_id}: not a DMT-family model")
-    delta = np.maximum(p[0] - gap, 0.0)
-    return np.where(
-        gap > p[0], -p[1] / np.maximum(gap, p[0]) ** 2, -p[3] + p[2] * delta * np.sqrt(delta)
-    )
-
-
-def _orbit_average(f, model_id, p, z_c: float, a1: float, weight_cos: bool) -> float:
-    """(1/pi) int_0^pi f(z_c + A1 cos th) [cos th] d th, by Gauss-Legendre on each side of the
-    contact angle (where f's derivative is singular)."""
+def _orbit_average(f, a0: float, z_c: float, a1: float, weight_cos: bool) -> float:
+    """(1/pi) int_0^pi f(z_c + A1 cos th) [cos th] d th for f of the gap [m], by Gauss-Legendre on
+    each side of the contact angle (gap a0 [m], where f's derivative is singular)."""
     if not (math.isfinite(z_c) and math.isfinite(a1) and a1 > 0.0):
         raise ValueError(f"mode-1 orbit z_c={z_c!r} m, A1={a1!r} m: A1 must be > 0 and finite")
-    cut = (p[0] - z_c) / a1  # cos th at the contact boundary
+    cut = (a0 - z_c) / a1  # cos th at the contact boundary
     edges = [0.0, math.pi]
     if -1.0 < cut < 1.0:
         edges = [0.0, math.acos(cut), math.pi]
@@ -72,7 +60,7 @@ def _orbit_average(f, model_id, p, z_c: float, a1: float, weight_cos: bool) -> f
     total = 0.0
     for lo, hi in zip(edges, edges[1:]):
         th = 0.5 * (hi - lo) * x + 0.5 * (hi + lo)
-        g = f(model_id, p, z_c + a1 * np.cos(th))
+        g = f(z_c + a1 * np.cos(th))
         if weight_cos:
             g = g * np.cos(th)
         total += 0.5 * (hi - lo) * float(np.dot(w, g))
@@ -81,13 +69,16 @@ def _orbit_average(f, model_id, p, z_c: float, a1: float, weight_cos: bool) -> f
 
 def virial_mode1(force, z_c: float, a1: float) -> float:
     """V1 = <F_ts z1> [N m] over the harmonic orbit z1 = A1 cos(theta) about the mean gap z_c
-    [m] (the conservative part of ``force``)."""
-    return a1 * _orbit_average(_force, force.model_id, force.packed(), z_c, a1, True)
+    [m], with ``force``'s force at rest (rate 0: the conservative part; hysteresis_dmt's retract
+    branch)."""
+    a0 = force.packed()[0]
+    return a1 * _orbit_average(lambda gap: force.force(gap, 0.0), a0, z_c, a1, True)
 
 
 def mean_stiffness(force, z_c: float, a1: float) -> float:
     """<k_ts> = -<dF_ts/dd> [N/m] over the mode-1 orbit (the arcsine weight)."""
-    return _orbit_average(_stiffness, force.model_id, force.packed(), z_c, a1, False)
+    p = force.packed()
+    return _orbit_average(lambda gap: _stiffness(force.model_id, p, gap), p[0], z_c, a1, False)
 
 
 def mean_stiffness_of(force, gaps: np.ndarray) -> float:

@@ -9,6 +9,7 @@ and the simulated time ``t_start + i * sample_interval`` [s]; the drive phase at
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from dataclasses import dataclass
@@ -319,10 +320,11 @@ def cdr_byte_order(data) -> str:
 _CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation: plain CDR, little-endian
 
 
+@functools.lru_cache(maxsize=256)
 def _multiarray_head(label: str, size: int, stride: int, data_offset: int, count: int) -> bytes:
     """The serialized layout (one dimension) and data count of a std_msgs MultiArray, padded to
     the 8-byte alignment its float64/int64 data needs (offsets relative to the byte after the
-    encapsulation header, as CDR counts them)."""
+    encapsulation header, as CDR counts them); cached: a topic's messages repeat one layout."""
     name = label.encode("utf-8") + b"\0"
     head = _CDR_LE + struct.pack("<II", 1, len(name)) + name
     head += b"\0" * ((-(len(head) - 4)) % 4)
@@ -335,7 +337,7 @@ def cdr_float64_multiarray(
 ) -> bytes:
     """The serialized std_msgs/Float64MultiArray (little-endian CDR) with one layout dimension
     ``label``/``size``/``stride``, ``data_offset`` and ``values``: the bytes rclpy would make of
-    the message (test_chunk_layout checks it), built with numpy instead of per-element Python, to
+    the message (test_cdr_messages checks it), built with numpy instead of per-element Python, to
     publish with ``Publisher.publish(bytes)``."""
     values = np.ascontiguousarray(values, dtype="<f8")
     return _multiarray_head(label, size, stride, data_offset, values.size) + values.tobytes()

@@ -22,7 +22,6 @@ is not ROS (parameter changes, chunk-boundary requests, pacing, gates, blow-ups)
 
 from __future__ import annotations
 
-import array
 import json
 import math
 import queue
@@ -30,7 +29,6 @@ import sys
 import threading
 import time
 
-import numpy as np
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
@@ -57,13 +55,9 @@ from afm_ros.core.cantilever_engine import (  # noqa: F401 - the two constants a
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_values
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.formats.chunk_layout import (
-    PREAMBLE_LENGTH,
-    SAMPLES_LABEL,
-    ChunkHeader,
     cdr_chunk_message,
     cdr_int64_array,
     cdr_multiarray_label,
-    pack,
     unpack_excitation,
     unpack_z_command,
 )
@@ -106,17 +100,6 @@ TIP_LAYOUT = MultiArrayLayout(
         )
     ]
 )
-
-
-def chunk_message(header: ChunkHeader, samples: np.ndarray) -> Float64MultiArray:
-    """Float64MultiArray in the chunk layout (``afm_ros.formats.chunk_layout``): preamble, then
-    ``samples``."""
-    n = samples.shape[0]
-    msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label=SAMPLES_LABEL, size=n, stride=n)]
-    msg.layout.data_offset = PREAMBLE_LENGTH
-    msg.data = array.array("d", pack(header, samples).tobytes())
-    return msg
 
 
 def _time_msg(t: float) -> TimeMsg:

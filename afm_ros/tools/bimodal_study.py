@@ -27,7 +27,7 @@ from afm_ros.core.bimodal_point import bimodal_point
 from afm_ros.core.physics.forces import DMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.materials import MATERIALS, material, sample_for
 from afm_ros.core.physics.modes import Q_SCALING_EXPONENTS, rectangular_modes
-from afm_ros.core.physics.parameters import Cantilever
+from afm_ros.core.physics.parameters import Cantilever, parse_number
 from afm_ros.tools.figures import pyplot, write_csv
 
 MAX_POINTS = 200
@@ -162,10 +162,10 @@ def run(args) -> int:
             raise ValueError(
                 f"z_base x materials: {len(z_bases) * len(mats)} points, at most {MAX_POINTS}"
             )
-        lever = Cantilever(
-            _one("spring_constant", args.spring_constant, 1e-3, 1e4),
-            _one("resonance_frequency", args.resonance_frequency, 10.0, 1e7),
-            _one("quality_factor", args.quality_factor, 1.0, 1e5),
+        lever = Cantilever(  # validated by the cantilever's own specs (names and ranges)
+            parse_number(args.spring_constant),
+            parse_number(args.resonance_frequency),
+            parse_number(args.quality_factor),
         )
         q_exp = _one("q_exponent", args.q_exponent, 0.0, 1.0)
         if q_exp not in Q_SCALING_EXPONENTS:

@@ -10,9 +10,9 @@ negligible: docs/bimodal.md 1.1 (c)). Defaults from the clamped-free rectangular
 at the free end: w_n / w_1 = (b_n / b_1)^2, k_n = k_1 (b_n / b_1)^4 (k_2 = 39.27 k_1), Q_n =
 Q_1 (w_n / w_1)^p (p = 1 for uniform viscous damping). SI units throughout.
 
-:func:`advance_modes` integrates the modes with classic RK4 at a fixed step, with the energies of
-each mode (the drive's work, the damping loss, the tip-sample force's work) integrated with the
-same stages, so each mode's balance can be checked. A thermal force per mode (fluctuation-
+:class:`MultiModeSimulation` integrates the modes with classic RK4 at a fixed step, with the
+energies of each mode (the drive's work, the damping loss, the tip-sample force's work) integrated
+with the same stages, so each mode's balance can be checked. A thermal force per mode (fluctuation-
 dissipation with the mode's own damping, one-sided density 4 kB T c_i, drawn once per step and
 held over the stages; mode i from stream ``THERMAL_STREAM + 16 i`` of the seed, mode 1 from the
 point mass's own stream) gives each mode equipartition, k_i <z_i^2> = kB T.
@@ -155,10 +155,11 @@ def _pack(modes: list[Mode], drives: list[ModeDrive]):
 
 @njit(cache=True, nogil=True)
 def _advance_modes(
-    z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, t0, dt, nsteps,
-    every, out_z, sigma, seed, step0,
+    z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every,
+    out_z, sigma, seed, step0,
 ):  # fmt: skip
-    """Classic RK4 of the modes, ``nsteps`` steps from step ``step0`` at time t0 [s]; the four
+    """Classic RK4 of the modes, ``nsteps`` steps from step ``step0`` (time (step0 + s) dt [s]
+    whatever the chunking, so chunked runs equal single runs bit for bit); the four
     stages share one body (a helper taking the arrays, called four times, cost 350 ns per step in
     reference counting); rows of ``energy``: drive work, damping loss, tip-sample work, thermal
     work per mode [J], accumulated with the same stages."""
@@ -172,7 +173,7 @@ def _advance_modes(
     h = 0.5 * dt
     row = 0
     for s in range(nsteps):
-        t = t0 + s * dt
+        t = (step0 + s) * dt
         for i in range(n):
             if sigma[i] != 0.0:
                 fth[i] = sigma[i] * normal_at(
@@ -249,7 +250,6 @@ class MultiModeSimulation:
         n = len(self.modes)
         self.z, self.v = np.zeros(n), np.zeros(n)
         self.energy = np.zeros((4, n))
-        self.t = 0.0
         self.steps = 0
         self.temperature = 0.0
         self.seed = 0
@@ -265,6 +265,11 @@ class MultiModeSimulation:
         )
         self.temperature, self.seed = float(temperature), int(seed)
 
+    @property
+    def t(self) -> float:
+        """Simulated time [s] (the drives' phase origin at 0)."""
+        return self.steps * self.dt
+
     def mode_energy(self) -> np.ndarray:
         """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
         return 0.5 * (self.v**2 / self._inv_m + self._k * self.z**2)
@@ -275,12 +280,10 @@ class MultiModeSimulation:
         if nsteps < 0 or every < 1:
             raise ValueError(f"nsteps={nsteps!r} must be >= 0 and every={every!r} >= 1")
         out = np.empty((nsteps // every, len(self.modes)))
-        t0 = self.steps * self.dt  # times from the step count: no drift of a summed t
         _advance_modes(
             self.z, self.v, self.energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
-            self._df, self._dp, self._model, self._p, self.z_base, t0, self.dt, nsteps, every,
-            out, self._sigma, self.seed, self.steps,
+            self._df, self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every, out,
+            self._sigma, self.seed, self.steps,
         )  # fmt: skip
         self.steps += nsteps
-        self.t = self.steps * self.dt
         return out
