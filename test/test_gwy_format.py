@@ -309,3 +309,33 @@ def test_frame_thumbnail_shows_the_island_despite_edge_spikes(tmp_path):
     assert obj["/0/base/range-type"] == 1
     assert obj["/0/base/min"] == pytest.approx(40e-9, abs=1e-15)
     assert obj["/0/base/max"] == pytest.approx(41e-9, abs=1e-15)
+
+
+def test_pixels_without_a_value_are_masked_as_gwyddion_marks_bad_data(tmp_path):
+    """invalid="mask": a NaN pixel holds the mean of the others and is 1 in ``/n/mask`` (read by
+    gwyfile directly and by read_gwy); the default refuses it naming the channel; Gwyddion's
+    thumbnailer opens the masked file."""
+    data = np.arange(12.0).reshape(3, 4)
+    data[1, 2] = np.nan
+    channels = {"E": (data, "Pa"), "Height": (np.ones((3, 4)), "m")}
+    with pytest.raises(ValueError, match="'E' has non-finite values"):
+        write_gwy(tmp_path / "refused.gwy", channels, 4e-6, 3e-6)
+    assert not (tmp_path / "refused.gwy").exists()
+    path = tmp_path / "masked.gwy"
+    write_gwy(path, channels, 4e-6, 3e-6, invalid="mask")
+    obj = gwyfile.load(str(path))
+    stored = np.asarray(obj["/0/data"]["data"]).reshape(3, 4)
+    mask = np.asarray(obj["/0/mask"]["data"]).reshape(3, 4)
+    good = np.isfinite(data)
+    assert stored[1, 2] == pytest.approx(data[good].mean())
+    assert np.array_equal(stored[good], data[good])
+    assert np.array_equal(mask, (~good).astype(float))
+    assert "/1/mask" not in obj  # a channel with every value has no mask
+    image = read_gwy(path)
+    assert np.array_equal(image.masks["E"], ~good) and "Height" not in image.masks
+    if shutil.which("gwyddion-thumbnailer"):
+        png = tmp_path / "masked.png"
+        subprocess.run(
+            ["gwyddion-thumbnailer", "gnome2", "128", str(path), str(png)], check=True, timeout=60
+        )
+        assert png.read_bytes().startswith(PNG_SIGNATURE)

@@ -82,3 +82,12 @@ def table_text(nodes: dict | None = None) -> str:
                 f"{spec.description} |"
             )
     return "\n".join(rows) + "\n"
+
+
+def session_table(specs: dict) -> str:
+    """The Markdown table of a command's parameters (name, default, unit, range, description)."""
+    rows = ["| name | default | unit | range | description |", "|---|---|---|---|---|"]
+    for name, spec in specs.items():
+        default, unit, allowed, _ = spec_cells(spec)
+        rows.append(f"| `{name}` | {default} | {unit} | {allowed} | {spec.description} |")
+    return "\n".join(rows) + "\n"

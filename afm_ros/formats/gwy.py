@@ -10,7 +10,9 @@ Layout written by :func:`write_gwy` (channel ``n`` = 0, 1, ... in the order give
 - ``/0/data/visible``: true, so Gwyddion opens the first channel in a window;
 - ``/n/base/range-type`` (int32 1 = fixed), ``/n/base/min``, ``/n/base/max`` (doubles, the
   channel's unit): the colour range Gwyddion (and its thumbnailer) shows, when ``display_ranges``
-  gives one.
+  gives one;
+- ``/n/mask``: with ``invalid="mask"``, a ``GwyDataField`` of 1 at the pixels without a value
+  (non-finite), which hold the mean of the others, as Gwyddion's own importers mark bad data.
 
 The values are written raw (SI units, no levelling or scaling). See ``docs/gwyddion.md``.
 """
@@ -40,6 +42,7 @@ class GwyImage:
     yoff: float = 0.0
     metadata: dict[str, str] = field(default_factory=dict)
     xy_unit: str = "m"
+    masks: dict[str, np.ndarray] = field(default_factory=dict)  # title -> True: no value
 
 
 def _meta_text(key, value) -> str:
@@ -86,6 +89,7 @@ def write_gwy(
     yoff: float = 0.0,
     metadata: Mapping | None = None,
     display_ranges: Mapping[str, tuple] | None = None,
+    invalid: str = "refuse",
 ) -> None:
     """Write ``channels`` (title -> (2D array [rows, cols] in SI, z unit)) to ``path`` atomically.
 
@@ -93,8 +97,12 @@ def write_gwy(
     position of the top-left corner. ``metadata``: flat str -> str/number dict, stored in every
     channel's ``/n/meta``. ``display_ranges``: title -> (min, max) in the channel's unit, stored as
     Gwyddion's fixed colour range (``/n/base/range-type`` = 1, ``/n/base/min``, ``/n/base/max``);
-    the data stay as they are. The file appears complete or not at all (temporary file + rename).
+    the data stay as they are. ``invalid``: "refuse" (ValueError for a non-finite value) or
+    "mask" (such pixels hold the mean of the others and are marked in the channel's mask). The
+    file appears complete or not at all (temporary file + rename).
     """
+    if invalid not in ("refuse", "mask"):
+        raise ValueError(f"invalid={invalid!r}: allowed 'refuse' or 'mask'")
     path = os.fspath(path)
     xreal, yreal = _positive("xreal", xreal), _positive("yreal", yreal)
     xoff, yoff = _finite("xoff", xoff), _finite("yoff", yoff)
@@ -131,8 +139,15 @@ def write_gwy(
                 f"{path}: channel {title!r} has shape {data.shape}; "
                 f"every channel must have the first channel's shape {shape}"
             )
-        if not np.all(np.isfinite(data)):
+        bad = ~np.isfinite(data)
+        if bad.any() and invalid == "refuse":
             raise ValueError(f"{path}: channel {title!r} has non-finite values")
+        if bad.any():
+            data[bad] = float(data[~bad].mean()) if (~bad).any() else 0.0
+            container[f"/{n}/mask"] = GwyDataField(
+                bad.astype(np.float64), xreal=xreal, yreal=yreal, xoff=xoff, yoff=yoff,
+                si_unit_xy=GwySIUnit(unitstr="m"), si_unit_z=GwySIUnit(unitstr=""),
+            )  # fmt: skip
         container[f"/{n}/data"] = GwyDataField(
             data,
             xreal=xreal,
@@ -250,6 +265,7 @@ def read_gwy(path) -> GwyImage:
     if not ids:
         raise ValueError(f"{path}: no data channel (/n/data) in the file")
     channels: dict[str, tuple[np.ndarray, str]] = {}
+    masks: dict[str, np.ndarray] = {}
     geometry = None
     for n in ids:
         fieldobj = obj[f"/{n}/data"]
@@ -283,6 +299,15 @@ def read_gwy(path) -> GwyImage:
                 f"channel {ids[0]}; only files whose channels share one geometry are read"
             )
         channels[title] = (data, _unit(fieldobj.get("si_unit_z")))
+        mask = obj.get(f"/{n}/mask")
+        if isinstance(mask, GwyDataField):
+            try:
+                marks = np.asarray(mask["data"], dtype=np.float64).reshape(data.shape)
+            except Exception:
+                raise ValueError(
+                    f"{path}: channel {n} ({title!r}) has a mask of another shape"
+                ) from None
+            masks[title] = marks > 0.5
     meta = obj.get(f"/{ids[0]}/meta")
     metadata = {str(k): str(v) for k, v in meta.items()} if isinstance(meta, GwyContainer) else {}
-    return GwyImage(channels, *geometry, metadata=metadata, xy_unit=xy_unit)
+    return GwyImage(channels, *geometry, metadata=metadata, xy_unit=xy_unit, masks=masks)

@@ -52,6 +52,7 @@ from afm_ros.core.scanner import ScanPlan
 from afm_ros.core.tip import IDEAL_TIP, TIP_NODE_SPECS, TIP_SPECS, TipWear
 from afm_ros.formats.mcap_io import default_output_path
 from afm_ros.nodes import node_main, topics
+from afm_ros.tools import bimodal_session
 from afm_ros.tools.fm_session import (
     FM_CANTILEVER,
     FM_RAW_EXCLUDE,
@@ -95,7 +96,8 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(
         prog="afm_instrument",
         description=__doc__.split("\n\n")[0],
-        epilog="ROS arguments follow --ros-args, e.g. --ros-args --params-file config/afm.yaml",
+        epilog="ROS arguments follow --ros-args, e.g. --ros-args --params-file config/afm.yaml. "
+        "--bimodal: a bimodal AM-FM frame, offline (afm_instrument --bimodal --help)",
     )
     parser.add_argument(
         "--duration",
@@ -399,6 +401,8 @@ def imperfections_line(scanner: dict, cantilever: dict) -> str:
 
 def main(args=None):
     argv = sys.argv if args is None else args
+    if "--bimodal" in argv[1:]:  # a session of its own, offline: no node, no ROS argument
+        return bimodal_session.main(argv[1:])
     try:
         plain = remove_ros_args(argv)
     except (

@@ -270,6 +270,37 @@ class MultiModeSimulation:
         """Simulated time [s] (the drives' phase origin at 0)."""
         return self.steps * self.dt
 
+    def set_contact(self, force, z_base: float) -> None:
+        """Another force model (the material under the tip) and ``z_base`` [m] from the next
+        step on."""
+        if not math.isfinite(z_base):
+            raise ValueError(f"z_base={z_base!r} m: must be finite")
+        if force is not self.force:
+            self.force, self._model, self._p = force, force.model_id, force.packed()
+        self.z_base = float(z_base)
+
+    def drive_frequency(self, j: int) -> float:
+        """Frequency [Hz] of drive ``j``."""
+        return float(self._dw[j] / (2.0 * math.pi))
+
+    def drive_phase(self, j: int, t: float) -> float:
+        """Phase [rad] of drive ``j`` at time ``t`` [s]: 2 pi f t + phase."""
+        return float(self._dw[j] * t + self._dp[j])
+
+    def set_drive(self, j: int, frequency: float, force: float) -> None:
+        """Drive ``j`` at ``frequency`` [Hz] with amplitude ``force`` [N] from the next step on,
+        its phase continuous at the current time (a PLL's oscillator)."""
+        if not (math.isfinite(frequency) and frequency >= 0.0 and math.isfinite(force)):
+            raise ValueError(
+                f"drive {j}: frequency={frequency!r} Hz must be >= 0, force={force!r} N finite"
+            )
+        t = self.t
+        w = 2.0 * math.pi * frequency
+        if w != self._dw[j]:
+            self._dp[j] = math.remainder(self.drive_phase(j, t) - w * t, 2.0 * math.pi)
+            self._dw[j] = w
+        self._df[j] = force
+
     def mode_energy(self) -> np.ndarray:
         """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
         return 0.5 * (self.v**2 / self._inv_m + self._k * self.z**2)

@@ -1,0 +1,413 @@
+"""Bimodal AM-FM imaging, offline (no ROS): the two-mode cantilever scanned over a sample map,
+mode 1 in amplitude modulation for the topography, mode 2 in frequency modulation for the
+nanomechanics (docs/bimodal.md 5).
+
+The blocks are the instrument's own cores, wired per chunk of ``chunk_time``:
+:class:`~afm_ros.core.physics.modes.MultiModeSimulation` (the modes, the force model of the
+material under the tip, z_base = z piezo - local height); one :class:`~afm_ros.core.lockin.LockIn`
+per drive on the summed deflection (reference: that drive, as the instrument's lock-in follows its
+drive); the :class:`~afm_ros.core.controller.ZController` on mode 1's amplitude; the
+:class:`~afm_ros.core.fm.OscillationController` (PLL + amplitude controller) on mode 2, whose
+excitation drives mode 2 from the next chunk on (the z command likewise: one chunk of latency, the
+ROS loop's lockstep). The tip moves along x at a constant speed over the trace (recorded) and
+back at ``retrace_speedup`` times that speed (not recorded), sampled at each chunk's middle.
+
+Per pixel the lock-in and loop outputs inside the pixel's time are averaged; the maps follow per
+pixel from those means with :mod:`afm_ros.core.bimodal` (Hertz contact, small A2): the virial of
+mode 1 from A1 and phi1 (mode 1 driven at its free resonance), E* and the indentation from the
+virial, df2 and A2, the loss tangent from mode 1 and from mode 2's drive. The truth beside them:
+each pixel's material (its E*, the Kelvin-Voigt loss tangent) and height, from the tip-dilated map.
+SI units; phases in degrees in the channels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_ros.core import bimodal
+from afm_ros.core.controller import ZController
+from afm_ros.core.fm import OscillationController, design_gains
+from afm_ros.core.lockin import LockIn
+from afm_ros.core.physics.forces import DMTForce, ViscoelasticDMTForce
+from afm_ros.core.physics.materials import sample_for
+from afm_ros.core.physics.modes import (
+    Q_SCALING_EXPONENTS,
+    ModeDrive,
+    MultiModeSimulation,
+    rectangular_modes,
+)
+from afm_ros.core.physics.parameters import Cantilever, ParamSpec, validate_values
+from afm_ros.core.samples.surface import Sample, dilate
+from afm_ros.formats.chunk_layout import ChunkHeader
+
+BIMODAL_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec("spring_constant", 2.0, "N/m", "mode 1's stiffness k1", 0.01, 1e3),
+        ParamSpec("resonance_frequency", 70e3, "Hz", "mode 1's free resonance f1", 1e3, 2e6),
+        ParamSpec("quality_factor", 150.0, "1", "mode 1's quality factor Q1", 1.0, 1e5),
+        ParamSpec(
+            "q_exponent", 1.0, "1", "Q_n = Q_1 (w_n / w_1)^p (1: uniform viscous damping)",
+            kind=float, choices=Q_SCALING_EXPONENTS,
+        ),
+        ParamSpec("free_amplitude", 25e-9, "m", "mode 1's free amplitude A01", 1e-9, 200e-9),
+        ParamSpec(
+            "setpoint_ratio", 0.8, "1", "mode 1's amplitude setpoint A1 / A01", 0.1, 0.99
+        ),
+        ParamSpec(
+            "mode2_amplitude", 0.05e-9, "m", "mode 2's amplitude A2 (the PLL's amplitude loop)",
+            1e-12, 5e-9,
+        ),
+        ParamSpec(
+            "force_model", "dmt", "", "tip-sample force (viscoelastic_dmt: the material's "
+            "Kelvin-Voigt viscosity)", kind=str, choices=("dmt", "viscoelastic_dmt"),
+        ),
+        ParamSpec(
+            "adhesion", False, "", "keep the materials' Hamaker constants (DMT); false: Hertz "
+            "contact, the maps' own assumption", kind=bool,
+        ),
+        ParamSpec("steps_per_period", 50, "1", "RK4 steps per mode-2 period", 20, 1000, kind=int),
+        ParamSpec("sample_every", 5, "1", "RK4 steps per deflection sample", 1, 50, kind=int),
+        ParamSpec("chunk_time", 25e-6, "s", "simulated time per chunk (one loop update)",
+                  10e-6, 10e-3),
+        ParamSpec("output_rate", 40e3, "Hz", "both lock-ins' output rate", 1e3, 1e6),
+        ParamSpec("time_constant_mode1", 20e-6, "s", "mode 1's lock-in time constant",
+                  1e-6, 1e-2),
+        ParamSpec("time_constant_mode2", 10e-6, "s", "mode 2's lock-in time constant (it must "
+                  "reject mode 1's harmonics near f2)", 1e-6, 1e-2),
+        ParamSpec("filter_order", 4, "1", "both lock-ins' low-pass order", 1, 8, kind=int),
+        ParamSpec("p_gain", 0.2, "m/m", "z loop proportional gain (on mode 1's amplitude)",
+                  0.0, 100.0),
+        ParamSpec("i_gain", 1500.0, "1/s", "z loop integral gain", 0.0, 1e7),
+        ParamSpec("pll_bandwidth", 1000.0, "Hz", "mode 2's PLL and amplitude loop crossover",
+                  1.0, 1e4),
+        ParamSpec("frequency_range", 20e3, "Hz", "mode 2's PLL lock range", 1.0, 1e6),
+        ParamSpec("size", 3e-6, "m", "scan size (square)", 1e-8, 1e-3),
+        ParamSpec("center_x", -1.0, "m", "scan centre x; negative: the map's centre",
+                  -1.0, 1e-3),
+        ParamSpec("center_y", -1.0, "m", "scan centre y; negative: the map's centre",
+                  -1.0, 1e-3),
+        ParamSpec("pixels", 24, "1", "pixels per line and lines (square)", 4, 512, kind=int),
+        ParamSpec("pixel_time", 2e-3, "s", "trace time per pixel", 1e-4, 1.0),
+        ParamSpec("retrace_speedup", 4.0, "1", "retrace speed / trace speed", 1.0, 100.0),
+        ParamSpec("engage_time", 20e-3, "s", "feedback on at the first pixel before the "
+                  "frame", 1e-3, 10.0),
+        ParamSpec("edge_exclusion", 2, "1", "pixels this close to another material are left "
+                  "out of the per-material statistics", 0, 64, kind=int),
+    )
+}  # fmt: skip
+
+CHANNELS = {  # name -> unit, in the order the files list them
+    "height": "m",
+    "amplitude_1": "m",
+    "phase_1": "deg",
+    "amplitude_2": "m",
+    "phase_2": "deg",
+    "frequency_shift_2": "Hz",
+    "drive_2": "N",
+    "modulus": "Pa",
+    "indentation": "m",
+    "loss_tangent_1": "",
+    "loss_tangent_2": "",
+    "true_modulus": "Pa",
+    "true_loss_tangent_2": "",
+    "true_height": "m",
+}
+
+
+@dataclass(frozen=True)
+class MaterialRow:
+    """Per material, medians over its pixels away from edges: E* recovered and true [Pa], its
+    bias (recovered / true - 1), df2 [Hz], indentation [m], topography [m], loss tangents (mode
+    1, mode 2, the contact's own at f2)."""
+
+    material: str
+    pixels: int
+    true_modulus: float
+    modulus: float
+    bias: float
+    frequency_shift_2: float
+    indentation: float
+    height: float
+    true_height: float
+    loss_tangent_1: float
+    loss_tangent_2: float
+    true_loss_tangent_2: float
+
+
+@dataclass
+class BimodalFrame:
+    """A bimodal frame: ``channels`` name -> 2D array [rows = lines, cols = pixels] in the units
+    of :data:`CHANNELS`, ``material`` index per pixel and ``materials`` names, the per-material
+    table, the scan's extent [m], the modes and the simulated time [s]."""
+
+    channels: dict
+    material: np.ndarray
+    materials: tuple
+    rows: list
+    size: float
+    origin: tuple
+    modes: list
+    simulated_time: float
+    lines_done: int
+    values: dict = field(default_factory=dict)
+
+
+def _force(name: str, values: dict):
+    overrides = {} if values["adhesion"] else {"hamaker_constant": 0.0}
+    sample, viscosity, _ = sample_for(name, **overrides)
+    if values["force_model"] == "viscoelastic_dmt":
+        return ViscoelasticDMTForce(sample, viscosity), viscosity
+    return DMTForce(sample), 0.0
+
+
+class BimodalScan:
+    """One bimodal AM-FM frame over ``sample`` (a :class:`Sample`) with ``values``
+    (:data:`BIMODAL_SPECS`; missing: defaults). :meth:`run` scans; each call of
+    :meth:`line` scans one more line."""
+
+    def __init__(self, sample: Sample, values: dict | None = None):
+        v = validate_values(BIMODAL_SPECS, dict(values or {}), "a bimodal session")
+        cx = 0.5 * sample.size_x if v["center_x"] < 0 else v["center_x"]
+        cy = 0.5 * sample.size_y if v["center_y"] < 0 else v["center_y"]
+        self.values = v
+        lever = Cantilever(
+            spring_constant=v["spring_constant"],
+            resonance_frequency=v["resonance_frequency"],
+            quality_factor=v["quality_factor"],
+        )
+        self.modes = m1, m2 = rectangular_modes(lever, 2, v["q_exponent"])
+        self.dt = 1.0 / (m2.resonance_frequency * v["steps_per_period"])
+        every = v["sample_every"]
+        self.chunk_steps = every * max(1, round(v["chunk_time"] / (self.dt * every)))
+        self.a01, self.a2 = v["free_amplitude"], v["mode2_amplitude"]
+        self.free_drive_1 = m1.spring_constant * self.a01 / m1.quality_factor
+        self.free_drive_2 = m2.spring_constant * self.a2 / m2.quality_factor
+        self.forces = {}
+        self.truth = {}
+        tip_radius = None
+        for name in sample.materials:
+            force, viscosity = _force(name, v)
+            e_star = force.sample.effective_modulus
+            tan2 = bimodal.kelvin_voigt_loss_tangent(m2.resonance_frequency, viscosity, e_star)
+            self.forces[name], self.truth[name] = force, (e_star, tan2)
+            tip_radius = force.sample.tip_radius
+        self.tip_radius = tip_radius
+        self.map = dilate(sample, tip_radius)
+        self.materials = sample.materials
+        self.size, self.n = v["size"], v["pixels"]
+        self.origin = (cx - 0.5 * self.size, cy - 0.5 * self.size)
+        drives = [
+            ModeDrive(0, m1.resonance_frequency, self.free_drive_1),
+            ModeDrive(1, m2.resonance_frequency, self.free_drive_2),
+        ]
+        h0, mat0 = self.map.surface(*self._xy(0.0, 0))
+        self.z_piezo = h0 + 1.2 * self.a01  # out of contact: the z loop engages from here
+        self.sim = MultiModeSimulation(
+            self.modes, drives, self.forces[mat0], self.z_piezo - h0, self.dt
+        )
+        # start on the free steady state (driven at resonance: z = A sin(w t))
+        self.sim.v[:] = [self.a01 * m1.omega, self.a2 * m2.omega]
+        lockin = dict(output_rate=v["output_rate"], filter_order=v["filter_order"])
+        self.lockins = [
+            LockIn(time_constant=v["time_constant_mode1"], **lockin),
+            LockIn(time_constant=v["time_constant_mode2"], **lockin),
+        ]
+        self.z = ZController(
+            self.z_piezo,
+            setpoint=v["setpoint_ratio"] * self.a01,
+            p_gain=v["p_gain"],
+            i_gain=v["i_gain"],
+            z_min=-1e-6,
+            z_max=1e-6,
+        )
+        self.pll = OscillationController(
+            center_frequency=m2.resonance_frequency,
+            amplitude_setpoint=self.a2,
+            drive_initial=self.free_drive_2,
+            drive_max=1e3 * self.free_drive_2,
+            frequency_range=v["frequency_range"],
+            **design_gains(v["pll_bandwidth"], m2.spring_constant, m2.resonance_frequency),
+        )
+        self.index = 0  # deflection samples so far
+        self.sums = np.zeros((7, self.n, self.n))  # CHANNELS' first seven, summed per pixel
+        self.counts = np.zeros((self.n, self.n))
+        self.lines_done = 0
+        self._last = [math.nan] * 7
+
+    def _xy(self, fraction: float, line: int) -> tuple[float, float]:
+        """Tip position [m] at ``fraction`` (0-1) along the trace of ``line``."""
+        x0, y0 = self.origin
+        return x0 + fraction * self.size, y0 + (line + 0.5) / self.n * self.size
+
+    def _chunk(self, x: float, y: float, pixel: tuple | None) -> None:
+        """Integrate one chunk with the tip at (x, y) [m]; feed the loops; add the outputs to
+        ``pixel`` (row, col) unless None."""
+        sim, steps, every = self.sim, self.chunk_steps, self.values["sample_every"]
+        h, mat = self.map.surface(x, y)
+        sim.set_contact(self.forces[mat], self.z_piezo - h)
+        t1 = (sim.steps + every) * self.dt  # time of the chunk's first sample
+        z = sim.advance(steps, every)
+        defl = z.sum(axis=1)
+        interval = every * self.dt
+        outs = []
+        for j, lockin in enumerate(self.lockins):
+            f = sim.drive_frequency(j)
+            header = ChunkHeader(self.index, t1, interval, sim.drive_phase(j, t1), f, 0.0)
+            outs.append(lockin.process(header, defl))
+        self.index += defl.shape[0]
+        o1, o2 = outs
+        for t, a in zip(o1.t.tolist(), o1.amplitude.tolist()):
+            self.z_piezo = self.z.update(a, t)
+        for t, x2, y2 in zip(o2.t.tolist(), o2.x.tolist(), o2.y.tolist()):
+            self.pll.update(t, x2, y2)
+        sim.set_drive(1, self.pll.frequency, self.pll.drive)
+        if pixel is None or len(o1) == 0 or len(o2) == 0:
+            return
+        i, j = pixel
+        row = (
+            self.z_piezo,
+            float(o1.amplitude.mean()),
+            float(o1.phase_deg.mean()),
+            float(o2.amplitude.mean()),
+            float(o2.phase_deg.mean()),
+            self.pll.df,
+            self.pll.drive,
+        )
+        self.sums[:, i, j] += row
+        self.counts[i, j] += 1
+
+    def engage(self) -> None:
+        """The z loop on at the first pixel for ``engage_time``."""
+        x, y = self._xy(0.0, 0)
+        for _ in range(round(self.values["engage_time"] / (self.chunk_steps * self.dt))):
+            self._chunk(x, y, None)
+
+    def line(self) -> None:
+        """Trace (recorded) and retrace of the next line."""
+        i = self.lines_done
+        v = self.values
+        chunk = self.chunk_steps * self.dt
+        trace = max(1, round(self.n * v["pixel_time"] / chunk))
+        for c in range(trace):
+            frac = (c + 0.5) / trace
+            self._chunk(*self._xy(frac, i), (i, min(self.n - 1, int(frac * self.n))))
+        back = max(1, round(trace / v["retrace_speedup"]))
+        nxt = min(i + 1, self.n - 1)  # the retrace also moves to the next line
+        for c in range(back):
+            frac = 1.0 - (c + 0.5) / back
+            x, _ = self._xy(frac, i)
+            _, y_next = self._xy(frac, nxt)
+            _, y = self._xy(frac, i)
+            self._chunk(x, y + (c + 0.5) / back * (y_next - y), None)
+        self.lines_done += 1
+
+    def run(self, progress=None) -> BimodalFrame:
+        """Engage and scan every line (``progress(lines_done, n)`` after each); Ctrl-C keeps the
+        lines done (the frame says how many)."""
+        if self.sim.steps == 0:
+            self.engage()
+        try:
+            while self.lines_done < self.n:
+                self.line()
+                if progress is not None:
+                    progress(self.lines_done, self.n)
+        except KeyboardInterrupt:
+            pass
+        return self.frame()
+
+    def frame(self) -> BimodalFrame:
+        """The channels, maps and per-material table of the lines scanned so far."""
+        n = self.n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.sums / self.counts
+        mean[:, self.counts == 0] = math.nan
+        ch = dict(zip(list(CHANNELS)[:7], mean))
+        material = np.zeros((n, n), dtype=np.int64)
+        true_h = np.zeros((n, n))
+        for i in range(n):
+            for j in range(n):
+                h, mat = self.map.surface(*self._xy((j + 0.5) / n, i))
+                material[i, j], true_h[i, j] = self.materials.index(mat), h
+        self._maps(ch, material)
+        ch["true_height"] = true_h
+        rows = self._table(ch, material)
+        chans = {name: ch[name] for name in CHANNELS}
+        return BimodalFrame(
+            chans, material, self.materials, rows, self.size, self.origin, self.modes,
+            self.sim.t, self.lines_done, dict(self.values),
+        )  # fmt: skip
+
+    def _maps(self, ch: dict, material: np.ndarray) -> None:
+        m1, m2 = self.modes
+        f2, k2 = m2.resonance_frequency, m2.spring_constant
+        shape = material.shape
+        for name in ("modulus", "indentation", "loss_tangent_1", "loss_tangent_2"):
+            ch[name] = np.full(shape, math.nan)
+        ch["true_modulus"] = np.zeros(shape)
+        ch["true_loss_tangent_2"] = np.zeros(shape)
+        for (i, j), k in np.ndenumerate(material):
+            e_true, tan_true = self.truth[self.materials[k]]
+            ch["true_modulus"][i, j], ch["true_loss_tangent_2"][i, j] = e_true, tan_true
+            a1, phi1 = ch["amplitude_1"][i, j], math.radians(ch["phase_1"][i, j])
+            df2, drive2 = ch["frequency_shift_2"][i, j], ch["drive_2"][i, j]
+            if not math.isfinite(a1):
+                continue
+            ch["loss_tangent_1"][i, j] = bimodal.loss_tangent_mode1(self.a01, a1, phi1)
+            virial = bimodal.virial_at_resonance(
+                m1.spring_constant, m1.quality_factor, self.a01, a1, phi1
+            )
+            try:
+                est = bimodal.hertz_from_observables(
+                    a1, virial, df2, f2, k2, self.tip_radius, ch["amplitude_2"][i, j]
+                )
+                tan2 = bimodal.loss_tangent_mode2(
+                    f2, m2.quality_factor, df2, drive2 / self.free_drive_2
+                )
+            except ValueError:  # not a repulsive contact here: no Hertz estimate
+                continue
+            ch["modulus"][i, j], ch["indentation"][i, j] = est.effective_modulus, est.indentation
+            ch["loss_tangent_2"][i, j] = tan2
+
+    def _table(self, ch: dict, material: np.ndarray) -> list[MaterialRow]:
+        keep = interior(material, self.values["edge_exclusion"])
+        keep &= np.isfinite(ch["height"])
+        rows = []
+        for k, name in enumerate(self.materials):
+            sel = keep & (material == k)
+            if not sel.any():
+                continue
+
+            def med(key, sel=sel):
+                vals = ch[key][sel]
+                vals = vals[np.isfinite(vals)]
+                return float(np.median(vals)) if vals.size else math.nan
+
+            e_true, tan_true = self.truth[name]
+            e = med("modulus")
+            rows.append(
+                MaterialRow(
+                    name, int(sel.sum()), e_true, e, e / e_true - 1.0, med("frequency_shift_2"),
+                    med("indentation"), med("height"), med("true_height"),
+                    med("loss_tangent_1"), med("loss_tangent_2"), tan_true,
+                )
+            )  # fmt: skip
+        return rows
+
+
+def interior(material: np.ndarray, margin: int) -> np.ndarray:
+    """Pixels with no other material within ``margin`` pixels (a square neighbourhood; the
+    frame's border counts as no other material)."""
+    rows, cols = material.shape
+    keep = np.ones(material.shape, dtype=bool)
+    for di in range(-margin, margin + 1):
+        for dj in range(-margin, margin + 1):
+            shifted = np.full(material.shape, -1)
+            i0, i1 = max(0, di), min(rows, rows + di)
+            j0, j1 = max(0, dj), min(cols, cols + dj)
+            shifted[i0 - di : i1 - di, j0 - dj : j1 - dj] = material[i0:i1, j0:j1]
+            keep &= (shifted == -1) | (shifted == material)
+    return keep
