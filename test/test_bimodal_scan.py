@@ -9,21 +9,24 @@ import shutil
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from afm_ros.core import bimodal
 from afm_ros.core.bimodal_point import bimodal_point
-from afm_ros.core.bimodal_scan import CHANNELS, BimodalScan, interior
+from afm_ros.core.bimodal_scan import BIMODAL_SPECS, CHANNELS, BimodalScan, interior
 from afm_ros.core.physics.forces import DMTForce
 from afm_ros.core.physics.materials import sample_for
 from afm_ros.core.physics.modes import ModeDrive, MultiModeSimulation, rectangular_modes
 from afm_ros.core.physics.parameters import Cantilever
 from afm_ros.core.samples import resolve_sample
+from afm_ros.core.specs import session_table
 from afm_ros.formats.gwy import read_gwy
 
-BIN = __import__("pathlib").Path(sys.executable).parent
+BIN = Path(sys.executable).parent
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _island_centre(sample, name="ldpe"):
@@ -94,12 +97,16 @@ def test_the_recovered_modulus_is_the_truth_within_the_methods_measured_bias(ble
     assert frame.channels["true_modulus"].max() == pytest.approx(ps.true_modulus)
 
 
-def test_the_same_inputs_give_the_same_frame_bit_for_bit():
+def test_the_same_inputs_give_the_same_frame_bit_for_bit_and_the_seed_changes_it():
+    """With thermal forces on both modes (300 K): same seed, same frame bit for bit; another
+    seed, another frame."""
     sample = resolve_sample("ps_ldpe_blend")
-    values = dict(pixels=4, pixel_time=5e-4, engage_time=5e-3, size=1e-6)
+    values = dict(pixels=4, pixel_time=5e-4, engage_time=5e-3, size=1e-6, temperature=300.0)
     a, b = (BimodalScan(sample, values).run() for _ in range(2))
+    c = BimodalScan(sample, {**values, "noise_seed": 1}).run()
     for name in CHANNELS:
         assert np.array_equal(a.channels[name], b.channels[name], equal_nan=True), name
+    assert not np.array_equal(a.channels["frequency_shift_2"], c.channels["frequency_shift_2"])
 
 
 def test_a_drive_retuned_mid_run_stays_phase_continuous():
@@ -191,3 +198,28 @@ def test_ctrl_c_keeps_the_lines_done_and_says_so(tmp_path):
     image = read_gwy(out / "bimodal.gwy")
     assert image.channels["height"][0].shape == (done, 12)
     assert f"{done} of 12 lines" in stdout
+
+
+@pytest.mark.slow
+def test_the_readmes_bimodal_command_prints_the_readmes_lines(tmp_path):
+    """The README's command as written (the default frame, 1.46 s simulated) prints the lines
+    the README shows, digit for digit: the session is deterministic."""
+    readme = (ROOT / "README.md").read_text()
+    assert "`.venv/bin/afm_instrument --bimodal`" in readme
+    block = readme.split("## Bimodal AM-FM")[1].split("```")[1]
+    shown = [line for line in block.splitlines() if line.strip()]
+    assert len(shown) == 4
+    proc = subprocess.run(
+        [str(BIN / "afm_instrument"), "--bimodal", "--no-figure"],
+        capture_output=True, text=True, timeout=600, cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    printed = proc.stdout.splitlines()
+    for line in shown:
+        assert line in printed
+
+
+def test_the_docs_parameter_table_is_the_specs():
+    doc = (ROOT / "docs" / "bimodal.md").read_text()
+    for row in session_table(BIMODAL_SPECS).splitlines()[2:]:
+        assert row in doc, f"docs/bimodal.md parameter table is missing or stale: {row}"

@@ -95,6 +95,8 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
         ParamSpec("retrace_speedup", 4.0, "1", "retrace speed / trace speed", 1.0, 100.0),
         ParamSpec("engage_time", 20e-3, "s", "feedback on at the first pixel before the "
                   "frame", 1e-3, 10.0),
+        ParamSpec("temperature", 0.0, "K", "thermal force on each mode (0: none)", 0.0, 1000.0),
+        ParamSpec("noise_seed", 0, "1", "seed of the thermal forces", 0, 2**62, kind=int),
         ParamSpec("edge_exclusion", 2, "1", "pixels this close to another material are left "
                   "out of the per-material statistics", 0, 64, kind=int),
     )
@@ -209,6 +211,7 @@ class BimodalScan:
         self.sim = MultiModeSimulation(
             self.modes, drives, self.forces[mat0], self.z_piezo - h0, self.dt
         )
+        self.sim.set_thermal(v["temperature"], v["noise_seed"])
         # start on the free steady state (driven at resonance: z = A sin(w t))
         self.sim.v[:] = [self.a01 * m1.omega, self.a2 * m2.omega]
         lockin = dict(output_rate=v["output_rate"], filter_order=v["filter_order"])
