@@ -6,7 +6,9 @@ subscriber, recorder and reader sees the same message."""
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 
 from afm_ros.formats import chunk_layout as cl
@@ -66,3 +68,15 @@ def test_a_chunk_is_the_chunk_message():
     assert same_message(raw, expected)
     h, s = cl.cdr_chunk(raw)
     assert h == header and np.array_equal(s, samples)
+
+
+@pytest.mark.parametrize("t", [0.0, 0.002, 1.0, 12.345678901, 86400.999999999])
+def test_the_clock_is_rclpys_clock_message(t):
+    """/clock published raw: exactly rclpy's bytes (no padding in a Clock), the time split into
+    sec and nanosec as builtin_interfaces/Time holds it."""
+    sec, nanosec = cl.time_fields(t)
+    assert 0 <= nanosec < 1_000_000_000 and abs(sec + nanosec * 1e-9 - t) <= 1e-9 * max(1.0, t)
+    raw = cl.cdr_clock_message(t)
+    assert raw == serialize_message(Clock(clock=Time(sec=sec, nanosec=nanosec)))
+    back = deserialize_message(raw, Clock)
+    assert (back.clock.sec, back.clock.nanosec) == (sec, nanosec)

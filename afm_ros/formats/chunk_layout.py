@@ -351,6 +351,21 @@ def cdr_int64_multiarray(
     return _multiarray_head(label, size, stride, data_offset, values.size) + values.tobytes()
 
 
+_CDR_TIME = struct.Struct("<4siI")  # encapsulation (little-endian CDR), sec, nanosec
+
+
+def time_fields(t: float) -> tuple[int, int]:
+    """(sec, nanosec) of builtin_interfaces/Time for ``t`` [s] (t >= 0; nanosec rounded and
+    held below 1e9)."""
+    sec = math.floor(t)
+    return int(sec), min(int(round((t - sec) * 1e9)), 999_999_999)
+
+
+def cdr_clock_message(t: float) -> bytes:
+    """The serialized rosgraph_msgs/Clock of time ``t`` [s] (a builtin_interfaces/Time)."""
+    return _CDR_TIME.pack(b"\x00\x01\x00\x00", *time_fields(t))
+
+
 def cdr_chunk_message(header: ChunkHeader, samples: np.ndarray) -> bytes:
     """A sample chunk (preamble, then ``samples``) serialized as its Float64MultiArray."""
     n = samples.shape[0]

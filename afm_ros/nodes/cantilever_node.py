@@ -56,8 +56,11 @@ from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS, material_value
 from afm_ros.core.physics.simulation import Simulation
 from afm_ros.formats.chunk_layout import (
     cdr_chunk_message,
+    cdr_clock_message,
+    cdr_float64_multiarray,
     cdr_int64_array,
     cdr_multiarray_label,
+    time_fields,
     unpack_excitation,
     unpack_z_command,
 )
@@ -103,8 +106,8 @@ TIP_LAYOUT = MultiArrayLayout(
 
 
 def _time_msg(t: float) -> TimeMsg:
-    sec = math.floor(t)
-    return TimeMsg(sec=int(sec), nanosec=min(int(round((t - sec) * 1e9)), 999_999_999))
+    sec, nanosec = time_fields(t)
+    return TimeMsg(sec=sec, nanosec=nanosec)
 
 
 class CantileverNode(GuardedNode):
@@ -156,14 +159,7 @@ class CantileverNode(GuardedNode):
         )
         self._pub_truth = self.create_publisher(Float64MultiArray, topics.TRUTH, CHUNK_QOS)
         self._pub_tip = self.create_publisher(Float64MultiArray, topics.TRUTH_TIP, LATCHED_QOS)
-        self._truth_msg = Float64MultiArray()
-        self._truth_msg.layout.dim = [
-            MultiArrayDimension(
-                label=",".join(topics.TRUTH_FIELDS),
-                size=len(topics.TRUTH_FIELDS),
-                stride=len(topics.TRUTH_FIELDS),
-            )
-        ]
+        self._truth_label = ",".join(topics.TRUTH_FIELDS)
         self.add_on_set_parameters_callback(
             ros_params.make_set_callback(
                 CANTILEVER_NODE_SPECS,
@@ -500,10 +496,12 @@ class CantileverNode(GuardedNode):
             if self._pub_force.get_subscription_count():
                 self._pub_force.publish(cdr_chunk_message(chunk.header, chunk.force))
         if chunk.truth is not None:
-            self._truth_msg.data = chunk.truth
-            self._pub_truth.publish(self._truth_msg)
+            n = len(topics.TRUTH_FIELDS)
+            self._pub_truth.publish(
+                cdr_float64_multiarray(self._truth_label, n, n, 0, chunk.truth)
+            )
         if chunk.publish_clock:
-            self._pub_clock.publish(ClockMsg(clock=_time_msg(chunk.t)))
+            self._pub_clock.publish(cdr_clock_message(chunk.t))
         self._published_end = chunk.end
 
     # --- timer: pacing, waits, graph and diagnostics --------------------------------------------
