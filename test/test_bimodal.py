@@ -145,3 +145,22 @@ def test_mode_2_loss_tangent_against_kelvin_voigt_and_zero_on_an_elastic_sample(
         elastic, _ = _hertz(material)
         q = bimodal_point(MODES, DMTForce(elastic), 16e-9, A01, A2)
         assert 0.0 <= bimodal.loss_tangent_mode2(f2, q2, q.df2, A2 / q.a2) < 0.005
+
+
+def test_am_am_inversions_undo_the_linear_mode2_forward_model():
+    """Mode 2 as a linear oscillator of stiffness k2 + k_bar and damping c2 + c_ts, driven at its
+    free frequency (docs/bimodal.md 4): A2 = F2 / sqrt(k_bar^2 + (k2/Q2 + w2 c_ts)^2),
+    tan(phi2) = (k2/Q2 + w2 c_ts) / k_bar; the AM-AM inversions give k_bar and w2 c_ts / k_bar
+    back to rounding."""
+    q2, k2, a02 = 940.0, 78.55, 0.05e-9
+    f2_free = k2 * a02 / q2
+    for k_bar, tan_delta in ((0.65, 0.0), (0.19, 0.39), (2.0, 0.05)):
+        c = k2 / q2 + k_bar * tan_delta  # k2/Q2 + w2 c_ts [N/m]
+        a2 = f2_free / math.hypot(k_bar, c)
+        phi2 = math.atan2(c, k_bar)
+        assert bimodal.mean_stiffness_am_am(q2, k2, a2, a02, phi2) == pytest.approx(
+            k_bar, rel=1e-12
+        )
+        assert bimodal.loss_tangent_am_am(q2, k2, a2, a02, phi2) == pytest.approx(
+            tan_delta, abs=1e-12
+        )

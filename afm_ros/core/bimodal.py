@@ -171,3 +171,20 @@ def am_am_cos_phase(q2: float, k2: float, a2: float, a02: float, mean_stiffness:
     mode 2's virial V2 = -(k2 A2 A02 / (2 Q2)) cos(phi2) = -<k_ts> A2^2 / 2 (A2 small: mode 2 a
     linear oscillator of stiffness k2 + <k_ts>; docs/bimodal.md 4). A2, A02 [m]; k [N/m]."""
     return q2 * a2 * mean_stiffness / (k2 * a02)
+
+
+def mean_stiffness_am_am(q2: float, k2: float, a2: float, a02: float, phi2: float) -> float:
+    """<k_ts> [N/m] from AM-AM's mode 2 driven at its free frequency with free amplitude A02 [m]:
+    amplitude A2 [m], phase lag phi2 [rad]: k2 A02 cos(phi2) / (Q2 A2) (docs/bimodal.md 4)."""
+    if not (math.isfinite(a2) and a2 > 0.0 and math.isfinite(phi2)):
+        raise ValueError(f"A2={a2!r} m must be > 0 and phi2={phi2!r} rad finite")
+    return k2 * a02 * math.cos(phi2) / (q2 * a2)
+
+
+def loss_tangent_am_am(q2: float, k2: float, a2: float, a02: float, phi2: float) -> float:
+    """tan(delta) at mode 2's frequency from AM-AM's mode 2 (as :func:`mean_stiffness_am_am`):
+    w2 c_ts / <k_ts> with w2 c_ts = (k2 / Q2) ((A02 / A2) sin(phi2) - 1) (docs/bimodal.md 4)."""
+    k_bar = mean_stiffness_am_am(q2, k2, a2, a02, phi2)
+    if not k_bar > 0.0:
+        raise ValueError(f"<k_ts>={k_bar!r} N/m: must be > 0 (a repulsive contact)")
+    return (k2 / q2) * ((a02 / a2) * math.sin(phi2) - 1.0) / k_bar

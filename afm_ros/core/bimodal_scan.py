@@ -62,6 +62,12 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
             1e-12, 5e-9,
         ),
         ParamSpec(
+            "mode2_control", "fm", "", "fm: AM-FM (mode 2 phase-locked at 90 deg, its amplitude "
+            "held: df2 and the drive are the contrast); am: AM-AM (mode 2 driven at its free "
+            "frequency with the free drive for A2: its amplitude and phase are the contrast)",
+            kind=str, choices=("fm", "am"),
+        ),
+        ParamSpec(
             "force_model", "dmt", "", "tip-sample force (viscoelastic_dmt: the material's "
             "Kelvin-Voigt viscosity)", kind=str, choices=("dmt", "viscoelastic_dmt"),
         ),
@@ -76,8 +82,9 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
         ParamSpec("output_rate", 40e3, "Hz", "both lock-ins' output rate", 1e3, 1e6),
         ParamSpec("time_constant_mode1", 20e-6, "s", "mode 1's lock-in time constant",
                   1e-6, 1e-2),
-        ParamSpec("time_constant_mode2", 10e-6, "s", "mode 2's lock-in time constant (it must "
-                  "reject mode 1's harmonics near f2)", 1e-6, 1e-2),
+        ParamSpec("time_constant_mode2", 0.0, "s", "mode 2's lock-in time constant; 0: 10 us "
+                  "with fm (short: the PLL's dead time), 100 us with am (no loop: rejects mode "
+                  "1's 6th harmonic, which mode 2 answers 18.7 kHz from f2)", 0.0, 1e-2),
         ParamSpec("filter_order", 4, "1", "both lock-ins' low-pass order", 1, 8, kind=int),
         ParamSpec("p_gain", 0.2, "m/m", "z loop proportional gain (on mode 1's amplitude)",
                   0.0, 100.0),
@@ -102,6 +109,7 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
     )
 }  # fmt: skip
 
+AUTO_TIME_CONSTANT_2 = {"fm": 10e-6, "am": 100e-6}  # [s] time_constant_mode2 0
 CHANNELS = {  # name -> unit, in the order the files list them
     "height": "m",
     "amplitude_1": "m",
@@ -124,7 +132,7 @@ CHANNELS = {  # name -> unit, in the order the files list them
 class MaterialRow:
     """Per material, medians over its pixels away from edges: E* recovered and true [Pa], its
     bias (recovered / true - 1), df2 [Hz], indentation [m], topography [m], loss tangents (mode
-    1, mode 2, the contact's own at f2)."""
+    1, mode 2, the contact's own at f2), mode 2's amplitude [m] and phase [deg]."""
 
     material: str
     pixels: int
@@ -138,6 +146,8 @@ class MaterialRow:
     loss_tangent_1: float
     loss_tangent_2: float
     true_loss_tangent_2: float
+    amplitude_2: float
+    phase_2: float
 
 
 @dataclass
@@ -215,9 +225,10 @@ class BimodalScan:
         # start on the free steady state (driven at resonance: z = A sin(w t))
         self.sim.v[:] = [self.a01 * m1.omega, self.a2 * m2.omega]
         lockin = dict(output_rate=v["output_rate"], filter_order=v["filter_order"])
+        self.time_constant_2 = v["time_constant_mode2"] or AUTO_TIME_CONSTANT_2[v["mode2_control"]]
         self.lockins = [
             LockIn(time_constant=v["time_constant_mode1"], **lockin),
-            LockIn(time_constant=v["time_constant_mode2"], **lockin),
+            LockIn(time_constant=self.time_constant_2, **lockin),
         ]
         self.z = ZController(
             self.z_piezo,
@@ -233,6 +244,8 @@ class BimodalScan:
             drive_initial=self.free_drive_2,
             drive_max=1e3 * self.free_drive_2,
             frequency_range=v["frequency_range"],
+            pll_enabled=v["mode2_control"] == "fm",
+            amplitude_enabled=v["mode2_control"] == "fm",
             **design_gains(v["pll_bandwidth"], m2.spring_constant, m2.resonance_frequency),
         )
         self.index = 0  # deflection samples so far
@@ -363,13 +376,18 @@ class BimodalScan:
             virial = bimodal.virial_at_resonance(
                 m1.spring_constant, m1.quality_factor, self.a01, a1, phi1
             )
+            a2 = ch["amplitude_2"][i, j]
             try:
-                est = bimodal.hertz_from_observables(
-                    a1, virial, df2, f2, k2, self.tip_radius, ch["amplitude_2"][i, j]
-                )
-                tan2 = bimodal.loss_tangent_mode2(
-                    f2, m2.quality_factor, df2, drive2 / self.free_drive_2
-                )
+                if self.values["mode2_control"] == "am":  # <k_ts> from the phase (section 4)
+                    q2, phi2 = m2.quality_factor, math.radians(ch["phase_2"][i, j])
+                    k_bar = bimodal.mean_stiffness_am_am(q2, k2, a2, self.a2, phi2)
+                    df2 = f2 * k_bar / (2.0 * k2)  # the shift a PLL would read: 3.2
+                    tan2 = bimodal.loss_tangent_am_am(q2, k2, a2, self.a2, phi2)
+                else:
+                    tan2 = bimodal.loss_tangent_mode2(
+                        f2, m2.quality_factor, df2, drive2 / self.free_drive_2
+                    )
+                est = bimodal.hertz_from_observables(a1, virial, df2, f2, k2, self.tip_radius, a2)
             except ValueError:  # not a repulsive contact here: no Hertz estimate
                 continue
             ch["modulus"][i, j], ch["indentation"][i, j] = est.effective_modulus, est.indentation
@@ -396,6 +414,7 @@ class BimodalScan:
                     name, int(sel.sum()), e_true, e, e / e_true - 1.0, med("frequency_shift_2"),
                     med("indentation"), med("height"), med("true_height"),
                     med("loss_tangent_1"), med("loss_tangent_2"), tan_true,
+                    med("amplitude_2"), med("phase_2"),
                 )
             )  # fmt: skip
         return rows

@@ -71,6 +71,7 @@ def _fmt(x: float, scale: float, digits: int = 1) -> str:
 
 def summary_lines(scan: BimodalScan, frame, wall: float, sample_name: str) -> list[str]:
     v = scan.values
+    am_fm = v["mode2_control"] == "fm"
     m1, m2 = scan.modes
     n = scan.n
     lines = [
@@ -80,18 +81,21 @@ def summary_lines(scan: BimodalScan, frame, wall: float, sample_name: str) -> li
         f"  mode 1 (AM, topography): f1 {m1.resonance_frequency / 1e3:.2f} kHz, k1 "
         f"{m1.spring_constant:g} N/m, Q1 {m1.quality_factor:g}, A01 {scan.a01 * 1e9:g} nm, "
         f"setpoint {v['setpoint_ratio'] * scan.a01 * 1e9:g} nm",
-        f"  mode 2 (FM, nanomechanics): f2 {m2.resonance_frequency / 1e3:.2f} kHz, k2 "
-        f"{m2.spring_constant:.4g} N/m, Q2 {m2.quality_factor:.4g}, A2 {scan.a2 * 1e12:g} pm, "
-        f"PLL {v['pll_bandwidth']:g} Hz",
+        f"  mode 2 ({'FM' if v['mode2_control'] == 'fm' else 'AM, open loop'}, nanomechanics): "
+        f"f2 {m2.resonance_frequency / 1e3:.2f} kHz, k2 {m2.spring_constant:.4g} N/m, Q2 "
+        f"{m2.quality_factor:.4g}, A2 {scan.a2 * 1e12:g} pm"
+        + (f", PLL {v['pll_bandwidth']:g} Hz" if v["mode2_control"] == "fm" else " (free)"),
         f"  simulated {frame.simulated_time:.3f} s in {wall:.1f} s of wall time "
         f"({frame.simulated_time / wall:.3f} x real time), {frame.lines_done} of {n} lines",
-        "  material      pixels  height [nm]  df2 [Hz]  E* [GPa]  true E* [GPa]  bias    "
-        "indent. [nm]  tan d (mode 2)  true",
+        "  material      pixels  height [nm]  "
+        + ("df2 [Hz]" if am_fm else "phi2 [deg]")
+        + "  E* [GPa]  true E* [GPa]  bias    indent. [nm]  tan d (mode 2)  true",
     ]
     for r in frame.rows:
+        contrast = _fmt(r.frequency_shift_2, 1.0) if am_fm else _fmt(r.phase_2, 1.0, 2)
         lines.append(
             f"  {r.material:<12}  {r.pixels:>6}  {_fmt(r.height, 1e9, 2):>11}  "
-            f"{_fmt(r.frequency_shift_2, 1.0):>8}  {_fmt(r.modulus, 1e-9, 3):>8}  "
+            f"{contrast:>{8 if am_fm else 10}}  {_fmt(r.modulus, 1e-9, 3):>8}  "
             f"{_fmt(r.true_modulus, 1e-9, 3):>13}  {_fmt(r.bias, 100.0):>5} %  "
             f"{_fmt(r.indentation, 1e9, 2):>12}  {_fmt(r.loss_tangent_2, 1.0, 4):>14}  "
             f"{r.true_loss_tangent_2:.4f}"
