@@ -122,7 +122,7 @@ def test_am_am_mode2_amplitude_and_phase_equal_the_steady_state(am_am_frame):
     scan, frame = am_am_frame
     keep = interior(frame.material, 2)
     ch = frame.channels
-    assert np.all(ch["frequency_shift_2"][np.isfinite(ch["frequency_shift_2"])] == 0.0)
+    assert np.isnan(ch["frequency_shift_2"]).all()  # no PLL: no shift measured
     for row in frame.rows:
         sel = keep & (frame.material == frame.materials.index(row.material))
         z_base = float(np.median((ch["height"] - ch["true_height"])[sel]))
@@ -155,10 +155,18 @@ def test_a_drive_retuned_mid_run_stays_phase_continuous():
     )
     sim.advance(12345)
     t = sim.t
-    before = math.cos(sim.drive_phase(1, t))
+    before = sim.drive_phase(1, t)
     sim.set_drive(1, 438e3 + 1234.5, 2e-10)
     assert sim.drive_frequency(1) == pytest.approx(438e3 + 1234.5)
-    assert math.cos(sim.drive_phase(1, t)) == pytest.approx(before, abs=1e-9)
+    after = sim.drive_phase(1, t)  # the same angle (cos and sin) at the retune
+    assert math.cos(after) == pytest.approx(math.cos(before), abs=1e-9)
+    assert math.sin(after) == pytest.approx(math.sin(before), abs=1e-9)
+    # one step later it has advanced by the new frequency's angle
+    step = sim.drive_phase(1, t + sim.dt) - after
+    assert step == pytest.approx(2 * math.pi * (438e3 + 1234.5) * sim.dt, rel=1e-9)
+    assert sim.drives[1].frequency == 438e3 + 1234.5 and sim.drives[1].force == 2e-10
+    with pytest.raises(ValueError, match="drive -1"):
+        sim.set_drive(-1, 1e3, 0.0)
 
 
 @pytest.mark.parametrize(
@@ -167,6 +175,8 @@ def test_a_drive_retuned_mid_run_stays_phase_continuous():
         (["--set", "pixels=2"], "pixels=2"),
         (["--set", "mode2_amplitude=1"], "mode2_amplitude"),
         (["--set", "colour=red"], "NAME one of spring_constant"),
+        (["--set", "sample_every=25"], "sample_every=25 with steps_per_period=50"),
+        (["--set", "time_constant_mode2=1e-9"], "time_constant_mode2=1e-09 s"),
         (["--sample", "no_such_sample"], "no_such_sample"),
     ],
 )
@@ -183,18 +193,20 @@ def test_bad_values_are_refused_in_one_line_before_any_work(tmp_path, args, mess
     assert not (tmp_path / "run").exists()
 
 
-def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_path):
+@pytest.mark.parametrize("control", ["fm", "am"])
+def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_path, control):
     out = tmp_path / "run"
     proc = subprocess.run(
         [
             str(BIN / "afm_instrument"), "--bimodal", "--out", str(out), "--no-figure",
             "--set", "pixels=6", "--set", "pixel_time=1e-3", "--set", "size=1.5e-6",
-            "--set", "engage_time=5e-3",
+            "--set", "engage_time=5e-3", "--set", f"mode2_control={control}",
         ],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "E* [GPa]" in proc.stdout and "polystyrene" in proc.stdout
+    assert ("df2 [Hz]" if control == "fm" else "phi2 [deg]") in proc.stdout
     image = read_gwy(out / "bimodal.gwy")
     assert list(image.channels) == list(CHANNELS)
     assert image.channels["modulus"][0].shape == (6, 6)
@@ -204,6 +216,8 @@ def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_
     # masked, never NaN in the file
     for title, (data, _) in image.channels.items():
         assert np.isfinite(data).all(), title
+    if control == "am":  # AM-AM measures no frequency shift: the whole channel is masked
+        assert image.masks["frequency_shift_2"].all()
     if shutil.which("gwyddion-thumbnailer"):
         png = tmp_path / "t.png"
         subprocess.run(
@@ -212,6 +226,29 @@ def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_
             timeout=60,
         )
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_interrupted_line_is_dropped_from_the_maps_and_the_table():
+    """Ctrl-C inside a line (here raised from one of its chunks): the frame keeps the lines done
+    and nothing of the line under way, in the channels and in the table."""
+    sample = resolve_sample("ps_ldpe_blend")
+    scan = BimodalScan(sample, dict(pixels=4, pixel_time=5e-4, engage_time=2e-3, size=1e-6))
+    run_chunk, calls = scan.chunk, [0]
+    # 25 us chunks: engage 80, each line 80 traced + 20 retraced; the 10th chunk of line 1
+    stop_at = 80 + 100 + 10
+
+    def interrupted(*args):
+        calls[0] += 1
+        if calls[0] == stop_at:
+            raise KeyboardInterrupt
+        run_chunk(*args)
+
+    scan.chunk = interrupted
+    frame = scan.run()
+    assert calls[0] == stop_at and frame.lines_done == 1
+    assert np.isfinite(frame.channels["height"][0]).all()
+    assert np.isnan(frame.channels["height"][1:]).all()
+    assert sum(r.pixels for r in frame.rows) <= 4
 
 
 @pytest.mark.slow

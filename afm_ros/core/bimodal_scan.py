@@ -1,23 +1,25 @@
-"""Bimodal AM-FM imaging, offline (no ROS): the two-mode cantilever scanned over a sample map,
-mode 1 in amplitude modulation for the topography, mode 2 in frequency modulation for the
-nanomechanics (docs/bimodal.md 5).
+"""Bimodal imaging, offline (no ROS): the two-mode cantilever scanned over a sample map, mode 1 in
+amplitude modulation for the topography, mode 2 in frequency modulation (AM-FM) or driven open loop
+at its free frequency (AM-AM) for the nanomechanics (docs/bimodal.md 7).
 
 The blocks are the instrument's own cores, wired per chunk of ``chunk_time``:
 :class:`~afm_ros.core.physics.modes.MultiModeSimulation` (the modes, the force model of the
 material under the tip, z_base = z piezo - local height); one :class:`~afm_ros.core.lockin.LockIn`
 per drive on the summed deflection (reference: that drive, as the instrument's lock-in follows its
-drive); the :class:`~afm_ros.core.controller.ZController` on mode 1's amplitude; the
-:class:`~afm_ros.core.fm.OscillationController` (PLL + amplitude controller) on mode 2, whose
-excitation drives mode 2 from the next chunk on (the z command likewise: one chunk of latency, the
-ROS loop's lockstep). The tip moves along x at a constant speed over the trace (recorded) and
-back at ``retrace_speedup`` times that speed (not recorded), sampled at each chunk's middle.
+drive); the :class:`~afm_ros.core.controller.ZController` on mode 1's amplitude (the z piezo within
++-1 um); in AM-FM the :class:`~afm_ros.core.fm.OscillationController` (PLL + amplitude controller)
+on mode 2, whose excitation drives mode 2 from the next chunk on (the z command likewise: one chunk
+of latency, the ROS loop's lockstep); in AM-AM mode 2 keeps its free frequency and free drive. The
+tip moves along x at a constant speed over the trace (recorded) and back at ``retrace_speedup``
+times that speed (not recorded), sampled at each chunk's middle.
 
 Per pixel the lock-in and loop outputs inside the pixel's time are averaged; the maps follow per
 pixel from those means with :mod:`afm_ros.core.bimodal` (Hertz contact, small A2): the virial of
 mode 1 from A1 and phi1 (mode 1 driven at its free resonance), E* and the indentation from the
-virial, df2 and A2, the loss tangent from mode 1 and from mode 2's drive. The truth beside them:
-each pixel's material (its E*, the Kelvin-Voigt loss tangent) and height, from the tip-dilated map.
-SI units; phases in degrees in the channels.
+virial and the mean contact stiffness (AM-FM: from df2; AM-AM: from mode 2's amplitude and phase,
+docs/bimodal.md 4) and A2, the loss tangent from mode 1 and from mode 2 (its drive, or its phase).
+The truth beside them: each pixel's material (its E*, the Kelvin-Voigt loss tangent) and height,
+from the tip-dilated map. SI units; phases in degrees in the channels.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 from afm_ros.core import bimodal
 from afm_ros.core.controller import ZController
 from afm_ros.core.fm import OscillationController, design_gains
-from afm_ros.core.lockin import LockIn
+from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
 from afm_ros.core.physics.forces import DMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.materials import sample_for
 from afm_ros.core.physics.modes import (
@@ -58,7 +60,8 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
             "setpoint_ratio", 0.8, "1", "mode 1's amplitude setpoint A1 / A01", 0.1, 0.99
         ),
         ParamSpec(
-            "mode2_amplitude", 0.05e-9, "m", "mode 2's amplitude A2 (the PLL's amplitude loop)",
+            "mode2_amplitude", 0.05e-9, "m", "mode 2's amplitude A2 (AM-FM: held by the amplitude "
+            "loop; AM-AM: its free amplitude)",
             1e-12, 5e-9,
         ),
         ParamSpec(
@@ -110,6 +113,7 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
 }  # fmt: skip
 
 AUTO_TIME_CONSTANT_2 = {"fm": 10e-6, "am": 100e-6}  # [s] time_constant_mode2 0
+MIN_SAMPLES_PER_PERIOD = 4  # deflection samples per mode-2 period
 CHANNELS = {  # name -> unit, in the order the files list them
     "height": "m",
     "amplitude_1": "m",
@@ -177,7 +181,7 @@ def _force(name: str, values: dict):
 
 
 class BimodalScan:
-    """One bimodal AM-FM frame over ``sample`` (a :class:`Sample`) with ``values``
+    """One bimodal frame (AM-FM or AM-AM) over ``sample`` (a :class:`Sample`) with ``values``
     (:data:`BIMODAL_SPECS`; missing: defaults). :meth:`run` scans; each call of
     :meth:`line` scans one more line."""
 
@@ -192,6 +196,19 @@ class BimodalScan:
             quality_factor=v["quality_factor"],
         )
         self.modes = m1, m2 = rectangular_modes(lever, 2, v["q_exponent"])
+        if v["steps_per_period"] < MIN_SAMPLES_PER_PERIOD * v["sample_every"]:
+            raise ValueError(
+                f"sample_every={v['sample_every']} with steps_per_period={v['steps_per_period']}: "
+                f"allowed up to steps_per_period / {MIN_SAMPLES_PER_PERIOD} (at least "
+                f"{MIN_SAMPLES_PER_PERIOD} deflection samples per mode-2 period, or the lock-ins "
+                "see an alias of mode 2)"
+            )
+        low = LOCKIN_SPECS["time_constant"].low
+        for name in ("time_constant_mode1", "time_constant_mode2"):
+            if 0.0 < v[name] < low:
+                raise ValueError(
+                    f"{name}={v[name]!r} s is out of range; allowed 0 or >= {low:g} s"
+                )
         self.dt = 1.0 / (m2.resonance_frequency * v["steps_per_period"])
         every = v["sample_every"]
         self.chunk_steps = every * max(1, round(v["chunk_time"] / (self.dt * every)))
@@ -200,15 +217,15 @@ class BimodalScan:
         self.free_drive_2 = m2.spring_constant * self.a2 / m2.quality_factor
         self.forces = {}
         self.truth = {}
-        tip_radius = None
+        radii = set()
         for name in sample.materials:
             force, viscosity = _force(name, v)
             e_star = force.sample.effective_modulus
             tan2 = bimodal.kelvin_voigt_loss_tangent(m2.resonance_frequency, viscosity, e_star)
             self.forces[name], self.truth[name] = force, (e_star, tan2)
-            tip_radius = force.sample.tip_radius
-        self.tip_radius = tip_radius
-        self.map = dilate(sample, tip_radius)
+            radii.add(force.sample.tip_radius)
+        (self.tip_radius,) = radii  # one tip: every material's sample takes the DMT default
+        self.map = dilate(sample, self.tip_radius)
         self.materials = sample.materials
         self.size, self.n = v["size"], v["pixels"]
         self.origin = (cx - 0.5 * self.size, cy - 0.5 * self.size)
@@ -252,14 +269,13 @@ class BimodalScan:
         self.sums = np.zeros((7, self.n, self.n))  # CHANNELS' first seven, summed per pixel
         self.counts = np.zeros((self.n, self.n))
         self.lines_done = 0
-        self._last = [math.nan] * 7
 
     def _xy(self, fraction: float, line: int) -> tuple[float, float]:
         """Tip position [m] at ``fraction`` (0-1) along the trace of ``line``."""
         x0, y0 = self.origin
         return x0 + fraction * self.size, y0 + (line + 0.5) / self.n * self.size
 
-    def _chunk(self, x: float, y: float, pixel: tuple | None) -> None:
+    def chunk(self, x: float, y: float, pixel: tuple | None) -> None:
         """Integrate one chunk with the tip at (x, y) [m]; feed the loops; add the outputs to
         ``pixel`` (row, col) unless None."""
         sim, steps, every = self.sim, self.chunk_steps, self.values["sample_every"]
@@ -300,7 +316,7 @@ class BimodalScan:
         """The z loop on at the first pixel for ``engage_time``."""
         x, y = self._xy(0.0, 0)
         for _ in range(round(self.values["engage_time"] / (self.chunk_steps * self.dt))):
-            self._chunk(x, y, None)
+            self.chunk(x, y, None)
 
     def line(self) -> None:
         """Trace (recorded) and retrace of the next line."""
@@ -310,29 +326,29 @@ class BimodalScan:
         trace = max(1, round(self.n * v["pixel_time"] / chunk))
         for c in range(trace):
             frac = (c + 0.5) / trace
-            self._chunk(*self._xy(frac, i), (i, min(self.n - 1, int(frac * self.n))))
+            self.chunk(*self._xy(frac, i), (i, min(self.n - 1, int(frac * self.n))))
         back = max(1, round(trace / v["retrace_speedup"]))
         nxt = min(i + 1, self.n - 1)  # the retrace also moves to the next line
         for c in range(back):
             frac = 1.0 - (c + 0.5) / back
-            x, _ = self._xy(frac, i)
+            x, y = self._xy(frac, i)
             _, y_next = self._xy(frac, nxt)
-            _, y = self._xy(frac, i)
-            self._chunk(x, y + (c + 0.5) / back * (y_next - y), None)
+            self.chunk(x, y + (c + 0.5) / back * (y_next - y), None)
         self.lines_done += 1
 
     def run(self, progress=None) -> BimodalFrame:
         """Engage and scan every line (``progress(lines_done, n)`` after each); Ctrl-C keeps the
-        lines done (the frame says how many)."""
-        if self.sim.steps == 0:
-            self.engage()
+        lines done (the frame says how many; the line under way is dropped)."""
         try:
+            if self.sim.steps == 0:
+                self.engage()
             while self.lines_done < self.n:
                 self.line()
                 if progress is not None:
                     progress(self.lines_done, self.n)
         except KeyboardInterrupt:
-            pass
+            self.sums[:, self.lines_done :] = 0.0
+            self.counts[self.lines_done :] = 0.0
         return self.frame()
 
     def frame(self) -> BimodalFrame:
@@ -348,6 +364,8 @@ class BimodalScan:
             for j in range(n):
                 h, mat = self.map.surface(*self._xy((j + 0.5) / n, i))
                 material[i, j], true_h[i, j] = self.materials.index(mat), h
+        if self.values["mode2_control"] == "am":  # no PLL: no frequency shift was measured
+            ch["frequency_shift_2"] = np.full((n, n), math.nan)
         self._maps(ch, material)
         ch["true_height"] = true_h
         rows = self._table(ch, material)

@@ -302,6 +302,8 @@ def read_gwy(path) -> GwyImage:
         mask = obj.get(f"/{n}/mask")
         if isinstance(mask, GwyDataField):
             try:
+                if (int(mask["xres"]), int(mask["yres"])) != (xres, yres):
+                    raise ValueError("another shape")
                 marks = np.asarray(mask["data"], dtype=np.float64).reshape(data.shape)
             except Exception:
                 raise ValueError(

@@ -29,7 +29,6 @@ import sys
 import threading
 import time
 
-from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
@@ -60,7 +59,6 @@ from afm_ros.formats.chunk_layout import (
     cdr_float64_multiarray,
     cdr_int64_array,
     cdr_multiarray_label,
-    time_fields,
     unpack_excitation,
     unpack_z_command,
 )
@@ -103,11 +101,6 @@ TIP_LAYOUT = MultiArrayLayout(
         )
     ]
 )
-
-
-def _time_msg(t: float) -> TimeMsg:
-    sec, nanosec = time_fields(t)
-    return TimeMsg(sec=sec, nanosec=nanosec)
 
 
 class CantileverNode(GuardedNode):

@@ -97,7 +97,7 @@ def parse_args(argv):
         prog="afm_instrument",
         description=__doc__.split("\n\n")[0],
         epilog="ROS arguments follow --ros-args, e.g. --ros-args --params-file config/afm.yaml. "
-        "--bimodal: a bimodal AM-FM frame, offline (afm_instrument --bimodal --help)",
+        "--bimodal: a bimodal AM-FM or AM-AM frame, offline (afm_instrument --bimodal --help)",
     )
     parser.add_argument(
         "--duration",

@@ -1,8 +1,9 @@
-"""``afm_instrument --bimodal``: a bimodal AM-FM frame of a sample (the PS/LDPE blend by default),
+"""``afm_instrument --bimodal``: a bimodal frame of a sample (the PS/LDPE blend by default),
 offline (no ROS; :mod:`afm_ros.core.bimodal_scan`): mode 1 in AM for the topography, mode 2 in FM
-for the nanomechanics. Prints the height, mode 2's frequency shift and the modulus recovered per
-material beside its truth; writes ``bimodal.gwy`` (every channel, the truth maps beside),
-``bimodal_materials.csv`` and ``bimodal.png`` into the run folder. Ctrl-C keeps the lines done."""
+(AM-FM) or open loop at its free frequency (AM-AM) for the nanomechanics. Prints the height, mode
+2's frequency shift (AM-AM: its phase) and the modulus recovered per material beside its truth;
+writes ``bimodal.gwy`` (every channel, the truth maps beside), ``bimodal_materials.csv`` and
+``bimodal.png`` into the run folder. Ctrl-C keeps the lines done."""
 
 from __future__ import annotations
 
@@ -132,7 +133,11 @@ def write_outputs(folder, scan, frame, figure: bool) -> dict:
             axes,
             (
                 ("height", 1e9, "height [nm]"),
-                ("frequency_shift_2", 1.0, "df2 [Hz]"),
+                (
+                    ("frequency_shift_2", 1.0, "df2 [Hz]")
+                    if frame.values["mode2_control"] == "fm"
+                    else ("phase_2", 1.0, "phase 2 [deg]")
+                ),
                 ("modulus", 1e-9, "E* recovered [GPa]"),
                 ("true_modulus", 1e-9, "E* true [GPa]"),
             ),

@@ -21,7 +21,7 @@ point mass's own stream) gives each mode equipartition, k_i <z_i^2> = kB T.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -290,6 +290,8 @@ class MultiModeSimulation:
     def set_drive(self, j: int, frequency: float, force: float) -> None:
         """Drive ``j`` at ``frequency`` [Hz] with amplitude ``force`` [N] from the next step on,
         its phase continuous at the current time (a PLL's oscillator)."""
+        if not 0 <= j < len(self.drives):
+            raise ValueError(f"drive {j!r}: allowed 0-{len(self.drives) - 1}")
         if not (math.isfinite(frequency) and frequency >= 0.0 and math.isfinite(force)):
             raise ValueError(
                 f"drive {j}: frequency={frequency!r} Hz must be >= 0, force={force!r} N finite"
@@ -300,6 +302,12 @@ class MultiModeSimulation:
             self._dp[j] = math.remainder(self.drive_phase(j, t) - w * t, 2.0 * math.pi)
             self._dw[j] = w
         self._df[j] = force
+        self.drives[j] = replace(
+            self.drives[j],
+            frequency=float(frequency),
+            force=float(force),
+            phase=float(self._dp[j]),
+        )
 
     def mode_energy(self) -> np.ndarray:
         """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
