@@ -138,7 +138,10 @@ def test_the_same_inputs_give_the_same_frame_bit_for_bit_and_the_seed_changes_it
     seed, another frame."""
     sample = resolve_sample("ps_ldpe_blend")
     values = dict(pixels=4, pixel_time=5e-4, engage_time=5e-3, size=1e-6, temperature=300.0)
-    a, b = (BimodalScan(sample, values).run() for _ in range(2))
+    scan = BimodalScan(sample, values)
+    a = scan.run()
+    assert a.simulated_time == pytest.approx(scan.planned_time, rel=1e-12)  # the plan it announces
+    b = BimodalScan(sample, values).run()
     c = BimodalScan(sample, {**values, "noise_seed": 1}).run()
     for name in CHANNELS:
         assert np.array_equal(a.channels[name], b.channels[name], equal_nan=True), name
@@ -207,6 +210,7 @@ def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_
     assert proc.returncode == 0, proc.stderr
     assert "E* [GPa]" in proc.stdout and "polystyrene" in proc.stdout
     assert ("df2 [Hz]" if control == "fm" else "phi2 [deg]") in proc.stdout
+    assert "6 lines, " in proc.stderr and "of wall time" in proc.stderr  # said before the work
     image = read_gwy(out / "bimodal.gwy")
     assert list(image.channels) == list(CHANNELS)
     assert image.channels["modulus"][0].shape == (6, 6)

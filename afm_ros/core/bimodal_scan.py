@@ -312,22 +312,32 @@ class BimodalScan:
         self.sums[:, i, j] += row
         self.counts[i, j] += 1
 
+    def _chunks(self) -> tuple[int, int, int]:
+        """Chunks of the engage, of a line's trace and of its retrace."""
+        v, chunk = self.values, self.chunk_steps * self.dt
+        trace = max(1, round(self.n * v["pixel_time"] / chunk))
+        return round(v["engage_time"] / chunk), trace, max(1, round(trace / v["retrace_speedup"]))
+
+    @property
+    def planned_time(self) -> float:
+        """Simulated time [s] of the whole frame: the engage and every line's trace and
+        retrace."""
+        engage, trace, back = self._chunks()
+        return (engage + self.n * (trace + back)) * self.chunk_steps * self.dt
+
     def engage(self) -> None:
         """The z loop on at the first pixel for ``engage_time``."""
         x, y = self._xy(0.0, 0)
-        for _ in range(round(self.values["engage_time"] / (self.chunk_steps * self.dt))):
+        for _ in range(self._chunks()[0]):
             self.chunk(x, y, None)
 
     def line(self) -> None:
         """Trace (recorded) and retrace of the next line."""
         i = self.lines_done
-        v = self.values
-        chunk = self.chunk_steps * self.dt
-        trace = max(1, round(self.n * v["pixel_time"] / chunk))
+        _, trace, back = self._chunks()
         for c in range(trace):
             frac = (c + 0.5) / trace
             self.chunk(*self._xy(frac, i), (i, min(self.n - 1, int(frac * self.n))))
-        back = max(1, round(trace / v["retrace_speedup"]))
         nxt = min(i + 1, self.n - 1)  # the retrace also moves to the next line
         for c in range(back):
             frac = 1.0 - (c + 0.5) / back

@@ -23,6 +23,9 @@ from afm_ros.tools.run_setup import make_run_folder
 
 PROG = "afm_instrument --bimodal"
 DEFAULT_SAMPLE = "ps_ldpe_blend"
+WALL_PER_SIMULATED_S = (
+    7.0  # [s] the defaults' cost on the reference 2-core machine (docs/bimodal.md)
+)
 
 
 def parse_args(argv):
@@ -64,6 +67,10 @@ def values_from(pairs) -> dict:
         else:
             out[name] = parse_number(v)
     return out
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
 def _fmt(x: float, scale: float, digits: int = 1) -> str:
@@ -170,6 +177,13 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 2
+    planned = scan.planned_time
+    print(
+        f"{PROG}: {scan.n} lines, {planned:.3g} s simulated: about "
+        f"{_duration(planned * WALL_PER_SIMULATED_S)} of wall time (~{WALL_PER_SIMULATED_S:g} s "
+        "per simulated second on one core; measured after each line); Ctrl-C keeps the lines done",
+        file=sys.stderr,
+    )
     start = time.monotonic()
 
     def progress(done, n):
