@@ -31,6 +31,7 @@ from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at, thermal_force_
 from afm_ros.core.physics.parameters import Cantilever
 
 MAX_MODES = 8
+DRIVE_ANCHOR = 64  # steps: the drives' cos and sin evaluated exactly at every 64th global step
 MODE_STREAM_STRIDE = 16  # mode i's thermal force: stream THERMAL_STREAM + 16 i of the seed
 Q_SCALING_EXPONENTS = (0.0, 0.5, 1.0)  # Q_n / Q_1 = (w_n / w_1)^p: constant, Sader-like, viscous
 
@@ -162,8 +163,27 @@ def _advance_modes(
     whatever the chunking, so chunked runs equal single runs bit for bit); the four
     stages share one body (a helper taking the arrays, called four times, cost 350 ns per step in
     reference counting); rows of ``energy``: drive work, damping loss, tip-sample work, thermal
-    work per mode [J], accumulated with the same stages."""
+    work per mode [J], accumulated with the same stages.
+
+    Each drive's cos and sin at the step's start are evaluated exactly at every DRIVE_ANCHOR-th
+    global step and rotated by w dt from there (the stages' half and full step by w dt / 2 and w
+    dt): two multiplications per value instead of a cosine at every stage (4 cosines per drive
+    and step cost 93 of 169 ns per step with two drives); a function of the global step index
+    only, so any chunking gives the same run."""
     n = z.shape[0]
+    nd = dmode.shape[0]
+    c_dt, s_dt = np.empty(nd), np.empty(nd)
+    c_half, s_half = np.empty(nd), np.empty(nd)
+    dc, ds = np.empty(nd), np.empty(nd)  # cos, sin of each drive's angle at the step's start
+    for j in range(nd):
+        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
+        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
+        anchor = step0 - step0 % DRIVE_ANCHOR
+        angle = dw[j] * (anchor * dt) + dphase[j]
+        dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for _ in range(step0 - anchor):  # as a run from the anchor would have rotated them
+            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    f_stage = np.empty((3, nd))  # each drive's force at the step's start, middle and end [N]
     fd = np.empty(n)
     fth = np.zeros(n)
     zt, vt = np.empty(n), np.empty(n)
@@ -173,7 +193,18 @@ def _advance_modes(
     h = 0.5 * dt
     row = 0
     for s in range(nsteps):
-        t = (step0 + s) * dt
+        g = step0 + s
+        if g % DRIVE_ANCHOR == 0:
+            for j in range(nd):
+                angle = dw[j] * (g * dt) + dphase[j]
+                dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for j in range(nd):
+            f_stage[0, j] = dforce[j] * dc[j]
+            f_stage[1, j] = dforce[j] * (dc[j] * c_half[j] - ds[j] * s_half[j])
+            c_next = dc[j] * c_dt[j] - ds[j] * s_dt[j]
+            ds[j] = ds[j] * c_dt[j] + dc[j] * s_dt[j]
+            dc[j] = c_next
+            f_stage[2, j] = dforce[j] * c_next
         for i in range(n):
             if sigma[i] != 0.0:
                 fth[i] = sigma[i] * normal_at(
@@ -181,20 +212,20 @@ def _advance_modes(
                 )
         for stage in range(4):
             if stage == 0:
-                ts = t
+                at = 0  # f_stage's row: the step's start
                 for i in range(n):
                     zt[i] = z[i]
                     vt[i] = v[i]
             else:
                 w = dt if stage == 3 else h
-                ts = t + w
+                at = 2 if stage == 3 else 1
                 for i in range(n):
                     zt[i] = z[i] + w * vel[stage - 1, i]
                     vt[i] = v[i] + w * acc[stage - 1, i]
             for i in range(n):
                 fd[i] = 0.0
-            for j in range(dmode.shape[0]):
-                fd[dmode[j]] += dforce[j] * math.cos(dw[j] * ts + dphase[j])
+            for j in range(nd):
+                fd[dmode[j]] += f_stage[at, j]
             zs = 0.0
             vs = 0.0
             for i in range(n):
