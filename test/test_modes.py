@@ -209,6 +209,12 @@ def test_thermal_runs_are_chunk_invariant_and_reproducible_from_the_seed():
             pieces.append(parts.advance(n))
             left -= n
         assert np.array_equal(np.concatenate(pieces), single)  # any chunking: bit for bit
+    # chunks that cut the drives' 64-step anchors anywhere, and without the energies: the same
+    # trajectory bit for bit (the energies untouched)
+    lean = _undriven(seed=42, drives=(drive,))
+    lean_pieces = [lean.advance(n, energies=False) for n in (63, 1, 64, 129, 29_743)]
+    assert np.array_equal(np.concatenate(lean_pieces), single)
+    assert np.all(lean.energy == 0.0)
     whole = _undriven(seed=42).advance(30_000)
     assert np.array_equal(_undriven(seed=42).advance(30_000), whole)
     assert not np.array_equal(_undriven(seed=43).advance(30_000), whole)

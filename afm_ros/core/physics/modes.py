@@ -157,13 +157,14 @@ def _pack(modes: list[Mode], drives: list[ModeDrive]):
 @njit(cache=True, nogil=True)
 def _advance_modes(
     z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every,
-    out_z, sigma, seed, step0,
+    out_z, sigma, seed, step0, energies,
 ):  # fmt: skip
     """Classic RK4 of the modes, ``nsteps`` steps from step ``step0`` (time (step0 + s) dt [s]
     whatever the chunking, so chunked runs equal single runs bit for bit); the four
     stages share one body (a helper taking the arrays, called four times, cost 350 ns per step in
     reference counting); rows of ``energy``: drive work, damping loss, tip-sample work, thermal
-    work per mode [J], accumulated with the same stages.
+    work per mode [J], accumulated with the same stages (unless ``energies`` is false: the state
+    is the same bit for bit, the energies are not updated).
 
     Each drive's cos and sin at the step's start are evaluated exactly at every DRIVE_ANCHOR-th
     global step and rotated by w dt from there (the stages' half and full step by w dt / 2 and w
@@ -235,14 +236,15 @@ def _advance_modes(
             for i in range(n):
                 vel[stage, i] = vt[i]
                 acc[stage, i] = (-k[i] * zt[i] - c[i] * vt[i] + fd[i] + fts + fth[i]) * inv_m[i]
-                rate[stage, 0, i] = fd[i] * vt[i]
-                rate[stage, 1, i] = c[i] * vt[i] * vt[i]
-                rate[stage, 2, i] = fts * vt[i]
-                rate[stage, 3, i] = fth[i] * vt[i]
+                if energies:
+                    rate[stage, 0, i] = fd[i] * vt[i]
+                    rate[stage, 1, i] = c[i] * vt[i] * vt[i]
+                    rate[stage, 2, i] = fts * vt[i]
+                    rate[stage, 3, i] = fth[i] * vt[i]
         for i in range(n):
             z[i] += dt / 6.0 * (vel[0, i] + 2.0 * (vel[1, i] + vel[2, i]) + vel[3, i])
             v[i] += dt / 6.0 * (acc[0, i] + 2.0 * (acc[1, i] + acc[2, i]) + acc[3, i])
-            for r in range(4):
+            for r in range(4 if energies else 0):
                 energy[r, i] += (
                     dt
                     / 6.0
@@ -344,16 +346,17 @@ class MultiModeSimulation:
         """Each mode's energy m_i v_i^2 / 2 + k_i z_i^2 / 2 [J]."""
         return 0.5 * (self.v**2 / self._inv_m + self._k * self.z**2)
 
-    def advance(self, nsteps: int, every: int = 1) -> np.ndarray:
+    def advance(self, nsteps: int, every: int = 1, energies: bool = True) -> np.ndarray:
         """Integrate ``nsteps`` steps; the modes' deflections [m] after every ``every``-th step
-        (rows: samples, columns: modes)."""
+        (rows: samples, columns: modes); ``energies`` false: :attr:`energy` is not updated (the
+        same trajectory, cheaper)."""
         if nsteps < 0 or every < 1:
             raise ValueError(f"nsteps={nsteps!r} must be >= 0 and every={every!r} >= 1")
         out = np.empty((nsteps // every, len(self.modes)))
         _advance_modes(
             self.z, self.v, self.energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
             self._df, self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every, out,
-            self._sigma, self.seed, self.steps,
+            self._sigma, self.seed, self.steps, bool(energies),
         )  # fmt: skip
         self.steps += nsteps
         return out
