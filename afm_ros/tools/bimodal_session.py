@@ -23,9 +23,8 @@ from afm_ros.tools.run_setup import make_run_folder
 
 PROG = "afm_instrument --bimodal"
 DEFAULT_SAMPLE = "ps_ldpe_blend"
-WALL_PER_SIMULATED_S = (
-    7.0  # [s] the defaults' cost on the reference 2-core machine (docs/bimodal.md)
-)
+# [s] of wall time per simulated second at the defaults, one core (docs/bimodal.md 7)
+WALL_PER_SIMULATED_S = 4.5
 
 
 def parse_args(argv):
