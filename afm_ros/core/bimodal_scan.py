@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afm_ros.core import bimodal
+from afm_ros.core.angles import phase_deg
 from afm_ros.core.controller import ZController
 from afm_ros.core.fm import OscillationController, design_gains
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
@@ -292,20 +293,24 @@ class BimodalScan:
             outs.append(lockin.process(header, defl))
         self.index += defl.shape[0]
         o1, o2 = outs
-        for t, a in zip(o1.t.tolist(), o1.amplitude.tolist()):
+        # one or two outputs per chunk: Python floats (numpy's per-call cost is the larger part)
+        x1, y1, x2, y2 = o1.x.tolist(), o1.y.tolist(), o2.x.tolist(), o2.y.tolist()
+        a1 = [math.hypot(a, b) for a, b in zip(x1, y1)]
+        for t, a in zip(o1.t.tolist(), a1):
             self.z_piezo = self.z.update(a, t)
-        for t, x2, y2 in zip(o2.t.tolist(), o2.x.tolist(), o2.y.tolist()):
-            self.pll.update(t, x2, y2)
+        for t, a, b in zip(o2.t.tolist(), x2, y2):
+            self.pll.update(t, a, b)
         sim.set_drive(1, self.pll.frequency, self.pll.drive)
-        if pixel is None or len(o1) == 0 or len(o2) == 0:
+        if pixel is None or not a1 or not x2:
             return
         i, j = pixel
+        n1, n2 = len(a1), len(x2)
         row = (
             self.z_piezo,
-            float(o1.amplitude.mean()),
-            float(o1.phase_deg.mean()),
-            float(o2.amplitude.mean()),
-            float(o2.phase_deg.mean()),
+            sum(a1) / n1,
+            sum(phase_deg(a, b) for a, b in zip(x1, y1)) / n1,
+            sum(math.hypot(a, b) for a, b in zip(x2, y2)) / n2,
+            sum(phase_deg(a, b) for a, b in zip(x2, y2)) / n2,
             self.pll.df,
             self.pll.drive,
         )
