@@ -256,6 +256,95 @@ def _advance_modes(
             row += 1
 
 
+@njit(cache=True, nogil=True)
+def _advance_two(
+    z, v, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every, out_z,
+    sigma, seed, step0,
+):  # fmt: skip
+    """:func:`_advance_modes` for two modes without the energies, on scalars: the same operations
+    in the same order (the same trajectory bit for bit, test_modes), without the small arrays'
+    loops (the bimodal session's kernel)."""
+    nd = dmode.shape[0]
+    c_dt, s_dt = np.empty(nd), np.empty(nd)
+    c_half, s_half = np.empty(nd), np.empty(nd)
+    dc, ds = np.empty(nd), np.empty(nd)
+    for j in range(nd):
+        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
+        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
+        anchor = step0 - step0 % DRIVE_ANCHOR
+        angle = dw[j] * (anchor * dt) + dphase[j]
+        dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for _ in range(step0 - anchor):
+            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    k0, k1, c0, c1, m0, m1 = k[0], k[1], c[0], c[1], inv_m[0], inv_m[1]
+    z0, z1, v0, v1 = z[0], z[1], v[0], v[1]
+    th0 = th1 = 0.0
+    h = 0.5 * dt
+    sixth = dt / 6.0
+    row = 0
+    for s in range(nsteps):
+        g = step0 + s
+        if g % DRIVE_ANCHOR == 0:
+            for j in range(nd):
+                angle = dw[j] * (g * dt) + dphase[j]
+                dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        # each mode's drive at the step's start, middle and end, summed in the drives' order
+        a0 = a1 = b0 = b1 = e0 = e1 = 0.0
+        for j in range(nd):
+            fs = dforce[j] * dc[j]
+            fh = dforce[j] * (dc[j] * c_half[j] - ds[j] * s_half[j])
+            c_next = dc[j] * c_dt[j] - ds[j] * s_dt[j]
+            ds[j] = ds[j] * c_dt[j] + dc[j] * s_dt[j]
+            dc[j] = c_next
+            fe = dforce[j] * c_next
+            if dmode[j] == 0:
+                a0 += fs
+                b0 += fh
+                e0 += fe
+            else:
+                a1 += fs
+                b1 += fh
+                e1 += fe
+        if sigma[0] != 0.0:
+            th0 = sigma[0] * normal_at(seed, THERMAL_STREAM, g)
+        if sigma[1] != 0.0:
+            th1 = sigma[1] * normal_at(seed, THERMAL_STREAM + MODE_STREAM_STRIDE, g)
+        # stage 1
+        f = tip_sample_force(model, p, z_base + ((0.0 + z0) + z1), (0.0 + v0) + v1)
+        p0, p1 = v0, v1
+        q0 = (-k0 * z0 - c0 * v0 + a0 + f + th0) * m0
+        q1 = (-k1 * z1 - c1 * v1 + a1 + f + th1) * m1
+        # stage 2
+        y0, y1 = z0 + h * p0, z1 + h * p1
+        u0, u1 = v0 + h * q0, v1 + h * q1
+        f = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        r0, r1 = u0, u1
+        w0 = (-k0 * y0 - c0 * u0 + b0 + f + th0) * m0
+        w1 = (-k1 * y1 - c1 * u1 + b1 + f + th1) * m1
+        # stage 3
+        y0, y1 = z0 + h * r0, z1 + h * r1
+        u0, u1 = v0 + h * w0, v1 + h * w1
+        f = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        x0, x1 = u0, u1
+        o0 = (-k0 * y0 - c0 * u0 + b0 + f + th0) * m0
+        o1 = (-k1 * y1 - c1 * u1 + b1 + f + th1) * m1
+        # stage 4
+        y0, y1 = z0 + dt * x0, z1 + dt * x1
+        u0, u1 = v0 + dt * o0, v1 + dt * o1
+        f = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        l0 = (-k0 * y0 - c0 * u0 + e0 + f + th0) * m0
+        l1 = (-k1 * y1 - c1 * u1 + e1 + f + th1) * m1
+        z0 += sixth * (p0 + 2.0 * (r0 + x0) + u0)
+        z1 += sixth * (p1 + 2.0 * (r1 + x1) + u1)
+        v0 += sixth * (q0 + 2.0 * (w0 + o0) + l0)
+        v1 += sixth * (q1 + 2.0 * (w1 + o1) + l1)
+        if (s + 1) % every == 0 and row < out_z.shape[0]:
+            out_z[row, 0] = z0
+            out_z[row, 1] = z1
+            row += 1
+    z[0], z[1], v[0], v[1] = z0, z1, v0, v1
+
+
 class MultiModeSimulation:
     """N modes over a flat sample at ``z_base`` [m] with the force model ``force`` (a
     :mod:`afm_ros.core.physics.forces` model), integrated by fixed-step RK4 of ``dt`` [s].
@@ -353,6 +442,14 @@ class MultiModeSimulation:
         if nsteps < 0 or every < 1:
             raise ValueError(f"nsteps={nsteps!r} must be >= 0 and every={every!r} >= 1")
         out = np.empty((nsteps // every, len(self.modes)))
+        if len(self.modes) == 2 and not energies:
+            _advance_two(
+                self.z, self.v, self._k, self._c, self._inv_m, self._dmode, self._dw, self._df,
+                self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every, out,
+                self._sigma, self.seed, self.steps,
+            )  # fmt: skip
+            self.steps += nsteps
+            return out
         _advance_modes(
             self.z, self.v, self.energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
             self._df, self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every, out,
