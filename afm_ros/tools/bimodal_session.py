@@ -24,7 +24,7 @@ from afm_ros.tools.run_setup import make_run_folder
 PROG = "afm_instrument --bimodal"
 DEFAULT_SAMPLE = "ps_ldpe_blend"
 # [s] of wall time per simulated second at the defaults, one core (docs/bimodal.md 7)
-WALL_PER_SIMULATED_S = 3.5
+WALL_PER_SIMULATED_S = 2.5
 
 
 def parse_args(argv):
