@@ -15,7 +15,7 @@ import time
 from dataclasses import asdict
 
 from afm_ros.core.bimodal_scan import BIMODAL_SPECS, CHANNELS, BimodalScan
-from afm_ros.core.physics.parameters import parse_number
+from afm_ros.core.physics.parameters import value_from_text
 from afm_ros.core.samples import resolve_sample
 from afm_ros.formats.gwy import write_gwy
 from afm_ros.tools.figures import pyplot, write_csv
@@ -57,14 +57,7 @@ def values_from(pairs) -> dict:
             raise ValueError(
                 f"--set {text!r}: NAME=VALUE with NAME one of {', '.join(BIMODAL_SPECS)}"
             )
-        spec = BIMODAL_SPECS[name]
-        v = value.strip()
-        if spec.kind is bool:
-            out[name] = {"true": True, "false": False}.get(v.lower(), v)
-        elif spec.kind is str:
-            out[name] = v
-        else:
-            out[name] = parse_number(v)
+        out[name] = value_from_text(BIMODAL_SPECS[name], value.strip())
     return out
 
 

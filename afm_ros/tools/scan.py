@@ -49,7 +49,7 @@ from afm_ros.core.offline_scan import (
     peak_rss_bytes,
     run_scan,
 )
-from afm_ros.core.physics.parameters import NOISE_SPECS, ParamSpec, parse_number
+from afm_ros.core.physics.parameters import NOISE_SPECS, ParamSpec, value_from_text
 from afm_ros.core.samples import resolve_sample
 from afm_ros.core.scanner import SCAN_SPECS, ScanPlan, check_scan, frame_file_bytes
 from afm_ros.core.tip import TIP_SPECS
@@ -193,14 +193,8 @@ def _value(flag: str, spec: ParamSpec, text):
     """Validate one flag's text with its spec; ValueError starting with the flag."""
     if text is None:
         return spec.default
-    if spec.kind is str:
-        value = str(text)
-    elif spec.kind is bool:
-        value = {"true": True, "false": False}.get(str(text).strip().lower(), text)
-    else:
-        value = parse_number(str(text)) if isinstance(text, str) else text
     try:
-        return spec.validate(value)
+        return spec.validate(value_from_text(spec, text))
     except ValueError as exc:
         raise ValueError(f"{flag}: {exc}") from None
 

@@ -107,6 +107,17 @@ def parse_number(text: str):
         return text
 
 
+def value_from_text(spec: ParamSpec, text):
+    """A command-line text as a candidate value of ``spec``'s kind (true/false for a boolean, a
+    number for a numeric spec, the text for a string); not validated: ``spec.validate`` names the
+    field and the range."""
+    if spec.kind is str:
+        return str(text)
+    if spec.kind is bool:
+        return {"true": True, "false": False}.get(str(text).strip().lower(), text)
+    return parse_number(str(text)) if isinstance(text, str) else text
+
+
 def _specs(*specs: ParamSpec) -> dict[str, ParamSpec]:
     return {s.name: s for s in specs}
 
