@@ -321,3 +321,15 @@ def test_the_sessions_fifty_steps_per_mode2_period_are_converged():
         (df50, e50), (df200, e200) = out
         assert df50 == pytest.approx(df200, rel=5e-3), name
         assert e50 == pytest.approx(e200, rel=5e-3), name
+
+
+def test_list_shows_every_parameter_with_its_unit_and_range():
+    """docs/bimodal.md's ``afm_instrument --bimodal --list``: one line per parameter."""
+    proc = subprocess.run(
+        [str(BIN / "afm_instrument"), "--bimodal", "--list"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert [line.split(" = ")[0] for line in lines] == list(BIMODAL_SPECS)
+    assert "allowed [0.01, 1000] N/m" in lines[0]
