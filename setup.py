@@ -42,6 +42,7 @@ setup(
             "afm_report = afm_ros.tools.report:main",
             "afm_ctl = afm_ros.tools.afm_ctl:main",
             "nanonis_node = afm_ros.tools.nanonis_node:main",
+            "bimodal_node = afm_ros.nodes.bimodal_node:main",
         ],
     },
 )

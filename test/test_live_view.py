@@ -641,21 +641,28 @@ def test_a_viewer_that_stops_reading_loses_view_frames_never_instrument_data(
     assert _wait(lambda: not live.serving and not live.subscribed, 10.0)
 
 
-def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglove_client):
+@pytest.mark.parametrize(
+    "source, relative",
+    [("scanner", "scanner/image/height/trace"), ("bimodal", "bimodal/image/modulus")],
+)
+def test_images_go_out_as_foxglove_raw_images(
+    ros_context, ros_namespace, foxglove_client, source, relative
+):
+    # the scanner's images are 32FC1, the bimodal node's 64FC1: both the same mono8 view
     import rclpy
     from rclpy.parameter import Parameter
 
-    from afm_ros.nodes import topics
+    from afm_ros.nodes import bimodal_node, scanner_node, topics
     from afm_ros.nodes.live_view_node import LiveViewNode
     from afm_ros.nodes.node_main import make_executor
-    from afm_ros.nodes.scanner_node import image_message
 
+    image_message = {"scanner": scanner_node, "bimodal": bimodal_node}[source].image_message
     image = np.array([[1e-9, 2e-9, np.nan], [3e-9, 5e-9, 4e-9]])
     publisher_node = rclpy.create_node(
-        "fake_scanner", context=ros_context, namespace=ros_namespace
+        f"fake_{source}", context=ros_context, namespace=ros_namespace
     )
     publisher = publisher_node.create_publisher(
-        type(image_message(image, 0.0)), "scanner/image/height/trace", topics.LATCHED_QOS
+        type(image_message(image, 0.0)), relative, topics.LATCHED_QOS
     )
     publisher.publish(image_message(image, 1.25))  # before any viewer: latched
     live = LiveViewNode(
@@ -673,7 +680,7 @@ def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglo
     )
     thread.start()
     try:
-        topic = ros_namespace + "/scanner/image/height/trace"
+        topic = ros_namespace + "/" + relative
         events = foxglove_client(
             {"url": f"ws://127.0.0.1:{live.port}", "topics": [topic], "count": 1}
         )
@@ -686,10 +693,14 @@ def test_images_go_out_as_foxglove_raw_images(ros_context, ros_namespace, foxglo
         )
         assert value["timestamp"] == {"sec": 1, "nsec": 250_000_000}
         pixels = np.frombuffer(base64.b64decode(value["data"]), np.uint8).reshape(2, 3)
-        expected = mono8(image.astype(np.float32))[0]
+        # by hand: (v - 1 nm) / 4 nm * 255; 3 nm is 127.5 in float32 (128), 127.49999999999997
+        # in float64 (127)
+        exact = {"scanner": (np.float32, 128), "bimodal": (np.float64, 127)}
+        dtype, middle = exact[source]
+        expected = mono8(image.astype(dtype))[0]
         assert pixels.tolist() == expected.tolist() and expected.tolist() == [
             [0, 64, 0],
-            [128, 255, 191],
+            [middle, 255, 191],
         ]
     finally:
         stop.set()

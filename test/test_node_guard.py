@@ -20,6 +20,7 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from afm_ros.nodes.bimodal_node import BimodalNode
 from afm_ros.nodes.cantilever_node import CantileverNode
 from afm_ros.nodes.guard import FAULT_STATUS
 from afm_ros.nodes.live_view_node import LiveViewNode
@@ -42,6 +43,7 @@ TIMER_FAULTS = {
     PllNode: ("_publish_diagnostics", "amplitude_setpoint", 4e-9),
     RecorderNode: ("_publish_diagnostics", "max_size", 3e9),
     LiveViewNode: ("_reconcile", "parameter_timeout", 2.0),
+    BimodalNode: ("_publish_diagnostics", "setpoint_ratio", 0.7),
 }
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -45,6 +46,7 @@ from afm_ros.core.physics.modes import (
 from afm_ros.core.physics.parameters import Cantilever, ParamSpec, validate_values
 from afm_ros.core.samples.surface import Sample, dilate
 from afm_ros.formats.chunk_layout import ChunkHeader
+from afm_ros.formats.gwy import write_gwy
 
 BIMODAL_SPECS: dict[str, ParamSpec] = {
     s.name: s
@@ -113,6 +115,22 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
     )
 }  # fmt: skip
 
+# the bimodal node's own (afm_ros.nodes.bimodal_node); the offline session takes them as flags
+BIMODAL_NODE_SPECS: dict[str, ParamSpec] = {
+    s.name: s
+    for s in (
+        ParamSpec(
+            "sample", "ps_ldpe_blend", "", "sample map: a built-in (ps_ldpe_blend, tgz_grating, "
+            "terraces; docs/samples.md) or a sample description file (.yaml/.json)", kind=str,
+        ),
+        ParamSpec(
+            "output_directory", "", "", "folder for each frame's bimodal_<frame>.gwy ('' = no "
+            "file); checked when set and at each frame's start, when a missing last level is "
+            "created (never a chain of folders)", kind=str,
+        ),
+    )
+}  # fmt: skip
+
 AUTO_TIME_CONSTANT_2 = {"fm": 10e-6, "am": 100e-6}  # [s] time_constant_mode2 0
 MIN_SAMPLES_PER_PERIOD = 4  # deflection samples per mode-2 period
 CHANNELS = {  # name -> unit, in the order the files list them
@@ -173,6 +191,38 @@ class BimodalFrame:
     values: dict = field(default_factory=dict)
 
 
+def check_values(values: dict | None) -> dict:
+    """``values`` (:data:`BIMODAL_SPECS`; missing: defaults) validated, each against its range
+    and the ones that depend on each other together; ValueError names the field and what is
+    allowed."""
+    v = validate_values(BIMODAL_SPECS, dict(values or {}), "a bimodal session")
+    if v["steps_per_period"] < MIN_SAMPLES_PER_PERIOD * v["sample_every"]:
+        raise ValueError(
+            f"sample_every={v['sample_every']} with steps_per_period={v['steps_per_period']}: "
+            f"allowed up to steps_per_period / {MIN_SAMPLES_PER_PERIOD} (at least "
+            f"{MIN_SAMPLES_PER_PERIOD} deflection samples per mode-2 period, or the lock-ins "
+            "see an alias of mode 2)"
+        )
+    low = LOCKIN_SPECS["time_constant"].low
+    for name in ("time_constant_mode1", "time_constant_mode2"):
+        if 0.0 < v[name] < low:
+            raise ValueError(f"{name}={v[name]!r} s is out of range; allowed 0 or >= {low:g} s")
+    return v
+
+
+def write_gwy_frame(path, frame: BimodalFrame) -> Path:
+    """``frame`` as a Gwyddion file: every channel of :data:`CHANNELS` (an interrupted frame: its
+    lines done), pixels without a value masked, the session's values as metadata."""
+    x0, y0 = frame.origin
+    done = frame.lines_done
+    chans = {name: (frame.channels[name][:done], unit) for name, unit in CHANNELS.items()}
+    meta = {k: v if isinstance(v, (int, float)) else str(v) for k, v in frame.values.items()}
+    meta["lines_done"] = done
+    height = frame.size * done / frame.channels["height"].shape[0]
+    write_gwy(path, chans, frame.size, height, x0, y0, metadata=meta, invalid="mask")
+    return Path(path)
+
+
 def _force(name: str, values: dict):
     overrides = {} if values["adhesion"] else {"hamaker_constant": 0.0}
     sample, viscosity, _ = sample_for(name, **overrides)
@@ -187,7 +237,7 @@ class BimodalScan:
     :meth:`line` scans one more line."""
 
     def __init__(self, sample: Sample, values: dict | None = None):
-        v = validate_values(BIMODAL_SPECS, dict(values or {}), "a bimodal session")
+        v = check_values(values)
         cx = 0.5 * sample.size_x if v["center_x"] < 0 else v["center_x"]
         cy = 0.5 * sample.size_y if v["center_y"] < 0 else v["center_y"]
         self.values = v
@@ -197,19 +247,6 @@ class BimodalScan:
             quality_factor=v["quality_factor"],
         )
         self.modes = m1, m2 = rectangular_modes(lever, 2, v["q_exponent"])
-        if v["steps_per_period"] < MIN_SAMPLES_PER_PERIOD * v["sample_every"]:
-            raise ValueError(
-                f"sample_every={v['sample_every']} with steps_per_period={v['steps_per_period']}: "
-                f"allowed up to steps_per_period / {MIN_SAMPLES_PER_PERIOD} (at least "
-                f"{MIN_SAMPLES_PER_PERIOD} deflection samples per mode-2 period, or the lock-ins "
-                "see an alias of mode 2)"
-            )
-        low = LOCKIN_SPECS["time_constant"].low
-        for name in ("time_constant_mode1", "time_constant_mode2"):
-            if 0.0 < v[name] < low:
-                raise ValueError(
-                    f"{name}={v[name]!r} s is out of range; allowed 0 or >= {low:g} s"
-                )
         self.dt = 1.0 / (m2.resonance_frequency * v["steps_per_period"])
         every = v["sample_every"]
         self.chunk_steps = every * max(1, round(v["chunk_time"] / (self.dt * every)))

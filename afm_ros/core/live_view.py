@@ -110,9 +110,15 @@ DEFLECTION_TOPICS = (
     "cantilever/deflection",
     "cantilever/tip_sample_force",
 )  # relative to the namespace
-PARAMETER_NODES = ("cantilever", "lockin", "z_controller", "pll", "scanner", "recorder")
-SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
-IMAGE_PREFIX = "scanner/image/"
+PARAMETER_NODES = (
+    "cantilever", "lockin", "z_controller", "pll", "scanner", "recorder", "bimodal",
+)  # fmt: skip
+SERVICES = (
+    "scanner/start", "scanner/scan_frame", "scanner/stop", "bimodal/scan_frame", "bimodal/stop",
+)  # fmt: skip
+# image topics sent as foxglove.RawImage mono8 (sensor_msgs/Image 32FC1 or 64FC1)
+IMAGE_PREFIXES = ("scanner/image/", "bimodal/image/")
+IMAGE_DTYPES = {"32FC1": "f4", "64FC1": "f8"}
 # per-output topics served from the batch topics the loop always publishes, so the lock-in, the z
 # controller and the PLL never publish per-output copies for a viewer: topic -> (source topic,
 # field)

@@ -8,6 +8,7 @@ checks that the committed files agree.
 from __future__ import annotations
 
 from afm_ros.core.approach import Z_NODE_SPECS
+from afm_ros.core.bimodal_scan import BIMODAL_NODE_SPECS, BIMODAL_SPECS
 from afm_ros.core.cantilever_params import CANTILEVER_NODE_SPECS
 from afm_ros.core.fm import FM_SPECS
 from afm_ros.core.live_view import LIVE_VIEW_SPECS
@@ -26,6 +27,7 @@ NODE_SPECS = {
     "replay": REPLAY_SPECS,
     "scanner": SCANNER_NODE_SPECS,
     "live_view": LIVE_VIEW_SPECS,
+    "bimodal": {**BIMODAL_SPECS, **BIMODAL_NODE_SPECS},
 }
 
 

@@ -4,8 +4,8 @@ A WebSocket server in this process (``address``:``port``, 127.0.0.1:8765 by defa
 has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every
 topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxglove channel under
 its full ROS name, as foxglove_bridge does: the ROS 2 message bytes (CDR) with the ``ros2msg``
-definition the recorder writes, except the scanner's images, which go out as ``foxglove.RawImage``
-mono8 scaled to their own range, and the 900 kS/s deflection and force, of which one chunk in
+definition the recorder writes, except the scanner's and the bimodal node's images, which go out
+as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s deflection and force, of which one chunk in
 ``deflection_decimation`` is forwarded, and the per-output scalar topics (``lockin/amplitude`` ...,
 in FM ``pll/frequency_shift``, ``pll/phase_error``, ``pll/drive``), built from the batch topics
 (:mod:`afm_ros.core.live_view`).
@@ -16,14 +16,15 @@ KEEP_LAST queue (latched state topics: reliable, transient local, depth 1), its 
 received bytes to the SDK, and the SDK queues at most ``message_backlog`` messages per viewer and
 drops the oldest view frames beyond that.
 
-Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pll``, ``scanner``
-and ``recorder`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>``
+Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pll``, ``scanner``,
+``recorder`` and ``bimodal`` are served to Foxglove's Parameters panel as ``<node fqn>.<name>``
 (foxglove_bridge's names), read from the nodes and kept current from ``/parameter_events`` (each
 change is pushed once to the viewers subscribed to it); a write goes to the node's
 ``set_parameters`` service, so the node validates it, and a refusal is sent to the viewer as a
 warning status with the node's reason (the panel keeps the node's value). The scanner's
-``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` (std_srvs/Trigger) are Foxglove
-services under their full names.
+``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` and the bimodal node's
+``bimodal/scan_frame`` and ``bimodal/stop`` (std_srvs/Trigger) are Foxglove services under their
+full names.
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ from std_srvs.srv import Trigger
 from afm_ros.core.live_view import (
     DEFLECTION_TOPICS,
     DERIVED,
-    IMAGE_PREFIX,
+    IMAGE_DTYPES,
+    IMAGE_PREFIXES,
     LIVE_VIEW_SPECS,
     PARAMETER_NODES,
     RAW_IMAGE_SCHEMA,
@@ -261,7 +263,9 @@ class LiveViewNode(GuardedNode):
             if topic in self._channels or len(types) != 1 or not self._in_scope(topic):
                 continue
             type_name = types[0]
-            if type_name == IMAGE_TYPE and topic.startswith(self._scope + IMAGE_PREFIX):
+            if type_name == IMAGE_TYPE and any(
+                topic.startswith(self._scope + prefix) for prefix in IMAGE_PREFIXES
+            ):
                 channel = self._fg.Channel(
                     topic, schema=RAW_IMAGE_SCHEMA, context=self._fg_context
                 )
@@ -368,17 +372,16 @@ class LiveViewNode(GuardedNode):
                 if forward_chunk(first, samples, self._values["deflection_decimation"]):
                     log(data, time.time_ns())
                     self.forwarded[topic] += 1
-        elif (
-            type_name == IMAGE_TYPE and relative is not None and relative.startswith(IMAGE_PREFIX)
-        ):
+        elif type_name == IMAGE_TYPE and (relative or "").startswith(IMAGE_PREFIXES):
 
             def callback(data: bytes) -> None:
                 msg = deserialize_message(data, Image)
-                if msg.encoding != "32FC1" or msg.height * msg.step != len(msg.data):
+                kind = IMAGE_DTYPES.get(msg.encoding)
+                if kind is None or msg.height * msg.step != len(msg.data):
                     return
-                dtype = ">f4" if msg.is_bigendian else "<f4"
+                dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
                 image = np.frombuffer(bytes(msg.data), dtype=dtype).reshape(
-                    msg.height, msg.step // 4
+                    msg.height, msg.step // dtype.itemsize
                 )[:, : msg.width]
                 channel.log(
                     raw_image_json(

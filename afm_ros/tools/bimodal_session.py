@@ -14,10 +14,9 @@ import sys
 import time
 from dataclasses import asdict
 
-from afm_ros.core.bimodal_scan import BIMODAL_SPECS, CHANNELS, BimodalScan
+from afm_ros.core.bimodal_scan import BIMODAL_SPECS, CHANNELS, BimodalScan, write_gwy_frame
 from afm_ros.core.physics.parameters import value_from_text
 from afm_ros.core.samples import resolve_sample
-from afm_ros.formats.gwy import write_gwy
 from afm_ros.tools.figures import pyplot, write_csv
 from afm_ros.tools.run_setup import make_run_folder
 
@@ -112,20 +111,14 @@ def summary_lines(scan: BimodalScan, frame, wall: float, sample_name: str) -> li
 
 def write_outputs(folder, scan, frame, figure: bool) -> dict:
     """bimodal.gwy, bimodal_materials.csv (and bimodal.png): their paths."""
-    x0, y0 = frame.origin
-    done = frame.lines_done  # an interrupted frame keeps its lines: a shorter image
-    chans = {name: (frame.channels[name][:done], unit) for name, unit in CHANNELS.items()}
-    meta = {k: v if isinstance(v, (int, float)) else str(v) for k, v in frame.values.items()}
-    meta["lines_done"] = done
-    gwy = folder / "bimodal.gwy"
-    height = frame.size * done / frame.channels["height"].shape[0]
-    write_gwy(gwy, chans, frame.size, height, x0, y0, metadata=meta, invalid="mask")
+    gwy = write_gwy_frame(folder / "bimodal.gwy", frame)
     rows = [asdict(r) for r in frame.rows]
     columns = list(rows[0]) if rows else ["material"]
     csv = write_csv(folder / "bimodal_materials.csv", columns, [list(r.values()) for r in rows])
     out = {"gwy": str(gwy), "csv": str(csv)}
     if figure:
         plt = pyplot()
+        x0, y0 = frame.origin
         fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
         extent = [x0 * 1e6, (x0 + frame.size) * 1e6, (y0 + frame.size) * 1e6, y0 * 1e6]
         for ax, (name, scale, label) in zip(
