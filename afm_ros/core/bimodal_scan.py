@@ -39,6 +39,7 @@ from afm_ros.core.physics.forces import DMTForce, ViscoelasticDMTForce
 from afm_ros.core.physics.materials import sample_for
 from afm_ros.core.physics.modes import (
     Q_SCALING_EXPONENTS,
+    Mode,
     ModeDrive,
     MultiModeSimulation,
     rectangular_modes,
@@ -57,6 +58,18 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
         ParamSpec(
             "q_exponent", 1.0, "1", "Q_n = Q_1 (w_n / w_1)^p (1: uniform viscous damping)",
             kind=float, choices=Q_SCALING_EXPONENTS,
+        ),
+        ParamSpec(
+            "mode2_frequency", 0.0, "Hz", "mode 2's free resonance f2, measured (a thermal or "
+            "drive tune); 0: the rectangular beam's 6.27 f1", 0.0, 2e7,
+        ),
+        ParamSpec(
+            "mode2_spring_constant", 0.0, "N/m", "mode 2's stiffness k2 at the tip, calibrated; "
+            "0: the rectangular beam's 39.3 k1", 0.0, 1e5,
+        ),
+        ParamSpec(
+            "mode2_quality_factor", 0.0, "1", "mode 2's quality factor Q2, measured; 0: Q1 (f2 / "
+            "f1)^q_exponent", 0.0, 1e6,
         ),
         ParamSpec("free_amplitude", 25e-9, "m", "mode 1's free amplitude A01", 1e-9, 200e-9),
         ParamSpec(
@@ -203,11 +216,31 @@ def check_values(values: dict | None) -> dict:
             f"{MIN_SAMPLES_PER_PERIOD} deflection samples per mode-2 period, or the lock-ins "
             "see an alias of mode 2)"
         )
+    if 0.0 < v["mode2_frequency"] <= v["resonance_frequency"]:
+        raise ValueError(
+            f"mode2_frequency={v['mode2_frequency']!r} Hz: allowed 0 (the beam's) or above mode "
+            f"1's resonance_frequency={v['resonance_frequency']!r} Hz"
+        )
     low = LOCKIN_SPECS["time_constant"].low
     for name in ("time_constant_mode1", "time_constant_mode2"):
         if 0.0 < v[name] < low:
             raise ValueError(f"{name}={v[name]!r} s is out of range; allowed 0 or >= {low:g} s")
     return v
+
+
+def second_mode(beam: list[Mode], values: dict) -> list[Mode]:
+    """The beam's two modes with mode 2's frequency, stiffness and Q replaced by the values given
+    (``mode2_*`` not 0); with measured f2 and no Q2, Q2 = Q1 (f2 / f1)^q_exponent."""
+    m1, m2 = beam
+    f2 = values["mode2_frequency"] or m2.resonance_frequency
+    q2 = (
+        values["mode2_quality_factor"]
+        or m1.quality_factor * (f2 / m1.resonance_frequency) ** values["q_exponent"]
+    )
+    k2 = values["mode2_spring_constant"] or m2.spring_constant
+    if (f2, k2, q2) == (m2.resonance_frequency, m2.spring_constant, m2.quality_factor):
+        return [m1, m2]  # the beam's own, bit for bit
+    return [m1, Mode(f2, k2, q2)]
 
 
 def write_gwy_frame(path, frame: BimodalFrame) -> Path:
@@ -246,7 +279,7 @@ class BimodalScan:
             resonance_frequency=v["resonance_frequency"],
             quality_factor=v["quality_factor"],
         )
-        self.modes = m1, m2 = rectangular_modes(lever, 2, v["q_exponent"])
+        self.modes = m1, m2 = second_mode(rectangular_modes(lever, 2, v["q_exponent"]), v)
         self.dt = 1.0 / (m2.resonance_frequency * v["steps_per_period"])
         every = v["sample_every"]
         self.chunk_steps = every * max(1, round(v["chunk_time"] / (self.dt * every)))

@@ -4,11 +4,11 @@ A WebSocket server in this process (``address``:``port``, 127.0.0.1:8765 by defa
 has no authentication; the SDK accepts only the subprotocol ``foxglove.sdk.v1``) advertises every
 topic of the node's namespace (plus ``/diagnostics`` and ``/rosout``) as a Foxglove channel under
 its full ROS name, as foxglove_bridge does: the ROS 2 message bytes (CDR) with the ``ros2msg``
-definition the recorder writes, except the scanner's and the bimodal node's images, which go out
-as ``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s deflection and force, of which one chunk in
-``deflection_decimation`` is forwarded, and the per-output scalar topics (``lockin/amplitude`` ...,
-in FM ``pll/frequency_shift``, ``pll/phase_error``, ``pll/drive``), built from the batch topics
-(:mod:`afm_ros.core.live_view`).
+definition the recorder writes, except the scanner's and the bimodal node's images, which go out as
+``foxglove.RawImage`` mono8 scaled to their own range, and the 900 kS/s deflection and force, of
+which one chunk in ``deflection_decimation`` is forwarded, and the per-output scalar topics
+(``lockin/amplitude`` ..., in FM ``pll/frequency_shift``, ``pll/phase_error``, ``pll/drive``),
+built from the batch topics (:mod:`afm_ros.core.live_view`).
 
 A ROS subscription exists only while a viewer subscribes to its channel, and it never slows the
 loop: it does not acknowledge (the cantilever never waits for it), it is best effort with a short
