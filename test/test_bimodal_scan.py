@@ -249,22 +249,28 @@ def test_the_session_prints_each_material_and_writes_the_gwy_gwyddion_opens(tmp_
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_an_interrupted_line_is_dropped_from_the_maps_and_the_table():
-    """Ctrl-C inside a line (here raised from one of its chunks): the frame keeps the lines done
-    and nothing of the line under way, in the channels and in the table."""
+@pytest.mark.parametrize("compiled", [False, True], ids=["python", "compiled"])
+def test_an_interrupted_line_is_dropped_from_the_maps_and_the_table(compiled):
+    """Ctrl-C inside a line (here raised from one of its chunks, or from one of its compiled
+    runs of chunks): the frame keeps the lines done and nothing of the line under way, in the
+    channels and in the table."""
     sample = resolve_sample("ps_ldpe_blend")
-    scan = BimodalScan(sample, dict(pixels=4, pixel_time=5e-4, engage_time=2e-3, size=1e-6))
-    run_chunk, calls = scan.chunk, [0]
-    # 25 us chunks: engage 80, each line 80 traced + 20 retraced; the 10th chunk of line 1
-    stop_at = 80 + 100 + 10
+    scan = BimodalScan(
+        sample, dict(pixels=4, pixel_time=5e-4, engage_time=2e-3, size=1e-6), compiled=compiled
+    )
+    name = "segment" if compiled else "chunk"
+    run, calls = getattr(scan, name), [0]
+    # 25 us chunks: engage 80, each line 80 traced + 20 retraced; the 10th chunk of line 1, or
+    # (64 chunks per compiled run) engage 2 runs, each line 2 + 1; the 2nd run of line 1
+    stop_at = 80 + 100 + 10 if not compiled else 2 + 3 + 2
 
     def interrupted(*args):
         calls[0] += 1
         if calls[0] == stop_at:
             raise KeyboardInterrupt
-        run_chunk(*args)
+        run(*args)
 
-    scan.chunk = interrupted
+    setattr(scan, name, interrupted)
     frame = scan.run()
     assert calls[0] == stop_at and frame.lines_done == 1
     assert np.isfinite(frame.channels["height"][0]).all()

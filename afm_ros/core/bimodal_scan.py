@@ -32,6 +32,7 @@ import numpy as np
 
 from afm_ros.core import bimodal
 from afm_ros.core.angles import phase_deg
+from afm_ros.core.bimodal_loop import ENGAGE, RETRACE, TRACE, CompiledLoop
 from afm_ros.core.controller import ZController
 from afm_ros.core.fm import OscillationController, design_gains
 from afm_ros.core.lockin import LOCKIN_SPECS, LockIn
@@ -144,6 +145,7 @@ BIMODAL_NODE_SPECS: dict[str, ParamSpec] = {
     )
 }  # fmt: skip
 
+SEGMENT_CHUNKS = 64  # chunks per compiled call (Ctrl-C is seen between calls)
 AUTO_TIME_CONSTANT_2 = {"fm": 10e-6, "am": 100e-6}  # [s] time_constant_mode2 0
 MIN_SAMPLES_PER_PERIOD = 4  # deflection samples per mode-2 period
 CHANNELS = {  # name -> unit, in the order the files list them
@@ -269,7 +271,9 @@ class BimodalScan:
     (:data:`BIMODAL_SPECS`; missing: defaults). :meth:`run` scans; each call of
     :meth:`line` scans one more line."""
 
-    def __init__(self, sample: Sample, values: dict | None = None):
+    def __init__(self, sample: Sample, values: dict | None = None, compiled: bool = True):
+        """``compiled``: chunks run in :mod:`afm_ros.core.bimodal_loop` (the same frame bit for
+        bit, ~4x faster); false: one :meth:`chunk` call (Python) each."""
         v = check_values(values)
         cx = 0.5 * sample.size_x if v["center_x"] < 0 else v["center_x"]
         cy = 0.5 * sample.size_y if v["center_y"] < 0 else v["center_y"]
@@ -337,6 +341,7 @@ class BimodalScan:
             **design_gains(v["pll_bandwidth"], m2.spring_constant, m2.resonance_frequency),
         )
         self.index = 0  # deflection samples so far
+        self._loop = CompiledLoop(self) if compiled else None
         self.sums = np.zeros((7, self.n, self.n))  # CHANNELS' first seven, summed per pixel
         self.counts = np.zeros((self.n, self.n))
         self.lines_done = 0
@@ -402,14 +407,23 @@ class BimodalScan:
 
     def engage(self) -> None:
         """The z loop on at the first pixel for ``engage_time``."""
+        count = self._chunks()[0]
+        if self._loop is not None:
+            self._segments(ENGAGE, 0, count)
+            return
         x, y = self._xy(0.0, 0)
-        for _ in range(self._chunks()[0]):
+        for _ in range(count):
             self.chunk(x, y, None)
 
     def line(self) -> None:
         """Trace (recorded) and retrace of the next line."""
         i = self.lines_done
         _, trace, back = self._chunks()
+        if self._loop is not None:
+            self._segments(TRACE, i, trace)
+            self._segments(RETRACE, i, back)
+            self.lines_done += 1
+            return
         for c in range(trace):
             frac = (c + 0.5) / trace
             self.chunk(*self._xy(frac, i), (i, min(self.n - 1, int(frac * self.n))))
@@ -420,6 +434,26 @@ class BimodalScan:
             _, y_next = self._xy(frac, nxt)
             self.chunk(x, y + (c + 0.5) / back * (y_next - y), None)
         self.lines_done += 1
+
+    @property
+    def compiled(self) -> bool:
+        """Chunks run compiled (:mod:`afm_ros.core.bimodal_loop`) or one Python call each; may
+        be switched between lines (the same frame either way)."""
+        return self._loop is not None
+
+    @compiled.setter
+    def compiled(self, on: bool) -> None:
+        self._loop = CompiledLoop(self) if on else None
+
+    def _segments(self, kind: int, line: int, count: int) -> None:
+        for c0 in range(0, count, SEGMENT_CHUNKS):
+            self.segment(kind, line, c0, min(count, c0 + SEGMENT_CHUNKS), count)
+
+    def segment(self, kind: int, line: int, c0: int, c1: int, count: int) -> None:
+        """Chunks ``c0`` to ``c1`` - 1 of the ``count`` of a run (bimodal_loop ENGAGE, TRACE or
+        RETRACE of ``line``) in one compiled call: what :meth:`chunk` does for each, bit for
+        bit."""
+        self._loop.run(kind, line, c0, c1, count)
 
     def run(self, progress=None) -> BimodalFrame:
         """Engage and scan every line (``progress(lines_done, n)`` after each); Ctrl-C keeps the

@@ -168,6 +168,16 @@ class ZController:
         if not values["enabled"]:
             self._apply_disabled_jump()
 
+    @property
+    def needs_init(self) -> bool:
+        """The next enabled sample re-initialises the integrator bumplessly instead of
+        integrating (a compiled loop that runs this controller's update reads and sets it)."""
+        return self._needs_init
+
+    @needs_init.setter
+    def needs_init(self, value: bool) -> None:
+        self._needs_init = bool(value)
+
     # --- parameters ------------------------------------------------------------------------
     def configure(self, **changes) -> None:
         """Validate all changes (and z_min < z_max), then apply them together."""

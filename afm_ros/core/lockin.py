@@ -225,6 +225,17 @@ def _demodulate(
     return written, next_k
 
 
+# for loops that run the lock-in inside a compiled kernel (afm_ros.core.bimodal_loop)
+demodulate = _demodulate
+
+
+def continuity_tolerances() -> tuple[int, float, float, float]:
+    """(re-anchor span [samples], phase jump [rad], time jump [fraction of the sample interval],
+    output grid slack [fraction of an output period]): when :meth:`LockIn.process` re-anchors its
+    reference or places an output."""
+    return _ANCHOR_SPAN, _PHASE_JUMP_RAD, _TIME_JUMP_FRACTION, _GRID_EPS
+
+
 @dataclass
 class LockInOutput:
     """Output samples of one chunk: sim time t [s], input sample index, X and Y [m]."""
@@ -340,6 +351,29 @@ class LockIn:
         self._next_index = None
         self._anchor = None
         self._next_k = -math.inf
+
+    def stream_state(self) -> dict:
+        """Where the stream stands (anchor, next index and output, filter weight, sample interval,
+        counters), for a compiled loop that continues it (:mod:`afm_ros.core.bimodal_loop`); the
+        filter state is :attr:`state`, shared."""
+        st = self.stats
+        return {
+            "anchor": self._anchor, "next_index": self._next_index, "next_k": self._next_k,
+            "alpha": self._alpha, "interval": self._interval, "chunks": st.chunks,
+            "samples": st.samples, "reference_jumps": st.reference_jumps,
+        }  # fmt: skip
+
+    def restore_stream_state(self, state: dict) -> None:
+        """Take over where a compiled loop left the stream (:meth:`stream_state`'s keys)."""
+        self._anchor, self._next_index = state["anchor"], state["next_index"]
+        self._next_k, self._alpha, self._interval = (
+            state["next_k"],
+            state["alpha"],
+            state["interval"],
+        )
+        st = self.stats
+        st.chunks, st.samples = state["chunks"], state["samples"]
+        st.reference_jumps = state["reference_jumps"]
 
     # --- reference bookkeeping ----------------------------------------------------------------
     def _predict(self, index: int) -> tuple[float, float]:

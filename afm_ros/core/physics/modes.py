@@ -346,6 +346,10 @@ def _advance_two(
     z[0], z[1], v[0], v[1] = z0, z1, v0, v1
 
 
+# for loops that run the two modes inside a compiled kernel (afm_ros.core.bimodal_loop)
+advance_two = _advance_two
+
+
 class MultiModeSimulation:
     """N modes over a flat sample at ``z_base`` [m] with the force model ``force`` (a
     :mod:`afm_ros.core.physics.forces` model), integrated by fixed-step RK4 of ``dt`` [s].
@@ -377,6 +381,27 @@ class MultiModeSimulation:
         self.temperature = 0.0
         self.seed = 0
         self._sigma = np.zeros(n)
+
+    def kernel_arrays(self) -> tuple:
+        """(z, v, k, c, 1/m, drive modes, drive w, drive force, drive phase, thermal sigma) as
+        the kernels take them, by reference: a compiled loop that advances and retunes in place
+        calls :meth:`drives_changed` after."""
+        return (
+            self.z, self.v, self._k, self._c, self._inv_m, self._dmode, self._dw, self._df,
+            self._dp, self._sigma,
+        )  # fmt: skip
+
+    def drives_changed(self) -> None:
+        """The drive records from the arrays (after a loop retuned them in place)."""
+        self.drives = [
+            replace(
+                d,
+                frequency=float(self._dw[j] / (2.0 * math.pi)),
+                force=float(self._df[j]),
+                phase=float(self._dp[j]),
+            )
+            for j, d in enumerate(self.drives)
+        ]
 
     def set_thermal(self, temperature: float, seed: int) -> None:
         """Thermal force on every mode at ``temperature`` [K] from ``seed`` (0 K: none); the force
