@@ -261,8 +261,8 @@ def test_an_interrupted_line_is_dropped_from_the_maps_and_the_table(compiled):
     name = "segment" if compiled else "chunk"
     run, calls = getattr(scan, name), [0]
     # 25 us chunks: engage 80, each line 80 traced + 20 retraced; the 10th chunk of line 1, or
-    # (64 chunks per compiled run) engage 2 runs, each line 2 + 1; the 2nd run of line 1
-    stop_at = 80 + 100 + 10 if not compiled else 2 + 3 + 2
+    # (up to 256 chunks per compiled run) engage 1 run, each line 1 + 1; line 1's retrace
+    stop_at = 80 + 100 + 10 if not compiled else 1 + 2 + 2
 
     def interrupted(*args):
         calls[0] += 1

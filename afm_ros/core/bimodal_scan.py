@@ -145,7 +145,7 @@ BIMODAL_NODE_SPECS: dict[str, ParamSpec] = {
     )
 }  # fmt: skip
 
-SEGMENT_CHUNKS = 64  # chunks per compiled call (Ctrl-C is seen between calls)
+SEGMENT_CHUNKS = 256  # chunks per compiled call (Ctrl-C is seen between calls)
 AUTO_TIME_CONSTANT_2 = {"fm": 10e-6, "am": 100e-6}  # [s] time_constant_mode2 0
 MIN_SAMPLES_PER_PERIOD = 4  # deflection samples per mode-2 period
 CHANNELS = {  # name -> unit, in the order the files list them
@@ -275,6 +275,7 @@ class BimodalScan:
         """``compiled``: chunks run in :mod:`afm_ros.core.bimodal_loop` (the same frame bit for
         bit, ~4x faster); false: one :meth:`chunk` call (Python) each."""
         v = check_values(values)
+        self.sample = sample
         cx = 0.5 * sample.size_x if v["center_x"] < 0 else v["center_x"]
         cy = 0.5 * sample.size_y if v["center_y"] < 0 else v["center_y"]
         self.values = v
@@ -342,6 +343,7 @@ class BimodalScan:
         )
         self.index = 0  # deflection samples so far
         self._loop = CompiledLoop(self) if compiled else None
+        self._truth = None
         self.sums = np.zeros((7, self.n, self.n))  # CHANNELS' first seven, summed per pixel
         self.counts = np.zeros((self.n, self.n))
         self.lines_done = 0
@@ -445,6 +447,12 @@ class BimodalScan:
     def compiled(self, on: bool) -> None:
         self._loop = CompiledLoop(self) if on else None
 
+    def warm_up(self) -> None:
+        """Load (or compile, ~2 s the first time) the compiled loop now rather than at the first
+        line: one chunk of a scratch copy of this session."""
+        if self._loop is not None:
+            BimodalScan(self.sample, self.values).segment(ENGAGE, 0, 0, 1, 1)
+
     def _segments(self, kind: int, line: int, count: int) -> None:
         for c0 in range(0, count, SEGMENT_CHUNKS):
             self.segment(kind, line, c0, min(count, c0 + SEGMENT_CHUNKS), count)
@@ -477,12 +485,7 @@ class BimodalScan:
             mean = self.sums / self.counts
         mean[:, self.counts == 0] = math.nan
         ch = dict(zip(list(CHANNELS)[:7], mean))
-        material = np.zeros((n, n), dtype=np.int64)
-        true_h = np.zeros((n, n))
-        for i in range(n):
-            for j in range(n):
-                h, mat = self.map.surface(*self._xy((j + 0.5) / n, i))
-                material[i, j], true_h[i, j] = self.materials.index(mat), h
+        material, true_h = self._truth_maps()
         if self.values["mode2_control"] == "am":  # no PLL: no frequency shift was measured
             ch["frequency_shift_2"] = np.full((n, n), math.nan)
         self._maps(ch, material)
@@ -493,6 +496,20 @@ class BimodalScan:
             chans, material, self.materials, rows, self.size, self.origin, self.modes,
             self.sim.t, self.lines_done, dict(self.values),
         )  # fmt: skip
+
+    def _truth_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each pixel's material index and true height [m] at its centre (made once)."""
+        if self._truth is None:
+            n = self.n
+            material = np.zeros((n, n), dtype=np.int64)
+            true_h = np.zeros((n, n))
+            for i in range(n):
+                for j in range(n):
+                    h, mat = self.map.surface(*self._xy((j + 0.5) / n, i))
+                    material[i, j], true_h[i, j] = self.materials.index(mat), h
+            self._truth = material, true_h
+        material, true_h = self._truth
+        return material.copy(), true_h.copy()
 
     def _maps(self, ch: dict, material: np.ndarray) -> None:
         m1, m2 = self.modes

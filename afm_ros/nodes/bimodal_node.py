@@ -123,12 +123,25 @@ class BimodalNode(GuardedNode):
         self.progress: dict = {"frame": 0, "state": "idle"}
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        # the compiled loop loads (or compiles) in the background: the first frame starts warm
+        self._warm = threading.Thread(target=self._warm_up, name="bimodal-warm-up", daemon=True)
+        self._warm.start()
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=self._steady)
         self.get_logger().info(
             f"ready: bimodal {values['mode2_control']} over {values['sample']}, "
             f"{values['pixels']} x {values['pixels']} px; call bimodal/scan_frame"
         )
+
+    def _warm_up(self) -> None:
+        values = self.values()
+        try:
+            BimodalScan(
+                resolve_sample(values["sample"]),
+                {k: v for k, v in values.items() if k in BIMODAL_SPECS},
+            ).warm_up()
+        except Exception as exc:  # noqa: BLE001 - a frame would meet (and report) it again
+            self.get_logger().warning(f"warm-up failed: {type(exc).__name__}: {exc}")
 
     def values(self) -> dict:
         """The parameters in force (the next frame's)."""

@@ -38,12 +38,16 @@ def tip_sample_force(model: int, p: np.ndarray, gap: float, rate: float) -> floa
     if model == MODEL_DMT:
         # p = [a0, H R / 6, 4/3 E* sqrt(R), H R / (6 a0^2)]
         if gap > p[0]:
+            if p[1] == 0.0:  # Hertz alone (H = 0): -0 / gap^2 without the division's latency
+                return -0.0
             return -p[1] / (gap * gap)
         delta = p[0] - gap
         return -p[3] + p[2] * delta * math.sqrt(delta)
     if model == MODEL_VISCOELASTIC_DMT:
         # p = [a0, H R / 6, 4/3 E* sqrt(R), H R / (6 a0^2), eta sqrt(R)]
         if gap > p[0]:
+            if p[1] == 0.0:
+                return -0.0
             return -p[1] / (gap * gap)
         delta = p[0] - gap
         root = math.sqrt(delta)
