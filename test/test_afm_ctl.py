@@ -811,3 +811,60 @@ def test_watch_period_beyond_an_hour_is_refused(ctl_env):
     assert (
         r.returncode == 2 and "--period=1e+09 s is out of range; allowed (0, 3600] s" in r.stderr
     ), r.stderr
+
+
+def test_bimodal_frame_wait_prints_each_materials_modulus_against_its_truth(
+    monkeypatch, ctl_env, ros_namespace
+):
+    """afm_ctl bimodal frame --wait against the bimodal node (in this process, on this file's
+    domain): it follows the frame to its end and prints per material the recovered E* against the
+    true one, the node's own table; a refused value and a stop with no frame say why (exit 1)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from afm_ros.nodes.bimodal_node import BimodalNode
+    from afm_ros.nodes.node_main import make_executor
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", DOMAIN_ID)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(DOMAIN_ID))
+    values = {"pixels": 12, "size": 2e-6, "edge_exclusion": 1}
+    node = BimodalNode(
+        context=ctx,
+        namespace=ros_namespace,
+        parameter_overrides=[Parameter(k, value=v) for k, v in values.items()],
+    )
+    executor = make_executor("events", ctx)
+    executor.add_node(node)
+    stop = threading.Event()
+    thread = threading.Thread(
+        target=lambda: [executor.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)],
+        daemon=True,
+    )
+    thread.start()
+    try:
+        r = ctl(ctl_env, "bimodal", "frame", "--wait", ns=ros_namespace)
+        assert r.returncode == 0, r.stderr
+        lines = r.stdout.splitlines()
+        assert lines[0] == "frame 1: 12 x 12 px over 2e-06 m", r.stdout
+        assert "frame 1 done: 12 of 12 lines" in lines, r.stdout
+        rows = {row["material"]: row for row in node.last_materials}
+        assert set(rows) == {"polystyrene", "ldpe"}
+        for name, row in rows.items():
+            (line,) = [x for x in lines if x.startswith(f"  {name} ")]
+            assert f"against {row['true_modulus'] / 1e9:.3f} GPa true" in line, line
+            if row["modulus"] is not None:
+                assert f"E* {row['modulus'] / 1e9:.3f} GPa" in line, line
+        r = ctl(ctl_env, "set", "bimodal", "pixels", "2", ns=ros_namespace)
+        assert r.returncode == 1 and "pixels=2 is out of range" in r.stderr, r.stderr
+        assert node.get_parameter("pixels").value == 12
+        r = ctl(ctl_env, "bimodal", "stop", ns=ros_namespace)
+        assert r.returncode == 1 and "no frame is being scanned" in r.stderr, r.stderr
+    finally:
+        stop.set()
+        thread.join(30)
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=ctx)

@@ -677,9 +677,10 @@ class RosLink:
 
     # --- streams
     # -----------------------------------------------------------------------------------
-    def on_progress(self, callback: Callable[[dict], None]):
-        """``callback(progress)`` for each ``scanner/progress`` message (JSON: state, frame, line,
-        lines, time_left_s); the latched current one arrives first. Returns the subscription."""
+    def on_progress(self, callback: Callable[[dict], None], topic: str = "scanner/progress"):
+        """``callback(progress)`` for each message of a JSON progress ``topic`` (the scanner's:
+        state, frame, line, lines, time_left_s; or ``bimodal/progress``, ``bimodal/materials``);
+        the latched current one arrives first. Returns the subscription."""
 
         def take(msg: String) -> None:
             try:
@@ -687,9 +688,7 @@ class RosLink:
             except ValueError:
                 pass  # not ours to judge: a malformed message is skipped
 
-        return self.node.create_subscription(
-            String, self.resolve("scanner/progress"), take, PROGRESS_QOS
-        )
+        return self.node.create_subscription(String, self.resolve(topic), take, PROGRESS_QOS)
 
     def on_outputs(self, callback: Callable[[Outputs], None]):
         """``callback(Outputs)`` for each ``lockin/outputs`` batch (best effort: a batch may be

@@ -121,6 +121,7 @@ class BimodalNode(GuardedNode):
         self.create_service(Trigger, "bimodal/stop", self._on_stop)
         self.frames = 0
         self.progress: dict = {"frame": 0, "state": "idle"}
+        self.last_materials: list = []  # the per-material table last published (JSON rows)
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         # the compiled loop loads (or compiles) in the background: the first frame starts warm
@@ -233,6 +234,7 @@ class BimodalNode(GuardedNode):
              for k, v in asdict(r).items()}
             for r in frame.rows
         ]  # fmt: skip
+        self.last_materials = rows
         self._pub_materials.publish(
             String(data=json.dumps({"frame": frame_no, "lines_done": frame.lines_done,
                                     "materials": rows}))
