@@ -113,9 +113,9 @@ DEFLECTION_TOPICS = (
 PARAMETER_NODES = (
     "cantilever", "lockin", "z_controller", "pll", "scanner", "recorder", "bimodal",
 )  # fmt: skip
-SERVICES = (
-    "scanner/start", "scanner/scan_frame", "scanner/stop", "bimodal/scan_frame", "bimodal/stop",
-)  # fmt: skip
+# advertised from the start (Foxglove's service list is the server's; a missing node's answers
+# "not available")
+SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
 # image topics sent as foxglove.RawImage mono8 (sensor_msgs/Image 32FC1 or 64FC1)
 IMAGE_PREFIXES = ("scanner/image/", "bimodal/image/")
 IMAGE_DTYPES = {"32FC1": "f4", "64FC1": "f8"}

@@ -22,9 +22,8 @@ Parameters of the namespace's ``cantilever``, ``lockin``, ``z_controller``, ``pl
 change is pushed once to the viewers subscribed to it); a write goes to the node's
 ``set_parameters`` service, so the node validates it, and a refusal is sent to the viewer as a
 warning status with the node's reason (the panel keeps the node's value). The scanner's
-``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` and the bimodal node's
-``bimodal/scan_frame`` and ``bimodal/stop`` (std_srvs/Trigger) are Foxglove services under their
-full names.
+``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` (std_srvs/Trigger) are Foxglove
+services under their full names.
 """
 
 from __future__ import annotations
