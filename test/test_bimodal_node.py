@@ -200,3 +200,43 @@ def test_a_frame_while_one_runs_is_refused_and_stop_keeps_the_lines_done(bimodal
         assert not answer.success and "no frame" in answer.message
     finally:
         set_parameter(ex, node, "pixels", VALUES["pixels"])
+
+
+def test_a_recorded_bimodal_session_reports_the_modulus_per_material_against_the_truth(
+    bimodal, tmp_path
+):
+    """The recorder records the node's topics (MCAP); afm_report's bimodal section is the node's
+    last per-material table: E* recovered against the true one, per material, as published."""
+    from afm_ros.nodes.recorder_node import RecorderNode
+    from afm_ros.tools import report
+
+    ex, seen, node = bimodal["ex"], bimodal["seen"], bimodal["node"]
+    path = tmp_path / "bimodal.mcap"
+    recorder = RecorderNode(
+        context=node.context,
+        namespace=node.get_namespace(),
+        parameter_overrides=[Parameter("output", value=str(path))],
+    )
+    ex.add_node(recorder)
+    try:
+        wanted = {f"{node.get_namespace()}/bimodal/{t}" for t in ("materials", "progress")}
+        spin_until(ex, lambda: wanted <= set(recorder.topics))
+        last = scan_one_frame(bimodal)
+        assert last["state"] == "done"
+        frame = last["frame"]
+        spin_until(ex, lambda: seen["materials"] and seen["materials"][-1]["frame"] == frame)
+        recorder.drain(ex)
+    finally:
+        ex.remove_node(recorder)
+        recorder.close()
+        recorder.destroy_node()
+    published = seen["materials"][-1]
+    rep = report.make_report(path, tmp_path / "rep")
+    assert rep.numbers["bimodal"] == published  # the table as the node published it
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Bimodal AM-FM: modulus per material against the truth" in md
+    for row in published["materials"]:
+        line = next(x for x in md.splitlines() if x.startswith(f"| {row['material']} |"))
+        assert f"| {row['true_modulus'] * 1e-9:.4f} |" in line, line
+        if row["modulus"] is not None:
+            assert f"| {row['modulus'] * 1e-9:.4f} |" in line, line

@@ -101,6 +101,7 @@ from afm_ros.tools.report.survey import (
     BATCH_ROLES,
     FM_ROLE,
     SCALAR_ROLES,
+    check_bimodal,
     check_geometry,
     check_spectroscopy,
     check_tune,
@@ -153,6 +154,7 @@ def load_session(path) -> SessionData:
     check_geometry(survey, data)
     check_tune(survey, data)
     check_spectroscopy(survey, data)
+    check_bimodal(survey, data)
     plan = data.plan = make_plan(data, survey.events)
     if FM_ROLE in data.topics:
         data.fm = fm.prepare(data, survey.batches.get(data.topics[FM_ROLE]), survey.stage)
@@ -287,6 +289,8 @@ def make_report(session, out_dir=None) -> Report:
         numbers["tune"] = {k: v for k, v in data.tune.items() if not isinstance(v, np.ndarray)}
     if data.spectroscopy is not None:
         numbers["spectroscopy"] = spectroscopy_numbers(data.spectroscopy)
+    if data.bimodal is not None:
+        numbers["bimodal"] = data.bimodal
     if data.fm is not None:
         numbers["fm"] = fm.numbers(data.fm)
     return Report(md, figures, numbers, data)

@@ -342,6 +342,7 @@ class SessionData:
     )  # topic -> ImageTopic (the last well-formed image of each)
     geometry: dict | None = None  # the last scanner/geometry, checked
     tune: dict | None = None  # the last lockin/tune_result, checked
+    bimodal: dict | None = None  # the last bimodal/materials table, checked
     spectroscopy: object = (
         None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
     )

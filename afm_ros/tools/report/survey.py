@@ -86,6 +86,9 @@ GEOMETRY_TOPIC = "/scanner/geometry"
 TUNE_TOPIC = "/lockin/tune_result"
 SPECTROSCOPY_TOPIC = "/z_controller/spectroscopy"
 STAGE_TOPIC = "/z_controller/stage"
+BIMODAL_TOPIC = "/bimodal/materials"  # the bimodal node's per-material table (JSON)
+BIMODAL_FIELDS = ("material", "pixels", "modulus", "true_modulus", "bias", "frequency_shift_2",
+                  "indentation", "height", "loss_tangent_2", "true_loss_tangent_2")  # fmt: skip
 EXTRA_ROLES = (
     "image",
     "geometry",
@@ -93,6 +96,7 @@ EXTRA_ROLES = (
     "spectroscopy",
     "diagnostics",
     "stage",
+    "bimodal",
 )  # read when present and well-formed, skipped with a note if not
 
 
@@ -115,6 +119,8 @@ def _extra_role(topic: str, type_name: str) -> str | None:
         return "spectroscopy"
     if topic.endswith(STAGE_TOPIC):
         return "stage"
+    if topic.endswith(BIMODAL_TOPIC):
+        return "bimodal"
     if topic == "/diagnostics" or topic.endswith("/diagnostics"):
         return "diagnostics"
     return None
@@ -161,7 +167,7 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
             it.problem = f"message {k}: {exc}"
             return
         it.last_good, it.shape, it.problem = k, (height, width), ""
-    elif role in ("geometry", "tune"):
+    elif role in ("geometry", "tune", "bimodal"):
         if m.type_name != "std_msgs/msg/String":
             survey.skipped[m.topic] = (
                 f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
@@ -220,6 +226,7 @@ class Survey:
         None  # (topic, message number, CDR bytes) of the last scanner/geometry
     )
     tune: tuple | None = None  # the same for the last lockin/tune_result
+    bimodal: tuple | None = None  # the same for the last bimodal/materials
     spectroscopy: tuple | None = None  # the same for the last z_controller/spectroscopy
     stage: dict = field(
         default_factory=dict
@@ -403,6 +410,32 @@ def check_tune(survey: Survey, data: SessionData) -> None:
         )
         return
     data.tune = {**numbers, **arrays}
+
+
+def check_bimodal(survey: Survey, data: SessionData) -> None:
+    """The last bimodal/materials table (frame, lines done, a row per material with the fields of
+    :data:`BIMODAL_FIELDS`, numbers or null), else a note."""
+    if survey.bimodal is None:
+        return
+    topic, k, _ = survey.bimodal
+    g = _json_object(survey.bimodal, data)
+    if g is None:
+        return
+    rows = g.get("materials")
+    ok = isinstance(rows, list) and all(
+        isinstance(r, dict)
+        and isinstance(r.get("material"), str)
+        and all(
+            r.get(f) is None or (isinstance(r.get(f), (int, float)) and not isinstance(r[f], bool))
+            for f in BIMODAL_FIELDS[1:]
+        )
+        and all(f in r for f in BIMODAL_FIELDS)
+        for r in rows
+    )
+    if not ok or not isinstance(g.get("frame"), int) or not isinstance(g.get("lines_done"), int):
+        data.skipped[topic] = f"message {k}: not a per-material table (frame, lines, materials)"
+        return
+    data.bimodal = {"frame": g["frame"], "lines_done": g["lines_done"], "materials": rows}
 
 
 def check_spectroscopy(survey: Survey, data: SessionData) -> None:
