@@ -65,6 +65,7 @@ DOMAIN_IDS = {
     "test_fm_session": 83,
     "test_processes": 91,
     "test_determinism": 95,
+    "test_bimodal_node": 97,
 }
 # files that share a session fixture run on the same worker (the fixture runs once)
 SHARED_WORKER = {"test_report_fm": "test_fm_session"}

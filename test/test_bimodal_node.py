@@ -240,3 +240,63 @@ def test_a_recorded_bimodal_session_reports_the_modulus_per_material_against_the
         assert f"| {row['true_modulus'] * 1e-9:.4f} |" in line, line
         if row["modulus"] is not None:
             assert f"| {row['modulus'] * 1e-9:.4f} |" in line, line
+
+
+def test_the_clients_frame_is_the_same_over_ros_and_in_process(monkeypatch, ros_namespace):
+    """Bimodal.connect (the node, over DDS from the client's own context) and Bimodal.local (no
+    ROS) give the same xarray frame for the same values: every channel bit for bit, the
+    coordinates, the values and the per-material table; a refused value is refused by both
+    before anything runs."""
+    import threading
+
+    import rclpy
+    from conftest import domain_id
+
+    from afm_ros.client import BadArgument
+    from afm_ros.client.bimodal import Bimodal
+    from afm_ros.nodes.node_main import make_executor
+
+    domain = domain_id(__name__)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(domain))
+    node = BimodalNode(
+        context=ctx,
+        namespace=ros_namespace,
+        parameter_overrides=[Parameter(k, value=v) for k, v in VALUES.items()],
+    )
+    ex = make_executor("events", ctx)
+    ex.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(
+        target=lambda: [ex.spin_once(timeout_sec=0.02) for _ in iter(stop.is_set, True)],
+        daemon=True,
+    )
+    spinner.start()
+    lines = []
+    try:
+        with Bimodal.connect(ros_namespace, timeout=60.0) as remote:
+            with pytest.raises(BadArgument, match="sample_every"):
+                remote.set(sample_every=20)
+            assert remote.get("pixels") == {"pixels": 8}
+            over_ros = remote.frame(progress=lambda done, n: lines.append((done, n)))
+    finally:
+        stop.set()
+        spinner.join(30)
+        ex.remove_node(node)
+        node.destroy_node()
+        ex.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=ctx)
+    with Bimodal.local(**VALUES) as here:
+        with pytest.raises(BadArgument, match="sample_every"):
+            here.set(sample_every=20)
+        in_process = here.frame()
+    assert lines and lines[-1] == (8, 8)
+    assert over_ros.attrs == in_process.attrs
+    assert over_ros.attrs["state"] == "done" and over_ros.attrs["lines_done"] == 8
+    for name in in_process.data_vars:
+        a, b = over_ros[name], in_process[name]
+        assert a.attrs == b.attrs and a.values.tobytes() == b.values.tobytes(), name
+    for c in ("x", "y"):
+        assert over_ros[c].values.tobytes() == in_process[c].values.tobytes()

@@ -25,7 +25,7 @@ from the tip-dilated map. SI units; phases in degrees in the channels.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -243,6 +243,23 @@ def second_mode(beam: list[Mode], values: dict) -> list[Mode]:
     if (f2, k2, q2) == (m2.resonance_frequency, m2.spring_constant, m2.quality_factor):
         return [m1, m2]  # the beam's own, bit for bit
     return [m1, Mode(f2, k2, q2)]
+
+
+def rows_json(rows: list) -> list[dict]:
+    """The per-material table as JSON-able dicts (:class:`MaterialRow` fields; NaN as None): what
+    the bimodal node publishes and a client frame keeps."""
+    return [
+        {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+         for k, v in asdict(r).items()}
+        for r in rows
+    ]  # fmt: skip
+
+
+def pixel_centres(origin: tuple, size: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """x and y [m] of the pixel centres of an n x n frame of ``size`` [m] from ``origin`` (row 0 =
+    the first line)."""
+    centres = (np.arange(n) + 0.5) / n * size
+    return origin[0] + centres, origin[1] + centres
 
 
 def write_gwy_frame(path, frame: BimodalFrame) -> Path:

@@ -15,7 +15,8 @@ controller sees goes out over ROS:
   with the simulated time;
 - ``bimodal/progress`` (std_msgs/String, JSON, latched): ``frame``, ``lines_done``, ``lines``,
   ``state`` (scanning, done, stopped, failed), ``simulated_s``, ``wall_s``, ``real_time_factor``,
-  ``reason`` (a failure's), ``file`` (the frame's .gwy once written);
+  ``reason`` (a failure's), ``file`` (the frame's .gwy once written), ``origin_m`` and ``size_m``
+  (the frame's corner and side [m]);
 - ``bimodal/materials`` (std_msgs/String, JSON, latched): per material the recovered E* [Pa]
   against the true one, the bias, df2 [Hz], indentation [m], height [m], the loss tangents
   (:class:`~afm_ros.core.bimodal_scan.MaterialRow`), after every line;
@@ -33,11 +34,9 @@ frame is written there as ``bimodal_<frame>.gwy`` (every channel, Gwyddion masks
 from __future__ import annotations
 
 import json
-import math
 import sys
 import threading
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +51,7 @@ from afm_ros.core.bimodal_scan import (
     CHANNELS,
     BimodalScan,
     check_values,
+    rows_json,
     write_gwy_frame,
 )
 from afm_ros.core.samples import resolve_sample
@@ -229,11 +229,7 @@ class BimodalNode(GuardedNode):
         frame = scan.frame()
         for name, pub in self._pub_images.items():
             pub.publish(image_message(frame.channels[name], frame.simulated_time))
-        rows = [
-            {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-             for k, v in asdict(r).items()}
-            for r in frame.rows
-        ]  # fmt: skip
+        rows = rows_json(frame.rows)
         self.last_materials = rows
         self._pub_materials.publish(
             String(data=json.dumps({"frame": frame_no, "lines_done": frame.lines_done,
@@ -254,6 +250,8 @@ class BimodalNode(GuardedNode):
             "real_time_factor": simulated / wall if wall > 0 else 0.0,
             "reason": reason,
             "file": file,
+            "origin_m": list(scan.origin) if scan is not None else None,
+            "size_m": scan.size if scan is not None else None,
         }
         self._pub_progress.publish(String(data=json.dumps(self.progress)))
 
