@@ -27,7 +27,9 @@ import numpy as np
 from numba import njit
 
 from afm_ros.core.lockin import continuity_tolerances, demodulate, lowpass_alpha
+from afm_ros.core.physics import modes_events
 from afm_ros.core.physics.modes import advance_two
+from afm_ros.core.physics.modes_events import advance_two_event
 from afm_ros.core.samples.surface import surface_at
 
 TWO_PI = 2.0 * math.pi
@@ -261,7 +263,7 @@ def run_chunks(
     kind, line, c0, c1, count, n_pix, origin_x, origin_y, size, height, material_index,
     size_x, size_y, force_table, model, z, v, k, c, inv_m, dmode, dw, dforce, dphase, dt,
     chunk_steps, every, sigma, seed, scan, zf, zi, pf, pi, lf, li, state1, state2, tol, sums,
-    counts,
+    counts, event_beta, event_energy, event_stats,
 ):  # fmt: skip
     """Chunks ``c0`` to ``c1`` - 1 of ``count`` of a run ``kind`` (ENGAGE at the first pixel,
     TRACE or RETRACE of ``line``) of :class:`BimodalScan`; every state array updated in place.
@@ -292,10 +294,17 @@ def run_chunks(
             return BAD_Z_BASE, ch
         steps = int(scan[S_STEPS])
         t1 = (steps + every) * dt
-        advance_two(
-            z, v, k, c, inv_m, dmode, dw, dforce, dphase, model, force_table[mat], z_base, dt,
-            chunk_steps, every, samples, sigma, seed, steps,
-        )  # fmt: skip
+        if event_beta > 0.0:  # rk4_event
+            advance_two_event(
+                z, v, event_energy, k, c, inv_m, dmode, dw, dforce, dphase, model,
+                force_table[mat], z_base, dt, chunk_steps, every, samples, sigma, seed, steps,
+                event_beta, event_stats,
+            )  # fmt: skip
+        else:
+            advance_two(
+                z, v, k, c, inv_m, dmode, dw, dforce, dphase, model, force_table[mat], z_base,
+                dt, chunk_steps, every, samples, sigma, seed, steps,
+            )  # fmt: skip
         scan[S_STEPS] = steps + chunk_steps
         for s in range(nsamp):
             defl[s] = samples[s, 0] + samples[s, 1]
@@ -365,6 +374,7 @@ class CompiledLoop:
         (self.model,) = models
         self.force_table = np.array([f.packed() for f in forces])
         self.tol = np.array(continuity_tolerances(), dtype=np.float64)
+        self.event_energy = np.zeros((4, 2))  # rk4_event's energies: the session reads none
 
     def run(self, kind: int, line: int, c0: int, c1: int, count: int) -> None:
         """Chunks c0 .. c1 - 1 of a run (ENGAGE, TRACE, RETRACE of ``line``, ``count`` chunks)."""
@@ -416,6 +426,8 @@ class CompiledLoop:
             inv_m, dmode, dw, dforce, dphase, s.dt, s.chunk_steps, s.values["sample_every"],
             sigma, sim.seed, state, zf, zi, pf, pi, lf, li, s.lockins[0].state,
             s.lockins[1].state, self.tol, s.sums, s.counts,
+            modes_events.BETA if sim.integrator == "rk4_event" else 0.0, self.event_energy,
+            sim.event_stats,
         )  # fmt: skip
         # hand the state back, also after a refused chunk (the chunks before it count)
         sim.steps, s.index, s.z_piezo = int(state[0]), int(state[1]), float(state[2])

@@ -96,6 +96,10 @@ BIMODAL_SPECS: dict[str, ParamSpec] = {
             "contact, the maps' own assumption", kind=bool,
         ),
         ParamSpec("steps_per_period", 50, "1", "RK4 steps per mode-2 period", 20, 1000, kind=int),
+        ParamSpec("integrator", "rk4", "", "rk4: fixed steps; rk4_event: steps located on the "
+                  "force law's switches of the summed deflection (contact onset, the "
+                  "viscoelastic clip), pieces near the surface", kind=str,
+                  choices=("rk4", "rk4_event")),
         ParamSpec("sample_every", 5, "1", "RK4 steps per deflection sample", 1, 50, kind=int),
         ParamSpec("chunk_time", 25e-6, "s", "simulated time per chunk (one loop update)",
                   10e-6, 10e-3),
@@ -332,6 +336,7 @@ class BimodalScan:
             self.modes, drives, self.forces[mat0], self.z_piezo - h0, self.dt
         )
         self.sim.set_thermal(v["temperature"], v["noise_seed"])
+        self.sim.set_integrator(v["integrator"])
         # start on the free steady state (driven at resonance: z = A sin(w t))
         self.sim.v[:] = [self.a01 * m1.omega, self.a2 * m2.omega]
         lockin = dict(output_rate=v["output_rate"], filter_order=v["filter_order"])

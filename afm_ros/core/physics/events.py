@@ -780,3 +780,10 @@ def advance_event(
     stats[0] += splits
     stats[1] += extra
     return written
+
+
+# the switch location and piece sizing for the N-mode kernel (afm_ros.core.physics.modes_events),
+# which applies them to the summed deflection
+switch_within = _other
+locate_switch = _locate
+piece_length = _piece_length

@@ -26,13 +26,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
+from afm_ros.core.physics import modes_events
 from afm_ros.core.physics.forces import tip_sample_force
+from afm_ros.core.physics.modes_events import DRIVE_ANCHOR, MODE_STREAM_STRIDE
 from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at, thermal_force_sigma
 from afm_ros.core.physics.parameters import Cantilever
 
 MAX_MODES = 8
-DRIVE_ANCHOR = 64  # steps: the drives' cos and sin evaluated exactly at every 64th global step
-MODE_STREAM_STRIDE = 16  # mode i's thermal force: stream THERMAL_STREAM + 16 i of the seed
+INTEGRATORS = ("rk4", "rk4_event")
 Q_SCALING_EXPONENTS = (0.0, 0.5, 1.0)  # Q_n / Q_1 = (w_n / w_1)^p: constant, Sader-like, viscous
 
 
@@ -381,6 +382,19 @@ class MultiModeSimulation:
         self.temperature = 0.0
         self.seed = 0
         self._sigma = np.zeros(n)
+        self.integrator = "rk4"
+        self.event_stats = np.zeros(2, dtype=np.int64)  # rk4_event: steps split, extra pieces
+
+    def set_integrator(self, name: str) -> None:
+        """``rk4`` (fixed steps) or ``rk4_event`` (two modes: steps located on the switches of
+        the force law of the summed deflection, :mod:`afm_ros.core.physics.modes_events`)."""
+        if name not in INTEGRATORS:
+            raise ValueError(f"integrator={name!r}: allowed one of {', '.join(INTEGRATORS)}")
+        if name == "rk4_event":
+            if len(self.modes) != 2:
+                raise ValueError(f"integrator 'rk4_event': two modes (given {len(self.modes)})")
+            modes_events.check_model(self._model)
+        self.integrator = name
 
     def kernel_arrays(self) -> tuple:
         """(z, v, k, c, 1/m, drive modes, drive w, drive force, drive phase, thermal sigma) as
@@ -468,6 +482,16 @@ class MultiModeSimulation:
         if nsteps < 0 or every < 1:
             raise ValueError(f"nsteps={nsteps!r} must be >= 0 and every={every!r} >= 1")
         out = np.empty((nsteps // every, len(self.modes)))
+        if self.integrator == "rk4_event":
+            modes_events.check_model(self._model)  # the contact may have changed since
+            energy = self.energy if energies else np.zeros_like(self.energy)
+            modes_events.advance_two_event(
+                self.z, self.v, energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
+                self._df, self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every,
+                out, self._sigma, self.seed, self.steps, modes_events.BETA, self.event_stats,
+            )  # fmt: skip
+            self.steps += nsteps
+            return out
         if len(self.modes) == 2 and not energies:
             _advance_two(
                 self.z, self.v, self._k, self._c, self._inv_m, self._dmode, self._dw, self._df,

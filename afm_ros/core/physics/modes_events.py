@@ -1,0 +1,322 @@
+"""Two eigenmodes with RK4 that steps exactly onto the switches of the tip-sample force law
+(``rk4_event`` for :class:`~afm_ros.core.physics.modes.MultiModeSimulation`; no ROS).
+
+The force acts on the summed deflection z1 + z2 (docs/bimodal.md 1.1), so its switches (contact
+onset at gap a0, the viscoelastic clip) are events of the sum. Each step is first the plain
+two-mode RK4 step (bit for bit :func:`~afm_ros.core.physics.modes.advance_two`'s); it stands far
+from the surface, decided on the sum as the point mass's kernel decides it
+(:func:`~afm_ros.core.physics.events.plain_step_stands`). Near the surface the step is cut into
+pieces sized one after the other from the summed gap, rate and acceleration and, in contact, from
+mode 2's contact oscillation (the fastest: its stiffness and mass,
+:func:`~afm_ros.core.physics.events.piece_length`); where the force law's region differs at a
+piece's end (or at the summed gap's turning point) the switch is located on the cubic Hermite
+interpolant of the sum (the sum of the modes' interpolants: Hermite interpolation is linear in the
+end values) and the piece is integrated up to it with the old law and from it with the new one,
+each law continued across its boundary so no stage switches law (the point mass's algorithm,
+:mod:`afm_ros.core.physics.events`). Inside a piece each drive is F cos(phase + w theta) from the
+step's start phasor. The energies per mode (drive work, damping loss, tip-sample work, thermal
+work) are integrated with the stages of every piece.
+
+Hysteresis (a branch switch at every turn of the gap) is not offered here: the two-mode sessions
+use ``dmt`` and ``viscoelastic_dmt``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from afm_ros.core.physics.events import (
+    MAX_PIECES,
+    MAX_SWITCHES,
+    NEAR_SURFACE_FRACTION,
+    force_in,
+    locate_switch,
+    piece_length,
+    plain_step_stands,
+    region,
+    switch_within,
+)
+from afm_ros.core.physics.forces import MODEL_HYSTERESIS_DMT, tip_sample_force
+from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at
+
+# shared with afm_ros.core.physics.modes (which imports them from here: the kernels of both must
+# rotate the drives and draw the thermal forces alike)
+DRIVE_ANCHOR = 64  # steps: the drives' cos and sin evaluated exactly at every 64th global step
+MODE_STREAM_STRIDE = 16  # mode i's thermal force: stream THERMAL_STREAM + 16 i of the seed
+MODELS = ("dmt", "viscoelastic_dmt")
+
+
+@njit(cache=True, inline="always")
+def _drives(dforce, dc, ds, dw, dmode, t):
+    """Each mode's drive force [N] at ``t`` [s] after the step's start (phasors dc, ds there)."""
+    f0 = 0.0
+    f1 = 0.0
+    for j in range(dmode.shape[0]):
+        x = dw[j] * t
+        val = dforce[j] * (dc[j] * math.cos(x) - ds[j] * math.sin(x))
+        if dmode[j] == 0:
+            f0 += val
+        else:
+            f1 += val
+    return f0, f1
+
+
+@njit(cache=True)
+def _rk4_in(
+    z0, z1, v0, v1, d0, dh0, de0, d1, dh1, de1, th0, th1, k0, k1, c0, c1, m0, m1, model, p,
+    z_base, h, r, e,
+):  # fmt: skip
+    """Classic RK4 of both modes over ``h`` [s] with region ``r``'s law at every stage (drives at
+    the start, middle and end of the piece per mode); adds each mode's drive work, damping loss,
+    tip-sample work and thermal work over it to ``e`` (4 x 2) [J]."""
+    f = force_in(model, p, z_base + (z0 + z1), v0 + v1, r)
+    p0, p1 = v0, v1
+    q0 = (-k0 * z0 - c0 * v0 + d0 + f + th0) * m0
+    q1 = (-k1 * z1 - c1 * v1 + d1 + f + th1) * m1
+    fa = f
+    y0, y1 = z0 + 0.5 * h * p0, z1 + 0.5 * h * p1
+    u0, u1 = v0 + 0.5 * h * q0, v1 + 0.5 * h * q1
+    f = force_in(model, p, z_base + (y0 + y1), u0 + u1, r)
+    r0, r1 = u0, u1
+    w0 = (-k0 * y0 - c0 * u0 + dh0 + f + th0) * m0
+    w1 = (-k1 * y1 - c1 * u1 + dh1 + f + th1) * m1
+    fb = f
+    y0, y1 = z0 + 0.5 * h * r0, z1 + 0.5 * h * r1
+    u0, u1 = v0 + 0.5 * h * w0, v1 + 0.5 * h * w1
+    f = force_in(model, p, z_base + (y0 + y1), u0 + u1, r)
+    x0, x1 = u0, u1
+    o0 = (-k0 * y0 - c0 * u0 + dh0 + f + th0) * m0
+    o1 = (-k1 * y1 - c1 * u1 + dh1 + f + th1) * m1
+    fc = f
+    y0, y1 = z0 + h * x0, z1 + h * x1
+    u0, u1 = v0 + h * o0, v1 + h * o1
+    f = force_in(model, p, z_base + (y0 + y1), u0 + u1, r)
+    l0 = (-k0 * y0 - c0 * u0 + de0 + f + th0) * m0
+    l1 = (-k1 * y1 - c1 * u1 + de1 + f + th1) * m1
+    s = h / 6.0
+    e[0, 0] += s * (d0 * p0 + 2.0 * dh0 * (r0 + x0) + de0 * u0)
+    e[0, 1] += s * (d1 * p1 + 2.0 * dh1 * (r1 + x1) + de1 * u1)
+    e[1, 0] += s * c0 * (p0 * p0 + 2.0 * (r0 * r0 + x0 * x0) + u0 * u0)
+    e[1, 1] += s * c1 * (p1 * p1 + 2.0 * (r1 * r1 + x1 * x1) + u1 * u1)
+    e[2, 0] += s * (fa * p0 + 2.0 * (fb * r0 + fc * x0) + f * u0)
+    e[2, 1] += s * (fa * p1 + 2.0 * (fb * r1 + fc * x1) + f * u1)
+    e[3, 0] += s * th0 * (p0 + 2.0 * (r0 + x0) + u0)
+    e[3, 1] += s * th1 * (p1 + 2.0 * (r1 + x1) + u1)
+    return (
+        z0 + s * (p0 + 2.0 * (r0 + x0) + u0),
+        z1 + s * (p1 + 2.0 * (r1 + x1) + u1),
+        v0 + s * (q0 + 2.0 * (w0 + o0) + l0),
+        v1 + s * (q1 + 2.0 * (w1 + o1) + l1),
+    )
+
+
+@njit(cache=True)
+def _event_step(
+    z0, z1, v0, v1, th0, th1, k0, k1, c0, c1, m0, m1, dforce, dc, ds, dw, dmode, model, p,
+    z_base, dt, beta, e, piece_e,
+):  # fmt: skip
+    """One step near the surface (module docstring): pieces, switches located on the summed
+    deflection; returns (z0, z1, v0, v1, 1 if a switch was located, RK4 pieces beyond one) and
+    adds the energies to ``e``."""
+    split = 0
+    extra = -1
+    u0 = 0.0
+    za0, za1, va0, va1 = z0, z1, v0, v1
+    r = region(model, p, z_base + (za0 + za1), va0 + va1)
+    f = force_in(model, p, z_base + (za0 + za1), va0 + va1, r)
+    d0, d1 = _drives(dforce, dc, ds, dw, dmode, 0.0)
+    acc = (-k0 * za0 - c0 * va0 + d0 + f + th0) * m0 + (-k1 * za1 - c1 * va1 + d1 + f + th1) * m1
+    while u0 < 1.0:
+        hq = (
+            piece_length(p, z_base + (za0 + za1), va0 + va1, acc, dt, beta, k1, m1)
+            if beta > 0.0
+            else 1.0
+        )
+        rest = 1.0 - u0
+        if hq >= rest or extra >= MAX_PIECES - 2:
+            u1 = 1.0
+        elif hq > 0.5 * rest:
+            u1 = u0 + 0.5 * rest
+        else:
+            u1 = u0 + hq
+        extra += 1
+        s_start = u0
+        zs0, zs1, vs0, vs1 = za0, za1, va0, va1  # the piece's start
+        piece_e[:, :] = 0.0
+        for _ in range(MAX_SWITCHES + 1):
+            ha = s_start * dt
+            hb = u1 * dt
+            a0s, a1s = _drives(dforce, dc, ds, dw, dmode, ha)
+            a0h, a1h = _drives(dforce, dc, ds, dw, dmode, 0.5 * (ha + hb))
+            a0e, a1e = _drives(dforce, dc, ds, dw, dmode, hb)
+            piece_e[:, :] = 0.0
+            zb0, zb1, vb0, vb1 = _rk4_in(
+                zs0, zs1, vs0, vs1, a0s, a0h, a0e, a1s, a1h, a1e, th0, th1, k0, k1, c0, c1, m0,
+                m1, model, p, z_base, hb - ha, r, piece_e,
+            )  # fmt: skip
+            extra += 1
+            h_piece = hb - ha
+            s_hi = (
+                switch_within(model, p, z_base, zs0 + zs1, vs0 + vs1, zb0 + zb1, vb0 + vb1,
+                              h_piece, r)
+                if h_piece > 0.0
+                else -1.0
+            )  # fmt: skip
+            if s_hi <= 0.0:
+                break
+            split = 1
+            s, r_next = locate_switch(
+                model, p, z_base, zs0 + zs1, vs0 + vs1, zb0 + zb1, vb0 + vb1, h_piece, r, s_hi
+            )
+            s_switch = s_start + s * (u1 - s_start)
+            hs = s_switch * dt
+            b0s, b1s = _drives(dforce, dc, ds, dw, dmode, 0.5 * (ha + hs))
+            b0e, b1e = _drives(dforce, dc, ds, dw, dmode, hs)
+            zs0, zs1, vs0, vs1 = _rk4_in(
+                zs0, zs1, vs0, vs1, a0s, b0s, b0e, a1s, b1s, b1e, th0, th1, k0, k1, c0, c1, m0,
+                m1, model, p, z_base, hs - ha, r, e,
+            )  # fmt: skip
+            extra += 1
+            s_start, r = s_switch, r_next
+        else:  # MAX_SWITCHES reached (a step far too coarse): go on with the end state's law
+            r = region(model, p, z_base + (zb0 + zb1), vb0 + vb1)
+        e += piece_e
+        za0, za1, va0, va1 = zb0, zb1, vb0, vb1
+        d0, d1 = _drives(dforce, dc, ds, dw, dmode, u1 * dt)
+        f = force_in(model, p, z_base + (za0 + za1), va0 + va1, r)
+        acc = (-k0 * za0 - c0 * va0 + d0 + f + th0) * m0 + (
+            -k1 * za1 - c1 * va1 + d1 + f + th1
+        ) * m1
+        u0 = u1
+    return za0, za1, va0, va1, split, extra
+
+
+@njit(cache=True, nogil=True)
+def advance_two_event(
+    z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every,
+    out_z, sigma, seed, step0, beta, stats,
+):  # fmt: skip
+    """``nsteps`` steps of two modes from step ``step0`` with ``rk4_event`` (module docstring):
+    the plain step is :func:`~afm_ros.core.physics.modes.advance_two`'s (far from the surface the
+    trajectory is its, bit for bit); ``energy`` (4 x 2: drive work, damping loss, tip-sample work,
+    thermal work per mode [J]) accumulated; ``stats[0]`` += steps with a located switch,
+    ``stats[1]`` += RK4 pieces beyond one per step."""
+    nd = dmode.shape[0]
+    c_dt, s_dt = np.empty(nd), np.empty(nd)
+    c_half, s_half = np.empty(nd), np.empty(nd)
+    dc, ds = np.empty(nd), np.empty(nd)
+    anchor = step0 - step0 % DRIVE_ANCHOR
+    for j in range(nd):
+        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
+        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
+        angle = dw[j] * (anchor * dt) + dphase[j]
+        dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for _ in range(step0 - anchor):
+            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    dc0, ds0 = np.empty(nd), np.empty(nd)
+    e = np.zeros((4, 2))
+    piece_e = np.zeros((4, 2))
+    k0, k1, c0, c1, m0, m1 = k[0], k[1], c[0], c[1], inv_m[0], inv_m[1]
+    z0, z1, v0, v1 = z[0], z[1], v[0], v[1]
+    th0 = th1 = 0.0
+    h = 0.5 * dt
+    sixth = dt / 6.0
+    row = 0
+    splits = 0
+    extra = 0
+    for s in range(nsteps):
+        g = step0 + s
+        if g % DRIVE_ANCHOR == 0:
+            for j in range(nd):
+                angle = dw[j] * (g * dt) + dphase[j]
+                dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        a0 = a1 = b0 = b1 = e0 = e1 = 0.0
+        for j in range(nd):
+            dc0[j], ds0[j] = dc[j], ds[j]
+            fs = dforce[j] * dc[j]
+            fh = dforce[j] * (dc[j] * c_half[j] - ds[j] * s_half[j])
+            c_next = dc[j] * c_dt[j] - ds[j] * s_dt[j]
+            ds[j] = ds[j] * c_dt[j] + dc[j] * s_dt[j]
+            dc[j] = c_next
+            fe = dforce[j] * c_next
+            if dmode[j] == 0:
+                a0 += fs
+                b0 += fh
+                e0 += fe
+            else:
+                a1 += fs
+                b1 += fh
+                e1 += fe
+        if sigma[0] != 0.0:
+            th0 = sigma[0] * normal_at(seed, THERMAL_STREAM, g)
+        if sigma[1] != 0.0:
+            th1 = sigma[1] * normal_at(seed, THERMAL_STREAM + MODE_STREAM_STRIDE, g)
+        # the plain step: advance_two's operations in its order
+        fa = tip_sample_force(model, p, z_base + ((0.0 + z0) + z1), (0.0 + v0) + v1)
+        p0, p1 = v0, v1
+        q0 = (-k0 * z0 - c0 * v0 + a0 + fa + th0) * m0
+        q1 = (-k1 * z1 - c1 * v1 + a1 + fa + th1) * m1
+        y0, y1 = z0 + h * p0, z1 + h * p1
+        u0, u1 = v0 + h * q0, v1 + h * q1
+        fb = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        r0, r1 = u0, u1
+        w0 = (-k0 * y0 - c0 * u0 + b0 + fb + th0) * m0
+        w1 = (-k1 * y1 - c1 * u1 + b1 + fb + th1) * m1
+        y0, y1 = z0 + h * r0, z1 + h * r1
+        u0, u1 = v0 + h * w0, v1 + h * w1
+        fc = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        x0, x1 = u0, u1
+        o0 = (-k0 * y0 - c0 * u0 + b0 + fc + th0) * m0
+        o1 = (-k1 * y1 - c1 * u1 + b1 + fc + th1) * m1
+        y0, y1 = z0 + dt * x0, z1 + dt * x1
+        u0, u1 = v0 + dt * o0, v1 + dt * o1
+        fd = tip_sample_force(model, p, z_base + ((0.0 + y0) + y1), (0.0 + u0) + u1)
+        l0 = (-k0 * y0 - c0 * u0 + e0 + fd + th0) * m0
+        l1 = (-k1 * y1 - c1 * u1 + e1 + fd + th1) * m1
+        n0 = z0 + sixth * (p0 + 2.0 * (r0 + x0) + u0)
+        n1 = z1 + sixth * (p1 + 2.0 * (r1 + x1) + u1)
+        nv0 = v0 + sixth * (q0 + 2.0 * (w0 + o0) + l0)
+        nv1 = v1 + sixth * (q1 + 2.0 * (w1 + o1) + l1)
+        acc = q0 + q1
+        if plain_step_stands(
+            model, p, z_base, z0 + z1, v0 + v1, n0 + n1, nv0 + nv1, acc, dt, beta, k1, m1
+        ):
+            e[0, 0] += sixth * (a0 * p0 + 2.0 * b0 * (r0 + x0) + e0 * u0)
+            e[0, 1] += sixth * (a1 * p1 + 2.0 * b1 * (r1 + x1) + e1 * u1)
+            e[1, 0] += sixth * c0 * (p0 * p0 + 2.0 * (r0 * r0 + x0 * x0) + u0 * u0)
+            e[1, 1] += sixth * c1 * (p1 * p1 + 2.0 * (r1 * r1 + x1 * x1) + u1 * u1)
+            e[2, 0] += sixth * (fa * p0 + 2.0 * (fb * r0 + fc * x0) + fd * u0)
+            e[2, 1] += sixth * (fa * p1 + 2.0 * (fb * r1 + fc * x1) + fd * u1)
+            e[3, 0] += sixth * th0 * (p0 + 2.0 * (r0 + x0) + u0)
+            e[3, 1] += sixth * th1 * (p1 + 2.0 * (r1 + x1) + u1)
+            z0, z1, v0, v1 = n0, n1, nv0, nv1
+        else:
+            z0, z1, v0, v1, split, more = _event_step(
+                z0, z1, v0, v1, th0, th1, k0, k1, c0, c1, m0, m1, dforce, dc0, ds0, dw, dmode,
+                model, p, z_base, dt, beta, e, piece_e,
+            )  # fmt: skip
+            splits += split
+            extra += more
+        if (s + 1) % every == 0 and row < out_z.shape[0]:
+            out_z[row, 0] = z0
+            out_z[row, 1] = z1
+            row += 1
+    z[0], z[1], v[0], v[1] = z0, z1, v0, v1
+    energy[:, :] += e
+    stats[0] += splits
+    stats[1] += extra
+
+
+def check_model(model_id: int) -> None:
+    """ValueError unless the force model is one the two-mode event kernel handles."""
+    if model_id == MODEL_HYSTERESIS_DMT:
+        raise ValueError(
+            f"integrator 'rk4_event' with two modes: force model one of {', '.join(MODELS)} "
+            "(hysteresis_dmt switches branch at every turn of the summed gap)"
+        )
+
+
+BETA = NEAR_SURFACE_FRACTION
