@@ -7,9 +7,11 @@ Same problem for every kernel: the seed lever (10 N/m, 45 kHz, Q 25) as mode 1 t
 DMT sample at z_base 40 nm (A0 60 nm), fixed step (800 per mode-1 period, so that mode 3 is
 resolved too); the point mass's plain ``rk4`` (the baseline: ``Simulation(method="rk4")``), then
 the N-mode kernel with 1, 2 and 3 modes (mode 1 driven; the step the same), and 2 modes without the
-energies (the bimodal session's call). Timed alternately, best
-of ``--repeats``; ns per step and the ratio to one mode and to the point mass. Issue 32's goal: two
-modes within 1.3x of one mode.
+energies (the bimodal session's call), and two modes with ``rk4_event`` beside the point mass's
+``rk4_event`` (contacts located on the deflection, pieces near the surface; a checkout without the
+two-mode event kernel leaves that row out). Timed alternately, best of ``--repeats``; ns per step
+and the ratio to one mode and to the point mass. Issue 32's goal: two modes within 1.3x of one
+mode.
 """
 
 from __future__ import annotations
@@ -34,11 +36,19 @@ def _point_mass():
     return Simulation(LEVER, drive, DMTForce(DMTSample()), 40e-9, SPP, method="rk4")
 
 
-def _modes(n: int):
+def _modes(n: int, integrator: str = "rk4"):
     modes = rectangular_modes(LEVER, n)
     drive = ModeDrive(0, LEVER.resonance_frequency, LEVER.spring_constant * 60e-9 / 25.0)
     dt = 1.0 / (LEVER.resonance_frequency * SPP)
-    return MultiModeSimulation(modes, [drive], DMTForce(DMTSample()), 40e-9, dt)
+    sim = MultiModeSimulation(modes, [drive], DMTForce(DMTSample()), 40e-9, dt)
+    if integrator != "rk4":
+        sim.set_integrator(integrator)
+    return sim
+
+
+def _point_mass_event():
+    drive = Drive.from_free_amplitude(LEVER, 60e-9)
+    return Simulation(LEVER, drive, DMTForce(DMTSample()), 40e-9, SPP, method="rk4_event")
 
 
 def main(argv=None) -> int:
@@ -56,7 +66,10 @@ def main(argv=None) -> int:
         "modes_2": lambda: _modes(2),
         "modes_3": lambda: _modes(3),
         "modes_2_no_energies": lambda: _modes(2),
+        "point_mass_rk4_event": lambda: _point_mass_event(),
     }
+    if hasattr(MultiModeSimulation, "set_integrator"):
+        kernels["modes_2_event"] = lambda: _modes(2, "rk4_event")
     sims = {k: make() for k, make in kernels.items()}
     runs = {
         "point_mass_rk4": lambda s, n: s.advance(n, record=False),
@@ -65,6 +78,8 @@ def main(argv=None) -> int:
         "modes_3": lambda s, n: s.advance(n, every=n),
         # the bimodal session's call: no energies (two modes: the kernel of scalars)
         "modes_2_no_energies": lambda s, n: s.advance(n, every=n, energies=False),
+        "point_mass_rk4_event": lambda s, n: s.advance(n, record=False),
+        "modes_2_event": lambda s, n: s.advance(n, every=n),
     }
     for k, s in sims.items():  # compile (or load) and reach the tapping steady state's region
         runs[k](s, 200_000)
