@@ -254,7 +254,9 @@ def advance_two_event(
             th0 = sigma[0] * normal_at(seed, THERMAL_STREAM, g)
         if sigma[1] != 0.0:
             th1 = sigma[1] * normal_at(seed, THERMAL_STREAM + MODE_STREAM_STRIDE, g)
-        # the plain step: advance_two's operations in its order
+        # the plain step: advance_two's operations in its order, written again here (shared as
+        # an inlined helper it cost 19 % per step here and 3 % in advance_two: measured 48 -> 57
+        # and 31.6 -> 32.6 ns); test_modes_events holds the two to the same trajectory bit for bit
         fa = tip_sample_force(model, p, z_base + ((0.0 + z0) + z1), (0.0 + v0) + v1)
         p0, p1 = v0, v1
         q0 = (-k0 * z0 - c0 * v0 + a0 + fa + th0) * m0
