@@ -61,7 +61,6 @@ from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
-from afm_ros.nodes.topics import sim_time_msg
 
 SPECS = NODE_SPECS["bimodal"]
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -73,17 +72,9 @@ def image_topic(channel: str) -> str:
 
 
 def image_message(array: np.ndarray, stamp_s: float) -> Image:
-    """sensor_msgs/Image 64FC1 of a rows x cols float array (little-endian, row 0 first)."""
-    data = np.ascontiguousarray(array, dtype="<f8")
-    msg = Image()
-    msg.header.stamp = sim_time_msg(max(stamp_s, 0.0))
-    msg.header.frame_id = "afm_bimodal"
-    msg.height, msg.width = data.shape
-    msg.encoding = "64FC1"
-    msg.is_bigendian = 0
-    msg.step = 8 * data.shape[1]
-    msg.data = data.tobytes()
-    return msg
+    """sensor_msgs/Image 64FC1 of a rows x cols float array (little-endian, row 0 first): the
+    frame's values bit for bit."""
+    return topics.image_message(array, stamp_s, "afm_bimodal", "64FC1")
 
 
 def check_node_values(values: dict) -> None:

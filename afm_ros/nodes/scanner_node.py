@@ -60,7 +60,6 @@ from afm_ros.nodes import topics
 from afm_ros.nodes.guard import GuardedNode
 from afm_ros.nodes.node_main import run_node
 from afm_ros.nodes.ros_params import declare, make_set_callback
-from afm_ros.nodes.topics import sim_time_msg
 
 # outputs kept while the cantilever has not yet confirmed a requested scan
 MAX_BUFFERED_BATCHES = 2000
@@ -72,16 +71,7 @@ LOCKIN_IDLE_PERIOD_S = 5.0
 
 def image_message(array: np.ndarray, stamp_s: float, frame_id: str = "afm_scan") -> Image:
     """sensor_msgs/Image 32FC1 of a rows x cols float array (little-endian, row 0 first)."""
-    data = np.ascontiguousarray(array, dtype="<f4")
-    msg = Image()
-    msg.header.stamp = sim_time_msg(max(stamp_s, 0.0))
-    msg.header.frame_id = frame_id
-    msg.height, msg.width = data.shape
-    msg.encoding = "32FC1"
-    msg.is_bigendian = 0
-    msg.step = 4 * data.shape[1]
-    msg.data = data.tobytes()
-    return msg
+    return topics.image_message(array, stamp_s, frame_id, "32FC1")
 
 
 def image_topic(channel: str, direction: str) -> str:

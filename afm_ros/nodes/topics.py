@@ -18,6 +18,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
 from afm_ros.core.plan_layout import TRUTH_KEYS
@@ -87,6 +88,24 @@ def sim_time_msg(t: float) -> Time:
     """builtin_interfaces/Time for a simulated time t [s] (>= 0), rounded to the nanosecond."""
     total = int(round(t * 1e9))
     return Time(sec=total // 1_000_000_000, nanosec=total % 1_000_000_000)
+
+
+IMAGE_ENCODINGS = {"32FC1": "<f4", "64FC1": "<f8"}
+
+
+def image_message(array: np.ndarray, stamp_s: float, frame_id: str, encoding: str) -> Image:
+    """sensor_msgs/Image of a rows x cols float array (``encoding`` 32FC1 or 64FC1,
+    little-endian, row 0 first), stamped with the simulated time ``stamp_s`` [s]."""
+    data = np.ascontiguousarray(array, dtype=IMAGE_ENCODINGS[encoding])
+    msg = Image()
+    msg.header.stamp = sim_time_msg(max(stamp_s, 0.0))
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = data.shape
+    msg.encoding = encoding
+    msg.is_bigendian = 0
+    msg.step = data.dtype.itemsize * data.shape[1]
+    msg.data = data.tobytes()
+    return msg
 
 
 def split_patterns(text: str, namespace: str) -> list[str]:
