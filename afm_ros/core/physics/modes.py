@@ -386,13 +386,12 @@ class MultiModeSimulation:
         self.event_stats = np.zeros(2, dtype=np.int64)  # rk4_event: steps split, extra pieces
 
     def set_integrator(self, name: str) -> None:
-        """``rk4`` (fixed steps) or ``rk4_event`` (two modes: steps located on the switches of
-        the force law of the summed deflection, :mod:`afm_ros.core.physics.modes_events`)."""
+        """``rk4`` (fixed steps) or ``rk4_event`` (steps located on the switches of the force law
+        of the summed deflection, :mod:`afm_ros.core.physics.modes_events`; dmt and
+        viscoelastic_dmt)."""
         if name not in INTEGRATORS:
             raise ValueError(f"integrator={name!r}: allowed one of {', '.join(INTEGRATORS)}")
         if name == "rk4_event":
-            if len(self.modes) != 2:
-                raise ValueError(f"integrator 'rk4_event': two modes (given {len(self.modes)})")
             modes_events.check_model(self._model)
         self.integrator = name
 
@@ -485,7 +484,12 @@ class MultiModeSimulation:
         if self.integrator == "rk4_event":
             modes_events.check_model(self._model)  # the contact may have changed since
             energy = self.energy if energies else np.zeros_like(self.energy)
-            modes_events.advance_two_event(
+            kernel = (
+                modes_events.advance_two_event
+                if len(self.modes) == 2
+                else modes_events.advance_modes_event
+            )
+            kernel(
                 self.z, self.v, energy, self._k, self._c, self._inv_m, self._dmode, self._dw,
                 self._df, self._dp, self._model, self._p, self.z_base, self.dt, nsteps, every,
                 out, self._sigma, self.seed, self.steps, modes_events.BETA, self.event_stats,

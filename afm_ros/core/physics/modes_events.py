@@ -1,13 +1,14 @@
-"""Two eigenmodes with RK4 that steps exactly onto the switches of the tip-sample force law
+"""N eigenmodes with RK4 that steps exactly onto the switches of the tip-sample force law
 (``rk4_event`` for :class:`~afm_ros.core.physics.modes.MultiModeSimulation`; no ROS).
 
-The force acts on the summed deflection z1 + z2 (docs/bimodal.md 1.1), so its switches (contact
-onset at gap a0, the viscoelastic clip) are events of the sum. Each step is first the plain
-two-mode RK4 step (bit for bit :func:`~afm_ros.core.physics.modes.advance_two`'s); it stands far
-from the surface, decided on the sum as the point mass's kernel decides it
+The force acts on the summed deflection z1 + ... + zN (docs/bimodal.md 1.1), so its switches
+(contact onset at gap a0, the viscoelastic clip) are events of the sum. Each step is first the
+plain RK4 step (bit for bit the fixed-step kernel's: :func:`advance_two_event` on scalars for two
+modes, :func:`advance_modes_event` on arrays for any number); it stands far from the surface,
+decided on the sum as the point mass's kernel decides it
 (:func:`~afm_ros.core.physics.events.plain_step_stands`). Near the surface the step is cut into
 pieces sized one after the other from the summed gap, rate and acceleration and, in contact, from
-mode 2's contact oscillation (the fastest: its stiffness and mass,
+the highest mode's contact oscillation (the fastest: its stiffness and mass,
 :func:`~afm_ros.core.physics.events.piece_length`); where the force law's region differs at a
 piece's end (or at the summed gap's turning point) the switch is located on the cubic Hermite
 interpolant of the sum (the sum of the modes' interpolants: Hermite interpolation is linear in the
@@ -17,7 +18,7 @@ each law continued across its boundary so no stage switches law (the point mass'
 step's start phasor. The energies per mode (drive work, damping loss, tip-sample work, thermal
 work) are integrated with the stages of every piece.
 
-Hysteresis (a branch switch at every turn of the gap) is not offered here: the two-mode sessions
+Hysteresis (a branch switch at every turn of the gap) is not offered here: the multi-mode sessions
 use ``dmt`` and ``viscoelastic_dmt``.
 """
 
@@ -316,9 +317,282 @@ def check_model(model_id: int) -> None:
     """ValueError unless the force model is one the two-mode event kernel handles."""
     if model_id == MODEL_HYSTERESIS_DMT:
         raise ValueError(
-            f"integrator 'rk4_event' with two modes: force model one of {', '.join(MODELS)} "
+            f"integrator 'rk4_event' with several modes: force model one of {', '.join(MODELS)} "
             "(hysteresis_dmt switches branch at every turn of the summed gap)"
         )
 
 
 BETA = NEAR_SURFACE_FRACTION
+
+
+@njit(cache=True)
+def _drives_n(dforce, dc, ds, dw, dmode, t, out):
+    """Each mode's drive force [N] at ``t`` [s] after the step's start into ``out``."""
+    out[:] = 0.0
+    for j in range(dmode.shape[0]):
+        x = dw[j] * t
+        out[dmode[j]] += dforce[j] * (dc[j] * math.cos(x) - ds[j] * math.sin(x))
+
+
+@njit(cache=True)
+def _rk4_n_in(z, v, ds0, dsh, dse, fth, k, c, inv_m, model, p, z_base, h, r, zo, vo, e, work):
+    """Classic RK4 of N modes over ``h`` [s] with region ``r``'s law at every stage (drives per
+    mode at the piece's start, middle and end); the new state into zo, vo; each mode's drive
+    work, damping loss, tip-sample work and thermal work added to ``e`` (4 x N). ``work``: 5 x 4
+    x N scratch."""
+    n = z.shape[0]
+    zt, vt = work[0, 0], work[0, 1]
+    vel, acc = work[1], work[2]
+    fts = np.empty(4)  # the stages' tip-sample forces [N]
+    for stage in range(4):
+        w = 0.0 if stage == 0 else (h if stage == 3 else 0.5 * h)
+        zs = 0.0
+        vs = 0.0
+        for i in range(n):
+            zt[i] = z[i] + w * vel[stage - 1, i] if stage else z[i]
+            vt[i] = v[i] + w * acc[stage - 1, i] if stage else v[i]
+            zs += zt[i]
+            vs += vt[i]
+        f = force_in(model, p, z_base + zs, vs, r)
+        fts[stage] = f
+        d = ds0 if stage == 0 else (dse if stage == 3 else dsh)
+        for i in range(n):
+            vel[stage, i] = vt[i]
+            acc[stage, i] = (-k[i] * zt[i] - c[i] * vt[i] + d[i] + f + fth[i]) * inv_m[i]
+    s = h / 6.0
+    for i in range(n):
+        zo[i] = z[i] + s * (vel[0, i] + 2.0 * (vel[1, i] + vel[2, i]) + vel[3, i])
+        vo[i] = v[i] + s * (acc[0, i] + 2.0 * (acc[1, i] + acc[2, i]) + acc[3, i])
+        e[0, i] += s * (
+            ds0[i] * vel[0, i] + 2.0 * dsh[i] * (vel[1, i] + vel[2, i]) + dse[i] * vel[3, i]
+        )
+        e[1, i] += (
+            s * c[i] * (vel[0, i] ** 2 + 2.0 * (vel[1, i] ** 2 + vel[2, i] ** 2) + vel[3, i] ** 2)
+        )
+        e[2, i] += s * (
+            fts[0] * vel[0, i] + 2.0 * (fts[1] * vel[1, i] + fts[2] * vel[2, i])
+            + fts[3] * vel[3, i]
+        )  # fmt: skip
+        e[3, i] += s * fth[i] * (vel[0, i] + 2.0 * (vel[1, i] + vel[2, i]) + vel[3, i])
+
+
+@njit(cache=True)
+def _event_step_n(
+    z, v, fth, k, c, inv_m, dforce, dc, ds, dw, dmode, model, p, z_base, dt, beta, fast, e,
+    piece_e, work, scratch,
+):  # fmt: skip
+    """:func:`_event_step` for N modes (arrays); the state is updated in place; returns (1 if a
+    switch was located, RK4 pieces beyond one). ``fast``: the mode whose contact oscillation
+    sizes the pieces in contact (the highest); ``scratch`` 8 x N."""
+    n = z.shape[0]
+    za, va = scratch[0], scratch[1]
+    zs0, vs0 = scratch[2], scratch[3]
+    zb, vb = scratch[4], scratch[5]
+    d_s, d_h, d_e = scratch[6], scratch[7], scratch[8]
+    za[:] = z
+    va[:] = v
+    split = 0
+    extra = -1
+    u0 = 0.0
+    r = region(model, p, z_base + za.sum(), va.sum())
+    _drives_n(dforce, dc, ds, dw, dmode, 0.0, d_s)
+    f = force_in(model, p, z_base + za.sum(), va.sum(), r)
+    acc = 0.0
+    for i in range(n):
+        acc += (-k[i] * za[i] - c[i] * va[i] + d_s[i] + f + fth[i]) * inv_m[i]
+    while u0 < 1.0:
+        hq = (
+            piece_length(p, z_base + za.sum(), va.sum(), acc, dt, beta, k[fast], inv_m[fast])
+            if beta > 0.0
+            else 1.0
+        )
+        rest = 1.0 - u0
+        if hq >= rest or extra >= MAX_PIECES - 2:
+            u1 = 1.0
+        elif hq > 0.5 * rest:
+            u1 = u0 + 0.5 * rest
+        else:
+            u1 = u0 + hq
+        extra += 1
+        s_start = u0
+        zs0[:] = za
+        vs0[:] = va
+        for _ in range(MAX_SWITCHES + 1):
+            ha = s_start * dt
+            hb = u1 * dt
+            _drives_n(dforce, dc, ds, dw, dmode, ha, d_s)
+            _drives_n(dforce, dc, ds, dw, dmode, 0.5 * (ha + hb), d_h)
+            _drives_n(dforce, dc, ds, dw, dmode, hb, d_e)
+            piece_e[:, :] = 0.0
+            _rk4_n_in(zs0, vs0, d_s, d_h, d_e, fth, k, c, inv_m, model, p, z_base, hb - ha, r,
+                      zb, vb, piece_e, work)  # fmt: skip
+            extra += 1
+            h_piece = hb - ha
+            s_hi = (
+                switch_within(model, p, z_base, zs0.sum(), vs0.sum(), zb.sum(), vb.sum(),
+                              h_piece, r)
+                if h_piece > 0.0
+                else -1.0
+            )  # fmt: skip
+            if s_hi <= 0.0:
+                break
+            split = 1
+            s, r_next = locate_switch(
+                model, p, z_base, zs0.sum(), vs0.sum(), zb.sum(), vb.sum(), h_piece, r, s_hi
+            )
+            s_switch = s_start + s * (u1 - s_start)
+            hs = s_switch * dt
+            _drives_n(dforce, dc, ds, dw, dmode, 0.5 * (ha + hs), d_h)
+            _drives_n(dforce, dc, ds, dw, dmode, hs, d_e)
+            _rk4_n_in(zs0, vs0, d_s, d_h, d_e, fth, k, c, inv_m, model, p, z_base, hs - ha, r,
+                      zb, vb, e, work)  # fmt: skip
+            zs0[:] = zb
+            vs0[:] = vb
+            extra += 1
+            s_start, r = s_switch, r_next
+        else:
+            r = region(model, p, z_base + zb.sum(), vb.sum())
+        e += piece_e
+        za[:] = zb
+        va[:] = vb
+        _drives_n(dforce, dc, ds, dw, dmode, u1 * dt, d_s)
+        f = force_in(model, p, z_base + za.sum(), va.sum(), r)
+        acc = 0.0
+        for i in range(n):
+            acc += (-k[i] * za[i] - c[i] * va[i] + d_s[i] + f + fth[i]) * inv_m[i]
+        u0 = u1
+    z[:] = za
+    v[:] = va
+    return split, extra
+
+
+@njit(cache=True, nogil=True)
+def advance_modes_event(
+    z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every,
+    out_z, sigma, seed, step0, beta, stats,
+):  # fmt: skip
+    """:func:`advance_two_event` for any number of modes, on arrays: the plain step is
+    :func:`~afm_ros.core.physics.modes.advance_modes`'s (the same trajectory far from the surface,
+    bit for bit), the energies (4 x N) accumulated with every piece's stages."""
+    n = z.shape[0]
+    nd = dmode.shape[0]
+    c_dt, s_dt = np.empty(nd), np.empty(nd)
+    c_half, s_half = np.empty(nd), np.empty(nd)
+    dc, ds = np.empty(nd), np.empty(nd)
+    anchor = step0 - step0 % DRIVE_ANCHOR
+    for j in range(nd):
+        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
+        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
+        angle = dw[j] * (anchor * dt) + dphase[j]
+        dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for _ in range(step0 - anchor):
+            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    dc0, ds0 = np.empty(nd), np.empty(nd)
+    f_stage = np.empty((3, nd))
+    fd = np.empty(n)
+    fth = np.zeros(n)
+    zt, vt = np.empty(n), np.empty(n)
+    vel = np.empty((4, n))
+    acc = np.empty((4, n))
+    rate = np.empty((4, 4, n))
+    zn, vn = np.empty(n), np.empty(n)
+    e = np.zeros((4, n))
+    piece_e = np.zeros((4, n))
+    work = np.empty((5, 4, n))
+    scratch = np.empty((9, n))
+    fast = 0
+    for i in range(n):
+        if k[i] * inv_m[i] > k[fast] * inv_m[fast]:
+            fast = i
+    h = 0.5 * dt
+    row = 0
+    splits = 0
+    extra = 0
+    for s in range(nsteps):
+        g = step0 + s
+        if g % DRIVE_ANCHOR == 0:
+            for j in range(nd):
+                angle = dw[j] * (g * dt) + dphase[j]
+                dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for j in range(nd):
+            dc0[j], ds0[j] = dc[j], ds[j]
+            f_stage[0, j] = dforce[j] * dc[j]
+            f_stage[1, j] = dforce[j] * (dc[j] * c_half[j] - ds[j] * s_half[j])
+            c_next = dc[j] * c_dt[j] - ds[j] * s_dt[j]
+            ds[j] = ds[j] * c_dt[j] + dc[j] * s_dt[j]
+            dc[j] = c_next
+            f_stage[2, j] = dforce[j] * c_next
+        for i in range(n):
+            if sigma[i] != 0.0:
+                fth[i] = sigma[i] * normal_at(
+                    seed, THERMAL_STREAM + MODE_STREAM_STRIDE * i, step0 + s
+                )
+        # the plain step: advance_modes's operations in its order
+        for stage in range(4):
+            if stage == 0:
+                at = 0
+                for i in range(n):
+                    zt[i] = z[i]
+                    vt[i] = v[i]
+            else:
+                w = dt if stage == 3 else h
+                at = 2 if stage == 3 else 1
+                for i in range(n):
+                    zt[i] = z[i] + w * vel[stage - 1, i]
+                    vt[i] = v[i] + w * acc[stage - 1, i]
+            for i in range(n):
+                fd[i] = 0.0
+            for j in range(nd):
+                fd[dmode[j]] += f_stage[at, j]
+            zs = 0.0
+            vs = 0.0
+            for i in range(n):
+                zs += zt[i]
+                vs += vt[i]
+            fts = tip_sample_force(model, p, z_base + zs, vs)
+            for i in range(n):
+                vel[stage, i] = vt[i]
+                acc[stage, i] = (-k[i] * zt[i] - c[i] * vt[i] + fd[i] + fts + fth[i]) * inv_m[i]
+                rate[stage, 0, i] = fd[i] * vt[i]
+                rate[stage, 1, i] = c[i] * vt[i] * vt[i]
+                rate[stage, 2, i] = fts * vt[i]
+                rate[stage, 3, i] = fth[i] * vt[i]
+        zs0 = 0.0
+        vs0 = 0.0
+        zs1 = 0.0
+        vs1 = 0.0
+        a_sum = 0.0
+        for i in range(n):
+            zn[i] = z[i] + dt / 6.0 * (vel[0, i] + 2.0 * (vel[1, i] + vel[2, i]) + vel[3, i])
+            vn[i] = v[i] + dt / 6.0 * (acc[0, i] + 2.0 * (acc[1, i] + acc[2, i]) + acc[3, i])
+            zs0 += z[i]
+            vs0 += v[i]
+            zs1 += zn[i]
+            vs1 += vn[i]
+            a_sum += acc[0, i]
+        if plain_step_stands(
+            model, p, z_base, zs0, vs0, zs1, vs1, a_sum, dt, beta, k[fast], inv_m[fast]
+        ):
+            for i in range(n):
+                z[i] = zn[i]
+                v[i] = vn[i]
+                for r in range(4):
+                    e[r, i] += (
+                        dt
+                        / 6.0
+                        * (rate[0, r, i] + 2.0 * (rate[1, r, i] + rate[2, r, i]) + rate[3, r, i])
+                    )
+        else:
+            split, more = _event_step_n(
+                z, v, fth, k, c, inv_m, dforce, dc0, ds0, dw, dmode, model, p, z_base, dt, beta,
+                fast, e, piece_e, work, scratch,
+            )  # fmt: skip
+            splits += split
+            extra += more
+        if (s + 1) % every == 0 and row < out_z.shape[0]:
+            for i in range(n):
+                out_z[row, i] = z[i]
+            row += 1
+    energy[:, :] += e
+    stats[0] += splits
+    stats[1] += extra
