@@ -711,6 +711,57 @@ def test_images_go_out_as_foxglove_raw_images(
         executor.shutdown(timeout_sec=1.0)
 
 
+def test_the_bimodal_nodes_services_are_offered_while_it_runs(
+    ros_context, ros_namespace, foxglove_client
+):
+    """bimodal/scan_frame and bimodal/stop appear among the live view's services once the bimodal
+    node is discovered (a viewer calls them and gets the node's answer) and are withdrawn when it
+    is gone; the scanner's stay."""
+    from rclpy.parameter import Parameter
+
+    from afm_ros.nodes.bimodal_node import BimodalNode
+    from afm_ros.nodes.live_view_node import LiveViewNode
+    from afm_ros.nodes.node_main import make_executor
+
+    bimodal = BimodalNode(context=ros_context, namespace=ros_namespace)
+    live = LiveViewNode(
+        context=ros_context,
+        namespace=ros_namespace,
+        parameter_overrides=[Parameter("port", value=0), Parameter("discovery_period", value=0.1)],
+    )
+    executor = make_executor("events", ros_context)
+    executor.add_node(bimodal)
+    executor.add_node(live)
+    stop = threading.Event()
+    thread = threading.Thread(
+        target=lambda: [executor.spin_once(timeout_sec=0.1) for _ in iter(stop.is_set, True)],
+        daemon=True,
+    )
+    thread.start()
+    optional = {f"{ros_namespace}/bimodal/scan_frame", f"{ros_namespace}/bimodal/stop"}
+    try:
+        assert _wait(lambda: optional <= live.advertised_services, 30.0), live.advertised_services
+        events = foxglove_client(
+            {"url": f"ws://127.0.0.1:{live.port}", "services": [f"{ros_namespace}/bimodal/stop"]}
+        )
+        (call,) = [e for e in events if e["event"] == "service"]
+        assert call["ok"] and call["value"] == {
+            "success": False,
+            "message": "no frame is being scanned",
+        }
+        executor.remove_node(bimodal)
+        bimodal.destroy_node()
+        assert _wait(lambda: not (optional & live.advertised_services), 30.0)
+        assert f"{ros_namespace}/scanner/stop" in live.advertised_services
+    finally:
+        stop.set()
+        thread.join(5.0)
+        for node in executor.get_nodes():
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+
+
 def test_a_parameter_node_that_leaves_is_forgotten_and_reloaded_when_it_returns(
     ros_context, ros_namespace
 ):

@@ -113,9 +113,10 @@ DEFLECTION_TOPICS = (
 PARAMETER_NODES = (
     "cantilever", "lockin", "z_controller", "pll", "scanner", "recorder", "bimodal",
 )  # fmt: skip
-# advertised from the start (Foxglove's service list is the server's; a missing node's answers
-# "not available")
+# advertised from the start (a missing node's answers "not available")
 SERVICES = ("scanner/start", "scanner/scan_frame", "scanner/stop")
+# advertised while their node offers them (found at each discovery, withdrawn when gone)
+OPTIONAL_SERVICES = ("bimodal/scan_frame", "bimodal/stop")
 # image topics sent as foxglove.RawImage mono8 (sensor_msgs/Image 32FC1 or 64FC1)
 IMAGE_PREFIXES = ("scanner/image/", "bimodal/image/")
 IMAGE_DTYPES = {"32FC1": "f4", "64FC1": "f8"}

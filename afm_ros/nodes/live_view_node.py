@@ -23,7 +23,8 @@ change is pushed once to the viewers subscribed to it); a write goes to the node
 ``set_parameters`` service, so the node validates it, and a refusal is sent to the viewer as a
 warning status with the node's reason (the panel keeps the node's value). The scanner's
 ``scanner/start``, ``scanner/scan_frame`` and ``scanner/stop`` (std_srvs/Trigger) are Foxglove
-services under their full names.
+services under their full names; the bimodal node's ``bimodal/scan_frame`` and ``bimodal/stop``
+are offered while that node runs (found at each discovery, withdrawn when it is gone).
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from afm_ros.core.live_view import (
     IMAGE_DTYPES,
     IMAGE_PREFIXES,
     LIVE_VIEW_SPECS,
+    OPTIONAL_SERVICES,
     PARAMETER_NODES,
     RAW_IMAGE_SCHEMA,
     SERVICES,
@@ -203,17 +205,12 @@ class LiveViewNode(GuardedNode):
             ),
         )
         self._service_clients = {}
+        self._service_schema = schema
+        self.advertised_services: set[str] = set()  # full names of the services offered now
         services = []
         for relative in SERVICES:
-            full = self.resolve_service_name(relative)
-            self._service_clients[full] = self.create_client(Trigger, relative)
-            services.append(
-                foxglove.Service(
-                    full,
-                    schema=schema,
-                    handler=lambda request, full=full: self._call_service(full),
-                )
-            )
+            services.append(self._service(relative))
+            self.advertised_services.add(services[-1].name)
         try:
             self.server = foxglove.start_server(
                 name=f"afm_ros {self.get_fully_qualified_name()}",
@@ -285,6 +282,7 @@ class LiveViewNode(GuardedNode):
             with self._lock:
                 self._channels[topic] = (channel, type_name)
         self._discover_parameters()
+        self._discover_services()
 
     def _viewer_subscription(self, client_id: int, topic: str, subscribed: bool) -> None:
         with self._lock:
@@ -398,6 +396,30 @@ class LiveViewNode(GuardedNode):
         return self.create_subscription(message_class(type_name), topic, callback, qos, raw=True)
 
     # --- parameters -----------------------------------------------------------------------------
+    def _service(self, relative: str):
+        """The Foxglove service (and its ROS client) for the Trigger service ``relative``."""
+        full = self.resolve_service_name(relative)
+        if full not in self._service_clients:
+            self._service_clients[full] = self.create_client(Trigger, relative)
+        return self._fg.Service(
+            full,
+            schema=self._service_schema,
+            handler=lambda request, full=full: self._call_service(full),
+        )
+
+    def _discover_services(self) -> None:
+        """Offer each optional service while its node does (added at discovery, withdrawn when
+        its node is gone)."""
+        for relative in OPTIONAL_SERVICES:
+            full = self.resolve_service_name(relative)
+            present = self.count_services(full) > 0  # servers only (our own client is listed too)
+            if present and full not in self.advertised_services:
+                self.server.add_services([self._service(relative)])
+                self.advertised_services.add(full)
+            elif not present and full in self.advertised_services:
+                self.server.remove_services([full])
+                self.advertised_services.discard(full)
+
     def _discover_parameters(self) -> None:
         present = set()
         for name, namespace in self.get_node_names_and_namespaces():
