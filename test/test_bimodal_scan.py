@@ -72,6 +72,7 @@ def test_a_measured_mode_2_replaces_the_beams_and_still_equals_the_steady_state(
 
 def assert_materials_at_steady_state(scan, frame):
     m1, m2 = scan.modes
+    setpoint = scan.values["setpoint_ratio"] * 25e-9
     keep = interior(frame.material, 2)
     ch = frame.channels
     assert {r.material for r in frame.rows} == {"polystyrene", "ldpe"}
@@ -79,7 +80,7 @@ def assert_materials_at_steady_state(scan, frame):
         sel = keep & (frame.material == frame.materials.index(row.material))
         assert row.pixels == sel.sum() >= 10
         a1 = float(np.median(ch["amplitude_1"][sel]))
-        assert a1 == pytest.approx(0.8 * 25e-9, rel=3e-3)
+        assert a1 == pytest.approx(setpoint, rel=3e-3)
         z_base = float(np.median((ch["height"] - ch["true_height"])[sel]))
         sample, _, _ = sample_for(row.material, hamaker_constant=0.0)
         p = bimodal_point(scan.modes, DMTForce(sample), z_base, 25e-9, 0.05e-9, 50)
@@ -92,6 +93,34 @@ def assert_materials_at_steady_state(scan, frame):
             p.a1, virial, p.df2, m2.resonance_frequency, m2.spring_constant, 20e-9, p.a2
         ).effective_modulus
         assert row.modulus == pytest.approx(e_point, rel=0.015)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("setpoint_ratio", [0.6, 0.7, 0.9])
+def test_other_setpoints_against_the_steady_state_and_the_truth(setpoint_ratio):
+    """The modulus at other setpoints (0.8 above). Per material df2 equals the steady-state
+    solver's at the z the loop found within 1.5 % (measured -0.9 % to -0.02 %) and E* is the truth
+    within the Hertz inversion's bias (15 %; the default frame at A1/A01 0.6 / 0.7 / 0.8 / 0.9:
+    polystyrene -2.1 / -5.7 / -8.0 / -9.0 %, LDPE +11.8 / +10.6 / +5.4 / +3.0 %, docs/bimodal.md
+    7). At 0.7 every check of the default applies. At 0.9 the loop does not settle on the LDPE
+    island in 2 ms pixels (the amplitude's slope against z is shallow there: A1 1.2 % above the
+    setpoint, phi1 1.4 deg off), and at 0.6 LDPE's E* is 1.6 % below the solver's, so those two
+    are held to df2 and the bias only."""
+    sample = resolve_sample("ps_ldpe_blend")
+    cx, cy = _island_centre(sample)
+    values = dict(pixels=16, size=2e-6, center_x=cx, center_y=cy, setpoint_ratio=setpoint_ratio)
+    scan = BimodalScan(sample, values)
+    frame = scan.run()
+    if setpoint_ratio == 0.7:
+        assert_materials_at_steady_state(scan, frame)
+    keep = interior(frame.material, 2)
+    for row in frame.rows:
+        sel = keep & (frame.material == frame.materials.index(row.material))
+        z_base = float(np.median((frame.channels["height"] - frame.channels["true_height"])[sel]))
+        sample_m, _, _ = sample_for(row.material, hamaker_constant=0.0)
+        p = bimodal_point(scan.modes, DMTForce(sample_m), z_base, 25e-9, 0.05e-9, 50)
+        assert row.frequency_shift_2 == pytest.approx(p.df2, rel=0.015), row.material
+        assert abs(row.bias) < 0.15, (row.material, row.bias)
 
 
 def test_the_recovered_modulus_is_the_truth_within_the_methods_measured_bias(blend_frame):
