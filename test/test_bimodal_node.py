@@ -235,6 +235,11 @@ def test_a_recorded_bimodal_session_reports_the_modulus_per_material_against_the
     assert rep.numbers["bimodal"] == published  # the table as the node published it
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "## Bimodal AM-FM: modulus per material against the truth" in md
+    assert (tmp_path / "rep" / "bimodal.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    images, corner, size = rep.data.bimodal_frame  # the recorded last images, as published
+    for name, array in images.items():
+        assert array.tobytes() == image_array(seen["images"][name]).tobytes(), name
+    assert size == VALUES["size"] and len(corner) == 2
     for row in published["materials"]:
         line = next(x for x in md.splitlines() if x.startswith(f"| {row['material']} |"))
         assert f"| {row['true_modulus'] * 1e-9:.4f} |" in line, line

@@ -17,7 +17,8 @@ from dataclasses import asdict
 from afm_ros.core.bimodal_scan import BIMODAL_SPECS, CHANNELS, BimodalScan, write_gwy_frame
 from afm_ros.core.physics.parameters import value_from_text
 from afm_ros.core.samples import resolve_sample
-from afm_ros.tools.figures import pyplot, write_csv
+from afm_ros.tools.bimodal_figure import plot_bimodal
+from afm_ros.tools.figures import write_csv
 from afm_ros.tools.run_setup import make_run_folder
 
 PROG = "afm_instrument --bimodal"
@@ -117,31 +118,13 @@ def write_outputs(folder, scan, frame, figure: bool) -> dict:
     csv = write_csv(folder / "bimodal_materials.csv", columns, [list(r.values()) for r in rows])
     out = {"gwy": str(gwy), "csv": str(csv)}
     if figure:
-        plt = pyplot()
-        x0, y0 = frame.origin
-        fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
-        extent = [x0 * 1e6, (x0 + frame.size) * 1e6, (y0 + frame.size) * 1e6, y0 * 1e6]
-        for ax, (name, scale, label) in zip(
-            axes,
-            (
-                ("height", 1e9, "height [nm]"),
-                (
-                    ("frequency_shift_2", 1.0, "df2 [Hz]")
-                    if frame.values["mode2_control"] == "fm"
-                    else ("phase_2", 1.0, "phase 2 [deg]")
-                ),
-                ("modulus", 1e-9, "E* recovered [GPa]"),
-                ("true_modulus", 1e-9, "E* true [GPa]"),
-            ),
-        ):
-            im = ax.imshow(frame.channels[name] * scale, extent=extent)
-            ax.set_title(label)
-            ax.set_xlabel("x [um]")
-            fig.colorbar(im, ax=ax, shrink=0.8)
-        fig.tight_layout()
-        png = folder / "bimodal.png"
-        fig.savefig(png, dpi=90)
-        plt.close(fig)
+        png = plot_bimodal(
+            {name: frame.channels[name][: frame.lines_done] for name in CHANNELS},
+            frame.origin,
+            frame.size,
+            frame.values["mode2_control"] == "fm",
+            folder / "bimodal.png",
+        )
         out["png"] = str(png)
     return out
 

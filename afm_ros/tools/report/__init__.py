@@ -89,6 +89,7 @@ from afm_ros.tools.report.collect import (
     tracking_numbers,
 )
 from afm_ros.tools.report.figures import (
+    write_bimodal_figure,
     write_figures,
     write_image_figure,
     write_spectroscopy_figure,
@@ -256,6 +257,9 @@ def make_report(session, out_dir=None) -> Report:
     spectroscopy_figure = write_spectroscopy_figure(data, out)
     if spectroscopy_figure is not None:
         figures.append(spectroscopy_figure)
+    bimodal_figure = write_bimodal_figure(data, out)
+    if bimodal_figure is not None:
+        figures.append(bimodal_figure)
     md = write_markdown(data, figures, out)
     numbers = tracking_numbers(data)
     for role, stream in (("deflection", data.deflection), ("force", data.force)):

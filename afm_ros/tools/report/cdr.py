@@ -20,6 +20,7 @@ LAYOUT_NAMES = {
     "fm_outputs": "PLL output batch",
 }
 IMAGE_ENCODING = "32FC1"
+FLOAT_ENCODINGS = {"32FC1": 4, "64FC1": 8}  # encoding -> bytes per pixel
 
 
 def cdr_float64(data) -> float:
@@ -109,10 +110,11 @@ def cdr_fm_batch(data) -> chunk_layout.FMBatch:
     )
 
 
-def cdr_image(data) -> tuple[int, int, bool, int, int]:
+def cdr_image(data, encoding: str = IMAGE_ENCODING) -> tuple[int, int, bool, int, int]:
     """(height, width, big-endian, step, offset of the pixel data) of a serialized
-    sensor_msgs/Image with encoding 32FC1 whose data hold height rows of step bytes; ValueError
-    saying what is wrong."""
+    sensor_msgs/Image with ``encoding`` (32FC1, the scanner's; 64FC1, the bimodal node's) whose
+    data hold height rows of step bytes; ValueError saying what is wrong."""
+    itemsize = FLOAT_ENCODINGS[encoding]
     mv = memoryview(data)
     order = cdr_byte_order(mv)
     pos = 4
@@ -137,20 +139,20 @@ def cdr_image(data) -> tuple[int, int, bool, int, int]:
     u32(), u32()  # stamp
     text()  # frame_id
     height, width = u32(), u32()
-    encoding = text()
+    found = text()
     if pos + 1 > len(mv):
         raise ValueError("the message ends inside its header")
     big = mv[pos] != 0
     pos += 1
     step = u32()
     size = u32()
-    if encoding != IMAGE_ENCODING:
-        raise ValueError(f"encoding {encoding[:40]!r}, not {IMAGE_ENCODING}")
+    if found != encoding:
+        raise ValueError(f"encoding {found[:40]!r}, not {encoding}")
     if height == 0 or width == 0:
         raise ValueError(f"{width} x {height} pixels")
-    if step < 4 * width:
-        raise ValueError(f"row step {step} B is shorter than {width} float32 pixels")
-    if size < step * (height - 1) + 4 * width or pos + size > len(mv):
+    if step < itemsize * width:
+        raise ValueError(f"row step {step} B is shorter than {width} {encoding} pixels")
+    if size < step * (height - 1) + itemsize * width or pos + size > len(mv):
         raise ValueError(
             f"{width} x {height} pixels with a row step of {step} B need {step * height} B, "
             f"the message holds {min(size, len(mv) - pos)}"
@@ -158,14 +160,16 @@ def cdr_image(data) -> tuple[int, int, bool, int, int]:
     return height, width, big, step, pos
 
 
-def decode_image(data) -> np.ndarray:
-    """The float32 pixels [rows, columns] of a message :func:`cdr_image` accepts (a copy)."""
-    height, width, big, step, pos = cdr_image(data)
+def decode_image(data, encoding: str = IMAGE_ENCODING) -> np.ndarray:
+    """The pixels [rows, columns] of a message :func:`cdr_image` accepts (a copy: float32 for
+    32FC1, float64 for 64FC1)."""
+    height, width, big, step, pos = cdr_image(data, encoding)
+    itemsize = FLOAT_ENCODINGS[encoding]
     rows = np.ndarray(
         (height, width),
-        dtype=(">f4" if big else "<f4"),
+        dtype=(">" if big else "<") + f"f{itemsize}",
         buffer=memoryview(data),
         offset=pos,
-        strides=(step, 4),
+        strides=(step, itemsize),
     )
-    return rows.astype(np.float32)
+    return rows.astype(np.float32 if itemsize == 4 else np.float64)

@@ -9,6 +9,7 @@ import numpy as np
 
 from afm_ros.core.tune import TuneResult
 from afm_ros.formats.frames import RANGE_TEXT, display_image
+from afm_ros.tools.bimodal_figure import plot_bimodal
 from afm_ros.tools.report.accumulators import Envelope
 from afm_ros.tools.report.collect import SETTLING_BAND, ZOOM_PERIODS, force_distance
 from afm_ros.tools.report.session import (
@@ -274,3 +275,13 @@ def write_spectroscopy_figure(data: SessionData, out: Path) -> Path | None:
         f"Z spectroscopy at ({c.x * 1e6:.3g}, {c.y * 1e6:.3g}) um, {c.rate * 1e9:.4g} nm/s "
         "(z_controller/spectroscopy)",
     )
+
+
+def write_bimodal_figure(data: SessionData, out: Path) -> Path | None:
+    """``bimodal.png``: the bimodal node's last recorded frame (tools/bimodal_figure.py); mode 2's
+    phase where no frequency shift was measured (AM-AM)."""
+    if data.bimodal_frame is None:
+        return None
+    images, corner, size = data.bimodal_frame
+    fm = bool(np.isfinite(images["frequency_shift_2"]).any())
+    return plot_bimodal(images, corner, size, fm, out / "bimodal.png")

@@ -196,7 +196,7 @@ def write_markdown(
             f"changed by {t['phase_offset_deg']:.3f} deg.",
         ]
     if data.bimodal is not None:
-        lines += _bimodal_lines(data.bimodal)
+        lines += _bimodal_lines(data.bimodal, data.bimodal_frame is not None)
     if data.spectroscopy is not None:
         g = spectroscopy_numbers(data.spectroscopy)
         lines += [
@@ -401,8 +401,9 @@ def write_markdown(
     return path
 
 
-def _bimodal_lines(table: dict) -> list[str]:
-    """The bimodal node's last per-material table: the recovered modulus against the truth."""
+def _bimodal_lines(table: dict, figure: bool) -> list[str]:
+    """The bimodal node's last per-material table: the recovered modulus against the truth (and
+    the figure of its last frame, if drawn)."""
 
     def num(value, scale: float, fmt: str) -> str:
         return "n/a" if value is None else format(value * scale, fmt)
@@ -412,7 +413,8 @@ def _bimodal_lines(table: dict) -> list[str]:
         "## Bimodal AM-FM: modulus per material against the truth",
         "",
         f"Frame {table['frame']}, {table['lines_done']} lines (`bimodal/materials`, medians over "
-        "each material's pixels away from edges; docs/bimodal.md 7).",
+        "each material's pixels away from edges; docs/bimodal.md 7)"
+        + ("; `bimodal.png`: height, mode 2's contrast, E* recovered, true." if figure else "."),
         "",
         "| material | pixels | E* recovered [GPa] | E* true [GPa] | bias | df2 [Hz] | "
         "indentation [nm] | height [nm] | tan(delta) mode 2 | true |",

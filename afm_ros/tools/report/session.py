@@ -343,6 +343,7 @@ class SessionData:
     geometry: dict | None = None  # the last scanner/geometry, checked
     tune: dict | None = None  # the last lockin/tune_result, checked
     bimodal: dict | None = None  # the last bimodal/materials table, checked
+    bimodal_frame: tuple | None = None  # (channel -> image, corner [m], side [m]) of bimodal.png
     spectroscopy: object = (
         None  # the last z_controller/spectroscopy curve (SpectroscopyCurve), checked
     )

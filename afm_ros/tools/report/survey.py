@@ -30,6 +30,7 @@ from afm_ros.tools.report.cdr import (
     cdr_fm_batch,
     cdr_image,
     cdr_vector3_stamped,
+    decode_image,
 )
 from afm_ros.tools.report.session import (
     BatchStream,
@@ -87,6 +88,8 @@ TUNE_TOPIC = "/lockin/tune_result"
 SPECTROSCOPY_TOPIC = "/z_controller/spectroscopy"
 STAGE_TOPIC = "/z_controller/stage"
 BIMODAL_TOPIC = "/bimodal/materials"  # the bimodal node's per-material table (JSON)
+BIMODAL_IMAGE_TOPIC = "/bimodal/image/"  # its channels (sensor_msgs/Image 64FC1)
+BIMODAL_PROGRESS_TOPIC = "/bimodal/progress"  # its frame: corner, side, mode 2's control
 BIMODAL_FIELDS = ("material", "pixels", "modulus", "true_modulus", "bias", "frequency_shift_2",
                   "indentation", "height", "loss_tangent_2", "true_loss_tangent_2")  # fmt: skip
 EXTRA_ROLES = (
@@ -97,6 +100,8 @@ EXTRA_ROLES = (
     "diagnostics",
     "stage",
     "bimodal",
+    "bimodal_image",
+    "bimodal_progress",
 )  # read when present and well-formed, skipped with a note if not
 
 
@@ -121,6 +126,10 @@ def _extra_role(topic: str, type_name: str) -> str | None:
         return "stage"
     if topic.endswith(BIMODAL_TOPIC):
         return "bimodal"
+    if BIMODAL_IMAGE_TOPIC in topic:
+        return "bimodal_image"
+    if topic.endswith(BIMODAL_PROGRESS_TOPIC):
+        return "bimodal_progress"
     if topic == "/diagnostics" or topic.endswith("/diagnostics"):
         return "diagnostics"
     return None
@@ -167,7 +176,16 @@ def _survey_extra(survey: "Survey", role: str, m, k: int) -> None:
             it.problem = f"message {k}: {exc}"
             return
         it.last_good, it.shape, it.problem = k, (height, width), ""
-    elif role in ("geometry", "tune", "bimodal"):
+    elif role == "bimodal_image":  # the last one of each channel (a frame is a few kB)
+        if m.type_name != IMAGE_TYPE:
+            survey.skipped[m.topic] = f"type {m.type_name or '(no schema)'}, not {IMAGE_TYPE}"
+            return
+        survey.bimodal_images[m.topic.split(BIMODAL_IMAGE_TOPIC, 1)[1]] = (
+            m.topic,
+            k,
+            bytes(m.data),
+        )
+    elif role in ("geometry", "tune", "bimodal", "bimodal_progress"):
         if m.type_name != "std_msgs/msg/String":
             survey.skipped[m.topic] = (
                 f"type {m.type_name or '(no schema)'}, not std_msgs/msg/String"
@@ -227,6 +245,8 @@ class Survey:
     )
     tune: tuple | None = None  # the same for the last lockin/tune_result
     bimodal: tuple | None = None  # the same for the last bimodal/materials
+    bimodal_progress: tuple | None = None  # the same for the last bimodal/progress
+    bimodal_images: dict = field(default_factory=dict)  # channel -> the same, its last image
     spectroscopy: tuple | None = None  # the same for the last z_controller/spectroscopy
     stage: dict = field(
         default_factory=dict
@@ -436,6 +456,25 @@ def check_bimodal(survey: Survey, data: SessionData) -> None:
         data.skipped[topic] = f"message {k}: not a per-material table (frame, lines, materials)"
         return
     data.bimodal = {"frame": g["frame"], "lines_done": g["lines_done"], "materials": rows}
+    check_bimodal_images(survey, data)
+
+
+def check_bimodal_images(survey: Survey, data: SessionData) -> None:
+    """The frame's last images (64FC1) with its corner and side from the last bimodal/progress,
+    for ``bimodal.png``; a channel that does not decode is skipped with a note."""
+    progress = _json_object(survey.bimodal_progress, data) if survey.bimodal_progress else None
+    if not progress or not isinstance(progress.get("origin_m"), list):
+        return
+    images = {}
+    for channel, (topic, k, raw) in survey.bimodal_images.items():
+        try:
+            images[channel] = decode_image(raw, "64FC1")
+        except ValueError as exc:
+            data.skipped[topic] = f"message {k}: {exc}"
+    needed = ("height", "frequency_shift_2", "phase_2", "modulus", "true_modulus")
+    if all(c in images for c in needed) and len({images[c].shape for c in needed}) == 1:
+        corner = tuple(float(v) for v in progress["origin_m"])
+        data.bimodal_frame = (images, corner, float(progress["size_m"]))
 
 
 def check_spectroscopy(survey: Survey, data: SessionData) -> None:
