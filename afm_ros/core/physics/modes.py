@@ -28,7 +28,11 @@ from numba import njit
 
 from afm_ros.core.physics import modes_events
 from afm_ros.core.physics.forces import tip_sample_force
-from afm_ros.core.physics.modes_events import DRIVE_ANCHOR, MODE_STREAM_STRIDE
+from afm_ros.core.physics.modes_events import (
+    DRIVE_ANCHOR,
+    MODE_STREAM_STRIDE,
+    drive_rotation,
+)
 from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at, thermal_force_sigma
 from afm_ros.core.physics.parameters import Cantilever
 
@@ -156,27 +160,6 @@ def _pack(modes: list[Mode], drives: list[ModeDrive]):
 
 
 @njit(cache=True, nogil=True)
-def _drive_rotation(dw, dphase, dt, step0):
-    """Per drive: cos and sin of w dt and of w dt / 2 (the rotations of a step and of its
-    middle), and cos and sin of the drive's angle at step ``step0``, reached from the last
-    DRIVE_ANCHOR-th step as a run from there would have rotated them (called once per kernel
-    call: any chunking gives the same values)."""
-    nd = dw.shape[0]
-    c_dt, s_dt = np.empty(nd), np.empty(nd)
-    c_half, s_half = np.empty(nd), np.empty(nd)
-    dc, ds = np.empty(nd), np.empty(nd)
-    anchor = step0 - step0 % DRIVE_ANCHOR
-    for j in range(nd):
-        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
-        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
-        angle = dw[j] * (anchor * dt) + dphase[j]
-        dc[j], ds[j] = math.cos(angle), math.sin(angle)
-        for _ in range(step0 - anchor):
-            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
-    return c_dt, s_dt, c_half, s_half, dc, ds
-
-
-@njit(cache=True, nogil=True)
 def _advance_modes(
     z, v, energy, k, c, inv_m, dmode, dw, dforce, dphase, model, p, z_base, dt, nsteps, every,
     out_z, sigma, seed, step0, energies,
@@ -195,7 +178,7 @@ def _advance_modes(
     only, so any chunking gives the same run."""
     n = z.shape[0]
     nd = dmode.shape[0]
-    c_dt, s_dt, c_half, s_half, dc, ds = _drive_rotation(dw, dphase, dt, step0)
+    c_dt, s_dt, c_half, s_half, dc, ds = drive_rotation(dw, dphase, dt, step0)
     f_stage = np.empty((3, nd))  # each drive's force at the step's start, middle and end [N]
     fd = np.empty(n)
     fth = np.zeros(n)
@@ -277,7 +260,7 @@ def _advance_two(
     in the same order (the same trajectory bit for bit, test_modes), without the small arrays'
     loops (the bimodal session's kernel)."""
     nd = dmode.shape[0]
-    c_dt, s_dt, c_half, s_half, dc, ds = _drive_rotation(dw, dphase, dt, step0)
+    c_dt, s_dt, c_half, s_half, dc, ds = drive_rotation(dw, dphase, dt, step0)
     k0, k1, c0, c1, m0, m1 = k[0], k[1], c[0], c[1], inv_m[0], inv_m[1]
     z0, z1, v0, v1 = z[0], z[1], v[0], v[1]
     th0 = th1 = 0.0

@@ -43,11 +43,32 @@ from afm_ros.core.physics.events import (
 from afm_ros.core.physics.forces import MODEL_HYSTERESIS_DMT, tip_sample_force
 from afm_ros.core.physics.noise import THERMAL_STREAM, normal_at
 
-# shared with afm_ros.core.physics.modes (which imports them from here: the kernels of both must
-# rotate the drives and draw the thermal forces alike)
+# shared with afm_ros.core.physics.modes (which imports them and drive_rotation from here: the
+# kernels of both must rotate the drives and draw the thermal forces alike)
 DRIVE_ANCHOR = 64  # steps: the drives' cos and sin evaluated exactly at every 64th global step
 MODE_STREAM_STRIDE = 16  # mode i's thermal force: stream THERMAL_STREAM + 16 i of the seed
 MODELS = ("dmt", "viscoelastic_dmt")
+
+
+@njit(cache=True, nogil=True)
+def drive_rotation(dw, dphase, dt, step0):
+    """Per drive: cos and sin of w dt and of w dt / 2 (the rotations of a step and of its
+    middle), and cos and sin of the drive's angle at step ``step0``, reached from the last
+    DRIVE_ANCHOR-th step as a run from there would have rotated them (called once per kernel
+    call: any chunking gives the same values)."""
+    nd = dw.shape[0]
+    c_dt, s_dt = np.empty(nd), np.empty(nd)
+    c_half, s_half = np.empty(nd), np.empty(nd)
+    dc, ds = np.empty(nd), np.empty(nd)
+    anchor = step0 - step0 % DRIVE_ANCHOR
+    for j in range(nd):
+        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
+        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
+        angle = dw[j] * (anchor * dt) + dphase[j]
+        dc[j], ds[j] = math.cos(angle), math.sin(angle)
+        for _ in range(step0 - anchor):
+            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    return c_dt, s_dt, c_half, s_half, dc, ds
 
 
 @njit(cache=True, inline="always")
@@ -206,17 +227,7 @@ def advance_two_event(
     thermal work per mode [J]) accumulated; ``stats[0]`` += steps with a located switch,
     ``stats[1]`` += RK4 pieces beyond one per step."""
     nd = dmode.shape[0]
-    c_dt, s_dt = np.empty(nd), np.empty(nd)
-    c_half, s_half = np.empty(nd), np.empty(nd)
-    dc, ds = np.empty(nd), np.empty(nd)
-    anchor = step0 - step0 % DRIVE_ANCHOR
-    for j in range(nd):
-        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
-        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
-        angle = dw[j] * (anchor * dt) + dphase[j]
-        dc[j], ds[j] = math.cos(angle), math.sin(angle)
-        for _ in range(step0 - anchor):
-            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    c_dt, s_dt, c_half, s_half, dc, ds = drive_rotation(dw, dphase, dt, step0)
     dc0, ds0 = np.empty(nd), np.empty(nd)
     e = np.zeros((4, 2))
     piece_e = np.zeros((4, 2))
@@ -476,17 +487,7 @@ def advance_modes_event(
     bit for bit), the energies (4 x N) accumulated with every piece's stages."""
     n = z.shape[0]
     nd = dmode.shape[0]
-    c_dt, s_dt = np.empty(nd), np.empty(nd)
-    c_half, s_half = np.empty(nd), np.empty(nd)
-    dc, ds = np.empty(nd), np.empty(nd)
-    anchor = step0 - step0 % DRIVE_ANCHOR
-    for j in range(nd):
-        c_dt[j], s_dt[j] = math.cos(dw[j] * dt), math.sin(dw[j] * dt)
-        c_half[j], s_half[j] = math.cos(0.5 * dw[j] * dt), math.sin(0.5 * dw[j] * dt)
-        angle = dw[j] * (anchor * dt) + dphase[j]
-        dc[j], ds[j] = math.cos(angle), math.sin(angle)
-        for _ in range(step0 - anchor):
-            dc[j], ds[j] = dc[j] * c_dt[j] - ds[j] * s_dt[j], ds[j] * c_dt[j] + dc[j] * s_dt[j]
+    c_dt, s_dt, c_half, s_half, dc, ds = drive_rotation(dw, dphase, dt, step0)
     dc0, ds0 = np.empty(nd), np.empty(nd)
     f_stage = np.empty((3, nd))
     fd = np.empty(n)
