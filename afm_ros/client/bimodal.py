@@ -27,15 +27,13 @@ import numpy as np
 
 from afm_ros.client.errors import BadArgument, NoAnswer, WorkflowFailed
 from afm_ros.core.bimodal_scan import (
-    BIMODAL_NODE_SPECS,
     BIMODAL_SPECS,
     CHANNELS,
-    BimodalScan,
-    check_values,
+    check_with_sample,
     pixel_centres,
     rows_json,
+    scan_of,
 )
-from afm_ros.core.samples import resolve_sample
 
 NAMES = (*BIMODAL_SPECS, "sample")  # what a client sets (output_directory is the node's own)
 DONE = ("done", "stopped")
@@ -86,13 +84,9 @@ def _checked(values: dict) -> dict:
             f"{', '.join(unknown)}: not a bimodal parameter; known: {', '.join(NAMES)}"
         )
     try:
-        merged = check_values({k: v for k, v in values.items() if k in BIMODAL_SPECS})
-        sample = values.get("sample", BIMODAL_NODE_SPECS["sample"].default)
-        if resolve_sample(sample) is None:
-            raise ValueError(f"sample={sample!r}: a sample map is needed (not 'flat')")
+        return check_with_sample(values)
     except ValueError as exc:
         raise BadArgument(str(exc)) from None
-    return {**merged, "sample": sample}
 
 
 class LocalBimodal:
@@ -106,7 +100,7 @@ class LocalBimodal:
 
     def frame(self, progress):
         v = self.values
-        scan = BimodalScan(resolve_sample(v["sample"]), {k: v[k] for k in BIMODAL_SPECS})
+        scan = scan_of(v)
         frame = scan.run(progress)
         state = "done" if frame.lines_done == scan.n else "stopped"
         done = frame.lines_done

@@ -46,6 +46,7 @@ from afm_ros.core.physics.modes import (
     rectangular_modes,
 )
 from afm_ros.core.physics.parameters import Cantilever, ParamSpec, validate_values
+from afm_ros.core.samples import resolve_sample
 from afm_ros.core.samples.surface import Sample, dilate
 from afm_ros.formats.chunk_layout import ChunkHeader
 from afm_ros.formats.gwy import write_gwy
@@ -247,6 +248,24 @@ def second_mode(beam: list[Mode], values: dict) -> list[Mode]:
     if (f2, k2, q2) == (m2.resonance_frequency, m2.spring_constant, m2.quality_factor):
         return [m1, m2]  # the beam's own, bit for bit
     return [m1, Mode(f2, k2, q2)]
+
+
+def check_with_sample(values: dict) -> dict:
+    """The session's values (missing: defaults) and ``sample`` (a built-in map or a description
+    file; the node's default if missing) checked together: what the node and the client take;
+    ValueError naming the field."""
+    session = check_values({k: v for k, v in values.items() if k in BIMODAL_SPECS})
+    sample = values.get("sample", BIMODAL_NODE_SPECS["sample"].default)
+    if resolve_sample(sample) is None:
+        raise ValueError(f"sample={sample!r}: a sample map is needed (not 'flat')")
+    return {**session, "sample": sample}
+
+
+def scan_of(values: dict, compiled: bool = True) -> "BimodalScan":
+    """The scan of values :func:`check_with_sample` accepted (the session's and ``sample``)."""
+    return BimodalScan(
+        resolve_sample(values["sample"]), {k: values[k] for k in BIMODAL_SPECS}, compiled
+    )
 
 
 def rows_json(rows: list) -> list[dict]:

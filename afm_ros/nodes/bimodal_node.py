@@ -47,14 +47,13 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from afm_ros.core.bimodal_scan import (
-    BIMODAL_SPECS,
     CHANNELS,
     BimodalScan,
-    check_values,
+    check_with_sample,
     rows_json,
+    scan_of,
     write_gwy_frame,
 )
-from afm_ros.core.samples import resolve_sample
 from afm_ros.core.specs import NODE_SPECS
 from afm_ros.formats.folders import check_output_directory
 from afm_ros.nodes import topics
@@ -80,9 +79,7 @@ def image_message(array: np.ndarray, stamp_s: float) -> Image:
 def check_node_values(values: dict) -> None:
     """The session's values and the node's own (sample, output_directory): ValueError naming the
     field."""
-    check_values({k: v for k, v in values.items() if k in BIMODAL_SPECS})
-    if resolve_sample(values["sample"]) is None:
-        raise ValueError(f"sample={values['sample']!r}: a sample map is needed (not 'flat')")
+    check_with_sample(values)
     if values["output_directory"]:
         check_output_directory(values["output_directory"], probe_write=False)
 
@@ -128,10 +125,7 @@ class BimodalNode(GuardedNode):
     def _warm_up(self) -> None:
         values = self.values()
         try:
-            BimodalScan(
-                resolve_sample(values["sample"]),
-                {k: v for k, v in values.items() if k in BIMODAL_SPECS},
-            ).warm_up()
+            scan_of(values).warm_up()
         except Exception as exc:  # noqa: BLE001 - a frame would meet (and report) it again
             self.get_logger().warning(f"warm-up failed: {type(exc).__name__}: {exc}")
 
@@ -198,10 +192,7 @@ class BimodalNode(GuardedNode):
         scan = None
         state, reason, file = "scanning", "", ""
         try:
-            scan = BimodalScan(
-                resolve_sample(values["sample"]),
-                {k: v for k, v in values.items() if k in BIMODAL_SPECS},
-            )
+            scan = scan_of(values)
             self._progress(frame_no, scan, start, state)
             scan.engage()
             while scan.lines_done < scan.n and not self._stop.is_set():

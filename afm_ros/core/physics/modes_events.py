@@ -393,7 +393,9 @@ def _event_step_n(
     piece_e, work, scratch,
 ):  # fmt: skip
     """:func:`_event_step` for N modes (arrays); the state is updated in place; returns (1 if a
-    switch was located, RK4 pieces beyond one). ``fast``: the mode whose contact oscillation
+    switch was located, RK4 pieces beyond one). (Two modes keep the scalar :func:`_event_step`:
+    this one in its place cost 48 -> 61 ns per tapping step and 0.61 -> 0.40x real time in the
+    bimodal session.) ``fast``: the mode whose contact oscillation
     sizes the pieces in contact (the highest); ``scratch`` 8 x N."""
     n = z.shape[0]
     za, va = scratch[0], scratch[1]
