@@ -868,3 +868,70 @@ def test_bimodal_frame_wait_prints_each_materials_modulus_against_its_truth(
         node.destroy_node()
         executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown(context=ctx)
+
+
+def _docs_block(path: Path, heading: str, language: str = "") -> str:
+    """The first fenced code block (```language) after ``heading`` in ``path``."""
+    text = path.read_text()
+    after = text[text.index(heading) :]
+    start = after.index("```" + language + "\n") + len(language) + 4
+    return after[start : after.index("```", start)]
+
+
+@pytest.mark.slow
+def test_the_bimodal_docs_commands_and_client_snippet_run_as_written(ctl_env, tmp_path):
+    """docs/bimodal.md 8 as a user types it: the node in one terminal (its own process, the
+    root namespace), the afm_ctl lines in another, then the Python snippet: the setpoint is taken,
+    the frame's E* lines printed and its .gwy written into ``frames``, the snippet's frame has the
+    per-material table."""
+    doc = ROOT / "docs" / "bimodal.md"
+    heading = "## 8. The bimodal instrument live over ROS"
+    lines = [
+        line.split("#", 1)[0].split()
+        for line in _docs_block(doc, heading).splitlines()
+        if line.startswith(".venv/bin/") and "live_view_node" not in line
+    ]
+    node_line, *ctl_lines = lines
+    assert node_line[0] == ".venv/bin/bimodal_node" and len(ctl_lines) == 2, lines
+
+    def exe(args):
+        return [str(VENV_BIN / Path(args[0]).name), *args[1:]]
+
+    node = subprocess.Popen(
+        exe(node_line), cwd=tmp_path, env=ctl_env, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        for line in node.stderr:  # the node says it is ready (after its imports)
+            if "ready: bimodal" in line:
+                break
+        assert node.poll() is None, "the node ended"
+        results = [
+            subprocess.run(
+                exe(args), cwd=tmp_path, env=ctl_env, capture_output=True, text=True, timeout=300
+            )
+            for args in ctl_lines
+        ]
+        assert all(r.returncode == 0 for r in results), [r.stderr for r in results]
+        assert "setpoint_ratio" in results[0].stdout and "0.7" in results[0].stdout
+        out = results[1].stdout
+        assert "frame 1 done: 32 of 32 lines, " in out and "bimodal_0001.gwy" in out, out
+        assert re.search(r"^  polystyrene +E\* \d\.\d{3} GPa against 3\.313 GPa true", out, re.M)
+        assert (tmp_path / "frames" / "bimodal_0001.gwy").stat().st_size > 0
+        snippet = _docs_block(doc, heading, "python")
+        r = subprocess.run(
+            [sys.executable, "-c", snippet],
+            cwd=tmp_path, env=ctl_env, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        printed = r.stdout.splitlines()
+        assert printed[-2] == "32 32"  # the progress callback's last line
+        rows = yaml.safe_load(printed[-1])  # the JSON table
+        assert {row["material"] for row in rows} == {"polystyrene", "ldpe"}
+    finally:
+        node.send_signal(signal.SIGINT)
+        try:
+            node.wait(30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            node.wait()
+        node.stderr.close()
